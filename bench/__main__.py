@@ -1,0 +1,33 @@
+"""Run the benchmarks: ``python -m bench`` (all) or ``python -m bench model statics``."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import sys
+import time
+from pathlib import Path
+
+
+def main(argv: list[str]) -> int:
+    here = Path(__file__).parent
+    names = sorted(
+        m.name.removeprefix("bench_")
+        for m in pkgutil.iter_modules([str(here)])
+        if m.name.startswith("bench_")
+    )
+    chosen = argv or names
+    unknown = [n for n in chosen if n not in names]
+    if unknown:
+        print(f"unknown benchmark(s): {', '.join(unknown)}; known: {', '.join(names)}")
+        return 2
+    for name in chosen:
+        print(f"== bench {name}", flush=True)
+        start = time.perf_counter()
+        importlib.import_module(f"bench.bench_{name}").run()
+        print(f"   ({time.perf_counter() - start:.1f} s)\n", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

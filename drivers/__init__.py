@@ -1,0 +1,1 @@
+"""Fieldbus drivers: base (ABC, errors), modbus_tcp, canopen, virtual."""

@@ -1,0 +1,298 @@
+"""The gateway's configuration: YAML -> frozen dataclasses, validated once at start.
+
+``load_config(path)`` reads a full config file (``config/default.yaml`` is the reference).
+Every section has defaults, so a file only states what differs. Unknown keys and bad
+values raise :class:`ConfigError` naming the file and the dotted key. The ``sim_plc``
+section belongs to the soft PLC: it is kept as a raw mapping here and validated by
+``sim_plc`` when the soft PLC loads it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from gateway.configtypes import convert, read_yaml, require
+from gateway.errors import ConfigError
+
+Vec3 = tuple[float, float, float]
+
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "config" / "default.yaml"
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    """Frame anchors ``a_i`` (world frame, m) and platform anchors ``b_i`` (platform frame)."""
+
+    frame_anchors_m: tuple[Vec3, ...]
+    platform_anchors_m: tuple[Vec3, ...]
+    platform_mass_kg: float = 50.0
+    gravity_m_s2: float = 9.81
+    center_of_mass_m: Vec3 = (0.0, 0.0, 0.0)
+    home_pose: tuple[float, float, float, float, float, float] = (0.0, 0.0, 1.5, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        require(len(self.frame_anchors_m) >= 1, "frame_anchors_m: at least one cable")
+        require(
+            len(self.frame_anchors_m) == len(self.platform_anchors_m),
+            f"frame_anchors_m has {len(self.frame_anchors_m)} entries but platform_anchors_m "
+            f"has {len(self.platform_anchors_m)}",
+        )
+        require(self.platform_mass_kg > 0, "platform_mass_kg must be > 0")
+
+    @property
+    def cables(self) -> int:
+        return len(self.frame_anchors_m)
+
+
+@dataclass(frozen=True)
+class TensionConfig:
+    """Admissible cable tensions for the tension distribution (paper: 0 < T < 1000 N)."""
+
+    min_n: float = 20.0
+    max_n: float = 1000.0
+
+    def __post_init__(self) -> None:
+        require(0 <= self.min_n < self.max_n, "need 0 <= min_n < max_n")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The force sensors: range and the S7 analog format (0..adc_full_scale = 0..range)."""
+
+    range_n: float = 500.0
+    adc_full_scale: int = 27648
+
+    def __post_init__(self) -> None:
+        require(self.range_n > 0, "range_n must be > 0")
+        require(0 < self.adc_full_scale <= 32767, "adc_full_scale must be in 1..32767")
+
+
+@dataclass(frozen=True)
+class PulleyConfig:
+    """One pulley between sensor and platform: wrap (deflection) angle and bearing mu."""
+
+    wrap_deg: float
+    mu: float
+
+    def __post_init__(self) -> None:
+        require(0 <= self.wrap_deg <= 180, "wrap_deg must be in 0..180")
+        require(0 <= self.mu < 1, "mu must be in 0..1")
+
+
+@dataclass(frozen=True)
+class FrictionConfig:
+    """The pulley friction model (recording.md, 'The nominal model file')."""
+
+    model: Literal["none", "coulomb", "dahl"] = "dahl"
+    pulleys: tuple[PulleyConfig, ...] = (
+        PulleyConfig(90.0, 0.015),
+        PulleyConfig(60.0, 0.015),
+        PulleyConfig(30.0, 0.015),
+    )
+    sigma_n_m: float = 500.0
+    beta: float = 1.0
+    viscous_ns_m: float = 0.0
+    pulley_radius_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        require(self.sigma_n_m > 0, "sigma_n_m must be > 0")
+        require(self.beta > 0, "beta must be > 0")
+        require(self.viscous_ns_m >= 0, "viscous_ns_m must be >= 0")
+        require(self.pulley_radius_m > 0, "pulley_radius_m must be > 0")
+
+    @property
+    def wrap_rad(self) -> tuple[float, ...]:
+        return tuple(math.radians(p.wrap_deg) for p in self.pulleys)
+
+    @property
+    def mu(self) -> tuple[float, ...]:
+        return tuple(p.mu for p in self.pulleys)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """The cyclic service: period, channel validation and the PLC watchdog."""
+
+    period_s: float = 0.001
+    substitute_max_s: float = 0.05  # last-good substitution lasts at most this, then invalid
+    stuck_after_s: float = 0.5  # a channel that does not change for this long is stuck
+    stale_after_s: float = 0.01  # no fresh read for this long: channels are stale
+    heartbeat_timeout_s: float = 0.1  # PLC heartbeat unchanged this long: stop writing, fault
+    fixed_point_tol_n: float = 1e-9
+    fixed_point_max_iter: int = 8
+    overrun_warning_interval_s: float = 10.0
+    busy_wait_s: float = 0.0002  # spin this long before each deadline instead of sleeping
+
+    def __post_init__(self) -> None:
+        require(1e-4 <= self.period_s <= 1.0, "period_s must be in 0.0001..1")
+        require(self.substitute_max_s >= 0, "substitute_max_s must be >= 0")
+        require(self.heartbeat_timeout_s > 0, "heartbeat_timeout_s must be > 0")
+        require(self.fixed_point_max_iter >= 1, "fixed_point_max_iter must be >= 1")
+
+
+RegisterType = Literal["int16", "uint16", "int32", "uint32", "float32"]
+
+
+@dataclass(frozen=True)
+class RegisterField:
+    """A block of ``count`` values of one type starting at holding register ``address``.
+
+    ``word_order`` applies to 32-bit types; ``format: s7_analog`` maps 0..adc_full_scale
+    to 0..sensor range; otherwise value = raw * scale.
+    """
+
+    address: int
+    count: int = 1
+    type: RegisterType = "uint16"
+    word_order: Literal["high_first", "low_first"] = "high_first"
+    scale: float = 1.0
+    format: Literal["plain", "s7_analog"] = "plain"
+
+    def __post_init__(self) -> None:
+        require(0 <= self.address <= 65535, "address must be in 0..65535")
+        require(self.count >= 1, "count must be >= 1")
+        require(self.scale != 0, "scale must not be 0")
+
+    @property
+    def words(self) -> int:
+        per = 2 if self.type in ("int32", "uint32", "float32") else 1
+        return self.count * per
+
+    @property
+    def end(self) -> int:
+        """One past the last register of the block."""
+        return self.address + self.words
+
+
+@dataclass(frozen=True)
+class RegisterMap:
+    """Holding-register map (0-based). Inputs are read from the PLC, outputs written."""
+
+    raw_tensions: RegisterField = RegisterField(0, 8, "int16", format="s7_analog")
+    setpoint_velocities: RegisterField = RegisterField(8, 8, "float32")
+    setpoint_lengths: RegisterField = RegisterField(24, 8, "float32")
+    pose: RegisterField = RegisterField(40, 6, "float32")
+    plc_heartbeat: RegisterField = RegisterField(52, 1, "uint16")
+    corrected_tensions: RegisterField = RegisterField(100, 8, "float32")
+    channel_status: RegisterField = RegisterField(116, 8, "uint16")
+    gateway_heartbeat: RegisterField = RegisterField(124, 1, "uint16")
+    gateway_state: RegisterField = RegisterField(125, 1, "uint16")
+    wrench: RegisterField = RegisterField(126, 6, "float32")
+    true_tensions: RegisterField | None = RegisterField(200, 8, "float32")  # simulation only
+
+    def inputs(self) -> dict[str, RegisterField]:
+        names = ("raw_tensions", "setpoint_velocities", "setpoint_lengths", "pose", "plc_heartbeat")
+        return {n: getattr(self, n) for n in names}
+
+    def outputs(self) -> dict[str, RegisterField]:
+        names = (
+            "corrected_tensions",
+            "channel_status",
+            "gateway_heartbeat",
+            "gateway_state",
+            "wrench",
+        )
+        return {n: getattr(self, n) for n in names}
+
+
+@dataclass(frozen=True)
+class TlsConfig:
+    """Modbus/TCP Security (TLS); paths to PEM files."""
+
+    certfile: str
+    keyfile: str
+    cafile: str | None = None
+    verify_peer: bool = True
+
+
+@dataclass(frozen=True)
+class ModbusTcpConfig:
+    host: str = "127.0.0.1"
+    port: int = 5020
+    unit_id: int = 1
+    timeout_s: float = 0.05
+    connect_timeout_s: float = 1.0
+    use_fc23: bool = True
+    reconnect_min_s: float = 0.05
+    reconnect_max_s: float = 2.0
+    tls: TlsConfig | None = None
+    registers: RegisterMap = field(default_factory=RegisterMap)
+
+    def __post_init__(self) -> None:
+        require(0 < self.port <= 65535, "port must be in 1..65535")
+        require(0 <= self.unit_id <= 255, "unit_id must be in 0..255")
+        require(self.timeout_s > 0, "timeout_s must be > 0")
+
+
+@dataclass(frozen=True)
+class CanopenConfig:
+    interface: str = "virtual"
+    channel: str = "cdpr"
+    bitrate: int = 1_000_000
+    gateway_node_id: int = 0x20
+    analog_node_id: int = 0x10
+    sync_period_s: float = 0.001
+    gateway_eds: str = "config/gateway.eds"
+    analog_eds: str = "config/analog_in_401.eds"
+
+    def __post_init__(self) -> None:
+        require(1 <= self.gateway_node_id <= 127, "gateway_node_id must be in 1..127")
+        require(1 <= self.analog_node_id <= 127, "analog_node_id must be in 1..127")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    driver: str = "modbus_tcp"
+    modbus_tcp: ModbusTcpConfig = field(default_factory=ModbusTcpConfig)
+    canopen: CanopenConfig = field(default_factory=CanopenConfig)
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = 9109
+    certfile: str | None = None
+    keyfile: str | None = None
+    basic_auth_user: str | None = None
+    basic_auth_password_sha256: str | None = None
+
+
+@dataclass(frozen=True)
+class Config:
+    geometry: GeometryConfig
+    tension: TensionConfig = field(default_factory=TensionConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    friction: FrictionConfig = field(default_factory=FrictionConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    sim_plc: dict[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def cables(self) -> int:
+        return self.geometry.cables
+
+
+def config_from_mapping(data: dict[str, Any], source: str = "") -> Config:
+    """Validate a parsed YAML mapping into a :class:`Config`."""
+    if "source" in data:  # 'source' is filled in here, never read from the file
+        raise ConfigError(f"{source}: source: unknown key")
+    return convert(Config, {**data, "source": source}, "", source)
+
+
+def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> Config:
+    """Read and validate a full config file."""
+    return config_from_mapping(read_yaml(path), str(path))
+
+
+def load_friction(path: str | Path) -> FrictionConfig:
+    """Read a nominal model file: a ``friction:`` mapping alone or inside a full config."""
+    data = read_yaml(path)
+    if "friction" in data:
+        return convert(FrictionConfig, data["friction"], "friction", str(path))
+    return convert(FrictionConfig, data, "", str(path))

@@ -1,0 +1,151 @@
+"""YAML mappings -> frozen dataclasses, validated once, errors naming file and key.
+
+``convert(cls, data, key, source)`` walks the dataclass' type hints and builds it from a
+plain mapping. Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal``,
+``X | None``, ``tuple[X, ...]``, ``tuple[X, Y, Z]``, ``dict[str, X]`` and nested
+dataclasses. Unknown keys and missing required keys are errors; a dataclass may check
+its own values in ``__post_init__`` by raising ``ValueError`` and the message is
+prefixed with the file and the dotted key path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal, TypeVar, get_args, get_origin
+
+import yaml
+
+from gateway.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def _fail(source: str, key: str, message: str) -> ConfigError:
+    where = f"{source}: " if source else ""
+    return ConfigError(f"{where}{key or '<top>'}: {message}")
+
+
+def _join(key: str, name: str | int) -> str:
+    if isinstance(name, int):
+        return f"{key}[{name}]"
+    return f"{key}.{name}" if key else name
+
+
+def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:  # noqa: C901
+    origin = get_origin(tp)
+    if tp is Any:
+        return value
+    if origin is typing.Union or origin is types.UnionType:
+        args = get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert_value(arg, value, key, source)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        if errors:
+            raise ConfigError(errors[-1])
+        raise _fail(source, key, "bad value")
+    if origin is Literal:
+        allowed = get_args(tp)
+        if value not in allowed:
+            choices = ", ".join(repr(a) for a in allowed)
+            raise _fail(source, key, f"{value!r} is not one of {choices}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        return convert(tp, value, key, source)  # type: ignore[arg-type]
+    if origin is tuple:
+        args = get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise _fail(source, key, f"expected a list, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert_value(args[0], v, _join(key, i), source) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise _fail(source, key, f"expected {len(args)} items, got {len(value)}")
+        return tuple(
+            _convert_value(a, v, _join(key, i), source)
+            for i, (a, v) in enumerate(zip(args, value, strict=True))
+        )
+    if origin is dict:
+        _, vt = get_args(tp)
+        if not isinstance(value, Mapping):
+            raise _fail(source, key, f"expected a mapping, got {type(value).__name__}")
+        return {str(k): _convert_value(vt, v, _join(key, str(k)), source) for k, v in value.items()}
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise _fail(source, key, f"expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _fail(source, key, f"expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _fail(source, key, f"expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise _fail(source, key, f"expected a finite number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise _fail(source, key, f"expected a string, got {value!r}")
+        return value
+    raise _fail(source, key, f"unsupported field type {tp!r}")  # pragma: no cover
+
+
+def convert(cls: type[T], data: Any, key: str = "", source: str = "") -> T:
+    """Build dataclass ``cls`` from mapping ``data``; errors name ``source`` and ``key``."""
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        raise _fail(source, key, f"expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        known = ", ".join(sorted(fields))
+        raise _fail(source, _join(key, str(unknown[0])), f"unknown key (known here: {known})")
+    kwargs: dict[str, Any] = {}
+    for name, field in fields.items():
+        if name in data:
+            kwargs[name] = _convert_value(hints[name], data[name], _join(key, name), source)
+        elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
+            raise _fail(source, _join(key, name), "required key is missing")
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:
+        raise _fail(source, key, str(exc)) from exc
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML file whose top level is a mapping; errors name the file and line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f" line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}:{line} is not valid YAML: {exc}") from exc
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping")
+    return data
+
+
+def require(condition: bool, message: str) -> None:
+    """For ``__post_init__``: raise ``ValueError(message)`` unless ``condition``."""
+    if not condition:
+        raise ValueError(message)

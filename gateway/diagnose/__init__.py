@@ -1,0 +1,1 @@
+"""Offline diagnosis of mismatches between a recording and the nominal model."""

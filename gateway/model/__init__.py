@@ -1,0 +1,1 @@
+"""Pure physics: kinematics, statics, pulley friction and the sensor chain. No I/O."""

@@ -1,0 +1,344 @@
+"""The cable path between force sensor and platform, both ways (physics.md sec. 2, 3).
+
+``m`` cables, each passing ``n`` pulleys numbered from the sensor towards the platform.
+Per pulley ``T_j = T_{j-1} + F_j`` where ``F_j`` is
+
+* ``coulomb``: ``sgn(v) F_Rj`` (eq. 8, 11, 12),
+* ``dahl``: the pre-sliding state stepped with :func:`friction.dahl_step` over
+  ``dx = v dt`` (eq. 14), carried between calls,
+* ``none``: 0,
+
+with the Coulomb level ``F_Rj = (lambda_ij(s) |T_j| + f0_i / n) S_i(v)`` (physics.md:
+``F_Rj = lambda_j T_j``, the level the Dahl state tends to): ``lambda_ij(s)`` is taken at
+the exact per-direction Coulomb ratio ``n_j(s)`` (eq. 11, 12 solved as a quadratic, see
+:func:`coulomb_coefficients`), so at steady sliding Dahl equals Coulomb exactly; ``f0`` is
+a load-independent part (seals, preload; split evenly over the pulleys) and
+``S = 1 + k exp(-(v / v_s)^2)`` the Stribeck factor. Viscous friction ``c_i v`` is added
+at the platform end: ``T_p = T_n + c v``. ``|T|`` makes the law hold for push forces too
+(a single-axis test rig).
+
+Simulation (platform -> sensor) is explicit: ``F_Rj`` follows from the known platform-side
+tension, so each pulley is one exact Dahl step. Compensation (sensor -> platform) is
+implicit in ``T_j``: Newton's iteration seeded with the previous cycle (``T_{j-1} +
+F_old``) converges to 1e-9 N in one or two passes at 1 kHz (tests check it), stopping at
+``tol_n`` or after ``max_iter`` passes.
+
+* :func:`compensate` / :class:`ChainStepper`: sensor reading ``T_s`` and setpoint velocity
+  -> platform tension ``T_p`` (what the gateway does each cycle).
+* :func:`simulate`: platform tension and velocity -> the sensor reading ``T_s`` (the plant).
+
+Both run the same compiled kernel; ``compensate(simulate(T))`` returns ``T``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+from numba import njit
+
+from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step
+
+MODEL_CODES = {"none": 0, "coulomb": 1, "dahl": 2}
+ModelName = Literal["none", "coulomb", "dahl"]
+
+
+def _per_cable(value: float | np.ndarray, cables: int, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        return np.full(cables, float(arr))
+    if arr.shape != (cables,):
+        raise ValueError(f"{name}: expected a scalar or shape ({cables},), got {arr.shape}")
+    return arr.copy()
+
+
+@dataclass(frozen=True, eq=False)
+class ChainParams:
+    """Friction parameters of ``m`` cable chains of ``n`` pulleys each.
+
+    Arrays: ``wrap_rad`` (n,); ``mu`` (m, n); ``sigma_n_m``, ``f0_n``, ``stribeck_k``,
+    ``stribeck_v_m_s``, ``viscous_ns_m`` (m,). ``beta``: Dahl shape exponent.
+    """
+
+    model: ModelName
+    wrap_rad: np.ndarray
+    mu: np.ndarray
+    sigma_n_m: np.ndarray
+    beta: float = 1.0
+    f0_n: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stribeck_k: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stribeck_v_m_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    viscous_ns_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @staticmethod
+    def build(
+        model: ModelName,
+        cables: int,
+        wrap_rad: np.ndarray | tuple[float, ...],
+        mu: float | np.ndarray | tuple[float, ...],
+        sigma_n_m: float | np.ndarray = 500.0,
+        beta: float = 1.0,
+        f0_n: float | np.ndarray = 0.0,
+        stribeck_k: float | np.ndarray = 0.0,
+        stribeck_v_m_s: float | np.ndarray = 0.01,
+        viscous_ns_m: float | np.ndarray = 0.0,
+    ) -> ChainParams:
+        """Broadcast scalars and per-pulley (n,) or per-cable-per-pulley (m, n) ``mu``."""
+        if model not in MODEL_CODES:
+            raise ValueError(f"model must be one of {sorted(MODEL_CODES)}, got {model!r}")
+        wrap = np.asarray(wrap_rad, dtype=float).reshape(-1)
+        mu_arr = np.broadcast_to(np.asarray(mu, dtype=float), (cables, wrap.size)).copy()
+        vs = _per_cable(stribeck_v_m_s, cables, "stribeck_v_m_s")
+        if np.any(vs <= 0):
+            raise ValueError("stribeck_v_m_s must be > 0")
+        return ChainParams(
+            model=model,
+            wrap_rad=wrap,
+            mu=mu_arr,
+            sigma_n_m=_per_cable(sigma_n_m, cables, "sigma_n_m"),
+            beta=float(beta),
+            f0_n=_per_cable(f0_n, cables, "f0_n"),
+            stribeck_k=_per_cable(stribeck_k, cables, "stribeck_k"),
+            stribeck_v_m_s=vs,
+            viscous_ns_m=_per_cable(viscous_ns_m, cables, "viscous_ns_m"),
+        )
+
+    @staticmethod
+    def from_friction(friction: object, cables: int) -> ChainParams:
+        """From a :class:`gateway.config.FrictionConfig` (same for every cable)."""
+        return ChainParams.build(
+            model=friction.model,  # type: ignore[attr-defined]
+            cables=cables,
+            wrap_rad=np.asarray(friction.wrap_rad),  # type: ignore[attr-defined]
+            mu=np.asarray(friction.mu),  # type: ignore[attr-defined]
+            sigma_n_m=friction.sigma_n_m,  # type: ignore[attr-defined]
+            beta=friction.beta,  # type: ignore[attr-defined]
+            viscous_ns_m=friction.viscous_ns_m,  # type: ignore[attr-defined]
+        )
+
+    def with_model(self, model: ModelName) -> ChainParams:
+        return replace(self, model=model)
+
+    @property
+    def cables(self) -> int:
+        return int(self.mu.shape[0])
+
+    @property
+    def pulleys(self) -> int:
+        return int(self.wrap_rad.size)
+
+
+@njit(cache=True, inline="always")
+def _pulley(t_b, lam, f0p, strib, f_old, dx, sigma, beta, model):
+    """Friction force of one pulley whose platform-side tension is ``t_b``, and dF/dt_b."""
+    if dx == 0.0:
+        return (0.0 if model == 1 else f_old), 0.0
+    s = 1.0 if dx > 0.0 else -1.0
+    a = abs(t_b)
+    fr = (lam * a + f0p) * strib
+    dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    if model == 1:
+        return s * fr, s * dfr
+    if fr <= FR_FLOOR_N:
+        return 0.0, 0.0
+    if beta == 1.0:
+        k = sigma * abs(dx) / fr
+        e = math.exp(-k)
+        f_new = s * fr + (f_old - s * fr) * e
+        return f_new, (s * (1.0 - e) + (f_old - s * fr) * e * k / fr) * dfr
+    f_new = dahl_step(f_old, fr, dx, sigma, beta)
+    return f_new, s * (1.0 - math.exp(-sigma * abs(dx) / fr)) * dfr  # quasi-Newton slope
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _run_chain(  # noqa: PLR0913
+    forward, t_in, vel, dt, lam_pos, lam_neg, f0, sk, svs, visc, sigma, beta, model, f_state,
+    tol, max_iter, out,
+):  # fmt: skip
+    """Kernel: ``forward`` sensor->platform (compensate) else platform->sensor (simulate).
+
+    ``t_in``, ``vel``, ``out``: (N, m); ``dt``: (N,); ``lam_pos``, ``lam_neg``: (m, n)
+    Coulomb coefficients for v > 0 and v < 0; ``f_state``: (m, n) in/out.
+    Returns the largest number of Newton passes any pulley needed (0 when simulating:
+    that direction is explicit).
+    """
+    n_samples, m = t_in.shape
+    n = lam_pos.shape[1]
+    worst = 0
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            dx = v * dt[k]
+            if model == 0:
+                out[k, i] = t_in[k, i] + visc[i] * v if forward else t_in[k, i] - visc[i] * v
+                continue
+            strib = 1.0
+            if sk[i] != 0.0:
+                strib = 1.0 + sk[i] * math.exp(-((v / svs[i]) ** 2))
+            f0p = f0[i] / n
+            if forward:
+                t_a = t_in[k, i]
+                for j in range(n):
+                    lam = lam_pos[i, j] if dx > 0.0 else lam_neg[i, j]
+                    f_old = f_state[i, j]
+                    t_b = t_a + f_old
+                    it = 0
+                    while it < max_iter:
+                        it += 1
+                        f_new, d_b = _pulley(t_b, lam, f0p, strib, f_old, dx, sigma[i], beta, model)
+                        step = (t_b - t_a - f_new) / (1.0 - d_b)
+                        t_b -= step
+                        if abs(step) <= tol:
+                            break
+                    f_state[i, j] = t_b - t_a
+                    worst = max(worst, it)
+                    t_a = t_b
+                out[k, i] = t_a + visc[i] * v
+            else:
+                t_b = t_in[k, i] - visc[i] * v
+                for j in range(n - 1, -1, -1):
+                    lam = lam_pos[i, j] if dx > 0.0 else lam_neg[i, j]
+                    f_new, _ = _pulley(t_b, lam, f0p, strib, f_state[i, j], dx, sigma[i], beta, model)
+                    f_state[i, j] = f_new
+                    t_b -= f_new
+                out[k, i] = t_b
+    return worst
+
+
+def coulomb_coefficients(params: ChainParams) -> tuple[np.ndarray, np.ndarray]:
+    """``lambda_ij`` (m, n) for paying out and for reeling in, from the exact ratio.
+
+    At sliding, ``T_j - T_{j-1} = s lambda_j T_j`` with ``n_j = 1 - s lambda_j`` the exact
+    root of the Coulomb quadratic (:func:`friction.coulomb_ratio_exact`), so
+    ``lambda = 1 - n(+)`` paying out and ``n(-) - 1`` reeling in.
+    """
+    lam_pos = np.empty_like(params.mu)
+    lam_neg = np.empty_like(params.mu)
+    for (i, j), mu in np.ndenumerate(params.mu):
+        lam_pos[i, j] = 1.0 - coulomb_ratio_exact(mu, params.wrap_rad[j], 1.0)
+        lam_neg[i, j] = coulomb_ratio_exact(mu, params.wrap_rad[j], -1.0) - 1.0
+    return lam_pos, lam_neg
+
+
+def _time_steps(t: np.ndarray | float, n_samples: int) -> np.ndarray:
+    """``dt_k = t_k - t_{k-1}`` with ``dt_0 = 0`` (no travel before the first sample)."""
+    if np.ndim(t) == 0:
+        dt = np.full(n_samples, float(t))  # type: ignore[arg-type]
+        dt[0] = 0.0
+        return dt
+    t_arr = np.asarray(t, dtype=float)
+    if t_arr.shape != (n_samples,):
+        raise ValueError(f"t: expected shape ({n_samples},), got {t_arr.shape}")
+    return np.concatenate(([0.0], np.diff(t_arr)))
+
+
+def new_state(params: ChainParams) -> np.ndarray:
+    """Friction state (m, n), N: relaxed (every pulley force zero)."""
+    return np.zeros((params.cables, params.pulleys))
+
+
+def _run_batch(
+    params: ChainParams,
+    forward: bool,
+    tension: np.ndarray,
+    velocity: np.ndarray,
+    t: np.ndarray | float,
+    state: np.ndarray | None,
+    tol_n: float,
+    max_iter: int,
+) -> np.ndarray:
+    t_in = np.ascontiguousarray(tension, dtype=float)
+    vel = np.ascontiguousarray(velocity, dtype=float)
+    if t_in.ndim != 2 or t_in.shape[1] != params.cables or vel.shape != t_in.shape:
+        raise ValueError(
+            f"tension and velocity must both have shape (N, {params.cables}); "
+            f"got {t_in.shape} and {vel.shape}"
+        )
+    f_state = new_state(params) if state is None else state
+    out = np.empty_like(t_in)
+    lam_pos, lam_neg = coulomb_coefficients(params)
+    _run_chain(
+        forward, t_in, vel, _time_steps(t, t_in.shape[0]), lam_pos, lam_neg,
+        params.f0_n, params.stribeck_k, params.stribeck_v_m_s, params.viscous_ns_m,
+        params.sigma_n_m, params.beta, MODEL_CODES[params.model], f_state, tol_n, max_iter, out,
+    )  # fmt: skip
+    return out
+
+
+def simulate(
+    params: ChainParams,
+    tension_platform: np.ndarray,
+    velocity: np.ndarray,
+    t: np.ndarray | float,
+    state: np.ndarray | None = None,
+    tol_n: float = 1e-10,
+    max_iter: int = 20,
+) -> np.ndarray:
+    """Sensor reading (N, m) from platform tension and cable velocity, both (N, m).
+
+    ``t``: sample times (N,) in s, or a constant period. ``state`` (m, n): friction
+    state carried in and updated in place (relaxed if None).
+    """
+    return _run_batch(params, False, tension_platform, velocity, t, state, tol_n, max_iter)
+
+
+def compensate(
+    params: ChainParams,
+    tension_sensor: np.ndarray,
+    velocity: np.ndarray,
+    t: np.ndarray | float,
+    state: np.ndarray | None = None,
+    tol_n: float = 1e-10,
+    max_iter: int = 20,
+) -> np.ndarray:
+    """Platform tension (N, m) from the sensor reading and the setpoint velocity."""
+    return _run_batch(params, True, tension_sensor, velocity, t, state, tol_n, max_iter)
+
+
+class ChainStepper:
+    """Per-cycle form: one sample for every cable on preallocated buffers.
+
+    The friction state is carried between calls. ``step`` allocates nothing.
+    """
+
+    def __init__(
+        self,
+        params: ChainParams,
+        period_s: float,
+        forward: bool = True,
+        tol_n: float = 1e-9,
+        max_iter: int = 8,
+    ) -> None:
+        m = params.cables
+        self.params = params
+        self.forward = forward
+        self.state = new_state(params)
+        self.iterations = 0
+        self._in = np.zeros((1, m))
+        self._vel = np.zeros((1, m))
+        self._out = np.zeros((1, m))
+        self._dt = np.array([float(period_s)])
+        self._lam_pos, self._lam_neg = coulomb_coefficients(params)
+        self._model = MODEL_CODES[params.model]
+        self._tol = float(tol_n)
+        self._max_iter = int(max_iter)
+
+    def reset(self) -> None:
+        """Relax every pulley (e.g. after a long outage when the real state is unknown)."""
+        self.state[:] = 0.0
+
+    def step(self, tension: np.ndarray, velocity: np.ndarray, out: np.ndarray) -> int:
+        """Advance one period; write the result (m,) into ``out``; return Newton passes."""
+        self._in[0] = tension
+        self._vel[0] = velocity
+        p = self.params
+        self.iterations = _run_chain(
+            self.forward, self._in, self._vel, self._dt, self._lam_pos, self._lam_neg, p.f0_n,
+            p.stribeck_k,
+            p.stribeck_v_m_s, p.viscous_ns_m, p.sigma_n_m, p.beta, self._model, self.state,
+            self._tol, self._max_iter, self._out,
+        )  # fmt: skip
+        out[:] = self._out[0]
+        return self.iterations

@@ -1,0 +1,115 @@
+"""Pulley friction laws (paper eq. 7-15, physics.md sec. 3): pure functions, SI units.
+
+Sign convention (eq. 8): ``T_j = T_{j-1} + sgn(v) F_Rj``, pulleys numbered from the sensor
+(j = 0 side) towards the platform; ``v > 0`` pays the cable out, so the platform side
+carries more tension than the sensor.
+
+Scalar kernels are compiled with numba so that the chain (``chain.py``) can call them
+inside its loops; they are ordinary Python-callable functions as well.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+FR_FLOOR_N = 1e-9
+"""Coulomb levels below this are treated as zero friction (no division by ~0)."""
+
+
+def capstan_ratio(mu_p: float, wrap_rad: float, direction: float) -> float:
+    """Euler-Eytelwein (eq. 7): ``T_j / T_{j-1} = exp(sgn(v) mu_p alpha)``."""
+    return math.exp(float(np.sign(direction)) * mu_p * wrap_rad)
+
+
+def normal_force(t_prev: np.ndarray | float, t_next: np.ndarray | float, wrap_rad: float):
+    """Bearing normal force (eq. 10): resultant of the two cable tensions at a pulley."""
+    t_prev = np.asarray(t_prev, dtype=float)
+    t_next = np.asarray(t_next, dtype=float)
+    sq = t_prev**2 - 2.0 * t_prev * t_next * math.cos(wrap_rad) + t_next**2
+    return np.sqrt(np.maximum(sq, 0.0))
+
+
+def coulomb_lambda(n: float, mu: float, wrap_rad: float) -> float:
+    """``lambda_j(n_j) = mu sqrt(n^2 - 2 n cos(alpha) + 1)`` with ``n = T_{j-1}/T_j``."""
+    return mu * math.sqrt(max(n * n - 2.0 * n * math.cos(wrap_rad) + 1.0, 0.0))
+
+
+def coulomb_ratio_exact(mu: float, wrap_rad: float, direction: float) -> float:
+    """Exact ``n_j = T_{j-1} / T_j`` of a Coulomb bearing pulley (eq. 11, 12 with eq. 8).
+
+    ``n = 1 - s lambda(n)`` squared gives ``n^2 - 2 B n + 1 = 0`` with
+    ``B = (1 - mu^2 cos a) / (1 - mu^2)``; its roots are reciprocal. Paying out (s = +1)
+    the sensor side is lower (n < 1), reeling in the root n > 1; at rest n = 1.
+    """
+    s = float(np.sign(direction))
+    if s == 0.0 or mu == 0.0:
+        return 1.0
+    b = (1.0 - mu * mu * math.cos(wrap_rad)) / (1.0 - mu * mu)
+    root = math.sqrt(max(b * b - 1.0, 0.0))
+    low = 1.0 / (b + root)  # = b - root (< 1), written so that it loses no digits
+    return low if s > 0 else 1.0 / low
+
+
+def coulomb_ratio_small_angle(mu: float, wrap_rad: float, direction: float) -> float:
+    """The ``n_j ~ 1`` shortcut: ``lambda ~ 2 mu sin(a/2)``, ``n = 1 - s 2 mu sin(a/2)``."""
+    s = float(np.sign(direction))
+    return 1.0 - s * 2.0 * mu * math.sin(wrap_rad / 2.0)
+
+
+def coulomb_gain(mu: np.ndarray, wrap_rad: np.ndarray, direction: float, exact: bool = True):
+    """Platform over sensor tension ``T_p / T_s = prod_j 1 / n_j`` for one direction.
+
+    ``mu``, ``wrap_rad``: (n,) per pulley. Returns a float.
+    """
+    ratio = coulomb_ratio_exact if exact else coulomb_ratio_small_angle
+    gain = 1.0
+    for m_j, a_j in zip(np.atleast_1d(mu), np.atleast_1d(wrap_rad), strict=True):
+        gain /= ratio(float(m_j), float(a_j), direction)
+    return gain
+
+
+@njit(cache=True, inline="always")
+def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> float:
+    """One exact step of the Dahl model (eq. 14) over cable travel ``dx`` (m).
+
+    ``dF/dx = sigma (1 - F / F_R sgn(dx))^beta`` with ``F_R`` held over the step.
+    With ``z = 1 - s F / F_R`` (s = sgn dx) it reads ``dz/d|x| = -(sigma/F_R) z^beta``,
+    solved in closed form (so it is unconditionally stable at any step size):
+    ``beta = 1``: ``F' = s F_R + (F - s F_R) exp(-sigma |dx| / F_R)`` (physics.md);
+    ``beta != 1``: ``|z'|^(1-beta) = |z|^(1-beta) - (1-beta) sigma |dx| / F_R``, clamped
+    at z = 0 for beta < 1 (reached in finite travel), with z's sign kept (z < 0 happens
+    when F_R shrank below |F|: F then relaxes back to the level, never through it).
+    """
+    if dx == 0.0:
+        return f
+    s = 1.0 if dx > 0.0 else -1.0
+    if f_r <= FR_FLOOR_N:
+        return 0.0
+    k = sigma * abs(dx) / f_r
+    if beta == 1.0:
+        return s * f_r + (f - s * f_r) * math.exp(-k)
+    z = 1.0 - s * f / f_r
+    a = abs(z)
+    if a == 0.0:
+        return f
+    if beta < 1.0:
+        p = a ** (1.0 - beta) - (1.0 - beta) * k
+        a_new = p ** (1.0 / (1.0 - beta)) if p > 0.0 else 0.0
+    else:
+        a_new = (a ** (1.0 - beta) + (beta - 1.0) * k) ** (1.0 / (1.0 - beta))
+    z_new = a_new if z > 0.0 else -a_new
+    return s * f_r * (1.0 - z_new)
+
+
+def dahl_from_rest(x: np.ndarray, f_r: float, sigma: float) -> np.ndarray:
+    """Eq. 15: ``F(x) = sgn(x) F_R (1 - exp(-sigma |x| / F_R))`` from F = 0 at x = 0."""
+    x = np.asarray(x, dtype=float)
+    return np.sign(x) * f_r * (1.0 - np.exp(-sigma * np.abs(x) / f_r))
+
+
+def viscous_force(c_ns_m: float, velocity_m_s: np.ndarray | float):
+    """Viscous bearing friction (eq. 9, with the sign): ``F = c v`` (N)."""
+    return c_ns_m * np.asarray(velocity_m_s, dtype=float)

@@ -1,0 +1,1 @@
+"""The soft PLC: plant (truth physics, effects, noise, ADC), trajectories, bus servers."""
