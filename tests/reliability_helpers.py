@@ -11,6 +11,13 @@ import socket
 import struct
 import threading
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+from gateway.config import Config, load_config
+from sim_plc.image import ProcessImage
+
+if TYPE_CHECKING:
+    from sim_plc.modbus_server import ModbusPlcServer
 
 IO_TIMEOUT_S = 2.0  # generous: a reply that must come, comes within this on loopback
 
@@ -167,5 +174,36 @@ def echo_server() -> Iterator[EchoModbusServer]:
     server = EchoModbusServer().start()
     try:
         yield server
+    finally:
+        server.stop()
+
+
+def static_image(cables: int = 8) -> ProcessImage:
+    """A soft PLC image with distinct, constant inputs (raw counts inside 0..27648)."""
+    import numpy as np
+
+    img = ProcessImage(cables)
+    img.raw_counts[:] = 5000 + 1500 * np.arange(cables)
+    img.velocity_m_s[:] = 0.0
+    img.length_m[:] = 2.0 + 0.125 * np.arange(cables)
+    img.pose[:] = (0.0, 0.0, 1.5, 0.0, 0.0, 0.0)
+    img.plc_heartbeat = 1
+    img.true_tension_n[:] = 100.0
+    return img
+
+
+@contextlib.contextmanager
+def soft_plc(
+    image: ProcessImage | None = None, cfg: Config | None = None
+) -> Iterator[tuple[ModbusPlcServer, ProcessImage, Config]]:
+    """The soft PLC's Modbus server on a free loopback port: (server, image, config)."""
+    from sim_plc.modbus_server import ModbusPlcServer  # lands with the modbus branch
+
+    cfg = cfg or load_config()
+    image = image if image is not None else static_image(cfg.cables)
+    server = ModbusPlcServer(cfg, image, host="127.0.0.1", port=0)
+    server.start()
+    try:
+        yield server, image, cfg
     finally:
         server.stop()
