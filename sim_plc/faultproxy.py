@@ -3,8 +3,8 @@
 ``FaultProxy(target_host, target_port)`` listens on 127.0.0.1 (a free port unless told)
 and relays every client connection to the target. Faults set with
 :meth:`FaultProxy.set_fault` act on what passes through; :meth:`FaultProxy.clear` removes
-them. The reply direction (target -> client) is cut into Modbus/TCP frames (MBAP header:
-transaction id, protocol id, length, unit id) so that a fault acts on whole replies; with
+them. Both directions are cut into Modbus/TCP frames (MBAP header: transaction id,
+protocol id, length, unit id) so that a fault acts on whole requests and replies; with
 ``framing="raw"`` every received chunk counts as one frame.
 
 Faults (``kind`` and its parameters); each also takes ``count=N`` (act on the next N
@@ -21,7 +21,9 @@ every frame:
 * ``reset``: ``after_bytes`` of a reply sent, then the client connection closed with
   SO_LINGER 0 (the client sees a TCP RST mid-frame);
 * ``silent``: requests are read and discarded, nothing is answered (the target sees
-  nothing), new connections are accepted (and connected upstream) and stay silent.
+  nothing), new connections are accepted (and connected upstream) and stay silent;
+* ``exception``: a request is answered by the proxy with Modbus exception ``code``
+  (6 server busy, 2 illegal data address, ...) and not forwarded: a PLC refusing it.
 
 Random choices come from one ``random.Random(seed)``; with the same traffic the same
 faults are injected. :attr:`FaultProxy.counters` says what was injected. One thread runs
@@ -41,7 +43,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-KINDS = ("delay", "drop", "split", "corrupt", "wrong_tid", "reset", "silent")
+KINDS = ("delay", "drop", "split", "corrupt", "wrong_tid", "reset", "silent", "exception")
 _PARAMS: dict[str, dict[str, Any]] = {
     "delay": {"seconds": 0.01, "direction": "reply"},
     "drop": {},
@@ -50,6 +52,7 @@ _PARAMS: dict[str, dict[str, Any]] = {
     "wrong_tid": {"offset": 0x1000},
     "reset": {"after_bytes": 3},
     "silent": {},
+    "exception": {"code": 6},
 }
 _MBAP_LEN = 7
 _MAX_FRAME = 260  # Modbus/TCP ADU limit (MBAP 7 + PDU 253)
@@ -72,7 +75,7 @@ class _Pipe:
 
     dst: socket.socket
     queue: deque[tuple[float, bytes, bool]] = field(default_factory=deque)  # (due, data, rst)
-    buffer: bytearray = field(default_factory=bytearray)  # reply bytes not yet framed
+    buffer: bytearray = field(default_factory=bytearray)  # bytes received, not yet framed
     last_due: float = 0.0
 
 
@@ -292,12 +295,36 @@ class FaultProxy:
             self._on_reply_bytes(conn, data)
 
     def _on_request(self, conn: _Conn, data: bytes) -> None:
-        self._count("requests")
-        if self._peek("silent") is not None:
-            self._count("silent")
-            return
-        delay = self._delay_for("request")
-        self._enqueue(conn.to_server, data, delay)
+        for frame in self._frames(conn.to_server, data):
+            self._count("requests")
+            if self._peek("silent") is not None:
+                self._count("silent")
+                continue
+            exc = self._fire("exception")
+            if exc is not None and len(frame) >= 8:  # answered here, never forwarded
+                tid, _proto, _len, unit = struct.unpack_from(">HHHB", frame, 0)
+                reply = struct.pack(">HHHBBB", tid, 0, 3, unit, frame[7] | 0x80, exc.params["code"])
+                self._enqueue(conn.to_client, reply, 0.0)
+                continue
+            self._enqueue(conn.to_server, frame, self._delay_for("request"))
+
+    def _frames(self, pipe: _Pipe, data: bytes) -> list[bytes]:
+        """Cut ``data`` (appended to what ``pipe`` holds) into whole MBAP frames; bytes that
+        cannot start a Modbus frame pass as one piece; raw framing: ``data`` itself."""
+        if self._framing == "raw":
+            return [data]
+        pipe.buffer += data
+        out: list[bytes] = []
+        while len(pipe.buffer) >= _MBAP_LEN:
+            length = struct.unpack_from(">H", pipe.buffer, 4)[0]
+            size = 6 + length
+            if length < 2 or size > _MAX_FRAME:  # not a Modbus frame: pass it on whole
+                size = len(pipe.buffer)
+            if len(pipe.buffer) < size:
+                break
+            out.append(bytes(pipe.buffer[:size]))
+            del pipe.buffer[:size]
+        return out
 
     def _delay_for(self, direction: str) -> float:
         fault = self._peek("delay")
@@ -307,20 +334,7 @@ class FaultProxy:
         return float(fault.params["seconds"]) if fault is not None else 0.0
 
     def _on_reply_bytes(self, conn: _Conn, data: bytes) -> None:
-        pipe = conn.to_client
-        if self._framing == "raw":
-            self._on_reply(conn, data)
-            return
-        pipe.buffer += data
-        while len(pipe.buffer) >= _MBAP_LEN:
-            length = struct.unpack_from(">H", pipe.buffer, 4)[0]
-            size = 6 + length
-            if length < 2 or size > _MAX_FRAME:  # not a Modbus frame: pass it on whole
-                size = len(pipe.buffer)
-            if len(pipe.buffer) < size:
-                break
-            frame = bytes(pipe.buffer[:size])
-            del pipe.buffer[:size]
+        for frame in self._frames(conn.to_client, data):
             self._on_reply(conn, frame)
             if conn.closed:
                 return

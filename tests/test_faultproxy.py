@@ -226,3 +226,27 @@ def test_bad_arguments_and_stop_twice(echo: EchoModbusServer) -> None:
     p.stop()
     with pytest.raises(OSError), connect(p.port, timeout_s=0.5):
         pass
+
+
+@pytest.mark.parametrize("code", [2, 6])
+def test_exception_answered_by_the_proxy(
+    proxy: FaultProxy, echo: EchoModbusServer, code: int
+) -> None:
+    proxy.set_fault("exception", code=code, count=1)
+    with connect(proxy.port) as sock:
+        got = transact(sock, mbap(0x0102, read_pdu(0, 8), unit=9))
+        assert got == struct.pack(">HHHBBB", 0x0102, 0, 3, 9, 0x83, code)
+        assert echo.requests == 0  # refused, not forwarded
+        assert transact(sock, _frame(5)) == _frame(5)
+    assert proxy.counters["exception"] == 1
+
+
+def test_requests_split_by_the_client_are_reassembled(proxy: FaultProxy) -> None:
+    frame = _frame(8)
+    with connect(proxy.port) as sock:
+        sock.sendall(frame[:4])
+        assert no_reply_within(sock, 0.1)
+        sock.sendall(frame[4:] + _frame(9))  # the rest and a second request, one segment
+        assert recv_frame(sock) == frame
+        assert recv_frame(sock) == _frame(9)
+    assert proxy.counters["requests"] == 2
