@@ -10,8 +10,11 @@ import contextlib
 import socket
 import struct
 import threading
-from collections.abc import Iterator
-from typing import TYPE_CHECKING
+import time
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from gateway.config import Config, load_config
 from sim_plc.image import ProcessImage
@@ -180,8 +183,6 @@ def echo_server() -> Iterator[EchoModbusServer]:
 
 def static_image(cables: int = 8) -> ProcessImage:
     """A soft PLC image with distinct, constant inputs (raw counts inside 0..27648)."""
-    import numpy as np
-
     img = ProcessImage(cables)
     img.raw_counts[:] = 5000 + 1500 * np.arange(cables)
     img.velocity_m_s[:] = 0.0
@@ -207,3 +208,206 @@ def soft_plc(
         yield server, image, cfg
     finally:
         server.stop()
+
+
+# --- gateway -> fault proxy -> soft PLC ------------------------------------------------
+class PlcHeartbeat:
+    """The soft PLC's cycle counter: +1 every ``period_s`` (a thread; ``stop()`` joins)."""
+
+    def __init__(self, image: ProcessImage, period_s: float = 0.001) -> None:
+        self.image, self.period_s = image, period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="plc-heartbeat")
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            with self.image.lock:
+                self.image.plc_heartbeat = (self.image.plc_heartbeat + 1) & 0xFFFF
+
+    def start(self) -> PlcHeartbeat:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+
+
+class WriteOracle:
+    """Checks every write the gateway makes to the soft PLC (hooked into the server).
+
+    The soft PLC's inputs are constant, so every good read gives the same inputs and the
+    model (at rest: setpoint velocities 0) the same corrected tensions. After
+    :meth:`freeze` has taken them from the clean warm-up, a written channel must be: status
+    GOOD or SUBSTITUTED with exactly that value, or INVALID with NaN. Anything else is a
+    value computed from a bad read reaching the PLC (``bad``).
+    """
+
+    def __init__(self, image: ProcessImage, cycles: Callable[[], int]) -> None:
+        self.image = image
+        self.cycles = cycles  # the gateway's cycle counter, read when a write arrives
+        self.expected: np.ndarray | None = None
+        self.writes = 0
+        self.all_good_writes = 0
+        self.flagged_writes = 0
+        self.bad: list[str] = []
+        self.last_corrected = np.full(image.cables, np.nan)
+        self.last_status = np.zeros(image.cables, dtype=np.uint16)
+        self._watch_from: int | None = None
+        self.recovered_at: int | None = None  # gateway cycle of the first good write
+
+    def hook(self, write: Callable[[int, list[int]], None]) -> Callable[[int, list[int]], None]:
+        def checked(address: int, values: list[int]) -> None:
+            write(address, values)
+            with self.image.lock:
+                self.last_corrected[:] = self.image.corrected_n
+                self.last_status[:] = self.image.channel_status
+            self._check(self.last_corrected, self.last_status)
+
+        return checked
+
+    def _check(self, corrected: np.ndarray, status: np.ndarray) -> None:
+        self.writes += 1
+        all_good = bool(np.all(status == 0))
+        self.all_good_writes += all_good
+        self.flagged_writes += not all_good
+        if all_good and self._watch_from is not None and self.recovered_at is None:
+            self.recovered_at = self.cycles()
+        if self.expected is None:
+            return
+        for i, (value, st) in enumerate(zip(corrected, status, strict=True)):
+            ok = (st in (0, 1) and value == self.expected[i]) or (st == 2 and np.isnan(value))
+            if not ok and len(self.bad) < 100:
+                self.bad.append(f"write {self.writes}: cable {i + 1} status {st} value {value}")
+
+    def freeze(self) -> None:
+        """Take the expected corrected tensions from the last (all-good) write."""
+        assert self.all_good_writes > 0 and np.all(self.last_status == 0)
+        self.expected = self.last_corrected.copy()
+        assert np.all(np.isfinite(self.expected))
+
+    def watch_recovery(self) -> None:
+        """Note the gateway cycle of the next all-good write (``recovered_at``)."""
+        self.recovered_at = None
+        self._watch_from = self.cycles()
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:
+    """Poll ``predicate`` until true or ``timeout_s`` is over (bounded); its last value."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll_s)
+    return predicate()
+
+
+class GatewayRig:
+    """The gateway (cyclic service + Modbus driver) -> :class:`FaultProxy` -> soft PLC.
+
+    Everything on 127.0.0.1, free ports; the PLC's inputs are constant (``static_image``)
+    with a running heartbeat; ``oracle`` checks every write. ``start()``/``stop()``
+    (``stop`` safe twice), or use it as a context manager.
+    """
+
+    def __init__(
+        self,
+        seed: int = 0,
+        period_s: float = 0.001,
+        timeout_s: float = 0.05,
+        registers: Any = None,
+    ) -> None:
+        self.seed, self.period_s, self.timeout_s = seed, period_s, timeout_s
+        self.registers = registers  # the gateway's register map (None: the default)
+        self._stack = contextlib.ExitStack()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> GatewayRig:
+        from drivers.modbus_tcp import ModbusTcpDriver
+        from gateway.loop import CyclicService
+        from gateway.metrics import make_registry
+
+        from sim_plc.faultproxy import FaultProxy
+
+        plc_cfg = load_config()
+        self.server, self.image, _ = self._stack.enter_context(soft_plc(cfg=plc_cfg))
+        self._stack.callback(PlcHeartbeat(self.image).start().stop)
+        self.proxy = FaultProxy("127.0.0.1", self.server.port, seed=self.seed).start()
+        self._stack.callback(self.proxy.stop)
+        self.cfg = gateway_config(plc_cfg, self.proxy.port, self.period_s, self.timeout_s,
+                                  self.registers)  # fmt: skip
+        self.service = CyclicService(self.cfg, ModbusTcpDriver(self.cfg), history=4096)
+        self.registry = make_registry(self.service)
+        self.oracle = WriteOracle(self.image, lambda: self.service.stats.cycles)
+        regs = self.server.registers
+        regs.write = self.oracle.hook(regs.write)  # type: ignore[method-assign]
+        self._thread = threading.Thread(target=self.service.run, daemon=True, name="gateway")
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            self.service.stop()
+            thread.join(10.0)
+        self._stack.close()
+
+    def __enter__(self) -> GatewayRig:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def cycles(self) -> int:
+        return int(self.service.stats.cycles)
+
+    def metric(self, name: str, **labels: str) -> float:
+        value = self.registry.get_sample_value(name, labels)
+        return float("nan") if value is None else float(value)
+
+    def errors(self) -> dict[str, float]:
+        """cdpr_gateway_errors_total by kind."""
+        out: dict[str, float] = {}
+        for family in self.registry.collect():
+            for s in family.samples:
+                if s.name == "cdpr_gateway_errors_total":
+                    out[s.labels["kind"]] = s.value
+        return out
+
+    def reconnects(self) -> float:
+        return self.metric("cdpr_gateway_reconnects_total", bus=self.cfg.bus.driver)
+
+    def channel_status_max(self) -> float:
+        return max(
+            self.metric("cdpr_gateway_channel_status", cable=str(i + 1))
+            for i in range(self.cfg.cables)
+        )
+
+    def warm_up(self, good_writes: int = 100, timeout_s: float = 20.0) -> None:
+        """Wait for ``good_writes`` all-good writes, then freeze the oracle."""
+        assert wait_for(lambda: self.oracle.all_good_writes >= good_writes, timeout_s), (
+            f"no warm-up: {self.oracle.all_good_writes} good writes, cycles {self.cycles}, "
+            f"errors {self.errors()}"
+        )
+        self.oracle.freeze()
+
+
+def gateway_config(
+    plc_cfg: Config, port: int, period_s: float, timeout_s: float, registers: Any = None
+) -> Config:
+    """The gateway's config: the Modbus driver at ``port``, short backoff, no metrics
+    server, no busy-wait (the tests share two cores)."""
+    import dataclasses
+
+    mb = dataclasses.replace(
+        plc_cfg.bus.modbus_tcp, host="127.0.0.1", port=port, timeout_s=timeout_s,
+        reconnect_min_s=0.01, reconnect_max_s=0.2,
+        registers=registers if registers is not None else plc_cfg.bus.modbus_tcp.registers,
+    )  # fmt: skip
+    return dataclasses.replace(
+        plc_cfg,
+        bus=dataclasses.replace(plc_cfg.bus, driver="modbus_tcp", modbus_tcp=mb),
+        loop=dataclasses.replace(plc_cfg.loop, period_s=period_s, busy_wait_s=0.0),
+        metrics=dataclasses.replace(plc_cfg.metrics, enabled=False),
+    )
