@@ -250,7 +250,8 @@ class WriteOracle:
         self.writes = 0
         self.all_good_writes = 0
         self.flagged_writes = 0
-        self.bad: list[str] = []
+        self.bad: list[str] = []  # the first 100 violations
+        self.bad_values = 0  # every violating channel value
         self.last_corrected = np.full(image.cables, np.nan)
         self.last_status = np.zeros(image.cables, dtype=np.uint16)
         self._watch_from: int | None = None
@@ -277,7 +278,10 @@ class WriteOracle:
             return
         for i, (value, st) in enumerate(zip(corrected, status, strict=True)):
             ok = (st in (0, 1) and value == self.expected[i]) or (st == 2 and np.isnan(value))
-            if not ok and len(self.bad) < 100:
+            if ok:
+                continue
+            self.bad_values += 1
+            if len(self.bad) < 100:
                 self.bad.append(f"write {self.writes}: cable {i + 1} status {st} value {value}")
 
     def freeze(self) -> None:
