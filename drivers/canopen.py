@@ -265,7 +265,10 @@ class CanopenDriver(Driver):
         self._required = 0
         self._received = 0
         self._sync_seen = False
+        self._sync_timestamp = 0.0
         self.syncs = 0  # SYNC frames seen
+        self.sets = 0  # complete SYNC sets returned by read_into
+        self.last_sync_timestamp = 0.0  # can.Message.timestamp (time.time base) of that SYNC
         self.ignored_frames = 0  # error/remote frames and unknown COB-IDs
 
     # --- hooks ----------------------------------------------------------------------------
@@ -328,6 +331,8 @@ class CanopenDriver(Driver):
             what = "no SYNC" if not self._sync_seen else "missing PDOs " + ", ".join(missing)
             raise DriverTimeoutError(f"canopen: {what} within {self.timeout_s * 1e3:.1f} ms")
         self._sync_seen, self._received = False, 0
+        self.sets += 1
+        self.last_sync_timestamp = self._sync_timestamp
         self._fill(inputs)
 
     def _collect(self, deadline: float) -> bool:
@@ -341,10 +346,10 @@ class CanopenDriver(Driver):
                 if msg is None:
                     return True
             else:
+                # past the deadline, frames already queued are still taken (a stall of
+                # this thread must not turn into a timeout)
                 remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                msg = bus.recv(remaining)
+                msg = bus.recv(remaining if remaining > 0 else 0.0)
                 if msg is None:
                     return False
             self._handle(msg)
@@ -358,6 +363,7 @@ class CanopenDriver(Driver):
         if cob_id == SYNC_COB_ID:
             self.syncs += 1
             self._sync_seen, self._received = True, 0
+            self._sync_timestamp = msg.timestamp
             return
         entry = self._rx.get(cob_id)
         if entry is None:

@@ -111,7 +111,7 @@ class CanopenPlc:
         bus_factory: BusFactory | None = None,
         *,
         master_eds: str = PLC_MASTER_EDS,
-        spin_s: float = 0.0001,
+        spin_s: float = 0.0,
     ) -> None:
         self.cfg = cfg.bus.canopen if hasattr(cfg, "bus") else cfg
         self.image = image
@@ -140,12 +140,12 @@ class CanopenPlc:
 
     # --- lifecycle ------------------------------------------------------------------------
     def start(self, realtime: bool = False) -> None:
-        if self._bus is not None:
-            return
-        self._bus = self.bus_factory()
-        self._analog_bus = self.bus_factory()
-        self.analog = AnalogInputModule(self.cfg, self.image, self._analog_bus)
-        if realtime:
+        """Open the buses (once); with ``realtime`` also start the SYNC thread."""
+        if self._bus is None:
+            self._bus = self.bus_factory()
+            self._analog_bus = self.bus_factory()
+            self.analog = AnalogInputModule(self.cfg, self.image, self._analog_bus)
+        if realtime and self._thread is None:
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="canopen-plc", daemon=True)
             self._thread.start()

@@ -197,3 +197,27 @@ def test_close_twice_and_bad_eds(tmp_path) -> None:
     cfg2 = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, canopen=can_cfg))
     with pytest.raises(DriverInitError, match=r"bad\.eds: cannot load EDS"):
         co.CanopenDriver(cfg2).open()
+
+
+def test_real_time_thread_serves_the_driver(rig: CanopenRig) -> None:  # noqa: F811
+    """The PLC's own 1 kHz thread against a reading/writing gateway thread (this one)."""
+    rig.plc.start(realtime=True)
+    with rig.image.lock:
+        rig.image.raw_counts[:] = np.arange(8) * 100
+    good = 0
+    for _ in range(2000):  # bounded; a loaded machine may time a few reads out
+        try:
+            rig.driver.read_into(rig.inputs)
+        except DriverTimeoutError:
+            continue
+        rig.outputs.gateway_heartbeat = good
+        rig.driver.write_from(rig.outputs)
+        good += 1
+        if good == 50:
+            break
+    assert good == 50
+    np.testing.assert_allclose(rig.inputs.tension_raw_n, np.arange(8) * 100 * 500.0 / 27648)
+    rig.plc.stop()  # joins the thread, which took the gateway's PDOs in before each SYNC
+    rig.plc.stop()
+    assert rig.image.gateway_writes >= 40
+    assert rig.plc.cycles >= 50
