@@ -77,3 +77,77 @@ def rig() -> Iterator[CanopenRig]:
         driver.close()
         plc.stop()
         gw_bus.shutdown()
+
+
+# --- cross-process nodes (run as `python tests/canopen_helpers.py plc|gateway GROUP PORT`) ---
+NETNS_CYCLES = 300
+
+
+def _udp_bus(group: str, port: int) -> can.BusABC:
+    return can.Bus(interface="udp_multicast", channel=group, port=port, fd=False)
+
+
+def expected_counts(cables: int) -> np.ndarray:
+    return (np.arange(cables) * 3000 + 111).astype(np.int16)
+
+
+def netns_plc_main(group: str, port: int, seconds: float) -> dict[str, object]:
+    """The soft PLC's nodes in real time until the gateway wrote (almost) NETNS_CYCLES times."""
+    import time
+
+    cfg = canopen_config()
+    image = ProcessImage(cfg.cables)
+    image.raw_counts[:] = expected_counts(cfg.cables)
+    plc = CanopenPlc(cfg, image, lambda: _udp_bus(group, port))
+    plc.start(realtime=True)
+    end = time.monotonic() + seconds
+    try:
+        while time.monotonic() < end and image.gateway_writes < NETNS_CYCLES - 5:
+            time.sleep(0.01)
+    finally:
+        plc.stop()
+    return {
+        "cycles": plc.cycles,
+        "gateway_writes": image.gateway_writes,
+        "corrected_n": image.corrected_n.tolist(),
+        "gateway_heartbeat": image.gateway_heartbeat,
+    }
+
+
+def netns_gateway_main(group: str, port: int, seconds: float) -> dict[str, object]:
+    """The gateway driver: read a set, write tension = raw, NETNS_CYCLES times."""
+    import time
+
+    from gateway.errors import DriverTimeoutError
+
+    cfg = canopen_config()
+    bus = _udp_bus(group, port)
+    driver = CanopenDriver(cfg, bus=bus, timeout_s=0.05)
+    inputs, outputs = Inputs.allocate(cfg.cables), Outputs.allocate(cfg.cables)
+    good = timeouts = 0
+    end = time.monotonic() + seconds
+    driver.open()
+    try:
+        while good < NETNS_CYCLES and time.monotonic() < end:
+            try:
+                driver.read_into(inputs)
+            except DriverTimeoutError:
+                timeouts += 1
+                continue
+            good += 1
+            outputs.tension_corrected_n[:] = inputs.tension_raw_n
+            outputs.gateway_heartbeat = good
+            driver.write_from(outputs)
+    finally:
+        driver.close()
+        bus.shutdown()
+    return {"good": good, "timeouts": timeouts, "tension_raw_n": inputs.tension_raw_n.tolist()}
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+
+    role, group_arg, port_arg, seconds_arg = sys.argv[1:5]
+    main = netns_plc_main if role == "plc" else netns_gateway_main
+    print(json.dumps(main(group_arg, int(port_arg), float(seconds_arg))), flush=True)
