@@ -149,27 +149,29 @@ def load_pdo_layouts(
         node.rpdo.read(from_od=True)
     except Exception as exc:
         raise DriverInitError(f"{path}: cannot load EDS: {exc}") from exc
-    result: list[dict[int, PdoLayout]] = []
-    for maps in (node.tpdo.map, node.rpdo.map):
-        layouts: dict[int, PdoLayout] = {}
-        for number, pdo_map in maps.items():
-            if not pdo_map.enabled or not pdo_map.cob_id or not len(pdo_map.map):
-                continue
-            fmt = "<"
-            for var in pdo_map.map:
-                code = _STRUCT_CODES.get(var.od.data_type)
-                if code is None or var.offset % 8 or var.length != 8 * struct.calcsize(code):
-                    raise DriverInitError(
-                        f"{path}: PDO {number} maps {var.index:04X}h.{var.subindex}: "
-                        "only byte-aligned integer objects are supported"
-                    )
-                fmt += code
-            entries = tuple((v.index, v.subindex) for v in pdo_map.map)
-            layouts[number] = PdoLayout(
-                number, pdo_map.cob_id, pdo_map.trans_type, entries, struct.Struct(fmt)
-            )
-        result.append(layouts)
-    return result[0], result[1]
+    return _layouts(path, node.tpdo.map), _layouts(path, node.rpdo.map)
+
+
+def _layouts(path: Path, maps: Any) -> dict[int, PdoLayout]:
+    """PdoLayouts of the enabled, non-empty maps of one canopen ``PdoMaps`` (or None)."""
+    layouts: dict[int, PdoLayout] = {}
+    for number, pdo_map in (maps or {}).items():
+        if not pdo_map.enabled or not pdo_map.cob_id or not len(pdo_map.map):
+            continue
+        fmt = "<"
+        for var in pdo_map.map:
+            code = _STRUCT_CODES.get(var.od.data_type)
+            if code is None or var.offset % 8 or var.length != 8 * struct.calcsize(code):
+                raise DriverInitError(
+                    f"{path}: PDO {number} maps {var.index:04X}h.{var.subindex}: "
+                    "only byte-aligned integer objects are supported"
+                )
+            fmt += code
+        entries = tuple((v.index, v.subindex) for v in pdo_map.map)
+        layouts[number] = PdoLayout(
+            number, pdo_map.cob_id, pdo_map.trans_type, entries, struct.Struct(fmt)
+        )
+    return layouts
 
 
 # --- scaling ----------------------------------------------------------------------------
@@ -248,6 +250,9 @@ class CanopenDriver(Driver):
     """
 
     name = "canopen"
+    #: The bus sets the pace: read_into blocks until the next SYNC set, so a loop should
+    #: call it without sleeping to its own deadline first (SYNC is the cycle clock).
+    paced_by_bus = True
 
     def __init__(
         self, config: Any, bus: can.BusABC | None = None, timeout_s: float | None = None
