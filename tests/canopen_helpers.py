@@ -92,7 +92,7 @@ def expected_counts(cables: int) -> np.ndarray:
 
 
 def netns_plc_main(group: str, port: int, seconds: float) -> dict[str, object]:
-    """The soft PLC's nodes in real time until the gateway wrote (almost) NETNS_CYCLES times."""
+    """The soft PLC's nodes in real time until the gateway's last write arrived."""
     import time
 
     cfg = canopen_config()
@@ -102,7 +102,8 @@ def netns_plc_main(group: str, port: int, seconds: float) -> dict[str, object]:
     plc.start(realtime=True)
     end = time.monotonic() + seconds
     try:
-        while time.monotonic() < end and image.gateway_writes < NETNS_CYCLES - 5:
+        # the gateway's heartbeat counts its writes: stop once its last one is in
+        while time.monotonic() < end and image.gateway_heartbeat < NETNS_CYCLES:
             time.sleep(0.01)
     finally:
         plc.stop()
