@@ -259,7 +259,9 @@ class CanopenDriver(Driver):
     ) -> None:
         super().__init__(config)
         self.can_cfg = config.bus.canopen
-        self.timeout_s = timeout_s or READ_TIMEOUT_PERIODS * self.can_cfg.sync_period_s
+        self.timeout_s = (
+            timeout_s or self.can_cfg.timeout_s or READ_TIMEOUT_PERIODS * self.can_cfg.sync_period_s
+        )
         self._n_per_count = config.sensor.range_n / config.sensor.adc_full_scale
         self._external_bus = bus
         self._bus: can.BusABC | None = None

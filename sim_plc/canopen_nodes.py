@@ -39,8 +39,6 @@ from drivers.canopen import (
     OBJ_POSE,
     OBJ_STATUS,
     OBJ_VELOCITY,
-    PLC_MASTER_EDS,
-    PLC_NODE_ID,
     POSITION_M_PER_COUNT,
     SLOW_PERIOD_CYCLES,
     SYNC_COB_ID,
@@ -110,14 +108,14 @@ class CanopenPlc:
         image: ProcessImage,
         bus_factory: BusFactory | None = None,
         *,
-        master_eds: str = PLC_MASTER_EDS,
+        master_eds: str | None = None,
         spin_s: float = 0.0,
     ) -> None:
         self.cfg = cfg.bus.canopen if hasattr(cfg, "bus") else cfg
         self.image = image
         self.bus_factory = bus_factory or (lambda: open_bus(self.cfg))
         self.spin_s = spin_s
-        tpdos, rpdos = load_pdo_layouts(master_eds, PLC_NODE_ID)
+        tpdos, rpdos = load_pdo_layouts(master_eds or self.cfg.plc_eds, self.cfg.plc_node_id)
         self.fast = [tpdos[n] for n in FAST_TPDOS]
         self.slow = [tpdos[n] for n in SLOW_TPDOS]
         gw = self.cfg.gateway_node_id  # the gateway's TPDOn is 0x80 + n * 0x100 + node id
