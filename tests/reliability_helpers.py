@@ -237,10 +237,11 @@ class WriteOracle:
     """Checks every write the gateway makes to the soft PLC (hooked into the server).
 
     The soft PLC's inputs are constant, so every good read gives the same inputs and the
-    model (at rest: setpoint velocities 0) the same corrected tensions. After
+    model (at rest: setpoint velocities 0) the same corrected tensions and wrench. After
     :meth:`freeze` has taken them from the clean warm-up, a written channel must be: status
-    GOOD or SUBSTITUTED with exactly that value, or INVALID with NaN. Anything else is a
-    value computed from a bad read reaching the PLC (``bad``).
+    GOOD or SUBSTITUTED with exactly that value, or INVALID with NaN; the wrench exactly
+    the expected one while no channel is invalid, else NaN. Anything else is a value
+    computed from a bad read reaching the PLC (``bad_values``, the first 100 in ``bad``).
     """
 
     def __init__(self, image: ProcessImage, cycles: Callable[[], int]) -> None:
@@ -252,8 +253,10 @@ class WriteOracle:
         self.flagged_writes = 0
         self.bad: list[str] = []  # the first 100 violations
         self.bad_values = 0  # every violating channel value
+        self.expected_wrench: np.ndarray | None = None
         self.last_corrected = np.full(image.cables, np.nan)
         self.last_status = np.zeros(image.cables, dtype=np.uint16)
+        self.last_wrench = np.full(6, np.nan)
         self._watch_from: int | None = None
         self.recovered_at: int | None = None  # gateway cycle of the first good write
 
@@ -263,6 +266,7 @@ class WriteOracle:
             with self.image.lock:
                 self.last_corrected[:] = self.image.corrected_n
                 self.last_status[:] = self.image.channel_status
+                self.last_wrench[:] = self.image.wrench
             self._check(self.last_corrected, self.last_status)
 
         return checked
@@ -274,8 +278,17 @@ class WriteOracle:
         self.flagged_writes += not all_good
         if all_good and self._watch_from is not None and self.recovered_at is None:
             self.recovered_at = self.cycles()
-        if self.expected is None:
+        if self.expected is None or self.expected_wrench is None:
             return
+        wrench_ok = (
+            np.array_equal(self.last_wrench, self.expected_wrench)
+            if np.all(status < 2)
+            else bool(np.all(np.isnan(self.last_wrench)))
+        )
+        if not wrench_ok:
+            self.bad_values += 1
+            if len(self.bad) < 100:
+                self.bad.append(f"write {self.writes}: wrench {self.last_wrench}")
         for i, (value, st) in enumerate(zip(corrected, status, strict=True)):
             ok = (st in (0, 1) and value == self.expected[i]) or (st == 2 and np.isnan(value))
             if ok:
@@ -288,7 +301,8 @@ class WriteOracle:
         """Take the expected corrected tensions from the last (all-good) write."""
         assert self.all_good_writes > 0 and np.all(self.last_status == 0)
         self.expected = self.last_corrected.copy()
-        assert np.all(np.isfinite(self.expected))
+        self.expected_wrench = self.last_wrench.copy()
+        assert np.all(np.isfinite(self.expected)) and np.all(np.isfinite(self.expected_wrench))
 
     def watch_recovery(self) -> None:
         """Note the gateway cycle of the next all-good write (``recovered_at``)."""

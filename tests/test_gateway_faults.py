@@ -174,3 +174,15 @@ def test_plc_refusing_the_map_is_never_written() -> None:
         assert wait_for(lambda: rig.cycles >= cycles + 10, WAIT_S)
         assert rig.image.gateway_writes == 0
         assert rig.oracle.writes == 0
+
+
+def test_corrupted_data_word_passes_undetected() -> None:
+    """The residual risk of docs/security.md (FR3), and a check that the oracle can fail:
+    a data byte corrupted inside a well-formed reply is decoded as a good value, and a
+    wrong value reaches the PLC. Only TLS (or a checksum in the PLC's data) catches it."""
+    with GatewayRig(seed=5) as rig:
+        rig.warm_up()
+        rig.proxy.set_fault("corrupt", where="data", nbytes=1)
+        assert wait_for(lambda: rig.oracle.bad_values > 0, WAIT_S), rig.proxy.counters
+        rig.proxy.clear()
+        assert _total(rig.errors(), ("timeout", "io")) == 0  # nothing the driver can see
