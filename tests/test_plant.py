@@ -67,20 +67,20 @@ def test_digitise_s7_format_saturation_and_codes() -> None:
 
 
 def test_overrange_reading_from_an_offset_is_flagged_in_the_recording() -> None:
-    offset = {"c_n": [300, 0, 0, 0, 0, 0, 0, 0]}
+    offset = {"c_n": [400, 0, 0, 0, 0, 0, 0, 0]}
     cfg = make_config({"noise_std_n": 0.0, "effects": {"offset": offset}})
     rec = make_recording(cfg, None, 0.2)
-    assert np.all(np.isnan(rec.tension_sensor[:, 0]))  # 650+ N: overflow code 32767
+    assert np.all(np.isnan(rec.tension_sensor[:, 0]))  # 600+ N: overflow code 32767
     assert np.all(np.isfinite(rec.tension_sensor[:, 1:]))
 
 
 def test_mass_falls_at_the_extrusion_rate_while_printing() -> None:
     cfg = make_config({"noise_std_n": 0.0})
     rec = make_recording(cfg, None, 4.0)
-    assert rec.mass[0] == pytest.approx(60.0)
-    assert rec.mass[-1] == pytest.approx(60.0 - 0.1 * rec.t[-1], abs=1e-9)
+    assert rec.mass[0] == pytest.approx(40.0)
+    assert rec.mass[-1] == pytest.approx(40.0 - 0.1 * rec.t[-1], abs=1e-9)
     const = make_recording(make_config({"extrusion_kg_s": 0.0}), None, 1.0)
-    assert np.all(const.mass == 60.0)
+    assert np.all(const.mass == 40.0)
 
 
 def test_record_command_round_trips_through_the_reader(tmp_path, capsys) -> None:
@@ -170,7 +170,7 @@ def test_sim_friction_merges_over_the_config_friction() -> None:
     sim = load_sim_config(make_config({"friction": {"sigma_n_m": 900.0}}))
     assert sim.friction.sigma_n_m == 900.0
     assert sim.friction.mu == (0.015, 0.015, 0.015)
-    assert sim.tension.max_n == 450.0 and sim.initial_mass_kg == 60.0
+    assert sim.tension.max_n == 490.0 and sim.initial_mass_kg == 40.0
 
 
 def test_infeasible_pose_names_time_and_key() -> None:
