@@ -80,7 +80,12 @@ def _server(cfg: Config, image: Any, bus: str, host: str | None, port: int | Non
         plc = CanopenPlc(cfg, image)
         plc.start(realtime=True)
         return plc, f"canopen on {cfg.bus.canopen.interface}:{cfg.bus.canopen.channel}"
-    from sim_plc.modbus_server import ModbusPlcServer  # lazy: needs pymodbus
+    try:
+        from sim_plc.modbus_server import ModbusPlcServer  # lazy: needs pymodbus
+    except ImportError as exc:
+        raise ConfigError(
+            f"bus modbus_tcp: the soft PLC's Modbus server is missing: {exc}"
+        ) from exc
 
     mb = cfg.bus.modbus_tcp
     host = mb.host if host is None else host
@@ -124,6 +129,6 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
         for s, handler in old.items():
             signal.signal(s, handler)
     st = runtime.stats
-    print(f"sim-plc: stopped after {st.cycles} cycles, {st.missed} missed deadlines, "
+    print(f"sim-plc: stopped after {st.cycles} cycles, {st.late} late, {st.missed} skipped, "
           f"longest step {st.max_step_s * 1e3:.2f} ms", file=sys.stderr)  # fmt: skip
     return 0

@@ -1,10 +1,11 @@
 """The soft PLC's cyclic task: the plant stepped in real time, or as fast as asked.
 
 ``PlcRuntime(plant, image).start()`` runs a thread that calls ``plant.step(image)`` once
-per period against absolute deadlines (``next += period``). A cycle that starts more
-than one period late counts the deadlines it missed and skips them (the plant's time
-then lags the wall clock; it never jumps). ``stop()`` ends the thread and is safe to call
-twice. ``step(n)`` advances ``n`` cycles at once without a clock (tests).
+per period against absolute deadlines (``next += period``). When the thread falls
+behind (a slow step, the OS preempting it) it catches up by stepping back to back, up to
+``max_catch_up`` periods; deadlines further behind are counted as missed and skipped (the
+plant's time then lags the wall clock; it never jumps). ``stop()`` ends the thread and
+is safe to call twice. ``step(n)`` advances ``n`` cycles at once without a clock (tests).
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ class RuntimeStats:
     """Counters of the cyclic task (read them while it runs; ints are atomic enough)."""
 
     cycles: int = 0
-    missed: int = 0  # deadlines skipped because a cycle started too late
+    late: int = 0  # cycles that started a whole period or more behind their deadline
+    missed: int = 0  # deadlines skipped (more than ``max_catch_up`` periods behind)
     max_step_s: float = 0.0  # longest plant step seen
     last_step_s: float = 0.0
 
@@ -41,11 +43,13 @@ class PlcRuntime:
         period_s: float = 0.001,
         clock=time.perf_counter,
         sleep=time.sleep,
+        max_catch_up: int = 5,
     ) -> None:
         if period_s <= 0:
             raise ValueError("period_s must be > 0")
         self.plant, self.image, self.period_s = plant, image, float(period_s)
         self.stats = RuntimeStats()
+        self.max_catch_up = int(max_catch_up)
         self._clock, self._sleep = clock, sleep
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -92,11 +96,13 @@ class PlcRuntime:
             while not self._stop.is_set():
                 self._one()
                 deadline += period
-                now = self._clock()
-                if now > deadline + period:  # late by more than a cycle: skip the missed
-                    missed = int((now - deadline) // period)
-                    self.stats.missed += missed
-                    deadline += missed * period
+                behind = int((self._clock() - deadline) // period)
+                if behind > 0:  # late: catch up back to back, skip beyond max_catch_up
+                    self.stats.late += 1
+                    if behind > self.max_catch_up:
+                        skip = behind - self.max_catch_up
+                        self.stats.missed += skip
+                        deadline += skip * period
                 wait = deadline - self._clock()
                 if wait > 0:
                     self._sleep(wait)

@@ -68,7 +68,7 @@ def test_missed_deadlines_are_counted_and_skipped() -> None:
             now[0] += 0.0035 if self.steps == 3 else 0.0001  # cycle 3 overruns
 
     plant = SlowPlant()
-    rt = PlcRuntime(plant, ProcessImage(8), 0.001, clock=lambda: now[0])
+    rt = PlcRuntime(plant, ProcessImage(8), 0.001, clock=lambda: now[0], max_catch_up=0)
 
     def fake_sleep(dt: float) -> None:
         now[0] += dt
@@ -79,6 +79,30 @@ def test_missed_deadlines_are_counted_and_skipped() -> None:
     rt._run()
     assert plant.steps == 10
     assert rt.stats.missed == 2  # 3.5 ms late start of cycle 4: 2 whole periods skipped
+
+
+def test_late_cycles_are_caught_up_back_to_back() -> None:
+    now, sleeps = [0.0], []
+
+    class SlowPlant(CountingPlant):
+        def step(self, image=None) -> None:
+            super().step(image)
+            now[0] += 0.0035 if self.steps == 3 else 0.0001
+
+    plant = SlowPlant()
+    rt = PlcRuntime(plant, ProcessImage(8), 0.001, clock=lambda: now[0])
+
+    def fake_sleep(dt: float) -> None:
+        sleeps.append(plant.steps)
+        now[0] += dt
+        if plant.steps >= 10:
+            rt._stop.set()
+
+    rt._sleep = fake_sleep
+    rt._run()
+    assert rt.stats.missed == 0 and rt.stats.late == 2
+    assert 4 not in sleeps and 5 not in sleeps  # cycles 4 and 5 ran without waiting
+    assert now[0] == pytest.approx(0.010, abs=2e-4)  # 10 cycles in 10 ms of plant clock
 
 
 def test_runtime_keeps_the_error_that_ended_it() -> None:
