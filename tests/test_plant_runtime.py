@@ -150,21 +150,23 @@ def test_sim_plc_subprocess_serves_modbus_and_stops_on_sigterm() -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", str(REPLICATE_YAML),
            "--host", "127.0.0.1", "--port", "0"]  # fmt: skip
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
-    try:
-        line = proc.stdout.readline() if proc.stdout else ""
-        match = re.match(r"sim-plc: serving modbus_tcp on ([\d.]+):(\d+)", line)
-        assert match, line + (proc.stderr.read() if proc.poll() is not None and proc.stderr else "")
-        client = ModbusTcpClient(match.group(1), port=int(match.group(2)))
-        assert client.connect()
-        first = client.read_holding_registers(52, count=1).registers[0]
-        time.sleep(0.2)
-        regs = client.read_holding_registers(0, count=53).registers
-        client.close()
-        assert regs[52] != first  # the heartbeat advances
-        assert all(0 < r < 27648 for r in regs[:8])  # raw counts of 20..450 N
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        rc = proc.wait(timeout=20)
-    assert rc == 0
+    with subprocess.Popen(
+        cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    ) as proc:
+        try:
+            line = proc.stdout.readline() if proc.stdout else ""
+            match = re.match(r"sim-plc: serving modbus_tcp on ([\d.]+):(\d+)", line)
+            assert match, line
+            client = ModbusTcpClient(match.group(1), port=int(match.group(2)))
+            assert client.connect()
+            first = client.read_holding_registers(52, count=1).registers[0]
+            time.sleep(0.2)
+            regs = client.read_holding_registers(0, count=53).registers
+            client.close()
+            assert regs[52] != first  # the heartbeat advances
+            assert all(0 < r < 27648 for r in regs[:8])  # raw counts of 20..490 N
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert "stopped after" in err
