@@ -24,7 +24,9 @@ protocol (no checksum above TCP's; TLS adds one), see docs/security.md.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -33,7 +35,7 @@ pytest.importorskip("sim_plc.modbus_server", reason="the soft PLC's Modbus serve
 pytest.importorskip("drivers.modbus_tcp", reason="the Modbus TCP driver")
 pytest.importorskip("gateway.metrics", reason="the loop and its metrics")
 
-from tests.reliability_helpers import GatewayRig, wait_for
+from tests.reliability_helpers import GatewayRig, make_certificates, wait_for
 
 pytestmark = [pytest.mark.loopback, pytest.mark.slow]
 
@@ -186,3 +188,59 @@ def test_corrupted_data_word_passes_undetected() -> None:
         assert wait_for(lambda: rig.oracle.bad_values > 0, WAIT_S), rig.proxy.counters
         rig.proxy.clear()
         assert _total(rig.errors(), ("timeout", "io")) == 0  # nothing the driver can see
+
+
+# --- Modbus/TCP Security: TLS both ways, through the proxy ------------------------------
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl command makes the test certificates")
+    return make_certificates(tmp_path_factory.mktemp("certs"))
+
+
+def _client_tls(certs: dict[str, Path], client: str = "client", ca: str = "ca") -> Any:
+    from gateway.config import TlsConfig
+
+    return TlsConfig(
+        certfile=str(certs[client]), keyfile=str(certs[f"{client}_key"]), cafile=str(certs[ca])
+    )
+
+
+def _tls_front(certs: dict[str, Path]) -> tuple[Path, Path, Path]:
+    return certs["server"], certs["server_key"], certs["ca"]
+
+
+def test_tls_both_ways_detects_corruption(certs: dict[str, Path]) -> None:
+    """gateway -TLS-> proxy (raw bytes) -TLS-> front (client certificate required) -> PLC.
+    A byte corrupted anywhere in the TLS stream fails the record's integrity check: the
+    driver sees an error, the PLC gets no wrong value, the gateway reconnects."""
+    with GatewayRig(seed=3, tls=_client_tls(certs), tls_server=_tls_front(certs)) as rig:
+        rig.warm_up()
+        assert rig.terminator is not None and rig.terminator.handshake_failures == 0
+        errors0 = _total(rig.errors(), ("timeout", "io"))
+        rig.proxy.set_fault("corrupt", where="any", nbytes=1, probability=0.3)
+        assert wait_for(
+            lambda: _total(rig.errors(), ("timeout", "io")) >= errors0 + FAULT_ERRORS, WAIT_S
+        ), rig.errors()
+        rig.proxy.clear()
+        rig.oracle.watch_recovery()
+        assert wait_for(lambda: rig.oracle.recovered_at is not None, WAIT_S)
+        assert rig.reconnects() >= 1
+        assert rig.oracle.bad == []
+        assert rig.terminator.sessions >= 2
+
+
+def test_tls_client_from_another_ca_is_refused(certs: dict[str, Path]) -> None:
+    tls = _client_tls(certs, client="stranger")
+    with GatewayRig(tls=tls, tls_server=_tls_front(certs)) as rig:
+        assert rig.terminator is not None
+        assert wait_for(lambda: rig.terminator.handshake_failures >= 2, WAIT_S)  # type: ignore[union-attr]
+        assert rig.terminator.sessions == 0
+        assert rig.image.gateway_writes == 0
+
+
+def test_tls_server_from_another_ca_is_refused(certs: dict[str, Path]) -> None:
+    tls = _client_tls(certs, ca="other_ca")
+    with GatewayRig(tls=tls, tls_server=_tls_front(certs)) as rig:
+        assert wait_for(lambda: rig.errors().get("connect", 0) >= 2, WAIT_S), rig.errors()
+        assert rig.image.gateway_writes == 0
