@@ -12,7 +12,6 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -336,12 +335,14 @@ class GatewayRig:
         timeout_s: float = 0.05,
         registers: Any = None,
         tls: Any = None,
-        tls_server: tuple[Path, Path, Path] | None = None,
+        front: Callable[[int], Any] | None = None,
     ) -> None:
         self.seed, self.period_s, self.timeout_s = seed, period_s, timeout_s
         self.registers = registers  # the gateway's register map (None: the default)
         self.tls = tls  # the gateway's TlsConfig (None: plain Modbus/TCP)
-        self.tls_server = tls_server  # (certfile, keyfile, cafile): a TLS front for the PLC
+        # a relay before the PLC (a TLS front): called with the PLC's port, returns an
+        # object with ``port`` and ``stop()``; the proxy then relays raw bytes to it
+        self.front_factory = front
         self._stack = contextlib.ExitStack()
         self._thread: threading.Thread | None = None
 
@@ -356,11 +357,11 @@ class GatewayRig:
         self.server, self.image, _ = self._stack.enter_context(soft_plc(cfg=plc_cfg))
         self._stack.callback(PlcHeartbeat(self.image).start().stop)
         target, framing = self.server.port, "mbap"
-        self.terminator: TlsTerminator | None = None
-        if self.tls_server is not None:  # gateway -TLS-> proxy (raw bytes) -TLS-> front -> PLC
-            self.terminator = TlsTerminator(self.server.port, *self.tls_server).start()
-            self._stack.callback(self.terminator.stop)
-            target, framing = self.terminator.port, "raw"
+        self.front: Any = None
+        if self.front_factory is not None:  # gateway -> proxy (raw bytes) -> front -> PLC
+            self.front = self.front_factory(self.server.port)
+            self._stack.callback(self.front.stop)
+            target, framing = self.front.port, "raw"
         self.proxy = FaultProxy("127.0.0.1", target, seed=self.seed, framing=framing).start()
         self._stack.callback(self.proxy.stop)
         self.cfg = gateway_config(plc_cfg, self.proxy.port, self.period_s, self.timeout_s,
@@ -445,106 +446,3 @@ def gateway_config(
         loop=dataclasses.replace(plc_cfg.loop, period_s=period_s, busy_wait_s=0.0),
         metrics=dataclasses.replace(plc_cfg.metrics, enabled=False),
     )
-
-
-# --- Modbus/TCP Security (TLS) on loopback ----------------------------------------------
-def make_certificates(directory: Path) -> dict[str, Path]:
-    """A CA, a server certificate for IP 127.0.0.1 and a client certificate, signed by the
-    CA, plus a second CA with its own client certificate (a stranger). PEM files made with
-    the ``openssl`` command; keys are EC P-256. Returns the paths by name."""
-    import subprocess
-
-    def run(*args: str) -> None:
-        subprocess.run(["openssl", *args], check=True, capture_output=True, timeout=30)
-
-    p = {n: directory / f"{n}.pem" for n in (
-        "ca", "ca_key", "server", "server_key", "client", "client_key",
-        "other_ca", "other_ca_key", "stranger", "stranger_key")}  # fmt: skip
-    ec = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes")
-    for ca in ("ca", "other_ca"):
-        run("req", "-x509", *ec, "-keyout", str(p[f"{ca}_key"]), "-out", str(p[ca]),
-            "-days", "2", "-subj", f"/CN=cdpr test {ca}")  # fmt: skip
-    ext = directory / "server.ext"
-    ext.write_text("subjectAltName=IP:127.0.0.1\n")
-    for name, ca, extra in (("server", "ca", ("-extfile", str(ext))), ("client", "ca", ()),
-                            ("stranger", "other_ca", ())):  # fmt: skip
-        csr = directory / f"{name}.csr"
-        run("req", "-new", *ec, "-keyout", str(p[f"{name}_key"]), "-out", str(csr),
-            "-subj", f"/CN=cdpr test {name}")  # fmt: skip
-        run("x509", "-req", "-in", str(csr), "-CA", str(p[ca]), "-CAkey", str(p[f"{ca}_key"]),
-            "-CAcreateserial", "-out", str(p[name]), "-days", "2", *extra)  # fmt: skip
-    return p
-
-
-class TlsTerminator:
-    """A Modbus/TCP Security front for a plain server: TLS on 127.0.0.1 (a free port) with
-    client certificates required and verified against ``cafile``, relayed in clear to
-    ``target_port``. One thread per connection; every wait bounded; ``stop()`` twice safe.
-    ``handshake_failures`` counts refused clients."""
-
-    def __init__(self, target_port: int, certfile: Path, keyfile: Path, cafile: Path) -> None:
-        import ssl
-
-        self.ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=str(cafile))
-        self.ctx.load_cert_chain(str(certfile), str(keyfile))
-        self.ctx.verify_mode = ssl.CERT_REQUIRED
-        self.target_port = target_port
-        self.handshake_failures = 0
-        self.sessions = 0
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self._listener.settimeout(0.1)
-        self.port: int = self._listener.getsockname()[1]
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._accept_loop, daemon=True)]
-
-    def start(self) -> TlsTerminator:
-        self._threads[0].start()
-        return self
-
-    def stop(self) -> None:
-        if self._stop.is_set():
-            return
-        self._stop.set()
-        for t in list(self._threads):
-            t.join(3.0)
-        self._listener.close()
-
-    def _accept_loop(self) -> None:
-        import ssl
-
-        while not self._stop.is_set():
-            try:
-                raw, _ = self._listener.accept()
-            except (TimeoutError, OSError):
-                continue
-            raw.settimeout(2.0)
-            try:
-                tls = self.ctx.wrap_socket(raw, server_side=True)
-            except (ssl.SSLError, OSError):
-                self.handshake_failures += 1
-                raw.close()
-                continue
-            self.sessions += 1
-            t = threading.Thread(target=self._relay, args=(tls,), daemon=True)
-            self._threads.append(t)
-            t.start()
-
-    def _relay(self, tls: socket.socket) -> None:
-        import select
-        import ssl
-
-        with tls, socket.create_connection(("127.0.0.1", self.target_port), 2.0) as plain:
-            plain.settimeout(2.0)
-            while not self._stop.is_set():
-                pending = tls.pending() if isinstance(tls, ssl.SSLSocket) else 0
-                ready = [tls] if pending else select.select([tls, plain], [], [], 0.1)[0]
-                try:
-                    for src in ready:
-                        data = src.recv(65536)
-                        if not data:
-                            return
-                        (plain if src is tls else tls).sendall(data)
-                except ssl.SSLWantReadError:
-                    continue
-                except (ssl.SSLError, OSError):
-                    return
