@@ -21,6 +21,7 @@ Figures only, never an assertion on time.
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing as mp
 import os
 import random
@@ -102,7 +103,9 @@ class PlcSide:
 
 
 def _plc_main(conn: Any, seed: int) -> None:
-    """Child process: serve commands until 'quit' (bounded: the parent always ends it)."""
+    """Child process: serve commands until 'quit' (bounded: the parent always ends it).
+    pymodbus' error log (frame dumps on every reset the proxy injects) is silenced."""
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     with contextlib.ExitStack() as stack:
         server, image, _ = stack.enter_context(soft_plc())
         stack.callback(PlcHeartbeat(image).start().stop)
