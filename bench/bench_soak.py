@@ -1,21 +1,20 @@
 """Soak: the gateway at 1 kHz against the soft PLC through the fault proxy, faults at random.
 
-``SOAK_SECONDS`` (default 600; ``SOAK_FAULTS=0`` runs the same schedule without faults,
-a baseline for the cycles lost to the machine's load) of gateway -> FaultProxy -> soft PLC on loopback: the
-gateway (cyclic service + Modbus driver) in this process, the soft PLC, its heartbeat,
+``SOAK_SECONDS`` (default 600) of gateway -> FaultProxy -> soft PLC on loopback: the
+gateway (cyclic service + Modbus driver) in this process; the soft PLC, its heartbeat,
 the proxy and the write oracle (tests/reliability_helpers.WriteOracle) in a child
-process. A seeded schedule (``SOAK_SEED``,
-default 1) alternates quiet spells and fault episodes of a random kind and length; after
-each episode the fault is cleared and the gateway is given ``RECOVERY_WAIT_S`` to write
-an all-good frame again (a survived fault).
+process. A seeded schedule (``SOAK_SEED``, default 1) alternates quiet spells and fault
+episodes of a random kind and length; after each episode the fault is cleared and the
+gateway is given ``RECOVERY_WAIT_S`` to write an all-good frame again (a survived
+fault). ``SOAK_FAULTS=0`` runs the same schedule without faults: a baseline for the
+cycles the machine's load alone costs.
 
 Printed: cycles executed, written, skipped (overruns), cycles lost (deadlines without a
 write: skipped + executed without a write), faults injected by kind (proxy counters) and
 episodes survived, the recovery in cycles, values lost (a channel value at the PLC that
 is neither the value the constant inputs give, with status good/substituted, nor NaN
 with status invalid: must be 0), the gateway process' RSS and open file descriptors at
-start (after warm-up) and end.
-Figures only, never an assertion on time.
+start (after warm-up) and end. Figures only, never an assertion on time.
 """
 
 from __future__ import annotations
