@@ -50,6 +50,7 @@ FC_WRITE = 16
 FC_READ_WRITE = 23
 MBAP = 7
 MAX_TIMEOUTS_IN_A_ROW = 3
+RX_FRAME_MAX = MBAP - 1 + 254  # the largest MBAP frame
 EXCEPTION_NAMES = {
     1: "illegal function",
     2: "illegal data address",
@@ -124,7 +125,10 @@ class ModbusTcpDriver(Driver):
     def _build_frames(self, config: Any) -> None:
         rs, ws = self.layout.read_span, self.layout.write_span
         nbytes = 2 * ws.count
-        self._rx = bytearray(MBAP + 256)
+        self._rx = bytearray(2 * RX_FRAME_MAX)
+        self._have = 0  # bytes in _rx
+        self._consumed = 0  # size of the frame at _rx[0] once it has been used
+        self._sock_timeout = 0.0
         self._rxv = memoryview(self._rx)
         self._wdata = bytearray(nbytes)
         self._fc23 = self._frame(
@@ -189,17 +193,19 @@ class ModbusTcpDriver(Driver):
         self._ever_connected = True
 
     def _finish(self, sock: socket.socket) -> socket.socket:
-        """Blocking mode, TCP_NODELAY and the TLS handshake on a connected socket."""
-        sock.setblocking(True)
+        """TCP_NODELAY, the TLS handshake, the read timeout; a fresh receive buffer."""
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        if self._ssl is None:
-            return sock
-        sock.settimeout(self.mb.connect_timeout_s)
-        try:
-            return self._ssl.wrap_socket(sock, server_hostname=self.mb.host)
-        except (OSError, ssl.SSLError) as exc:
-            sock.close()
-            raise DriverInitError(f"{self.where}: TLS handshake: {exc}") from exc
+        self._have = self._consumed = 0
+        if self._ssl is not None:
+            sock.settimeout(self.mb.connect_timeout_s)
+            try:
+                sock = self._ssl.wrap_socket(sock, server_hostname=self.mb.host)
+            except (OSError, ssl.SSLError) as exc:
+                sock.close()
+                raise DriverInitError(f"{self.where}: TLS handshake: {exc}") from exc
+        sock.settimeout(self.mb.timeout_s)
+        self._sock_timeout = self.mb.timeout_s
+        return sock
 
     def _drop(self) -> None:
         """Forget the connection; the next call reconnects (after the backoff)."""
@@ -279,34 +285,52 @@ class ModbusTcpDriver(Driver):
         self._staged = False
 
     # --- transactions -----------------------------------------------------------------
-    def _recv_exact(self, sock: socket.socket, start: int, n: int, deadline: float) -> None:
-        got = start
-        end = start + n
-        while got < end:
-            remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                raise TimeoutError
+    def _recv_more(self, sock: socket.socket, deadline: float) -> None:
+        """Append what the socket has to the receive buffer (at least one byte)."""
+        remaining = deadline - time.perf_counter()
+        if remaining <= 0:
+            raise TimeoutError
+        if remaining < self._sock_timeout - 0.001:  # settimeout only when it matters
             sock.settimeout(remaining)
-            k = sock.recv_into(self._rxv[got:end])
-            if k == 0:
-                raise ConnectionResetError("connection closed by the server")
-            got += k
+            self._sock_timeout = remaining
+        k = sock.recv_into(self._rxv[self._have :])
+        if k == 0:
+            raise ConnectionResetError("connection closed by the server")
+        self._have += k
 
     def _receive(self, sock: socket.socket, tid: int, deadline: float) -> int:
-        """Read frames until the one answering ``tid``; return its PDU length."""
+        """Read frames until the one answering ``tid``; return its PDU length.
+
+        Frames are parsed from ``_rx`` (``_have`` bytes); usually one ``recv_into`` brings
+        exactly the reply. Bytes after it are kept; dropped frames are shifted out.
+        """
         while True:
-            self._recv_exact(sock, 0, MBAP, deadline)
+            while self._have < MBAP:
+                self._recv_more(sock, deadline)
             rtid, proto, length, _unit = _HEADER.unpack_from(self._rx, 0)
-            if length < 2 or MBAP - 1 + length > len(self._rx):
+            size = MBAP - 1 + length
+            if length < 2 or size > RX_FRAME_MAX:
                 raise ConnectionResetError(f"malformed reply (MBAP length {length})")
-            self._recv_exact(sock, MBAP, length - 1, deadline)
+            while self._have < size:
+                self._recv_more(sock, deadline)
             if rtid == tid and proto == 0:
+                self._consumed = size
                 return length - 1
             self.dropped_replies += 1
+            self._shift(size)
+
+    def _shift(self, size: int) -> None:
+        rest = self._have - size
+        if rest:
+            self._rx[:rest] = self._rx[size : self._have]
+        self._have = rest
 
     def _transact(self, frame: bytearray, fc: int, address: int) -> int:
         """Send ``frame`` (its header gets a fresh transaction id) and await its reply."""
         sock = self._ensure_connected()
+        if self._consumed:  # the previous reply has been decoded: drop it from the buffer
+            self._shift(self._consumed)
+            self._consumed = 0
         self._tid = (self._tid + 1) & 0xFFFF
         struct.pack_into(">H", frame, 0, self._tid)
         deadline = time.perf_counter() + self.mb.timeout_s

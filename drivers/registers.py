@@ -51,6 +51,21 @@ _DTYPES = {
 }
 
 
+_S7_TABLES: dict[float, np.ndarray] = {}
+
+
+def _s7_table(newtons_per_count: float) -> np.ndarray:
+    """Newtons for every 16-bit word (index = the word as unsigned), NaN at the codes."""
+    table = _S7_TABLES.get(newtons_per_count)
+    if table is None:
+        counts = np.arange(65536, dtype=np.uint16).view(np.int16).astype(float)
+        table = counts * newtons_per_count
+        table[(counts == S7_OVERFLOW) | (counts == S7_UNDERFLOW)] = np.nan
+        table.flags.writeable = False
+        _S7_TABLES[newtons_per_count] = table
+    return table
+
+
 def field_dtype(field: RegisterField) -> np.dtype:
     """The big-endian numpy dtype of one value of ``field`` (high word first)."""
     return _DTYPES[field.type]
@@ -97,6 +112,7 @@ class FieldCodec:
             raise ConfigError(f"register {field.address}: format s7_analog needs type int16")
         sensor = sensor or SensorConfig()
         self.newtons_per_count = sensor.range_n / sensor.adc_full_scale
+        self._lut = _s7_table(self.newtons_per_count) if self.s7 else None
         self._mask = np.empty(self.count, dtype=bool)
         self._mask2 = np.empty(self.count, dtype=bool)
         self._float = np.empty(self.count)
@@ -119,12 +135,8 @@ class FieldCodec:
         src = self._source()
         if raw:
             np.copyto(out, src, casting="unsafe")
-        elif self.s7:
-            np.multiply(src, self.newtons_per_count, out=out)
-            np.equal(src, S7_OVERFLOW, out=self._mask)
-            np.equal(src, S7_UNDERFLOW, out=self._mask2)
-            np.logical_or(self._mask, self._mask2, out=self._mask)
-            np.copyto(out, np.nan, where=self._mask)
+        elif self.s7:  # one table lookup: scaling and the overflow/underflow codes
+            np.take(self._lut, self._words, out=out)
         elif self.field.scale == 1.0:
             np.copyto(out, src, casting="unsafe")
         else:
@@ -141,6 +153,8 @@ class FieldCodec:
 
         ``raw=True`` writes values as they are (S7 counts, unscaled integers, clipped).
         """
+        if self._direct(values, raw):
+            return
         f = self._float
         f[...] = values
         if self.s7 and not raw:
@@ -158,9 +172,30 @@ class FieldCodec:
             np.copyto(f, 0.0, where=self._mask)
             np.clip(f, self._limits[0], self._limits[1], out=f)
         self._values[...] = f
+        self._store()
+
+    def _store(self) -> None:
         if self.swap:
             self._words[0::2] = self._scratch[1::2]
             self._words[1::2] = self._scratch[0::2]
+
+    def _direct(self, values: np.ndarray | float, raw: bool) -> bool:
+        """Fast paths that need no scaling, rounding or clipping; True when done."""
+        if self.s7 and not raw:
+            return False
+        if not raw and self.field.scale != 1.0:
+            return False
+        if self._limits is None:  # float32: numpy casts, NaN stays NaN
+            self._values[...] = values
+        elif isinstance(values, int | np.integer):
+            lo, hi = self._limits
+            self._values[...] = min(max(int(values), int(lo)), int(hi))
+        elif isinstance(values, np.ndarray) and np.can_cast(values.dtype, self.dtype):
+            self._values[...] = values
+        else:
+            return False
+        self._store()
+        return True
 
 
 @dataclass(frozen=True)
