@@ -229,9 +229,13 @@ class ModbusPlcServer:
         sock = server.transport.sockets[0]  # type: ignore[union-attr]
         ready.set_result(sock.getsockname()[1])
         await server.serving
+        # shutdown() closed the listener and the connections; let their transports finish
+        # (connection_lost callbacks) before the loop goes away
+        await asyncio.sleep(0.01)
 
     def _run(self, ready: Future[int]) -> None:
         loop = asyncio.new_event_loop()
+        asyncio.set_event_loop(loop)  # this thread's loop
         self._loop = loop
         try:
             loop.run_until_complete(self._serve(ready))
@@ -239,7 +243,12 @@ class ModbusPlcServer:
             if not ready.done():
                 ready.set_exception(exc)
         finally:
+            pending = asyncio.all_tasks(loop)
+            for task in pending:
+                task.cancel()
+            loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
             loop.run_until_complete(loop.shutdown_asyncgens())
+            asyncio.set_event_loop(None)
             loop.close()
             self._stopped.set()
 

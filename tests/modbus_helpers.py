@@ -145,10 +145,20 @@ class FakeServer:
         self.close()
 
 
-def fc3_reply(request: bytes, tid: int | None = None) -> bytes:
-    """A valid function-3/23 reply (all registers 0) to ``request``, optionally another tid."""
+def fc3_reply(request: bytes, tid: int | None = None, regs: dict[int, int] | None = None) -> bytes:
+    """A valid function-3/23 reply to ``request``: registers 0 except ``regs`` (offset in
+    the read span -> value); the request's transaction id unless ``tid`` is given."""
     rtid, _, _, unit = struct.unpack(">HHHB", request[:7])
     fc = request[7]
     count = struct.unpack(">H", request[10:12])[0]
-    pdu = bytes((fc, 2 * count)) + bytes(2 * count)
+    values = np.zeros(count, dtype=">u2")
+    for k, v in (regs or {}).items():
+        values[k] = v
+    pdu = bytes((fc, 2 * count)) + values.tobytes()
     return mbap(pdu, rtid if tid is None else tid, unit)
+
+
+def exception_reply(request: bytes, code: int) -> bytes:
+    """An exception reply to ``request``."""
+    rtid, _, _, unit = struct.unpack(">HHHB", request[:7])
+    return mbap(bytes((0x80 | request[7], code)), rtid, unit)
