@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import weakref
 from concurrent.futures import Future
 from typing import Any
 
@@ -83,6 +84,25 @@ def _areas(cfg: Config) -> tuple[Span, Span, Span | None]:
     limit = min([s for s in others if s >= inputs.end] + [65536])
     inputs = Span(inputs.start, min(padded_end, limit) - inputs.start)
     return inputs, outputs, truth
+
+
+class _PlcTcpServer(ModbusTcpServer):
+    """pymodbus' TCP server that remembers its connections, so that ``close_all`` can make
+    sure no transport outlives the server (pymodbus 3.16 can leave one open when a client
+    connects or disconnects while the server shuts down)."""
+
+    handlers: weakref.WeakSet[Any]
+
+    def handle_new_connection(self) -> Any:
+        protocol = super().handle_new_connection()
+        self.handlers.add(protocol)
+        return protocol
+
+    def close_all(self) -> None:
+        for protocol in list(self.handlers):
+            transport = getattr(protocol, "transport", None)
+            if transport is not None and not transport.is_closing():
+                transport.close()
 
 
 class ImageRegisters:
@@ -217,9 +237,10 @@ class ModbusPlcServer:
 
     async def _serve(self, ready: Future[int]) -> None:
         device = SimDevice(id=0, simdata=self.registers.simdata(), action=self._action)
-        server = ModbusTcpServer(
+        server = _PlcTcpServer(
             device, address=(self.host, self.port), trace_packet=_ExceptionFixer()
         )
+        server.handlers = weakref.WeakSet()
         self._server = server
         if not await server.listen():
             ready.set_exception(
@@ -231,6 +252,8 @@ class ModbusPlcServer:
         await server.serving
         # shutdown() closed the listener and the connections; let their transports finish
         # (connection_lost callbacks) before the loop goes away
+        await asyncio.sleep(0.01)
+        server.close_all()
         await asyncio.sleep(0.01)
 
     def _run(self, ready: Future[int]) -> None:

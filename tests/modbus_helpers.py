@@ -24,6 +24,7 @@ LOCALHOST = "127.0.0.1"
 def config_for(port: int, cfg: Config | None = None, **modbus: Any) -> Config:
     """The default config (or ``cfg``) with the Modbus client pointed at ``port``."""
     cfg = cfg or load_config()
+    modbus.setdefault("timeout_s", 1.0)  # generous: the test machine is shared and slow
     mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
     return dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, modbus_tcp=mb))
 
