@@ -42,7 +42,7 @@ MAX_READ_REGISTERS = 125  # functions 3, 4, 23 (read part)
 MAX_WRITE_REGISTERS_FC16 = 123
 MAX_WRITE_REGISTERS_FC23 = 121
 
-_DTYPES = {
+_DTYPES: dict[str, np.dtype] = {
     "int16": np.dtype(">i2"),
     "uint16": np.dtype(">u2"),
     "int32": np.dtype(">i4"),
@@ -135,7 +135,7 @@ class FieldCodec:
         src = self._source()
         if raw:
             np.copyto(out, src, casting="unsafe")
-        elif self.s7:  # one table lookup: scaling and the overflow/underflow codes
+        elif self._lut is not None:  # S7: one lookup does scaling and the codes
             np.take(self._lut, self._words, out=out)
         elif self.field.scale == 1.0:
             np.copyto(out, src, casting="unsafe")

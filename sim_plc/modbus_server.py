@@ -247,7 +247,7 @@ class ModbusPlcServer:
                 GatewayError(f"modbus server: cannot listen on {self.host}:{self.port}")
             )
             return
-        sock = server.transport.sockets[0]  # type: ignore[union-attr]
+        sock = server.transport.sockets[0]  # type: ignore[attr-defined]
         ready.set_result(sock.getsockname()[1])
         await server.serving
         # shutdown() closed the listener and the connections; let their transports finish
