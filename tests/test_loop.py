@@ -1,0 +1,219 @@
+"""The cyclic service on a fake clock with the virtual driver (no wall-time assertions)."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from drivers.base import ChannelStatus, GatewayState
+from drivers.virtual import VirtualDriver, VirtualFaults
+from gateway.loop import CyclicService, LoopState
+from tests.loop_helpers import FakeClock, config, finite, live_image
+
+PERIOD = 0.001
+
+
+def make(faults: VirtualFaults | None = None, on_read=None, **loop):
+    cfg = config(busy_wait_s=0.0, **loop)
+    img = live_image(cfg)
+    clock = FakeClock()
+    drv = VirtualDriver(cfg, image=img, faults=faults, on_read=on_read)
+    svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=4096)
+    return svc, drv, img, clock
+
+
+def test_deadlines_are_absolute_and_every_cycle_writes():
+    svc, _, img, clock = make()
+    start = clock.now
+    stats = svc.run(cycles=200)
+    assert stats.cycles == 200
+    assert stats.overruns == 0
+    assert stats.written == 201  # 200 cycles + the STOPPED frame
+    assert img.gateway_heartbeat == 201
+    # 200 cycles starting at t0 end just after t0 + 199 periods: no drift
+    assert clock.now - start == pytest.approx(199 * PERIOD, abs=1e-4)
+    assert stats.jitter_ring.recent().max() < 1e-5
+    assert stats.cycle.count == 200 and sum(stats.cycle.counts) == 200
+
+
+def test_overrun_is_counted_and_missed_cycles_skipped():
+    clock_box = {}
+
+    def slow(n: int) -> None:
+        if n == 10:
+            clock_box["clock"].advance(2.5 * PERIOD)
+
+    svc, _, _, clock = make(on_read=slow)
+    clock_box["clock"] = clock
+    start = clock.now
+    stats = svc.run(cycles=50)
+    assert stats.overruns == 1
+    assert stats.skipped == 2
+    # the schedule keeps its phase: 49 periods + the 2 skipped deadlines
+    assert clock.now - start == pytest.approx(51 * PERIOD, abs=1e-4)
+    assert stats.jitter_ring.recent().max() < 1e-5  # the next cycle starts on a deadline
+
+
+def test_failed_read_writes_nothing_flags_reconnects_and_resumes():
+    writes_at_read: dict[int, int] = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        writes_at_read[n] = holder["img"].gateway_writes
+
+    svc, drv, img, _ = make(VirtualFaults(fail_on_read=5), on_read=record)
+    holder["img"] = img
+    stats = svc.run(cycles=30)
+    assert writes_at_read[5] == 4
+    assert writes_at_read[6] == 4  # cycle 5 (failed read) and 6 (reconnect) wrote nothing
+    assert writes_at_read[7] == 5
+    assert stats.errors["io"] == 1
+    assert stats.reconnects == 1
+    assert drv.opens == 2
+    # 30 cycles - the failed one - the reconnect one + the STOPPED frame
+    assert stats.written == 29
+    assert svc.state is LoopState.STOPPED
+
+
+def test_failed_read_flags_channels_stale_and_keeps_last_good():
+    svc, _, img, _ = make(VirtualFaults(fail_on_read=5, fail_count=100))
+    svc.run(cycles=5)
+    assert np.all(svc.comp.flags & 8)  # FLAG_STALE
+    assert np.all(svc.comp.status == ChannelStatus.SUBSTITUTED)
+    assert img.gateway_writes == 4  # no write from the failed cycle, none at stop (bus down)
+
+
+def test_timeouts_count_and_backoff_grows():
+    faults = VirtualFaults(timeout_on_read=3, fail_opens=0)
+    svc, drv, _, _ = make(faults)
+    drv.faults.fail_opens = 0
+    stats = svc.run(cycles=10)
+    assert stats.errors["timeout"] == 1
+    assert stats.reconnects == 1
+
+
+def test_initial_connect_retries_with_exponential_backoff():
+    svc, drv, img, _ = make(VirtualFaults(fail_opens=3))
+    first_write: dict[str, int] = {}
+
+    def record(n: int) -> None:
+        first_write.setdefault("cycle", svc.stats.cycles)
+
+    drv.on_read = record
+    svc.run(cycles=500)
+    assert drv.opens == 4
+    # retries after 0.05, then 0.1, then 0.2 s: the first read is near cycle 350
+    assert 340 <= first_write["cycle"] <= 360
+    assert svc.stats.errors["connect"] == 2  # the start-up failure is not an error count
+    assert img.gateway_writes > 100
+
+
+def test_frozen_plc_heartbeat_stops_writes_and_faults_then_resumes():
+    seen: dict[int, tuple[int, int]] = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        img = holder["img"]
+        seen[n] = (img.gateway_writes, img.gateway_state)
+
+    faults = VirtualFaults(freeze_heartbeat_from=10, freeze_heartbeat_until=200)
+    svc, _, img, _ = make(faults, on_read=record, heartbeat_timeout_s=0.05)
+    holder["img"] = img
+    svc.run(cycles=250)
+    writes_fault, state_fault = seen[120]
+    assert state_fault == GatewayState.FAULT
+    assert seen[190] == (writes_fault, GatewayState.FAULT)  # nothing written while frozen
+    assert 55 <= writes_fault <= 65
+    assert seen[210][1] == GatewayState.ACTIVE and seen[210][0] > writes_fault
+    assert svc.stats.errors["heartbeat"] == 1
+
+
+def test_fault_frame_carries_no_tensions():
+    faults = VirtualFaults(freeze_heartbeat_from=2)
+    svc, _, img, _ = make(faults, heartbeat_timeout_s=0.01)
+    snapshot = {}
+
+    def record(n: int) -> None:
+        if n == 40:
+            snapshot["corrected"] = img.corrected_n.copy()
+            snapshot["status"] = img.channel_status.copy()
+            snapshot["state"] = img.gateway_state
+
+    svc.driver.on_read = record  # type: ignore[attr-defined]
+    svc.run(cycles=45)
+    assert snapshot["state"] == GatewayState.FAULT
+    assert np.all(np.isnan(snapshot["corrected"]))
+    assert np.all(snapshot["status"] == ChannelStatus.INVALID)
+    assert svc.state is LoopState.STOPPED
+
+
+def test_stop_writes_stopped_state_and_invalid_channels():
+    holder = {}
+
+    def record(n: int) -> None:
+        if n == 30:
+            holder["svc"].stop()
+
+    svc, _, img, _ = make(on_read=record)
+    holder["svc"] = svc
+    stats = svc.run(cycles=1000)
+    assert stats.cycles == 30
+    assert img.gateway_state == GatewayState.STOPPED == 0
+    assert np.all(img.channel_status == ChannelStatus.INVALID)
+    assert np.all(np.isnan(img.corrected_n))
+    assert svc.state is LoopState.STOPPED
+
+
+def test_sigterm_ends_the_loop_cleanly():
+    def record(n: int) -> None:
+        if n == 20:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    svc, _, img, _ = make(on_read=record)
+    previous = svc.install_signal_handlers()
+    try:
+        stats = svc.run(cycles=1000)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    assert stats.cycles <= 21
+    assert img.gateway_state == GatewayState.STOPPED
+
+
+def test_good_cycles_write_finite_tensions_and_active_state():
+    seen = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        if n == 50:
+            seen["state"] = holder["img"].gateway_state
+            seen["corrected"] = holder["img"].corrected_n.copy()
+
+    svc, _, img, _ = make(on_read=record)
+    holder["img"] = img
+    svc.run(cycles=60)
+    assert seen["state"] == GatewayState.ACTIVE
+    assert finite(seen["corrected"])
+    # paying out (v > 0): the platform carries more tension than the sensor reads
+    assert np.all(seen["corrected"] > 199.0)
+
+
+def test_saturated_channel_is_substituted_then_invalid_in_the_registers():
+    snap = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        snap[n] = (holder["img"].channel_status[2], holder["img"].corrected_n[2])
+
+    faults = VirtualFaults(saturated_channel=2, saturated_from=20)
+    svc, _, img, _ = make(faults, on_read=record, substitute_max_s=0.03)
+    holder["img"] = img
+    svc.run(cycles=100)
+    assert snap[19][0] == ChannelStatus.GOOD
+    assert snap[30][0] == ChannelStatus.SUBSTITUTED and np.isfinite(snap[30][1])
+    assert snap[80][0] == ChannelStatus.INVALID and np.isnan(snap[80][1])
+    assert snap[80][0] != svc.comp.status[0]  # the other channels stay good
+    assert svc.stats.errors["invalid_value"] == 1
