@@ -52,7 +52,7 @@ MOVING_M_S = 1e-6  # |setpoint velocity| above this counts as moving for the stu
 
 
 @njit(cache=True)
-def _validate(  # noqa: PLR0913
+def _validate(
     raw, vel, now, lo, hi, stuck_after, substitute_max, stale, last_value, changed_at,
     last_good, good_at, flags, status, used, vel_used,
 ):  # fmt: skip

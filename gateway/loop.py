@@ -33,6 +33,7 @@ Clock and sleep are injectable (a fake clock for tests); ``run(cycles=N)`` is bo
 from __future__ import annotations
 
 import bisect
+import contextlib
 import enum
 import gc
 import logging
@@ -372,10 +373,8 @@ class CyclicService:
         self.state = LoopState.CONNECTED
 
     def _close_driver(self) -> None:
-        try:
+        with contextlib.suppress(DriverError):
             self.driver.close()
-        except DriverError:
-            pass
 
     def _shutdown(self) -> None:
         """Write STOPPED (every channel invalid, no tensions) and close the driver."""
