@@ -28,7 +28,7 @@ class GeometryConfig:
 
     frame_anchors_m: tuple[Vec3, ...]
     platform_anchors_m: tuple[Vec3, ...]
-    platform_mass_kg: float = 50.0
+    platform_mass_kg: float = 40.0
     gravity_m_s2: float = 9.81
     center_of_mass_m: Vec3 = (0.0, 0.0, 0.0)
     home_pose: tuple[float, float, float, float, float, float] = (0.0, 0.0, 1.5, 0.0, 0.0, 0.0)
@@ -52,7 +52,7 @@ class TensionConfig:
     """Admissible cable tensions for the tension distribution (paper: 0 < T < 1000 N)."""
 
     min_n: float = 20.0
-    max_n: float = 1000.0
+    max_n: float = 490.0
 
     def __post_init__(self) -> None:
         require(0 <= self.min_n < self.max_n, "need 0 <= min_n < max_n")
