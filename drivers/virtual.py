@@ -15,7 +15,8 @@ Modes:
   driven by a fake clock sees a plant that advances exactly one period per cycle.
 
 Faults are parameters (:class:`VirtualFaults`), counted in reads (1-based): fail or time
-out on the Nth read (for ``count`` reads), refuse ``fail_opens`` opens, freeze the
+out on the Nth read (for ``count`` reads), drop the connection on the Nth read (every read
+fails until the driver is reopened), refuse ``fail_opens`` opens, freeze the
 heartbeat from a read on (until a read), NaN / stuck / saturated channels from a read on.
 """
 
@@ -43,6 +44,7 @@ class VirtualFaults:
     timeout_on_read: int | None = None  # DriverTimeoutError from this read on ...
     timeout_count: int = 1  # ... for this many reads
     fail_opens: int = 0  # the first N opens raise DriverInitError
+    drop_on_read: int | None = None  # the connection drops: this and every read fail until reopened
     freeze_heartbeat_from: int | None = None  # PLC heartbeat stops changing ...
     freeze_heartbeat_until: int | None = None  # ... until this read (exclusive)
     nan_channel: int | None = None  # 0-based channel that reads NaN ...
@@ -75,6 +77,7 @@ class VirtualDriver(Driver):
         self.on_read = on_read  # test hook, called with the read number before reading
         self.reads = 0
         self.opens = 0
+        self.dropped = False
         self._scale = config.sensor.range_n / config.sensor.adc_full_scale
         self._frozen_heartbeat = 0
         self._stuck_value = float("nan")
@@ -84,6 +87,7 @@ class VirtualDriver(Driver):
         self.opens += 1
         if self.opens <= self.faults.fail_opens:
             raise DriverInitError(f"virtual: open {self.opens} refused (fault injection)")
+        self.dropped = False
 
     def _close(self) -> None:
         pass
@@ -94,6 +98,10 @@ class VirtualDriver(Driver):
         if self.on_read is not None:
             self.on_read(n)
         f = self.faults
+        if n == f.drop_on_read:
+            self.dropped = True
+        if self.dropped:
+            raise DriverIOError(f"virtual: read {n}: connection dropped (fault injection)")
         if _within(n, f.fail_on_read, f.fail_count):
             raise DriverIOError(f"virtual: read {n} failed (fault injection)")
         if _within(n, f.timeout_on_read, f.timeout_count):

@@ -18,7 +18,7 @@ from typing import Any
 from drivers.base import Driver, make_driver
 from gateway.config import DEFAULT_CONFIG_PATH, Config, load_config
 from gateway.errors import ConfigError, DriverInitError
-from gateway.loop import CyclicService, LoopState, LoopStats
+from gateway.loop import CyclicService, LoopState
 from gateway.metrics import MetricsServer, make_registry
 
 log = logging.getLogger("cdpr_gateway")
@@ -59,10 +59,11 @@ def describe_bus(cfg: Config) -> str:
     return bus
 
 
-def summary(stats: LoopStats) -> str:
+def summary(service: CyclicService) -> str:
+    stats = service.stats
     return (
         f"cycles {stats.cycles}, written {stats.written}, overruns {stats.overruns} "
-        f"(skipped {stats.skipped}), reconnects {stats.reconnects}, "
+        f"(skipped {stats.skipped}), reconnects {service.reconnects}, "
         f"errors {sum(stats.errors.values())}"
     )
 
@@ -86,11 +87,11 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             log.warning("cannot reach the PLC at %s yet; retrying", describe_bus(cfg))
         else:
             log.info("connected to %s", describe_bus(cfg))
-        stats = service.run(args.cycles)
+        service.run(args.cycles)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if server is not None:
             server.close()
-    print(f"stopped: {summary(stats)}", file=sys.stderr, flush=True)
+    print(f"stopped: {summary(service)}", file=sys.stderr, flush=True)
     return 0

@@ -181,7 +181,7 @@ def table(service: CyclicService, title: str) -> str:
         f"  cycles               {s.cycles}",
         f"  written              {s.written}",
         f"  overruns             {s.overruns} ({pct:.3f} %), {s.skipped} cycles skipped",
-        f"  reconnects           {s.reconnects}",
+        f"  reconnects           {service.reconnects}",
         f"  jitter p50 / p99     {_us(s.jitter_ring.percentile(50))} / "
         f"{_us(s.jitter_ring.percentile(99))}",
         f"  round trip p50 / p99 {_us(s.roundtrip_ring.percentile(50))} / "

@@ -59,6 +59,7 @@ CYCLE_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e
 JITTER_BUCKETS_S = (10e-6, 20e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3)
 ROUNDTRIP_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3, 0.05)
 ERROR_KINDS = ("timeout", "io", "connect", "write", "invalid_value", "heartbeat")
+REOPEN_AFTER = 3  # failed cycles in a row before the loop closes and reopens the driver
 SCORE_AFTER_S = 0.5  # truth scoring skips the model's warm-up
 
 
@@ -194,6 +195,8 @@ class CyclicService:
         self._last_hb: int | None = None
         self._hb_changed_at = 0.0
         self._ever_connected = False
+        self._open = False
+        self._failures = 0
         self._backoff_min, self._backoff_max = _reconnect_limits(cfg)
         self._backoff = self._backoff_min
         self._reconnect_at = -math.inf
@@ -268,7 +271,7 @@ class CyclicService:
     # --- one cycle ----------------------------------------------------------------------
     def _cycle(self, now: float) -> bool:
         """One read -> compensate -> write; True when the schedule must be re-anchored."""
-        if not self.driver.connected:
+        if not self._open:
             if now >= self._reconnect_at:
                 self._connect(now)
                 return True
@@ -277,11 +280,12 @@ class CyclicService:
         try:
             self.driver.read_into(self.inputs)
         except DriverTimeoutError:
-            self._lost(now, "timeout")
+            self._failed(now, "timeout")
             return False
         except DriverError:
-            self._lost(now, "io")
+            self._failed(now, "io")
             return False
+        self._failures = 0
         t1 = self.clock()
         rt = self.driver.roundtrip_s
         last = float(rt.values[(rt.count - 1) % rt.size])
@@ -339,25 +343,44 @@ class CyclicService:
                 self.driver.flush()
                 self._fault_written = True
         except DriverError:
-            self._lost(self.clock(), "write")
+            self._failed(self.clock(), "write")
             return
         self.stats.written += 1
         if not self.heartbeat_fault:
             self.state = LoopState.ACTIVE
 
     # --- connection ---------------------------------------------------------------------
-    def _lost(self, now: float, kind: str) -> None:
-        """A failed transaction: nothing written this cycle, channels stale, reconnect."""
+    @property
+    def bus_up(self) -> bool:
+        """The driver is open and its last transaction succeeded."""
+        return self._open and self._failures == 0
+
+    @property
+    def reconnects(self) -> int:
+        """Reopens by the loop plus reconnections the driver made by itself."""
+        return self.stats.reconnects + int(getattr(self.driver, "reconnects", 0))
+
+    def _failed(self, now: float, kind: str) -> None:
+        """A failed transaction: nothing written this cycle, channels stale.
+
+        The driver is kept open (drivers heal themselves: Modbus reconnects with its own
+        backoff, CANopen waits for the next SYNC); after ``REOPEN_AFTER`` failed cycles in
+        a row the loop closes it and reopens it with backoff.
+        """
         self.stats.errors[kind] += 1
         self.comp.mark_unread(now)
         self.state = LoopState.FAULT
-        self._close_driver()
-        self._reconnect_at = now  # first retry on the next cycle, then backoff
+        self._last_hb = None  # after an outage, watch the PLC heartbeat afresh
+        self._failures += 1
+        if self._failures >= REOPEN_AFTER:
+            self._close_driver()
+            self._reconnect_at = now  # first reopen on the next cycle, then backoff
 
     def _connect(self, now: float) -> None:
         try:
             self._close_driver()
             self.driver.open()
+            self._open = True
         except DriverError:
             if self._ever_connected or self.stats.cycles:
                 self.stats.errors["connect"] += 1
@@ -369,16 +392,18 @@ class CyclicService:
             self.stats.reconnects += 1
         self._ever_connected = True
         self._backoff = self._backoff_min
+        self._failures = 0
         self._last_hb = None  # a restarted PLC: watch its heartbeat afresh
         self.state = LoopState.CONNECTED
 
     def _close_driver(self) -> None:
+        self._open = False
         with contextlib.suppress(DriverError):
             self.driver.close()
 
     def _shutdown(self) -> None:
         """Write STOPPED (every channel invalid, no tensions) and close the driver."""
-        if self.driver.connected:
+        if self._open:
             out = self.outputs
             self.comp.invalidate_outputs(out)
             out.gateway_state = int(GatewayState.STOPPED)
@@ -400,7 +425,7 @@ class CyclicService:
             return
         self._next_check = now + 0.5
         current = {**self.stats.errors, "overruns": self.stats.overruns}
-        current["reconnects"] = self.stats.reconnects
+        current["reconnects"] = self.reconnects
         changed = {k: v - self._logged[k] for k, v in current.items() if v != self._logged[k]}
         if not changed:
             return

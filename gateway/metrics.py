@@ -79,9 +79,9 @@ class GatewayCollector(Collector):
             errors.add_metric([kind], count)
         yield errors
         yield _labelled(CounterMetricFamily, "reconnects_total", "Bus reconnections.",
-                        "bus", {bus: stats.reconnects})  # fmt: skip
+                        "bus", {bus: svc.reconnects})  # fmt: skip
         yield _labelled(GaugeMetricFamily, "connected", "1 while the bus is up.",
-                        "bus", {bus: 1.0 if svc.driver.connected else 0.0})  # fmt: skip
+                        "bus", {bus: 1.0 if svc.bus_up else 0.0})  # fmt: skip
         comp = svc.comp
         per_cable = (
             ("tension_raw_newtons", "Scaled sensor reading.", comp.raw_n),

@@ -57,7 +57,7 @@ def test_overrun_is_counted_and_missed_cycles_skipped():
     assert stats.jitter_ring.recent().max() < 1e-5  # the next cycle starts on a deadline
 
 
-def test_failed_read_writes_nothing_flags_reconnects_and_resumes():
+def test_failed_read_writes_nothing_and_the_next_cycle_resumes():
     writes_at_read: dict[int, int] = {}
     holder = {}
 
@@ -68,14 +68,31 @@ def test_failed_read_writes_nothing_flags_reconnects_and_resumes():
     holder["img"] = img
     stats = svc.run(cycles=30)
     assert writes_at_read[5] == 4
-    assert writes_at_read[6] == 4  # cycle 5 (failed read) and 6 (reconnect) wrote nothing
+    assert writes_at_read[6] == 4  # the failed cycle wrote nothing
     assert writes_at_read[7] == 5
     assert stats.errors["io"] == 1
-    assert stats.reconnects == 1
-    assert drv.opens == 2
-    # 30 cycles - the failed one - the reconnect one + the STOPPED frame
-    assert stats.written == 29
+    assert svc.reconnects == 0 and drv.opens == 1  # one failure: the driver heals itself
+    assert stats.written == 30  # 29 good cycles + the STOPPED frame
     assert svc.state is LoopState.STOPPED
+
+
+def test_dropped_connection_is_reopened_and_the_loop_resumes():
+    writes_at_read: dict[int, int] = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        writes_at_read[n] = holder["img"].gateway_writes
+
+    svc, drv, img, _ = make(VirtualFaults(drop_on_read=5), on_read=record)
+    holder["img"] = img
+    stats = svc.run(cycles=30)
+    # reads 5, 6, 7 fail (REOPEN_AFTER = 3), cycle 8 reopens, read 8 (cycle 9) succeeds
+    assert writes_at_read[8] == 4
+    assert writes_at_read[9] == 5
+    assert stats.errors["io"] == 3
+    assert svc.reconnects == 1 and drv.opens == 2
+    assert stats.written == 30 - 4 + 1
+    assert finite(img.corrected_n) is False  # the STOPPED frame carries no tensions
 
 
 def test_failed_read_flags_channels_stale_and_keeps_last_good():
@@ -83,16 +100,34 @@ def test_failed_read_flags_channels_stale_and_keeps_last_good():
     svc.run(cycles=5)
     assert np.all(svc.comp.flags & 8)  # FLAG_STALE
     assert np.all(svc.comp.status == ChannelStatus.SUBSTITUTED)
-    assert img.gateway_writes == 4  # no write from the failed cycle, none at stop (bus down)
+    assert img.gateway_writes == 4 + 1  # nothing from the failed cycle; the STOPPED frame
+    assert img.gateway_state == GatewayState.STOPPED  # the bus was still open at stop
 
 
-def test_timeouts_count_and_backoff_grows():
-    faults = VirtualFaults(timeout_on_read=3, fail_opens=0)
-    svc, drv, _, _ = make(faults)
-    drv.faults.fail_opens = 0
+def test_timeouts_are_counted_by_kind():
+    svc, _, _, _ = make(VirtualFaults(timeout_on_read=3, timeout_count=2))
     stats = svc.run(cycles=10)
-    assert stats.errors["timeout"] == 1
-    assert stats.reconnects == 1
+    assert stats.errors["timeout"] == 2
+    assert stats.errors["io"] == 0
+    assert svc.reconnects == 0
+
+
+def test_reopen_backoff_grows_while_the_plc_is_away():
+    svc, drv, _, _ = make(VirtualFaults(drop_on_read=5))
+    drv.faults.fail_opens = 0
+
+    def refuse_from_now(n: int) -> None:
+        if n == 5:
+            drv.faults.fail_opens = 4  # opens 2..4 refused, open 5 succeeds
+
+    drv.on_read = refuse_from_now
+    stats = svc.run(cycles=600)
+    assert drv.opens == 5
+    assert stats.errors["connect"] == 3
+    assert svc.reconnects == 1
+    # refused at ~cycle 8, retried after 0.05, 0.1, 0.2 s: back near cycle 8 + 350
+    first_good = 5 + 3 + 350
+    assert stats.written == pytest.approx(600 - first_good + 4 + 1, abs=12)
 
 
 def test_initial_connect_retries_with_exponential_backoff():
@@ -217,3 +252,27 @@ def test_saturated_channel_is_substituted_then_invalid_in_the_registers():
     assert snap[80][0] == ChannelStatus.INVALID and np.isnan(snap[80][1])
     assert snap[80][0] != svc.comp.status[0]  # the other channels stay good
     assert svc.stats.errors["invalid_value"] == 1
+
+
+def test_cycles_do_not_accumulate_allocations():
+    import tracemalloc
+
+    from tests.loop_helpers import Wobble
+
+    cfg = config(busy_wait_s=0.0)
+    img = live_image(cfg)
+    clock = FakeClock()
+    drv = VirtualDriver(cfg, image=img, step=Wobble(img))
+    svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=4096)
+    svc.configure()
+    svc._run(300)  # warm-up: numba dispatch, first-time caches
+    tracemalloc.start()
+    try:
+        before, _ = tracemalloc.get_traced_memory()
+        svc._run(2000)
+        after, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert svc.stats.written >= 2300
+    assert after - before < 4096  # nothing retained per cycle
+    assert peak - before < 32768  # and no large temporaries

@@ -55,7 +55,7 @@ def test_names_types_and_labels_are_exactly_the_design_table():
 
 
 def test_values_come_from_the_loop_statistics():
-    svc = ran_service(120, VirtualFaults(fail_on_read=50))
+    svc = ran_service(120, VirtualFaults(drop_on_read=50))
     reg = make_registry(svc)
     assert reg.get_sample_value("cdpr_gateway_cycle_seconds_count") == svc.stats.cycles == 120
     assert reg.get_sample_value("cdpr_gateway_jitter_seconds_count") == 120
@@ -64,14 +64,14 @@ def test_values_come_from_the_loop_statistics():
     ) == pytest.approx(120)
     assert reg.get_sample_value("cdpr_gateway_cycle_seconds_bucket", {"le": "5e-05"}) == 120
     assert reg.get_sample_value("cdpr_gateway_overruns_total") == 0
-    assert reg.get_sample_value("cdpr_gateway_errors_total", {"kind": "io"}) == 1
+    assert reg.get_sample_value("cdpr_gateway_errors_total", {"kind": "io"}) == 3
     assert reg.get_sample_value("cdpr_gateway_errors_total", {"kind": "timeout"}) == 0
     assert reg.get_sample_value("cdpr_gateway_reconnects_total", {"bus": "virtual"}) == 1
     assert (
         reg.get_sample_value("cdpr_gateway_bus_roundtrip_seconds_count", {"bus": "virtual"})
         == svc.driver.roundtrip_s.count
     )
-    assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 0  # stopped
+    assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 0  # closed
     assert (
         reg.get_sample_value("cdpr_gateway_build_info", {"version": __version__, "bus": "virtual"})
         == 1
@@ -108,3 +108,18 @@ def test_http_exporter_serves_on_loopback_and_reports_a_busy_port():
     finally:
         server.close()
         server.close()
+
+
+def test_connected_follows_the_bus():
+    cfg = config(busy_wait_s=0.0)
+    clock = FakeClock()
+    drv = VirtualDriver(cfg, image=live_image(cfg), faults=VirtualFaults(fail_on_read=3))
+    svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=64)
+    reg = make_registry(svc)
+    assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 0
+    svc.configure()
+    assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 1
+    svc._run(3)  # the third read fails
+    assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 0
+    svc._run(1)
+    assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 1
