@@ -19,13 +19,13 @@ pytest.importorskip("sim_plc.modbus_server")
 pytest.importorskip("sim_plc.plant")
 pytest.importorskip("drivers.modbus_tcp")
 
-from pymodbus.client import ModbusTcpClient  # noqa: E402
+from pymodbus.client import ModbusTcpClient
 
-from drivers.base import GatewayState  # noqa: E402
-from gateway.config import Config, load_config  # noqa: E402
-from gateway.daemon import build_driver  # noqa: E402
-from gateway.demo import SoftPlc, with_port  # noqa: E402
-from gateway.loop import CyclicService  # noqa: E402
+from drivers.base import GatewayState
+from gateway.config import Config, load_config
+from gateway.daemon import build_driver
+from gateway.demo import SoftPlc, with_port
+from gateway.loop import CyclicService
 
 pytestmark = pytest.mark.loopback
 RUN_S = 4.0  # how long the gateway runs; no assertion depends on it being exact
