@@ -8,6 +8,11 @@ jitter and round-trip percentiles, and per cable the RMSE of the raw and of the 
 tension against the plant's true platform tension (registers 200-215, read each cycle with
 the inputs).
 
+With ``--bus canopen`` on python-can's ``virtual`` interface (the default), the soft PLC
+runs in this process (a virtual CAN channel does not cross processes) and the true
+tensions come from its process image; on a real interface (``socketcan``, ``udp_multicast``)
+it runs as the subprocess above and the table has no RMSE (CANopen carries no truth).
+
 ``--offline`` runs an in-process stand-in plant through the virtual driver instead (no
 sockets): sinusoidal platform tensions and cable velocities, the sensor reading made by
 the same friction chain run platform -> sensor, plus noise and the S7 ADC.
@@ -138,6 +143,44 @@ class SoftPlc:
                 pipe.close()
 
 
+class InProcessCanopenPlc:
+    """The soft PLC on python-can's in-process ``virtual`` bus: plant, runtime, CANopen nodes.
+
+    A virtual CAN channel does not cross processes, so with ``bus.canopen.interface:
+    virtual`` the soft PLC runs in this process, on a private channel. ``truth`` copies the
+    plant's true tensions from the process image (CANopen carries no truth PDO).
+    """
+
+    def __init__(self, cfg: Config) -> None:
+        from sim_plc.config import load_sim_config
+        from sim_plc.plant import Plant
+        from sim_plc.runtime import PlcRuntime
+
+        from sim_plc.canopen_nodes import CanopenPlc
+
+        channel = f"cdpr-demo-{os.getpid()}-{id(self)}"
+        can_cfg = dataclasses.replace(cfg.bus.canopen, interface="virtual", channel=channel)
+        self.cfg = dataclasses.replace(
+            cfg, bus=dataclasses.replace(cfg.bus, driver="canopen", canopen=can_cfg)
+        )
+        sim = load_sim_config(cfg)
+        plant = Plant(cfg, sim)
+        self.image = ProcessImage(cfg.cables)
+        plant.step(self.image)
+        self.runtime = PlcRuntime(plant, self.image, sim.period_s)
+        self.plc = CanopenPlc(self.cfg, self.image)
+        self.runtime.start()
+        self.plc.start(realtime=True)
+
+    def truth(self, inputs: Any) -> None:
+        with self.image.lock:
+            inputs.true_tension_n[:] = self.image.true_tension_n
+
+    def close(self) -> None:
+        self.plc.stop()
+        self.runtime.stop()
+
+
 def with_port(cfg: Config, bus: str, host: str, port: int) -> Config:
     """``cfg`` with the bus chosen and the Modbus server's host/port replaced."""
     mb = dataclasses.replace(cfg.bus.modbus_tcp, host=host or "127.0.0.1", port=port)
@@ -211,7 +254,23 @@ def run_offline(cfg: Config, seconds: float) -> CyclicService:
     return service
 
 
+def run_canopen_in_process(cfg: Config, seconds: float) -> CyclicService:
+    plc = InProcessCanopenPlc(cfg)
+    try:
+        print(f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
+              file=sys.stderr)  # fmt: skip
+        service = CyclicService(
+            plc.cfg, build_driver(plc.cfg), with_truth=True, truth_source=plc.truth
+        )
+        run_timed(service, seconds, "demo", sys.stderr)
+    finally:
+        plc.close()
+    return service
+
+
 def run_online(cfg: Config, config_path: str, bus: str, seconds: float) -> CyclicService:
+    if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
+        return run_canopen_in_process(cfg, seconds)
     plc = SoftPlc(config_path, bus)
     try:
         print(f"demo: soft PLC serving {bus} on {plc.host}:{plc.port}", file=sys.stderr)
@@ -233,6 +292,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         title = f"demo: stand-in plant, virtual driver, {args.seconds:g} s"
     else:
         service = run_online(cfg, args.config, bus, args.seconds)
-        title = f"demo: soft PLC over {bus} on loopback, {args.seconds:g} s"
+        where = "on loopback"
+        if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
+            where = "(virtual CAN, in process)"
+        title = f"demo: soft PLC over {bus} {where}, {args.seconds:g} s"
     print(table(service, title))
     return 0

@@ -27,6 +27,9 @@ written cycle. :meth:`CyclicService.stop` (and SIGTERM/SIGINT via
 :meth:`CyclicService.install_signal_handlers`) end the loop after the current cycle; the
 last frame written says STOPPED (state 0), every channel invalid, NaN tensions.
 
+A driver with ``paced_by_bus = True`` (CANopen: the PLC's SYNC is the cycle clock) is
+read without waiting for the loop's own deadline; see :meth:`CyclicService._run_paced`.
+
 Clock and sleep are injectable (a fake clock for tests); ``run(cycles=N)`` is bounded.
 """
 
@@ -195,6 +198,8 @@ class CyclicService:
         sleep: Callable[[float], None] = time.sleep,
         history: int = 1 << 16,
         with_truth: bool = False,
+        wall_clock: Callable[[], float] = time.time,
+        truth_source: Callable[[Inputs], None] | None = None,
     ) -> None:
         self.cfg = cfg
         self.driver = driver
@@ -217,7 +222,12 @@ class CyclicService:
         self._ever_connected = False
         self._open = False
         self._failures = 0
-        self._read_truth: Callable[[Inputs], None] | None = getattr(driver, "read_truth", None)
+        self._read_truth: Callable[[Inputs], None] | None = truth_source or getattr(
+            driver, "read_truth", None
+        )
+        self.wall_clock = wall_clock
+        self.paced = bool(getattr(driver, "paced_by_bus", False))
+        self._data_at = 0.0
         self._backoff_min, self._backoff_max = _reconnect_limits(cfg)
         self._backoff = self._backoff_min
         self._reconnect_at = -math.inf
@@ -257,18 +267,19 @@ class CyclicService:
         return self.stats
 
     def _run(self, cycles: int | None) -> None:
+        if self.paced:
+            self._run_paced(cycles)
+            return
         period = self.period_s
         deadline = self.clock()
         done = 0
         while not self._stop.is_set() and (cycles is None or done < cycles):
             self._wait_until(deadline)
             start = self.clock()
-            self.stats.jitter.add(start - deadline)
-            self.stats.jitter_ring.add(start - deadline)
+            self._add_jitter(start - deadline)
             reanchor = self._cycle(start)
             end = self.clock()
-            self.stats.cycle.add(end - start)
-            self.stats.cycle_ring.add(end - start)
+            self._add_cycle(end - start)
             self.stats.cycles += 1
             done += 1
             if reanchor:  # a (re)connect attempt may block: restart the schedule
@@ -281,6 +292,48 @@ class CyclicService:
                     self.stats.overruns += 1
                     self.stats.skipped += missed
             self._report(end)
+
+    def _run_paced(self, cycles: int | None) -> None:
+        """The bus is the clock (CANopen SYNC): ``read_into`` waits for the next set.
+
+        Jitter is the lateness of the data after its SYNC (the driver's
+        ``last_sync_timestamp``, wall-clock base); the cycle time runs from the data's
+        arrival to the end of the write; an overrun is a cycle after which SYNCs were
+        missed (the driver's ``syncs`` advanced by more than one), each one skipped.
+        While the bus is down the loop falls back to its own deadlines for the retries.
+        """
+        done = 0
+        deadline = self.clock()
+        drv = self.driver
+        while not self._stop.is_set() and (cycles is None or done < cycles):
+            if not self._open:
+                self._wait_until(deadline)
+            syncs_before = int(getattr(drv, "syncs", 0))
+            start = self.clock()
+            self._data_at = start
+            self._cycle(start)
+            end = self.clock()
+            if self._data_at != start:  # a set arrived: its SYNC's lateness, the work
+                sync_at = float(getattr(drv, "last_sync_timestamp", 0.0))
+                if sync_at > 0.0:
+                    self._add_jitter(max(0.0, self.wall_clock() - sync_at))
+                self._add_cycle(end - self._data_at)
+                missed = int(getattr(drv, "syncs", 0)) - syncs_before - 1
+                if missed > 0 and syncs_before > 0:
+                    self.stats.overruns += 1
+                    self.stats.skipped += missed
+            deadline = end + self.period_s
+            self.stats.cycles += 1
+            done += 1
+            self._report(end)
+
+    def _add_jitter(self, seconds: float) -> None:
+        self.stats.jitter.add(seconds)
+        self.stats.jitter_ring.add(seconds)
+
+    def _add_cycle(self, seconds: float) -> None:
+        self.stats.cycle.add(seconds)
+        self.stats.cycle_ring.add(seconds)
 
     def _wait_until(self, deadline: float) -> None:
         remaining = deadline - self.clock()
@@ -308,6 +361,7 @@ class CyclicService:
             return False
         self._failures = 0
         t1 = self.clock()
+        self._data_at = t1
         rt = self.driver.roundtrip_s
         last = float(rt.values[(rt.count - 1) % rt.size])
         self.stats.roundtrip.add(last)

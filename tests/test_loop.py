@@ -276,3 +276,41 @@ def test_cycles_do_not_accumulate_allocations():
     assert svc.stats.written >= 2300
     assert after - before < 4096  # nothing retained per cycle
     assert peak - before < 32768  # and no large temporaries
+
+
+class PacedVirtual(VirtualDriver):
+    """A bus-paced driver: each read waits one SYNC period on the fake clock."""
+
+    paced_by_bus = True
+
+    def __init__(self, cfg, clock: FakeClock, **kw) -> None:
+        super().__init__(cfg, **kw)
+        self.clock = clock
+        self.syncs = 0
+        self.last_sync_timestamp = 0.0
+        self.lag_on: dict[int, int] = {}
+
+    def _read(self, inputs) -> None:
+        extra = self.lag_on.get(self.reads + 1, 0)
+        self.clock.advance(PERIOD * (1 + extra))
+        self.syncs += 1 + extra
+        self.last_sync_timestamp = self.clock.now - 20e-6  # data 20 us after SYNC
+        super()._read(inputs)
+
+
+def test_bus_paced_driver_sets_the_pace_and_missed_syncs_are_overruns():
+    cfg = config(busy_wait_s=0.0)
+    clock = FakeClock()
+    drv = PacedVirtual(cfg, clock, image=live_image(cfg))
+    drv.lag_on = {40: 2}  # two SYNCs pass before read 40 returns
+    svc = CyclicService(
+        cfg, drv, clock=clock, sleep=clock.sleep, history=1024, wall_clock=lambda: clock.now
+    )
+    assert svc.paced
+    start = clock.now
+    stats = svc.run(cycles=100)
+    assert clock.slept == 0.0  # the loop never slept: the bus paced it
+    assert clock.now - start == pytest.approx(102 * PERIOD, abs=1e-4)
+    assert stats.overruns == 1 and stats.skipped == 2
+    assert stats.cycles == 100 and stats.written == 101
+    assert stats.jitter_ring.recent() == pytest.approx(20e-6, abs=1e-6)
