@@ -29,7 +29,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, TextIO
+from typing import IO, Any, TextIO
 
 import numpy as np
 
@@ -110,7 +110,7 @@ class SoftPlc:
     def _wait_listening(self, bus: str) -> tuple[str, int]:
         found: dict[str, Any] = {}
         assert self.proc.stdout is not None
-        stdout: TextIO = self.proc.stdout
+        stdout: IO[str] = self.proc.stdout
 
         def reader() -> None:
             for line in stdout:
@@ -206,6 +206,8 @@ def run_timed(service: CyclicService, seconds: float, label: str, err: TextIO) -
                 file=err,
                 flush=True,
             )
+    except KeyboardInterrupt:
+        print(f"{label}: interrupted", file=err, flush=True)
     finally:
         service.stop()
         worker.join(timeout=30)
