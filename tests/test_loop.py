@@ -314,3 +314,24 @@ def test_bus_paced_driver_sets_the_pace_and_missed_syncs_are_overruns():
     assert stats.overruns == 1 and stats.skipped == 2
     assert stats.cycles == 100 and stats.written == 101
     assert stats.jitter_ring.recent() == pytest.approx(20e-6, abs=1e-6)
+
+
+def test_overrun_warnings_are_rate_limited(caplog):
+    holder = {}
+
+    def slow(n: int) -> None:
+        if n % 100 == 0:  # an overrun every 100 cycles
+            holder["clock"].advance(1.5 * PERIOD)
+
+    svc, _, _, clock = make(on_read=slow, overrun_warning_interval_s=1.0)
+    holder["clock"] = clock
+    with caplog.at_level("WARNING", logger="cdpr_gateway.loop"):
+        stats = svc.run(cycles=2500)
+    assert stats.overruns == 25
+    warnings = [r for r in caplog.records if "overruns" in r.getMessage()]
+    # one at the first overrun, then at most one per second of loop time (~2.5 s)
+    assert 2 <= len(warnings) <= 4
+    assert (
+        sum(int(r.getMessage().split("overruns +")[1].split()[0].rstrip(",")) for r in warnings)
+        <= 25
+    )
