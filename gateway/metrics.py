@@ -28,10 +28,17 @@ always present (0 until it happens) so dashboards and alerts see a stable set.
 
 from __future__ import annotations
 
+import base64
+import hashlib
+import hmac
+import ssl
+import threading
 from collections.abc import Iterator
+from socketserver import ThreadingMixIn
 from typing import Any
+from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
-from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client import CollectorRegistry, make_wsgi_app
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
@@ -114,22 +121,75 @@ def make_registry(service: CyclicService, bus: str | None = None) -> CollectorRe
     return registry
 
 
+class _QuietHandler(WSGIRequestHandler):
+    def log_message(self, format: str, *args: Any) -> None:  # no access log on stderr
+        pass
+
+
+class _ThreadingServer(ThreadingMixIn, WSGIServer):
+    daemon_threads = True
+
+
+def _basic_auth(app: Any, user: str, password_sha256: str) -> Any:
+    """WSGI middleware: HTTP basic auth against a SHA-256 hex digest of the password."""
+    expected = password_sha256.lower()
+
+    def guarded(environ: dict[str, Any], start_response: Any) -> Any:
+        header = environ.get("HTTP_AUTHORIZATION", "")
+        ok = False
+        if header.startswith("Basic "):
+            try:
+                name, _, password = base64.b64decode(header[6:]).decode().partition(":")
+            except (ValueError, UnicodeDecodeError):
+                name, password = "", ""
+            digest = hashlib.sha256(password.encode()).hexdigest()
+            ok = hmac.compare_digest(name, user) & hmac.compare_digest(digest, expected)
+        if not ok:
+            start_response("401 Unauthorized", [("WWW-Authenticate", 'Basic realm="cdpr-gateway"')])
+            return [b"unauthorized\n"]
+        return app(environ, start_response)
+
+    return guarded
+
+
 class MetricsServer:
-    """The HTTP exporter on ``cfg.host:cfg.port`` (port 0: any free port, see ``.port``)."""
+    """The HTTP exporter on ``cfg.host:cfg.port`` (port 0: any free port, see ``.port``).
+
+    Optional TLS (``certfile``/``keyfile``) and HTTP basic auth (``basic_auth_user`` and
+    ``basic_auth_password_sha256``, the hex SHA-256 of the password). Serves every path
+    (``/metrics`` by convention) from its own daemon threads.
+    """
 
     def __init__(self, cfg: MetricsConfig, registry: CollectorRegistry, source: str = "") -> None:
+        where = f"{source}: " if source else ""
+        app = make_wsgi_app(registry)
+        if (cfg.basic_auth_user is None) != (cfg.basic_auth_password_sha256 is None):
+            raise ConfigError(
+                f"{where}metrics.basic_auth_user and metrics.basic_auth_password_sha256 go together"
+            )
+        if cfg.basic_auth_user is not None and cfg.basic_auth_password_sha256 is not None:
+            app = _basic_auth(app, cfg.basic_auth_user, cfg.basic_auth_password_sha256)
         try:
-            self._server, self._thread = start_http_server(
-                cfg.port, addr=cfg.host, registry=registry,
-                certfile=cfg.certfile, keyfile=cfg.keyfile,
-            )  # fmt: skip
+            server = make_server(cfg.host, cfg.port, app, _ThreadingServer, _QuietHandler)
         except OSError as exc:
-            where = f"{source}: " if source else ""
             raise ConfigError(
                 f"{where}metrics.port: cannot serve metrics on {cfg.host}:{cfg.port}: {exc}"
             ) from exc
+        if cfg.certfile is not None:
+            try:
+                context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+                context.load_cert_chain(cfg.certfile, cfg.keyfile)
+            except (OSError, ssl.SSLError) as exc:
+                server.server_close()
+                raise ConfigError(f"{where}metrics.certfile: {exc}") from exc
+            server.socket = context.wrap_socket(server.socket, server_side=True)
+        self._server: _ThreadingServer | None = server
+        self._thread = threading.Thread(
+            target=server.serve_forever, name="metrics-http", daemon=True
+        )
+        self._thread.start()
         self.host = cfg.host
-        self.port = int(self._server.server_port)
+        self.port = int(server.server_port)
 
     def close(self) -> None:
         """Stop serving; safe to call twice."""
@@ -137,4 +197,4 @@ class MetricsServer:
             self._server.shutdown()
             self._server.server_close()
             self._thread.join(timeout=5)
-            self._server = None  # type: ignore[assignment]
+            self._server = None

@@ -123,3 +123,70 @@ def test_connected_follows_the_bus():
     assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 0
     svc._run(1)
     assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 1
+
+
+def test_basic_auth_guards_the_exporter():
+    import base64
+    import hashlib
+    import urllib.error
+
+    reg = make_registry(ran_service(5))
+    digest = hashlib.sha256(b"s3cret").hexdigest()
+    cfg = MetricsConfig(
+        host="127.0.0.1", port=0, basic_auth_user="prom", basic_auth_password_sha256=digest
+    )
+    server = MetricsServer(cfg, reg)
+    url = f"http://127.0.0.1:{server.port}/metrics"
+    try:
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(url, timeout=5)
+        assert err.value.code == 401
+        err.value.close()
+        for password, ok in ((b"wrong", False), (b"s3cret", True)):
+            token = base64.b64encode(b"prom:" + password).decode()
+            request = urllib.request.Request(url, headers={"Authorization": f"Basic {token}"})
+            if ok:
+                with urllib.request.urlopen(request, timeout=5) as reply:
+                    assert b"cdpr_gateway_cycle_seconds_count 5.0" in reply.read()
+            else:
+                with pytest.raises(urllib.error.HTTPError) as bad:
+                    urllib.request.urlopen(request, timeout=5)
+                assert bad.value.code == 401
+                bad.value.close()
+    finally:
+        server.close()
+
+
+def test_half_configured_basic_auth_is_a_config_error():
+    reg = make_registry(ran_service(1))
+    with pytest.raises(ConfigError, match="basic_auth"):
+        MetricsServer(MetricsConfig(host="127.0.0.1", port=0, basic_auth_user="x"), reg)
+
+
+def test_tls_exporter(tmp_path):
+    import shutil
+    import ssl
+    import subprocess
+
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("openssl not installed")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(
+        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+         "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
+         "-keyout", str(key), "-out", str(cert)],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    reg = make_registry(ran_service(3))
+    cfg = MetricsConfig(host="127.0.0.1", port=0, certfile=str(cert), keyfile=str(key))
+    server = MetricsServer(cfg, reg)
+    try:
+        context = ssl.create_default_context(cafile=str(cert))
+        url = f"https://127.0.0.1:{server.port}/metrics"
+        with urllib.request.urlopen(url, timeout=5, context=context) as reply:
+            assert b"cdpr_gateway_cycle_seconds_count 3.0" in reply.read()
+    finally:
+        server.close()
+    with pytest.raises(ConfigError, match=r"metrics\.certfile"):
+        MetricsServer(MetricsConfig(host="127.0.0.1", port=0, certfile=str(key)), reg)
