@@ -152,11 +152,10 @@ class InProcessCanopenPlc:
     """
 
     def __init__(self, cfg: Config) -> None:
+        from sim_plc.canopen_nodes import CanopenPlc
         from sim_plc.config import load_sim_config
         from sim_plc.plant import Plant
         from sim_plc.runtime import PlcRuntime
-
-        from sim_plc.canopen_nodes import CanopenPlc
 
         channel = f"cdpr-demo-{os.getpid()}-{id(self)}"
         can_cfg = dataclasses.replace(cfg.bus.canopen, interface="virtual", channel=channel)
