@@ -13,9 +13,11 @@ runs in this process (a virtual CAN channel does not cross processes) and the tr
 tensions come from its process image; on a real interface (``socketcan``, ``udp_multicast``)
 it runs as the subprocess above and the table has no RMSE (CANopen carries no truth).
 
-``--offline`` runs an in-process stand-in plant through the virtual driver instead (no
-sockets): sinusoidal platform tensions and cable velocities, the sensor reading made by
-the same friction chain run platform -> sensor, plus noise and the S7 ADC.
+``--offline`` runs the soft PLC's plant in this process through the virtual driver (no
+sockets), stepped one period per gateway read, so truth and readings line up exactly.
+``--offline --stand-in`` replaces the plant by :class:`StandInPlant`: sinusoidal platform
+tensions and cable velocities, the sensor reading made by the same friction chain run
+platform -> sensor, plus noise and the S7 ADC (no trajectory, no statics).
 """
 
 from __future__ import annotations
@@ -49,7 +51,9 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None,
                         help="fieldbus (default: bus.driver of the config)")  # fmt: skip
     parser.add_argument("--offline", action="store_true",
-                        help="in-process stand-in plant, virtual driver, no sockets")  # fmt: skip
+                        help="plant in process, virtual driver, no sockets")  # fmt: skip
+    parser.add_argument("--stand-in", action="store_true",
+                        help="with --offline: sinusoidal stand-in, not the plant")  # fmt: skip
 
 
 class StandInPlant:
@@ -244,12 +248,22 @@ def table(service: CyclicService, title: str) -> str:
     return "\n".join(rows)
 
 
-def run_offline(cfg: Config, seconds: float) -> CyclicService:
+def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> CyclicService:
     from drivers.virtual import VirtualDriver
 
     image = ProcessImage(cfg.cables)
-    plant = StandInPlant(cfg, image)
-    driver = VirtualDriver(cfg, image=image, step=plant.step)
+    if stand_in:
+        step = StandInPlant(cfg, image).step
+    else:
+        from sim_plc.config import load_sim_config
+        from sim_plc.plant import Plant
+
+        plant = Plant(cfg, load_sim_config(cfg))
+
+        def step() -> None:
+            plant.step(image)
+
+    driver = VirtualDriver(cfg, image=image, step=step)
     service = CyclicService(cfg, driver, with_truth=True)
     run_timed(service, seconds, "demo (offline)", sys.stderr)
     return service
@@ -289,8 +303,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     bus = args.bus or cfg.bus.driver
     if args.offline or bus == "virtual":
-        service = run_offline(cfg, args.seconds)
-        title = f"demo: stand-in plant, virtual driver, {args.seconds:g} s"
+        service = run_offline(cfg, args.seconds, args.stand_in)
+        plant = "stand-in plant" if args.stand_in else "plant"
+        title = f"demo: {plant} in process, virtual driver, {args.seconds:g} s"
     else:
         service = run_online(cfg, args.config, bus, args.seconds)
         where = "on loopback"

@@ -86,7 +86,7 @@ def test_run_sigterm_stops_cleanly(tmp_path):
 
 @pytest.mark.slow
 def test_demo_offline_corrected_beats_raw(capsys):
-    assert main(["demo", "--offline", "--seconds", "2"]) == 0
+    assert main(["demo", "--offline", "--stand-in", "--seconds", "2"]) == 0
     out, err = capsys.readouterr()
     assert "demo (offline):" in err  # progress lines
     mean = re.search(r"mean\s+([\d.]+)\s+([\d.]+)", out)
@@ -94,3 +94,13 @@ def test_demo_offline_corrected_beats_raw(capsys):
     raw, corrected = float(mean.group(1)), float(mean.group(2))
     assert corrected < 0.25 * raw
     assert re.search(r"cycles\s+\d+", out) and "jitter p50 / p99" in out
+
+
+@pytest.mark.slow
+def test_demo_offline_with_the_plant(capsys):
+    assert main(["demo", "--offline", "--seconds", "2"]) == 0
+    out = capsys.readouterr().out
+    mean = re.search(r"mean\s+([\d.]+)\s+([\d.]+)", out)
+    assert mean, out
+    assert float(mean.group(2)) < 0.5 * float(mean.group(1))
+    assert "plant in process" in out
