@@ -42,6 +42,7 @@ import gc
 import logging
 import math
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -260,9 +261,14 @@ class CyclicService:
             self.configure()
         gc.collect()
         gc.freeze()  # everything allocated so far is permanent: no GC pauses scanning it
+        # Another thread (metrics scrape, an in-process PLC) holds the GIL for up to the
+        # switch interval (5 ms by default) before the loop gets it back: shorten it.
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(switch, self.period_s / 5))
         try:
             self._run(cycles)
         finally:
+            sys.setswitchinterval(switch)
             self._shutdown()
         return self.stats
 
