@@ -140,3 +140,48 @@ def test_soft_plc_stopped_and_restarted_the_gateway_resumes():
     finally:
         stop_gateway(service, worker)
         plc.close()
+
+
+def mbpoll_values(port: int, address: int, count: int, kind: str) -> dict[int, float]:
+    """``mbpoll`` once, 0-based addresses, big-endian word order; {address: value}."""
+    import os
+    import re
+    import shutil
+    import subprocess
+
+    binary = shutil.which("mbpoll")
+    if binary is None:
+        if os.environ.get("CDPR_REQUIRE_EXTERNAL") == "1":
+            pytest.fail("mbpoll not installed but CDPR_REQUIRE_EXTERNAL=1")
+        pytest.skip("mbpoll (Debian package 'mbpoll') not installed")
+    cmd = [binary, "-m", "tcp", "-p", str(port), "-a", "1", "-0", "-1", "-B",
+           "-t", kind, "-r", str(address), "-c", str(count), "127.0.0.1"]  # fmt: skip
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stdout + res.stderr
+    found = re.findall(r"^\[(\d+)\]:\s+(\S+)", res.stdout, flags=re.MULTILINE)
+    return {int(a): float(v) for a, v in found}
+
+
+@pytest.mark.external
+def test_mbpoll_sees_what_the_gateway_reports():
+    cfg = load_config()
+    plc = SoftPlc(str(cfg.source), "modbus_tcp")
+    try:
+        live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
+        service, worker = start_gateway(live, with_truth=False)
+        try:
+            time.sleep(1.0)
+            corrected = mbpoll_values(plc.port, 100, 8, "4:float")
+            reported = service.comp.corrected_n.copy()
+            status = mbpoll_values(plc.port, 116, 8, "4")
+            state = mbpoll_values(plc.port, 125, 1, "4")
+        finally:
+            stop_gateway(service, worker)
+    finally:
+        plc.close()
+    assert sorted(corrected) == [100 + 2 * i for i in range(8)]
+    values = np.array([corrected[100 + 2 * i] for i in range(8)])
+    # mbpoll and the snapshot are a few ms apart: the tensions move slowly
+    np.testing.assert_allclose(values, reported, atol=2.0)
+    assert [status[116 + i] for i in range(8)] == [0] * 8
+    assert state[125] == GatewayState.ACTIVE
