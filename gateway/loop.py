@@ -50,10 +50,9 @@ from types import FrameType
 from typing import Any
 
 import numpy as np
-from numba import njit
 
 from drivers.base import Driver, GatewayState, Inputs, Outputs
-from gateway.compensator import Compensator
+from gateway.compensator import Compensator, TruthScore, score_into, warm_up
 from gateway.config import Config
 from gateway.errors import DriverError, DriverTimeoutError
 
@@ -136,47 +135,6 @@ class LoopStats:
         self.skipped = 0  # deadlines skipped because of overruns
         self.reconnects = 0  # successful reconnections after a loss
         self.errors = dict.fromkeys(ERROR_KINDS, 0)
-
-
-class TruthScore:
-    """Sums of squared error of raw and corrected tensions against the plant's truth."""
-
-    def __init__(self, cables: int) -> None:
-        self.raw_sq = np.zeros(cables)
-        self.corrected_sq = np.zeros(cables)
-        self.samples = np.zeros(cables, dtype=np.int64)
-
-    def rmse(self) -> tuple[np.ndarray, np.ndarray]:
-        n = np.maximum(self.samples, 1)
-        return np.sqrt(self.raw_sq / n), np.sqrt(self.corrected_sq / n)
-
-
-@njit(cache=True)
-def _score(truth, raw, corrected, status, raw_sq, corrected_sq, samples):
-    for i in range(truth.size):
-        if status[i] == 0 and math.isfinite(corrected[i]):
-            raw_sq[i] += (raw[i] - truth[i]) ** 2
-            corrected_sq[i] += (corrected[i] - truth[i]) ** 2
-            samples[i] += 1
-
-
-def warm_up(cfg: Config) -> None:
-    """Compile every numba kernel of the cycle now, on throwaway buffers (not in cycle 1)."""
-    comp = Compensator(cfg)
-    inputs = Inputs.allocate(cfg.cables, with_truth=True)
-    outputs = Outputs.allocate(cfg.cables)
-    inputs.tension_raw_n[:] = 100.0
-    inputs.velocity_m_s[:] = 0.01
-    inputs.pose[:] = cfg.geometry.home_pose
-    for k in range(2):
-        inputs.read_time_s = float(k)
-        comp.step(inputs, 0.001 * k, outputs)
-    comp.mark_unread(1.0)
-    score = TruthScore(cfg.cables)
-    _score(
-        inputs.true_tension_n, comp.raw_n, comp.corrected_n, comp.status,
-        score.raw_sq, score.corrected_sq, score.samples,
-    )  # fmt: skip
 
 
 def _reconnect_limits(cfg: Config) -> tuple[float, float]:
@@ -394,7 +352,7 @@ class CyclicService:
         if now - self._started_at < SCORE_AFTER_S or self.truth is None:
             return
         c = self.comp
-        _score(
+        score_into(
             self.inputs.true_tension_n, c.raw_n, c.corrected_n, c.status,
             self.truth.raw_sq, self.truth.corrected_sq, self.truth.samples,
         )  # fmt: skip
