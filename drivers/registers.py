@@ -1,0 +1,286 @@
+"""Codec between numpy arrays and 16-bit Modbus register words, and register-map layout.
+
+Registers travel big-endian on the wire, so a block of holding registers *is* a byte
+string of ``2 * n`` bytes. :class:`FieldCodec` binds one :class:`RegisterField` to a fixed
+byte buffer (a driver's preallocated receive or transmit frame, or a server's register
+image) and converts between that buffer and a float64 array, vectorised and without
+allocating per call: the numpy views onto the buffer and the scratch arrays are made once.
+
+Types: int16, uint16, int32, uint32, float32. For 32-bit types ``word_order`` says which
+16-bit word comes first (``high_first`` is the Modbus convention, and then the bytes are
+simply big-endian; ``low_first`` swaps the two words). Plain fields decode as
+``value = raw * scale`` and encode as ``raw = round(value / scale)`` (integers clipped to
+the type's range, NaN -> 0).
+
+``format: s7_analog`` (Siemens S7 analog values, int16): 0..``adc_full_scale`` counts is
+0..``range_n`` newtons; ``scale`` is not applied. The codes 32767 (overflow) and -32768
+(underflow) decode as NaN, so the gateway marks the channel invalid. Encoding newtons
+saturates at the S7 limits of the measuring range (-4864 .. 32511 counts); values beyond
+them and NaN encode as the overflow/underflow codes.
+
+:func:`layout_map` checks a whole :class:`RegisterMap` (no two fields overlap; the write
+span never covers a PLC input register) and computes the contiguous spans a driver
+transfers: the inputs, the outputs and the simulation truth block.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+
+from gateway.config import RegisterField, RegisterMap, SensorConfig
+from gateway.errors import ConfigError
+
+S7_OVERFLOW = 32767
+S7_UNDERFLOW = -32768
+S7_MAX_COUNTS = 32511  # top of the S7 overrange
+S7_MIN_COUNTS = -4864  # bottom of the S7 underrange (unipolar 0..27648 format)
+
+MAX_READ_REGISTERS = 125  # functions 3, 4, 23 (read part)
+MAX_WRITE_REGISTERS_FC16 = 123
+MAX_WRITE_REGISTERS_FC23 = 121
+
+_DTYPES: dict[str, np.dtype] = {
+    "int16": np.dtype(">i2"),
+    "uint16": np.dtype(">u2"),
+    "int32": np.dtype(">i4"),
+    "uint32": np.dtype(">u4"),
+    "float32": np.dtype(">f4"),
+}
+
+
+_S7_TABLES: dict[float, np.ndarray] = {}
+
+
+def _s7_table(newtons_per_count: float) -> np.ndarray:
+    """Newtons for every 16-bit word (index = the word as unsigned), NaN at the codes."""
+    table = _S7_TABLES.get(newtons_per_count)
+    if table is None:
+        counts = np.arange(65536, dtype=np.uint16).view(np.int16).astype(float)
+        table = counts * newtons_per_count
+        table[(counts == S7_OVERFLOW) | (counts == S7_UNDERFLOW)] = np.nan
+        table.flags.writeable = False
+        _S7_TABLES[newtons_per_count] = table
+    return table
+
+
+def field_dtype(field: RegisterField) -> np.dtype:
+    """The big-endian numpy dtype of one value of ``field`` (high word first)."""
+    return _DTYPES[field.type]
+
+
+class FieldCodec:
+    """One register field bound to a byte buffer that holds registers from ``base_address``.
+
+    ``buffer`` must stay the same object (and size) for the codec's lifetime; ``offset`` is
+    the byte position of register ``base_address`` inside it (e.g. 9 for the data of a
+    function-3 reply frame after the MBAP header, function code and byte count).
+    """
+
+    def __init__(
+        self,
+        field: RegisterField,
+        buffer: bytearray | memoryview,
+        base_address: int,
+        offset: int = 0,
+        sensor: SensorConfig | None = None,
+    ) -> None:
+        if field.address < base_address:
+            raise ConfigError(
+                f"register {field.address} lies before the buffer base {base_address}"
+            )
+        self.field = field
+        self.count = field.count
+        self.dtype = field_dtype(field)
+        start = offset + 2 * (field.address - base_address)
+        if start + 2 * field.words > len(buffer):
+            raise ConfigError(
+                f"registers {field.address}..{field.end - 1} do not fit the buffer "
+                f"(base {base_address}, {len(buffer)} bytes)"
+            )
+        self.swap = field.words == 2 * field.count and field.word_order == "low_first"
+        self._words = np.frombuffer(buffer, dtype=">u2", count=field.words, offset=start)
+        if self.swap:  # values are assembled in a scratch copy with the words swapped
+            self._scratch = np.empty(field.words, dtype=">u2")
+            self._values = self._scratch.view(self.dtype)
+        else:
+            self._values = np.frombuffer(buffer, dtype=self.dtype, count=self.count, offset=start)
+        self.s7 = field.format == "s7_analog"
+        if self.s7 and field.type != "int16":
+            raise ConfigError(f"register {field.address}: format s7_analog needs type int16")
+        sensor = sensor or SensorConfig()
+        self.newtons_per_count = sensor.range_n / sensor.adc_full_scale
+        self._lut = _s7_table(self.newtons_per_count) if self.s7 else None
+        self._mask = np.empty(self.count, dtype=bool)
+        self._mask2 = np.empty(self.count, dtype=bool)
+        self._float = np.empty(self.count)
+        info = np.iinfo(self.dtype) if self.dtype.kind in "iu" else None
+        self._limits = (float(info.min), float(info.max)) if info is not None else None
+
+    # --- decode ----------------------------------------------------------------------
+    def _source(self) -> np.ndarray:
+        if self.swap:
+            self._scratch[0::2] = self._words[1::2]
+            self._scratch[1::2] = self._words[0::2]
+        return self._values
+
+    def decode(self, out: np.ndarray, raw: bool = False) -> np.ndarray:
+        """Decode the bound registers into ``out`` (shape (count,), float64).
+
+        ``raw=True`` skips scaling (S7 counts, unscaled integers); otherwise S7 values come
+        out in newtons with NaN for the overflow/underflow codes.
+        """
+        src = self._source()
+        if raw:
+            np.copyto(out, src, casting="unsafe")
+        elif self._lut is not None:  # S7: one lookup does scaling and the codes
+            np.take(self._lut, self._words, out=out)
+        elif self.field.scale == 1.0:
+            np.copyto(out, src, casting="unsafe")
+        else:
+            np.multiply(src, self.field.scale, out=out)
+        return out
+
+    def decode_int(self, index: int = 0) -> int:
+        """One value as a Python int, unscaled (heartbeats, states)."""
+        return int(self._source()[index])
+
+    # --- encode ----------------------------------------------------------------------
+    def encode(self, values: np.ndarray | float, raw: bool = False) -> None:
+        """Encode ``values`` (shape (count,) or a scalar) into the bound registers.
+
+        ``raw=True`` writes values as they are (S7 counts, unscaled integers, clipped).
+        """
+        if self._direct(values, raw):
+            return
+        f = self._float
+        f[...] = values
+        if self.s7 and not raw:
+            np.divide(f, self.newtons_per_count, out=f)
+            np.isnan(f, out=self._mask)
+            np.greater(f, S7_MAX_COUNTS + 0.5, out=self._mask2)
+            np.copyto(f, S7_OVERFLOW, where=self._mask | self._mask2)
+            np.less(f, S7_MIN_COUNTS - 0.5, out=self._mask2)
+            np.copyto(f, S7_UNDERFLOW, where=self._mask2)
+        elif not raw and self.field.scale != 1.0:
+            np.divide(f, self.field.scale, out=f)
+        if self._limits is not None:
+            np.rint(f, out=f)
+            np.isnan(f, out=self._mask)
+            np.copyto(f, 0.0, where=self._mask)
+            np.clip(f, self._limits[0], self._limits[1], out=f)
+        self._values[...] = f
+        self._store()
+
+    def _store(self) -> None:
+        if self.swap:
+            self._words[0::2] = self._scratch[1::2]
+            self._words[1::2] = self._scratch[0::2]
+
+    def _direct(self, values: np.ndarray | float, raw: bool) -> bool:
+        """Fast paths that need no scaling, rounding or clipping; True when done."""
+        if self.s7 and not raw:
+            return False
+        if not raw and self.field.scale != 1.0:
+            return False
+        if self._limits is None:  # float32: numpy casts, NaN stays NaN
+            self._values[...] = values
+        elif isinstance(values, int | np.integer):
+            lo, hi = self._limits
+            self._values[...] = min(max(int(values), int(lo)), int(hi))
+        elif isinstance(values, np.ndarray) and np.can_cast(values.dtype, self.dtype):
+            self._values[...] = values
+        else:
+            return False
+        self._store()
+        return True
+
+
+@dataclass(frozen=True)
+class Span:
+    """A contiguous block of holding registers ``start .. start + count - 1``."""
+
+    start: int
+    count: int
+
+    @property
+    def end(self) -> int:
+        return self.start + self.count
+
+    @staticmethod
+    def covering(fields: list[RegisterField]) -> Span:
+        start = min(f.address for f in fields)
+        return Span(start, max(f.end for f in fields) - start)
+
+
+@dataclass(frozen=True)
+class MapLayout:
+    """The transfers of one register map: what a driver reads and writes each cycle."""
+
+    inputs: dict[str, RegisterField]
+    outputs: dict[str, RegisterField]
+    truth: RegisterField | None
+    read_span: Span  # the inputs (and the truth block when ``truth_in_read``)
+    write_span: Span  # the outputs
+    truth_span: Span | None  # the truth block alone
+    truth_in_read: bool  # the truth block fits the cycle's read (<= 125 registers)
+
+
+def _overlap(a: RegisterField, b: RegisterField) -> bool:
+    return a.address < b.end and b.address < a.end
+
+
+def check_map(rmap: RegisterMap) -> None:
+    """Raise :class:`ConfigError` naming the fields when registers overlap.
+
+    No two fields may share a register, and no written register (the whole write span,
+    gaps included, since one function-16/23 write covers it) may be a PLC input register.
+    """
+    named = {**rmap.inputs(), **rmap.outputs()}
+    if rmap.true_tensions is not None:
+        named["true_tensions"] = rmap.true_tensions
+    for (na, a), (nb, b) in combinations(named.items(), 2):
+        if _overlap(a, b):
+            raise ConfigError(
+                f"registers: {na} ({a.address}..{a.end - 1}) overlaps {nb} "
+                f"({b.address}..{b.end - 1})"
+            )
+    write = Span.covering(list(rmap.outputs().values()))
+    plc_owned = {k: v for k, v in named.items() if k not in rmap.outputs()}
+    for name, f in plc_owned.items():
+        if f.address < write.end and write.start < f.end:
+            raise ConfigError(
+                f"registers: the write span {write.start}..{write.end - 1} covers the PLC's "
+                f"{name} ({f.address}..{f.end - 1})"
+            )
+    for name, f in named.items():
+        if f.format == "s7_analog" and f.type != "int16":
+            raise ConfigError(f"registers.{name}: format s7_analog needs type int16")
+
+
+def layout_map(rmap: RegisterMap) -> MapLayout:
+    """Check ``rmap`` and compute its spans; spans too long for one transaction are errors."""
+    check_map(rmap)
+    inputs, outputs = rmap.inputs(), rmap.outputs()
+    read_span = Span.covering(list(inputs.values()))
+    write_span = Span.covering(list(outputs.values()))
+    if read_span.count > MAX_READ_REGISTERS:
+        raise ConfigError(
+            f"registers: the inputs span {read_span.start}..{read_span.end - 1} "
+            f"({read_span.count} registers) exceeds one read ({MAX_READ_REGISTERS})"
+        )
+    if write_span.count > MAX_WRITE_REGISTERS_FC23:
+        raise ConfigError(
+            f"registers: the outputs span {write_span.start}..{write_span.end - 1} "
+            f"({write_span.count} registers) exceeds one write ({MAX_WRITE_REGISTERS_FC23})"
+        )
+    truth = rmap.true_tensions
+    truth_span = Span.covering([truth]) if truth is not None else None
+    truth_in_read = False
+    if truth is not None:
+        combined = Span.covering([*inputs.values(), truth])
+        if combined.count <= MAX_READ_REGISTERS:
+            read_span, truth_in_read = combined, True
+    return MapLayout(inputs, outputs, truth, read_span, write_span, truth_span, truth_in_read)

@@ -1,0 +1,219 @@
+"""The register codec and the register-map layout (drivers/registers.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose, assert_array_equal
+
+from drivers.registers import (
+    S7_OVERFLOW,
+    S7_UNDERFLOW,
+    FieldCodec,
+    Span,
+    check_map,
+    layout_map,
+)
+from gateway.config import RegisterField, RegisterMap, SensorConfig
+from gateway.errors import ConfigError
+
+SENSOR = SensorConfig(range_n=500.0, adc_full_scale=27648)
+INT_RANGES = {
+    "int16": (-32768, 32767),
+    "uint16": (0, 65535),
+    "int32": (-(2**31), 2**31 - 1),
+    "uint32": (0, 2**32 - 1),
+}
+
+
+def _codec(field: RegisterField, base: int = 0, extra: int = 3) -> tuple[FieldCodec, bytearray]:
+    buf = bytearray(2 * (field.end - base + extra))
+    return FieldCodec(field, buf, base, 0, SENSOR), buf
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    type_=st.sampled_from(["int16", "uint16", "int32", "uint32"]),
+    order=st.sampled_from(["high_first", "low_first"]),
+    data=st.data(),
+)
+def test_integer_round_trip(type_: str, order: str, data: st.DataObject) -> None:
+    lo, hi = INT_RANGES[type_]
+    values = np.array(data.draw(st.lists(st.integers(lo, hi), min_size=1, max_size=6)), float)
+    field = RegisterField(3, len(values), type_, word_order=order)  # type: ignore[arg-type]
+    codec, _ = _codec(field, base=1)
+    codec.encode(values)
+    out = np.zeros(len(values))
+    assert_array_equal(codec.decode(out), values)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    values=st.lists(st.floats(-1e6, 1e6, width=32), min_size=1, max_size=8),
+    order=st.sampled_from(["high_first", "low_first"]),
+    scale=st.sampled_from([1.0, 0.01, -2.5]),
+)
+def test_float32_round_trip(values: list[float], order: str, scale: float) -> None:
+    field = RegisterField(0, len(values), "float32", word_order=order, scale=scale)  # type: ignore[arg-type]
+    codec, _ = _codec(field)
+    x = np.array(values)
+    codec.encode(x)
+    assert_allclose(codec.decode(np.zeros(len(x))), x, rtol=1e-6, atol=1e-30)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-1000.0, 1000.0), min_size=1, max_size=8))
+def test_scaled_int16_rounds_to_nearest_step(values: list[float]) -> None:
+    field = RegisterField(0, len(values), "int16", scale=0.1)
+    codec, _ = _codec(field)
+    x = np.array(values)
+    codec.encode(x)
+    assert_allclose(codec.decode(np.zeros(len(x))), x, atol=0.05 + 1e-9)
+
+
+def test_word_order_on_the_wire() -> None:
+    # 1.5 as float32 is 0x3FC00000: high word 0x3FC0, low word 0x0000
+    hi, buf_hi = _codec(RegisterField(0, 1, "float32", word_order="high_first"), extra=0)
+    lo, buf_lo = _codec(RegisterField(0, 1, "float32", word_order="low_first"), extra=0)
+    hi.encode(1.5)
+    lo.encode(1.5)
+    assert bytes(buf_hi) == bytes.fromhex("3fc00000")
+    assert bytes(buf_lo) == bytes.fromhex("00003fc0")
+    i32, buf = _codec(RegisterField(0, 1, "int32", word_order="low_first"), extra=0)
+    i32.encode(0x12345678)
+    assert bytes(buf) == bytes.fromhex("56781234")
+
+
+def test_codec_writes_only_its_registers() -> None:
+    field = RegisterField(2, 2, "float32")
+    codec, buf = _codec(field, base=0, extra=2)
+    buf[:] = b"\xff" * len(buf)
+    codec.encode(np.array([0.0, 0.0]))
+    assert bytes(buf[:4]) == b"\xff" * 4
+    assert bytes(buf[4:12]) == bytes(8)
+    assert bytes(buf[12:]) == b"\xff" * 4
+
+
+@pytest.mark.parametrize(
+    ("counts", "newtons"),
+    [
+        (0, 0.0),
+        (27648, 500.0),
+        (13824, 250.0),
+        (32511, 32511 * 500.0 / 27648),
+        (-4864, -4864 * 500.0 / 27648),
+        (S7_OVERFLOW, np.nan),
+        (S7_UNDERFLOW, np.nan),
+    ],
+)
+def test_s7_decode_edge_values(counts: int, newtons: float) -> None:
+    codec, _ = _codec(RegisterField(0, 2, "int16", format="s7_analog"))
+    codec.encode(np.array([counts, 0]), raw=True)
+    out = codec.decode(np.zeros(2))
+    assert_allclose(out[0], newtons, rtol=1e-12)
+    assert out[1] == 0.0
+
+
+@pytest.mark.parametrize(
+    ("newtons", "counts"),
+    [
+        (500.0, 27648),
+        (0.0, 0),
+        (-0.001, 0),
+        (580.0, 32072),
+        (600.0, S7_OVERFLOW),
+        (1e6, S7_OVERFLOW),
+        (-1e6, S7_UNDERFLOW),
+        (np.nan, S7_OVERFLOW),
+    ],
+)
+def test_s7_encode_saturates_to_codes(newtons: float, counts: int) -> None:
+    codec, _ = _codec(RegisterField(0, 1, "int16", format="s7_analog"))
+    codec.encode(np.array([newtons]))
+    assert codec.decode(np.zeros(1), raw=True)[0] == counts
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(-4864, 32511), min_size=8, max_size=8))
+def test_s7_round_trip_in_range(counts: list[int]) -> None:
+    codec, _ = _codec(RegisterField(0, 8, "int16", format="s7_analog"))
+    codec.encode(np.array(counts), raw=True)
+    newtons = codec.decode(np.zeros(8))
+    assert_allclose(newtons, np.array(counts) * 500.0 / 27648, rtol=1e-12)
+    codec.encode(newtons)  # newtons back to the same counts
+    assert_array_equal(codec.decode(np.zeros(8), raw=True), counts)
+
+
+def test_integer_encode_clips_and_nan_is_zero() -> None:
+    codec, _ = _codec(RegisterField(0, 3, "uint16"))
+    codec.encode(np.array([-5.0, 70000.0, np.nan]))
+    assert_array_equal(codec.decode(np.zeros(3)), [0, 65535, 0])
+    codec.encode(np.array([1, 2, 3], dtype=np.uint16))  # the fast path
+    assert_array_equal(codec.decode(np.zeros(3)), [1, 2, 3])
+    single, _ = _codec(RegisterField(0, 1, "uint16"))
+    single.encode(123456)
+    assert single.decode_int() == 65535
+
+
+def test_decode_fills_the_given_buffer() -> None:
+    codec, _ = _codec(RegisterField(0, 4, "float32"))
+    out = np.full(4, 7.0)
+    assert codec.decode(out) is out
+    assert_array_equal(out, 0.0)
+
+
+def test_codec_rejects_fields_outside_its_buffer() -> None:
+    with pytest.raises(ConfigError, match="do not fit"):
+        FieldCodec(RegisterField(10, 4, "float32"), bytearray(8), 0)
+    with pytest.raises(ConfigError, match="before the buffer base"):
+        FieldCodec(RegisterField(1, 1), bytearray(8), 2)
+    with pytest.raises(ConfigError, match="s7_analog needs type int16"):
+        FieldCodec(RegisterField(0, 1, "float32", format="s7_analog"), bytearray(8), 0)
+
+
+def test_default_map_layout() -> None:
+    lay = layout_map(RegisterMap())
+    assert lay.read_span == Span(0, 53)
+    assert lay.write_span == Span(100, 38)
+    assert lay.truth_span == Span(200, 16)
+    assert not lay.truth_in_read  # 0..215 is more than one read
+
+
+def test_truth_block_joins_the_read_when_it_fits() -> None:
+    rmap = dataclasses.replace(RegisterMap(), true_tensions=RegisterField(60, 8, "float32"))
+    lay = layout_map(rmap)
+    assert lay.truth_in_read
+    assert lay.read_span == Span(0, 76)
+
+
+@pytest.mark.parametrize(
+    ("change", "names"),
+    [
+        ({"corrected_tensions": RegisterField(52, 8, "float32")}, ("plc_heartbeat", "corrected")),
+        ({"wrench": RegisterField(120, 6, "float32")}, ("channel_status", "wrench")),
+        ({"gateway_state": RegisterField(200, 1)}, ("gateway_state", "true_tensions")),
+    ],
+)
+def test_overlapping_fields_are_refused(change: dict, names: tuple[str, str]) -> None:
+    rmap = dataclasses.replace(RegisterMap(), **change)
+    with pytest.raises(ConfigError) as err:
+        check_map(rmap)
+    assert all(n in str(err.value) for n in names)
+
+
+def test_write_span_may_not_cover_plc_registers() -> None:
+    # the heartbeat sits in a gap of the outputs: one write of 100..137 would clobber it
+    rmap = dataclasses.replace(RegisterMap(), plc_heartbeat=RegisterField(125, 1))
+    rmap = dataclasses.replace(rmap, gateway_state=RegisterField(138, 1))
+    with pytest.raises(ConfigError, match=r"write span 100\.\.138 covers the PLC.s plc_heartbeat"):
+        check_map(rmap)
+
+
+def test_spans_longer_than_one_transaction_are_refused() -> None:
+    rmap = dataclasses.replace(RegisterMap(), plc_heartbeat=RegisterField(130 + 200, 1))
+    with pytest.raises(ConfigError, match="exceeds one read"):
+        layout_map(dataclasses.replace(rmap, true_tensions=None))
