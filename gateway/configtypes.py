@@ -124,7 +124,12 @@ def convert(cls: type[T], data: Any, key: str = "", source: str = "") -> T:
     try:
         return cls(**kwargs)
     except ValueError as exc:
-        raise _fail(source, key, str(exc)) from exc
+        # a check that names its field ("period_s must be ...") is reported at that key
+        message = str(exc)
+        first = message.split(" ", 1)[0].rstrip(":")
+        if first in fields and " " in message:
+            raise _fail(source, _join(key, first), message.split(" ", 1)[1]) from exc
+        raise _fail(source, key, message) from exc
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:

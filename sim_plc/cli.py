@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gateway.config import DEFAULT_CONFIG_PATH, Config, load_config
+from gateway.config import DEFAULT_CONFIG_PATH, Config, TlsConfig, load_config
 from gateway.errors import ConfigError
 from gateway.recording import write_recording
 from sim_plc.config import load_sim_config
@@ -34,6 +34,9 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--port", type=int, default=None, help="TCP port (0: any free)")
         parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None)
         parser.add_argument("--seconds", type=float, default=None, help="stop after (s)")
+        parser.add_argument("--tls-cert", help="Modbus/TCP Security: server certificate (PEM)")
+        parser.add_argument("--tls-key", help="Modbus/TCP Security: server private key (PEM)")
+        parser.add_argument("--tls-ca", help="CA (PEM) that client certificates must chain to")
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
@@ -72,7 +75,14 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
     return 0
 
 
-def _server(cfg: Config, image: Any, bus: str, host: str | None, port: int | None):
+def _server(
+    cfg: Config,
+    image: Any,
+    bus: str,
+    host: str | None,
+    port: int | None,
+    tls: TlsConfig | None = None,
+):
     """Start the bus server; returns (server, description of where it serves)."""
     if bus == "canopen":
         from sim_plc.canopen_nodes import CanopenPlc  # lazy: needs python-can
@@ -89,9 +99,18 @@ def _server(cfg: Config, image: Any, bus: str, host: str | None, port: int | Non
 
     mb = cfg.bus.modbus_tcp
     host = mb.host if host is None else host
-    srv = ModbusPlcServer(cfg, image, host, mb.port if port is None else port)
+    srv = ModbusPlcServer(cfg, image, host, mb.port if port is None else port, tls=tls)
     srv.start()
-    return srv, f"modbus_tcp on {host}:{srv.port}"
+    return srv, f"modbus_tcp{'+tls' if tls else ''} on {host}:{srv.port}"
+
+
+def _tls_from_args(args: argparse.Namespace) -> TlsConfig | None:
+    given = [getattr(args, k, None) for k in ("tls_cert", "tls_key", "tls_ca")]
+    if not any(given):
+        return None
+    if not all(given):
+        raise ConfigError("--tls-cert, --tls-key and --tls-ca go together")
+    return TlsConfig(*given)  # type: ignore[arg-type]
 
 
 def _serve(cfg: Config, args: argparse.Namespace) -> int:
@@ -114,7 +133,7 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
     try:
         runtime.start()
         bus = args.bus or (cfg.bus.driver if cfg.bus.driver == "canopen" else "modbus_tcp")
-        server, where = _server(cfg, image, bus, args.host, args.port)
+        server, where = _server(cfg, image, bus, args.host, args.port, _tls_from_args(args))
         print(f"sim-plc: serving {where}", flush=True)
         deadline = None if args.seconds is None else time.monotonic() + args.seconds
         while not done.wait(0.2):

@@ -28,18 +28,20 @@ listens, ``port`` is the bound port (``port=0`` asks the OS), ``stop()`` is safe
 from __future__ import annotations
 
 import asyncio
+import ssl
 import threading
 import weakref
 from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
+from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
-from pymodbus.server import ModbusTcpServer
+from pymodbus.server import ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.registers import FieldCodec, Span, layout_map
-from gateway.config import Config, RegisterField
+from gateway.config import Config, RegisterField, TlsConfig
 from gateway.errors import GatewayError
 from sim_plc.image import ProcessImage
 
@@ -86,15 +88,15 @@ def _areas(cfg: Config) -> tuple[Span, Span, Span | None]:
     return inputs, outputs, truth
 
 
-class _PlcTcpServer(ModbusTcpServer):
-    """pymodbus' TCP server that remembers its connections, so that ``close_all`` can make
-    sure no transport outlives the server (pymodbus 3.16 can leave one open when a client
+class _TrackConnections:
+    """Remembers a pymodbus server's connections, so that ``close_all`` can make sure no
+    transport outlives the server (pymodbus 3.16 can leave one open when a client
     connects or disconnects while the server shuts down)."""
 
     handlers: weakref.WeakSet[Any]
 
     def handle_new_connection(self) -> Any:
-        protocol = super().handle_new_connection()
+        protocol = super().handle_new_connection()  # type: ignore[misc]
         self.handlers.add(protocol)
         return protocol
 
@@ -103,6 +105,24 @@ class _PlcTcpServer(ModbusTcpServer):
             transport = getattr(protocol, "transport", None)
             if transport is not None and not transport.is_closing():
                 transport.close()
+
+
+class _PlcTcpServer(_TrackConnections, ModbusTcpServer):
+    """Plain Modbus TCP."""
+
+
+class _PlcTlsServer(_TrackConnections, ModbusTlsServer):
+    """Modbus/TCP Security: the same MBAP frames inside TLS (pymodbus' TLS framer)."""
+
+
+def server_tls_context(tls: TlsConfig) -> ssl.SSLContext:
+    """Server side of Modbus/TCP Security: our certificate, and (``verify_peer``) client
+    certificates required and checked against ``cafile``."""
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=tls.cafile)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    ctx.load_cert_chain(tls.certfile, tls.keyfile)
+    ctx.verify_mode = ssl.CERT_REQUIRED if tls.verify_peer else ssl.CERT_NONE
+    return ctx
 
 
 class ImageRegisters:
@@ -202,8 +222,10 @@ class ModbusPlcServer:
         image: ProcessImage,
         host: str = "127.0.0.1",
         port: int = 5020,
+        tls: TlsConfig | None = None,
     ) -> None:
         self.cfg = cfg
+        self.tls = tls
         self.image = image
         self.host = host
         self.port = port
@@ -237,9 +259,19 @@ class ModbusPlcServer:
 
     async def _serve(self, ready: Future[int]) -> None:
         device = SimDevice(id=0, simdata=self.registers.simdata(), action=self._action)
-        server = _PlcTcpServer(
-            device, address=(self.host, self.port), trace_packet=_ExceptionFixer()
-        )
+        server: _PlcTcpServer | _PlcTlsServer
+        if self.tls is None:
+            server = _PlcTcpServer(
+                device, address=(self.host, self.port), trace_packet=_ExceptionFixer()
+            )
+        else:
+            server = _PlcTlsServer(
+                device,
+                address=(self.host, self.port),
+                sslctx=server_tls_context(self.tls),
+                framer=FramerType.TLS,
+                trace_packet=_ExceptionFixer(),
+            )
         server.handlers = weakref.WeakSet()
         self._server = server
         if not await server.listen():

@@ -39,9 +39,9 @@ def test_default_config_is_the_paper_stand_in() -> None:
         ("friction:\n  sigma: 5\n", r"cfg.yaml: friction.sigma: unknown key"),
         ("friction:\n  pulleys:\n    - {wrap_deg: 90, mu: 0.01, r: 1}\n", r"pulleys\[0\].r"),
         ("friction:\n  model: lugre\n", r"friction.model: 'lugre' is not one of"),
-        ("friction:\n  sigma_n_m: -1\n", r"friction: sigma_n_m must be > 0"),
+        ("friction:\n  sigma_n_m: -1\n", r"friction\.sigma_n_m: must be > 0"),
         ("loop:\n  period_s: fast\n", r"loop.period_s: expected a number, got 'fast'"),
-        ("bus:\n  modbus_tcp:\n    port: 70000\n", r"bus.modbus_tcp: port must be"),
+        ("bus:\n  modbus_tcp:\n    port: 70000\n", r"bus\.modbus_tcp\.port: must be in 1\.\.65535"),
         ("metrics:\n  enabled: 1\n", r"metrics.enabled: expected true or false"),
         ("sensors: {}\n", r"sensors: unknown key"),
     ],
@@ -55,7 +55,7 @@ def test_missing_geometry_and_mismatched_anchors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="geometry: required key is missing"):
         load_config(write(tmp_path, "friction: {}\n"))
     bad = "geometry:\n  frame_anchors_m: [[0,0,1],[1,0,1]]\n  platform_anchors_m: [[0,0,0]]\n"
-    with pytest.raises(ConfigError, match="platform_anchors_m has 1"):
+    with pytest.raises(ConfigError, match="geometry.frame_anchors_m: has 2 entries but"):
         load_config(write(tmp_path, bad))
     with pytest.raises(ConfigError, match=r"frame_anchors_m\[0\]: expected 3 items"):
         load_config(write(tmp_path, "geometry:\n  frame_anchors_m: [[0,0]]\n"))

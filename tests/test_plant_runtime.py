@@ -126,7 +126,7 @@ def test_sim_plc_serves_then_ends_cleanly(monkeypatch, capsys) -> None:
         def stop(self) -> None:
             served["stopped"] = True
 
-    def fake_server(cfg, image, bus, host, port):
+    def fake_server(cfg, image, bus, host, port, tls=None):
         served["image"], served["bus"] = image, bus
         return FakeServer(), f"{bus} on {host}:{port}"
 
