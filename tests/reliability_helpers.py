@@ -195,14 +195,15 @@ def static_image(cables: int = 8) -> ProcessImage:
 
 @contextlib.contextmanager
 def soft_plc(
-    image: ProcessImage | None = None, cfg: Config | None = None
+    image: ProcessImage | None = None, cfg: Config | None = None, tls: Any = None
 ) -> Iterator[tuple[ModbusPlcServer, ProcessImage, Config]]:
-    """The soft PLC's Modbus server on a free loopback port: (server, image, config)."""
-    from sim_plc.modbus_server import ModbusPlcServer  # lands with the modbus branch
+    """The soft PLC's Modbus server on a free loopback port: (server, image, config);
+    with ``tls`` (a TlsConfig) it speaks Modbus/TCP Security."""
+    from sim_plc.modbus_server import ModbusPlcServer
 
     cfg = cfg or load_config()
     image = image if image is not None else static_image(cfg.cables)
-    server = ModbusPlcServer(cfg, image, host="127.0.0.1", port=0)
+    server = ModbusPlcServer(cfg, image, host="127.0.0.1", port=0, tls=tls)
     server.start()
     try:
         yield server, image, cfg
@@ -335,14 +336,12 @@ class GatewayRig:
         timeout_s: float = 0.05,
         registers: Any = None,
         tls: Any = None,
-        front: Callable[[int], Any] | None = None,
+        plc_tls: Any = None,
     ) -> None:
         self.seed, self.period_s, self.timeout_s = seed, period_s, timeout_s
         self.registers = registers  # the gateway's register map (None: the default)
         self.tls = tls  # the gateway's TlsConfig (None: plain Modbus/TCP)
-        # a relay before the PLC (a TLS front): called with the PLC's port, returns an
-        # object with ``port`` and ``stop()``; the proxy then relays raw bytes to it
-        self.front_factory = front
+        self.plc_tls = plc_tls  # the soft PLC's TlsConfig (the proxy then relays raw bytes)
         self._stack = contextlib.ExitStack()
         self._thread: threading.Thread | None = None
 
@@ -350,19 +349,16 @@ class GatewayRig:
         from drivers.modbus_tcp import ModbusTcpDriver
         from gateway.loop import CyclicService
         from gateway.metrics import make_registry
-
         from sim_plc.faultproxy import FaultProxy
 
         plc_cfg = load_config()
-        self.server, self.image, _ = self._stack.enter_context(soft_plc(cfg=plc_cfg))
+        self.server, self.image, _ = self._stack.enter_context(
+            soft_plc(cfg=plc_cfg, tls=self.plc_tls)
+        )
         self._stack.callback(PlcHeartbeat(self.image).start().stop)
-        target, framing = self.server.port, "mbap"
-        self.front: Any = None
-        if self.front_factory is not None:  # gateway -> proxy (raw bytes) -> front -> PLC
-            self.front = self.front_factory(self.server.port)
-            self._stack.callback(self.front.stop)
-            target, framing = self.front.port, "raw"
-        self.proxy = FaultProxy("127.0.0.1", target, seed=self.seed, framing=framing).start()
+        framing = "raw" if self.plc_tls is not None else "mbap"  # TLS records, not MBAP
+        self.proxy = FaultProxy("127.0.0.1", self.server.port, seed=self.seed, framing=framing)
+        self.proxy.start()
         self._stack.callback(self.proxy.stop)
         self.cfg = gateway_config(plc_cfg, self.proxy.port, self.period_s, self.timeout_s,
                                   self.registers, self.tls)  # fmt: skip

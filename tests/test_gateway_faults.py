@@ -24,13 +24,9 @@ protocol (no checksum above TCP's; TLS adds one), see docs/security.md.
 
 from __future__ import annotations
 
-import select
 import shutil
-import socket
-import ssl
 import subprocess
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -223,73 +219,6 @@ def make_certificates(directory: Path) -> dict[str, Path]:
     return p
 
 
-class TlsTerminator:
-    """A Modbus/TCP Security front for a plain server: TLS on 127.0.0.1 (a free port) with
-    client certificates required and verified against ``cafile``, relayed in clear to
-    ``target_port``. One thread per connection; every wait bounded; ``stop()`` twice safe.
-    ``handshake_failures`` counts refused clients."""
-
-    def __init__(self, target_port: int, certfile: Path, keyfile: Path, cafile: Path) -> None:
-        self.ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=str(cafile))
-        self.ctx.load_cert_chain(str(certfile), str(keyfile))
-        self.ctx.verify_mode = ssl.CERT_REQUIRED
-        self.target_port = target_port
-        self.handshake_failures = 0
-        self.sessions = 0
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self._listener.settimeout(0.1)
-        self.port: int = self._listener.getsockname()[1]
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._accept_loop, daemon=True)]
-
-    def start(self) -> TlsTerminator:
-        self._threads[0].start()
-        return self
-
-    def stop(self) -> None:
-        if self._stop.is_set():
-            return
-        self._stop.set()
-        for t in list(self._threads):
-            t.join(3.0)
-        self._listener.close()
-
-    def _accept_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                raw, _ = self._listener.accept()
-            except (TimeoutError, OSError):
-                continue
-            raw.settimeout(2.0)
-            try:
-                tls = self.ctx.wrap_socket(raw, server_side=True)
-            except (ssl.SSLError, OSError):
-                self.handshake_failures += 1
-                raw.close()
-                continue
-            self.sessions += 1
-            t = threading.Thread(target=self._relay, args=(tls,), daemon=True)
-            self._threads.append(t)
-            t.start()
-
-    def _relay(self, tls: socket.socket) -> None:
-        with tls, socket.create_connection(("127.0.0.1", self.target_port), 2.0) as plain:
-            plain.settimeout(2.0)
-            while not self._stop.is_set():
-                pending = tls.pending() if isinstance(tls, ssl.SSLSocket) else 0
-                ready = [tls] if pending else select.select([tls, plain], [], [], 0.1)[0]
-                try:
-                    for src in ready:
-                        data = src.recv(65536)
-                        if not data:
-                            return
-                        (plain if src is tls else tls).sendall(data)
-                except ssl.SSLWantReadError:
-                    continue
-                except (ssl.SSLError, OSError):
-                    return
-
-
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     if shutil.which("openssl") is None:
@@ -305,20 +234,20 @@ def _client_tls(certs: dict[str, Path], client: str = "client", ca: str = "ca") 
     )
 
 
-def _tls_front(certs: dict[str, Path]) -> Callable[[int], TlsTerminator]:
-    def make(plc_port: int) -> TlsTerminator:
-        return TlsTerminator(plc_port, certs["server"], certs["server_key"], certs["ca"]).start()
+def _plc_tls(certs: dict[str, Path]) -> Any:
+    from gateway.config import TlsConfig
 
-    return make
+    return TlsConfig(
+        certfile=str(certs["server"]), keyfile=str(certs["server_key"]), cafile=str(certs["ca"])
+    )
 
 
 def test_tls_both_ways_detects_corruption(certs: dict[str, Path]) -> None:
-    """gateway -TLS-> proxy (raw bytes) -TLS-> front (client certificate required) -> PLC.
+    """gateway -TLS-> proxy (raw bytes) -TLS-> soft PLC (client certificate required).
     A byte corrupted anywhere in the TLS stream fails the record's integrity check: the
     driver sees an error, the PLC gets no wrong value, the gateway reconnects."""
-    with GatewayRig(seed=3, tls=_client_tls(certs), front=_tls_front(certs)) as rig:
+    with GatewayRig(seed=3, tls=_client_tls(certs), plc_tls=_plc_tls(certs)) as rig:
         rig.warm_up()
-        assert rig.front is not None and rig.front.handshake_failures == 0
         errors0 = _total(rig.errors(), ("timeout", "io"))
         rig.proxy.set_fault("corrupt", where="any", nbytes=1, probability=0.3)
         assert wait_for(
@@ -329,20 +258,24 @@ def test_tls_both_ways_detects_corruption(certs: dict[str, Path]) -> None:
         assert wait_for(lambda: rig.oracle.recovered_at is not None, WAIT_S)
         assert rig.reconnects() >= 1
         assert rig.oracle.bad == []
-        assert rig.front.sessions >= 2
+        assert rig.proxy.counters["connections"] >= 2
 
 
-def test_tls_client_from_another_ca_is_refused(certs: dict[str, Path]) -> None:
-    tls = _client_tls(certs, client="stranger")
-    with GatewayRig(tls=tls, front=_tls_front(certs)) as rig:
-        assert rig.front is not None
-        assert wait_for(lambda: rig.front.handshake_failures >= 2, WAIT_S)
-        assert rig.front.sessions == 0
+@pytest.mark.parametrize(
+    ("client", "ca"), [("stranger", "ca"), ("client", "other_ca")], ids=["client", "server"]
+)
+def test_tls_certificate_from_another_ca_is_refused(
+    certs: dict[str, Path], client: str, ca: str
+) -> None:
+    """A client certificate the PLC does not trust, or a PLC certificate the gateway does
+    not trust: no session, nothing written, the failures counted; the loop keeps trying."""
+    with GatewayRig(tls=_client_tls(certs, client, ca), plc_tls=_plc_tls(certs)) as rig:
+        assert wait_for(
+            lambda: (
+                _total(rig.errors(), ("connect", "io", "timeout")) >= 2
+                and rig.proxy.counters.get("connections", 0) >= 2
+            ),
+            WAIT_S,
+        ), rig.errors()
         assert rig.image.gateway_writes == 0
-
-
-def test_tls_server_from_another_ca_is_refused(certs: dict[str, Path]) -> None:
-    tls = _client_tls(certs, ca="other_ca")
-    with GatewayRig(tls=tls, front=_tls_front(certs)) as rig:
-        assert wait_for(lambda: rig.errors().get("connect", 0) >= 2, WAIT_S), rig.errors()
-        assert rig.image.gateway_writes == 0
+        assert rig.oracle.writes == 0
