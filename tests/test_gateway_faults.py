@@ -13,9 +13,12 @@ constant inputs and a running heartbeat. For each fault the gateway
 * counts it: ``cdpr_gateway_errors_total{kind}``, and ``cdpr_gateway_reconnects_total``
   where the connection had to be re-established.
 
-Stated recovery bound: the loop closes the connection after a failed read and reconnects
-on the next cycle (the proxy accepts at once), so a cleared fault is over after a connect
-and one transaction; RECOVERY_CYCLES leaves room for a reply still in flight.
+Stated recovery bound: a failed read leaves nothing written and the channels flagged;
+the driver drops a broken connection (or one with three timeouts in a row) and
+reconnects with backoff, and the loop reopens the driver after a few failed cycles. The
+proxy accepts at once, so a cleared fault is over after at most a connect and one
+transaction; RECOVERY_CYCLES leaves room for a reply still in flight (measured: at most
+6 cycles in the 60 s soak).
 
 Corruption is injected in the frame header only (MBAP, function code, byte count): a
 corrupted data word inside a well-formed Modbus/TCP reply is not detectable by the
