@@ -216,6 +216,8 @@ class ModbusTcpDriver(Driver):
         self._staged = False
         self._timeouts_in_a_row = 0
         self._next_attempt = time.monotonic() + self._backoff_s
+        # grows until a good reply resets it (a link that keeps dropping backs off)
+        self._backoff_s = min(2 * self._backoff_s, self.mb.reconnect_max_s)
 
     def _failed_attempt(self, why: str, exc: BaseException | None = None) -> DriverIOError:
         if self._connecting is not None:
@@ -274,7 +276,8 @@ class ModbusTcpDriver(Driver):
         if self._ever_connected:
             self.reconnects += 1
         self._ever_connected = True
-        self._backoff_s = self.mb.reconnect_min_s
+        # the backoff is reset by the first good reply, not here: a PLC that accepts and
+        # then drops every connection must not be reconnected to at full rate
         return self._sock
 
     def _close(self) -> None:
@@ -351,6 +354,7 @@ class ModbusTcpDriver(Driver):
                 f"{self.where}: function {fc} at register {address}: {exc}"
             ) from exc
         self._timeouts_in_a_row = 0
+        self._backoff_s = self.mb.reconnect_min_s  # a good reply: the link works
         self._check_reply(fc, address, n)
         return n
 

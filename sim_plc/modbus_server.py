@@ -28,6 +28,7 @@ listens, ``port`` is the bound port (``port=0`` asks the OS), ``stop()`` is safe
 from __future__ import annotations
 
 import asyncio
+import gc
 import ssl
 import threading
 import weakref
@@ -123,6 +124,39 @@ def server_tls_context(tls: TlsConfig) -> ssl.SSLContext:
     ctx.load_cert_chain(tls.certfile, tls.keyfile)
     ctx.verify_mode = ssl.CERT_REQUIRED if tls.verify_peer else ssl.CERT_NONE
     return ctx
+
+
+def _close_transports(loop: asyncio.AbstractEventLoop) -> None:
+    """Abort every socket transport the loop still holds and let their ``connection_lost``
+    callbacks close the sockets before the loop goes away.
+
+    A connection accepted while the server shuts down is in no list of pymodbus': without
+    this its socket is left to the garbage collector (a ResourceWarning at some random
+    later point, which fails whichever test is running then)."""
+    transports = getattr(loop, "_transports", None)  # selector loops: fd -> transport
+    for transport in list(transports.values()) if transports else []:
+        if transport is not None and not transport.is_closing():
+            transport.abort()
+    # close() and abort() close the socket in a callback queued with call_soon, also for
+    # transports that were already closing: run the loop until those have run
+    for _ in range(3):
+        loop.run_until_complete(asyncio.sleep(0))
+
+
+def _close_orphaned_sockets(loop: asyncio.AbstractEventLoop) -> None:
+    """Close the socket of any transport of the (finished) ``loop`` that still holds one.
+
+    pymodbus 3.16 can drop its reference to a connection that a client opens while the
+    server shuts down, and asyncio then no longer lists the transport either (its fd slot
+    is reused): nothing closes the socket until the garbage collector does, with a
+    ResourceWarning. The loop has ended, so no callback will touch these sockets again.
+    """
+    for obj in gc.get_objects():
+        if isinstance(obj, asyncio.Transport) and getattr(obj, "_loop", None) is loop:
+            sock = getattr(obj, "_sock", None)
+            if sock is not None:
+                sock.close()
+                obj._sock = None  # type: ignore[attr-defined]
 
 
 class ImageRegisters:
@@ -233,6 +267,7 @@ class ModbusPlcServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._server: ModbusTcpServer | None = None
+        self._listener: Any = None
         self._stopped = threading.Event()
 
     async def _action(
@@ -279,6 +314,7 @@ class ModbusPlcServer:
                 GatewayError(f"modbus server: cannot listen on {self.host}:{self.port}")
             )
             return
+        self._listener = server.transport  # asyncio's Server: closed first at shutdown
         sock = server.transport.sockets[0]  # type: ignore[attr-defined]
         ready.set_result(sock.getsockname()[1])
         await server.serving
@@ -298,11 +334,21 @@ class ModbusPlcServer:
             if not ready.done():
                 ready.set_exception(exc)
         finally:
+            if isinstance(self._listener, asyncio.AbstractServer):
+                self._listener.close()  # accept nothing more while the loop winds down
+            # a connection accepted just before the shutdown is wrapped in a transport by a
+            # task of the loop; cancelled unstarted, that task would leak the socket: let
+            # such tasks run, then abort every transport, then cancel what is left
+            for _ in range(3):
+                loop.run_until_complete(asyncio.sleep(0))
+            _close_transports(loop)
             pending = asyncio.all_tasks(loop)
             for task in pending:
                 task.cancel()
             loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+            _close_transports(loop)
             loop.run_until_complete(loop.shutdown_asyncgens())
+            _close_transports(loop)
             asyncio.set_event_loop(None)
             loop.close()
             self._stopped.set()
@@ -332,8 +378,11 @@ class ModbusPlcServer:
             except RuntimeError:  # the loop ended on its own
                 pass
         thread.join(timeout=timeout_s)
+        if loop is not None and not thread.is_alive():
+            _close_orphaned_sockets(loop)
         self._loop = None
         self._server = None
+        self._listener = None
 
     def __enter__(self) -> ModbusPlcServer:
         self.start()

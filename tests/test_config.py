@@ -55,7 +55,7 @@ def test_missing_geometry_and_mismatched_anchors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="geometry: required key is missing"):
         load_config(write(tmp_path, "friction: {}\n"))
     bad = "geometry:\n  frame_anchors_m: [[0,0,1],[1,0,1]]\n  platform_anchors_m: [[0,0,0]]\n"
-    with pytest.raises(ConfigError, match="geometry.frame_anchors_m: has 2 entries but"):
+    with pytest.raises(ConfigError, match=r"geometry\.frame_anchors_m: has 2 entries but"):
         load_config(write(tmp_path, bad))
     with pytest.raises(ConfigError, match=r"frame_anchors_m\[0\]: expected 3 items"):
         load_config(write(tmp_path, "geometry:\n  frame_anchors_m: [[0,0]]\n"))

@@ -189,3 +189,47 @@ def test_map_counts_must_match_the_cables() -> None:
     cfg = config_for(5020, cfg, registers=regs)
     with pytest.raises(ConfigError, match=r"registers\.pose: count 5, need 6"):
         ModbusTcpDriver(cfg)
+
+
+def test_backoff_grows_when_the_peer_accepts_then_drops() -> None:
+    """A PLC that accepts every connection and closes it at once must not be reconnected
+    to at full rate: the backoff is reset by a good reply, not by a connect."""
+    listener = socket.create_server((LOCALHOST, 0))
+    listener.settimeout(0.05)
+    accepted = []
+    stop = time.monotonic() + 5.0
+
+    def accept_and_drop() -> None:
+        while time.monotonic() < stop:
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            accepted.append(time.monotonic())
+            conn.close()
+
+    import threading
+
+    thread = threading.Thread(target=accept_and_drop, daemon=True)
+    thread.start()
+    cfg = config_for(listener.getsockname()[1], reconnect_min_s=0.01, reconnect_max_s=0.16)
+    drv = ModbusTcpDriver(cfg)
+    inputs = Inputs.allocate(8)
+    end = time.monotonic() + 0.6
+    while time.monotonic() < end:  # bounded: 0.6 s of cycles
+        try:
+            if drv.state is DriverState.UNCONFIGURED:
+                drv.open()
+            drv.read_into(inputs)
+        except (DriverIOError, DriverInitError):
+            pass
+        time.sleep(0.001)
+    drv.close()
+    stop = time.monotonic()
+    thread.join(timeout=2)
+    listener.close()
+    # 0.01 + 0.02 + 0.04 + 0.08 + 0.16 + 0.16 + ... : about 7 attempts in 0.6 s; without
+    # growth (reset on connect) it would be ~60
+    assert 2 <= len(accepted) <= 12
