@@ -89,7 +89,8 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
 
     if effect == "coulomb":
         mu0 = nom.mu_mean if nom.model != "none" else 0.0
-        return Spec(a([mu0, 0.0]), a([0.0, -INF]), a([0.5, INF]), (0, 1), a([1e-3, 0.1]),
+        # f0 >= 0: seals, brushes and preload only ever add friction (nominal f0 is 0)
+        return Spec(a([mu0, 0.0]), a([0.0, 0.0]), a([0.5, INF]), (0, 1), a([1e-3, 0.1]),
                     (a([mu0, 0.0]),))  # fmt: skip
     if effect == "presliding":
         s0 = math.log10(nom.sigma_n_m) if nom.model == "dahl" else 7.0
@@ -100,7 +101,8 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
     if effect == "stribeck":
         lv = math.log10(v95)
         starts = tuple(a([0.0, lv + o]) for o in (-2.5, -2.0, -1.5, -1.0, -0.5))
-        return Spec(a([0.0, lv - 1.0]), a([-0.95, lv - 4.0]), a([20.0, lv + 1.0]), (0,),
+        # v_s at most half the typical speed: above that it would mimic a Coulomb change
+        return Spec(a([0.0, lv - 1.0]), a([-0.95, lv - 4.0]), a([20.0, lv - 0.3]), (0,),
                     a([0.05, 0.05]), starts)  # fmt: skip
     if effect == "inertia":
         return lin(0.0, 1.0)

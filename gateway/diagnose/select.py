@@ -46,6 +46,7 @@ class Thresholds:
     rel_min: float = 0.003
     abs_min_n2: float = 1e-6
     z_holdout: float = 4.0
+    z_screen: float = 2.0
     z_separate: float = 3.0
     z_min: float = 4.0
     max_effects: int = 6
@@ -123,14 +124,14 @@ class CableSelector:
                             minlength=self.nb)  # fmt: skip
         return holdout_z(self._test_sse(pred_a), self._test_sse(pred_b), cross)
 
-    def _accept(self, pred_a: np.ndarray, pred_b: np.ndarray) -> bool:
+    def _accept(self, pred_a: np.ndarray, pred_b: np.ndarray, z_min: float) -> bool:
         before, after = self._test_sse(pred_a), self._test_sse(pred_b)
         gain = float(before.sum() - after.sum())
         n_test = int(self.test.sum())
         return (
             gain >= self.th.rel_min * float(before.sum())
             and gain >= self.th.abs_min_n2 * n_test
-            and self._z(pred_a, pred_b) >= self.th.z_holdout
+            and self._z(pred_a, pred_b) >= z_min
         )
 
     def _screen(self, kept: dict[str, np.ndarray], effect: str, pred: np.ndarray):
@@ -152,7 +153,8 @@ class CableSelector:
             for effect in (c for c in self.candidates if c not in kept):
                 spec, fit = self._screen(kept, effect, pred)
                 after = self._test_sse(fit.pred)
-                if self._accept(pred, fit.pred) and (best is None or after.sum() < best[2]):
+                ok = self._accept(pred, fit.pred, self.th.z_screen)
+                if ok and (best is None or after.sum() < best[2]):
                     best = (effect, spec, float(after.sum()), fit)
             if best is None:
                 break
@@ -160,14 +162,68 @@ class CableSelector:
             trial_specs = {**specs, effect: spec}
             joint = joint_fit(self.fw, {**kept, effect: fit.theta[effect]}, trial_specs,
                               self.train, stride=self.stride)  # fmt: skip
-            z = significance(spec, joint.theta[effect], joint.stderr[effect], effect)
-            if not (self._accept(pred, joint.pred) and z >= self.th.z_min):
+            if not self._accept(pred, joint.pred, self.th.z_screen):
                 break
             kept, specs, stderr, pred = joint.theta, trial_specs, joint.stderr, joint.pred
             order.append(effect)
+        kept, specs, stderr, pred = self._backward(kept, specs, stderr, pred)
+        kept, specs, stderr, pred = self._swap(kept, specs, stderr, pred)
+        order = [e for e in order if e in kept] + [e for e in kept if e not in order]
         out = CableOutcome(order, kept, stderr, specs)
         out.rivals = self._rivals(kept, specs, pred)
         return out
+
+    def _backward(self, kept, specs, stderr, pred):
+        """Drop, one at a time, the weakest kept effect that fails the strict test.
+
+        With every kept effect in the model the residual is close to the noise, so the
+        held-out z and the parameter standard errors are trustworthy here (during the
+        forward steps the residual still holds the effects not yet found).
+        """
+        while kept:
+            weakest, worst = None, math.inf
+            for effect in kept:
+                rest = {k: v for k, v in kept.items() if k != effect}
+                fit = joint_fit(self.fw, rest, {k: specs[k] for k in rest}, self.train,
+                                max_nfev=30, stride=self.stride) if rest else None  # fmt: skip
+                reduced = fit.pred if fit else self.fw.predict({})
+                z_par = significance(specs[effect], kept[effect], stderr[effect], effect)
+                ok = self._accept(reduced, pred, self.th.z_holdout) and z_par >= self.th.z_min
+                score = self._z(reduced, pred)
+                if not ok and score < worst:
+                    weakest, worst = (effect, fit), score
+            if weakest is None:
+                break
+            effect, fit = weakest
+            kept = {k: v for k, v in kept.items() if k != effect}
+            specs = {k: specs[k] for k in kept}
+            if fit is None:
+                return {}, {}, {}, self.fw.predict({})
+            kept, stderr, pred = fit.theta, fit.stderr, fit.pred
+        return kept, specs, stderr, pred
+
+    def _swap(self, kept, specs, stderr, pred):
+        """One pass of swaps: replace a kept effect by another candidate if that fits the
+        held-out data significantly better (greedy selection can take a near-collinear
+        stand-in first, e.g. an offset for a gain on a load that varies little)."""
+        for effect in list(kept):
+            if effect not in kept:
+                continue
+            rest = {k: v for k, v in kept.items() if k != effect}
+            screened = []
+            for cand in (c for c in self.candidates if c not in kept):
+                spec, fit = self._screen(rest, cand, self.fw.predict(rest))
+                screened.append((float(self._test_sse(fit.pred).sum()), cand, spec, fit))
+            screened.sort(key=lambda row: row[0])
+            for _, cand, spec, fit in screened[:2]:  # the two best, each refitted jointly
+                trial_specs = {**{k: specs[k] for k in rest}, cand: spec}
+                joint = joint_fit(self.fw, {**rest, cand: fit.theta[cand]}, trial_specs,
+                                  self.train, stride=self.stride)  # fmt: skip
+                z_par = significance(spec, joint.theta[cand], joint.stderr[cand], cand)
+                if self._accept(pred, joint.pred, self.th.z_screen) and z_par >= self.th.z_min:
+                    kept, specs, stderr, pred = joint.theta, trial_specs, joint.stderr, joint.pred
+                    break
+        return kept, specs, stderr, pred
 
     def _rivals(self, kept, specs, pred) -> dict[str, list[Rival]]:
         """Swap each confusable kept effect for each rival; compare on held-out blocks."""
