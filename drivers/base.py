@@ -167,7 +167,7 @@ class Driver(ABC):
             raise
         self.state = DriverState.ACTIVE
 
-    def flush(self) -> None:
+    def flush(self) -> None:  # noqa: B027 - a hook with a do-nothing default on purpose
         """Send a deferred write now (default: writes are never deferred)."""
 
     def close(self) -> None:

@@ -28,7 +28,7 @@ class GeometryConfig:
 
     frame_anchors_m: tuple[Vec3, ...]
     platform_anchors_m: tuple[Vec3, ...]
-    platform_mass_kg: float = 50.0
+    platform_mass_kg: float = 40.0
     gravity_m_s2: float = 9.81
     center_of_mass_m: Vec3 = (0.0, 0.0, 0.0)
     home_pose: tuple[float, float, float, float, float, float] = (0.0, 0.0, 1.5, 0.0, 0.0, 0.0)
@@ -52,7 +52,7 @@ class TensionConfig:
     """Admissible cable tensions for the tension distribution (paper: 0 < T < 1000 N)."""
 
     min_n: float = 20.0
-    max_n: float = 1000.0
+    max_n: float = 490.0
 
     def __post_init__(self) -> None:
         require(0 <= self.min_n < self.max_n, "need 0 <= min_n < max_n")
@@ -234,13 +234,21 @@ class CanopenConfig:
     bitrate: int = 1_000_000
     gateway_node_id: int = 0x20
     analog_node_id: int = 0x10
+    plc_node_id: int = 0x01
     sync_period_s: float = 0.001
-    gateway_eds: str = "config/gateway.eds"
+    timeout_s: float | None = None  # read timeout; default 2.5 SYNC periods
+    gateway_eds: str = "config/gateway.eds"  # relative paths: to the project root
     analog_eds: str = "config/analog_in_401.eds"
+    plc_eds: str = "config/plc_master.eds"
 
     def __post_init__(self) -> None:
         require(1 <= self.gateway_node_id <= 127, "gateway_node_id must be in 1..127")
         require(1 <= self.analog_node_id <= 127, "analog_node_id must be in 1..127")
+        require(1 <= self.plc_node_id <= 127, "plc_node_id must be in 1..127")
+        ids = {self.gateway_node_id, self.analog_node_id, self.plc_node_id}
+        require(len(ids) == 3, "gateway_node_id, analog_node_id and plc_node_id must differ")
+        require(self.sync_period_s > 0, "sync_period_s must be > 0")
+        require(self.timeout_s is None or self.timeout_s > 0, "timeout_s must be > 0")
 
 
 @dataclass(frozen=True)

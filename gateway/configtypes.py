@@ -36,7 +36,7 @@ def _join(key: str, name: str | int) -> str:
     return f"{key}.{name}" if key else name
 
 
-def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:  # noqa: C901
+def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:
     origin = get_origin(tp)
     if tp is Any:
         return value
@@ -68,7 +68,9 @@ def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:  # noqa: 
         if not isinstance(value, (list, tuple)):
             raise _fail(source, key, f"expected a list, got {type(value).__name__}")
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert_value(args[0], v, _join(key, i), source) for i, v in enumerate(value))
+            return tuple(
+                _convert_value(args[0], v, _join(key, i), source) for i, v in enumerate(value)
+            )
         if len(value) != len(args):
             raise _fail(source, key, f"expected {len(args)} items, got {len(value)}")
         return tuple(
@@ -136,8 +138,9 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}:{line} is not valid YAML: {exc}") from exc
+        where = f" line {mark.line + 1}, column {mark.column + 1}:" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"{path}:{where} not valid YAML: {problem}") from exc
     if data is None:
         data = {}
     if not isinstance(data, dict):

@@ -52,10 +52,10 @@ class Recording:
         return int(self.t.shape[0])
 
 
-def _open_text(path: Path) -> io.TextIOBase:
+def _open_text(path: Path) -> io.TextIOWrapper:
     if path.suffix == ".gz":
-        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8")  # type: ignore[return-value]
-    return open(path, encoding="utf-8")  # noqa: SIM115
+        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8")
+    return open(path, encoding="utf-8")
 
 
 def _split_header(path: Path, lines: list[str]) -> tuple[dict[str, str], int, list[str]]:
@@ -167,7 +167,7 @@ def read_recording(path: str | Path) -> Recording:
     return _assemble(path, meta, names, cables, cols, data, line_of)
 
 
-def _assemble(path, meta, names, cables, cols, data, line_of) -> Recording:  # noqa: PLR0913
+def _assemble(path, meta, names, cables, cols, data, line_of) -> Recording:
     index = {n: i for i, n in enumerate(names)}
     t_all = data[:, index["t"]]
     required = [index["t"], *cols["velocity"], *cols["tension_sensor"]]
@@ -183,7 +183,10 @@ def _assemble(path, meta, names, cables, cols, data, line_of) -> Recording:  # n
     if np.any(steps <= 0):
         r = int(np.nonzero(steps <= 0)[0][0]) + 1
         line = line_of[np.nonzero(keep)[0][r]]
-        raise RecordingError(f"{path}:{line}: column 't': {float(t[r])!r} does not increase after {float(t[r - 1])!r}")
+        raise RecordingError(
+            f"{path}:{line}: column 't': {float(t[r])!r} does not increase "
+            f"(previous {float(t[r - 1])!r})"
+        )
 
     def block(kind: str) -> np.ndarray | None:
         if cols[kind][0] < 0 and all(c < 0 for c in cols[kind]):

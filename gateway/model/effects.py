@@ -59,7 +59,9 @@ def _lowpass_kernel(t, y, tau, out):
             if tau[i] > 0.0 and dt > 0.0:
                 slope = (y[k, i] - y[k - 1, i]) / dt
                 out[k, i] = (
-                    y[k, i] - tau[i] * slope + (out[k - 1, i] - y[k - 1, i] + tau[i] * slope) * (1 - a)
+                    y[k, i]
+                    - tau[i] * slope
+                    + (out[k - 1, i] - y[k - 1, i] + tau[i] * slope) * (1 - a)
                 )
             else:
                 out[k, i] = y[k, i]

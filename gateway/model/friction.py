@@ -24,11 +24,16 @@ def capstan_ratio(mu_p: float, wrap_rad: float, direction: float) -> float:
     return math.exp(float(np.sign(direction)) * mu_p * wrap_rad)
 
 
-def normal_force(t_prev: np.ndarray | float, t_next: np.ndarray | float, wrap_rad: float):
-    """Bearing normal force (eq. 10): resultant of the two cable tensions at a pulley."""
+def normal_force(
+    t_prev: np.ndarray | float, t_next: np.ndarray | float, wrap_rad: np.ndarray | float
+) -> np.ndarray:
+    """Bearing normal force (eq. 10), N: resultant of the two cable tensions at a pulley.
+
+    Broadcasts: tensions and wrap angles (rad) may be scalars or arrays.
+    """
     t_prev = np.asarray(t_prev, dtype=float)
     t_next = np.asarray(t_next, dtype=float)
-    sq = t_prev**2 - 2.0 * t_prev * t_next * math.cos(wrap_rad) + t_next**2
+    sq = t_prev**2 - 2.0 * t_prev * t_next * np.cos(wrap_rad) + t_next**2
     return np.sqrt(np.maximum(sq, 0.0))
 
 
@@ -47,8 +52,9 @@ def coulomb_ratio_exact(mu: float, wrap_rad: float, direction: float) -> float:
     s = float(np.sign(direction))
     if s == 0.0 or mu == 0.0:
         return 1.0
-    b = (1.0 - mu * mu * math.cos(wrap_rad)) / (1.0 - mu * mu)
-    root = math.sqrt(max(b * b - 1.0, 0.0))
+    b_minus_1 = mu * mu * 2.0 * math.sin(wrap_rad / 2.0) ** 2 / (1.0 - mu * mu)  # no cancellation
+    b = 1.0 + b_minus_1
+    root = math.sqrt(b_minus_1 * (b + 1.0))
     low = 1.0 / (b + root)  # = b - root (< 1), written so that it loses no digits
     return low if s > 0 else 1.0 / low
 
@@ -59,7 +65,9 @@ def coulomb_ratio_small_angle(mu: float, wrap_rad: float, direction: float) -> f
     return 1.0 - s * 2.0 * mu * math.sin(wrap_rad / 2.0)
 
 
-def coulomb_gain(mu: np.ndarray, wrap_rad: np.ndarray, direction: float, exact: bool = True):
+def coulomb_gain(
+    mu: np.ndarray, wrap_rad: np.ndarray, direction: float, exact: bool = True
+) -> float:
     """Platform over sensor tension ``T_p / T_s = prod_j 1 / n_j`` for one direction.
 
     ``mu``, ``wrap_rad``: (n,) per pulley. Returns a float.
@@ -110,6 +118,6 @@ def dahl_from_rest(x: np.ndarray, f_r: float, sigma: float) -> np.ndarray:
     return np.sign(x) * f_r * (1.0 - np.exp(-sigma * np.abs(x) / f_r))
 
 
-def viscous_force(c_ns_m: float, velocity_m_s: np.ndarray | float):
+def viscous_force(c_ns_m: float, velocity_m_s: np.ndarray | float) -> np.ndarray:
     """Viscous bearing friction (eq. 9, with the sign): ``F = c v`` (N)."""
     return c_ns_m * np.asarray(velocity_m_s, dtype=float)

@@ -1,0 +1,426 @@
+"""CANopen driver: the gateway as a CANopen node (python-can for frames, canopen for the EDS).
+
+Nodes and PDOs (the EDS files in ``config/`` are the source of truth; COB-IDs below for the
+defaults gateway node 0x20, analog node 0x10, PLC master node 0x01)::
+
+    COB-ID  producer -> consumer   content (each int16 unless noted)        when
+    0x080   PLC      -> all        SYNC, no data                            every 1 ms
+    0x190   analog   -> gw, PLC    6401h.1-4 raw channels 1-4 (S7 counts)   after each SYNC (type 1)
+    0x290   analog   -> gw, PLC    6401h.5-8 raw channels 5-8               after each SYNC (type 1)
+    0x181   PLC      -> gw         2001h.1-4 setpoint velocity 1-4          every cycle
+    0x281   PLC      -> gw         2001h.5-8 setpoint velocity 5-8          every cycle
+    0x381   PLC      -> gw         2004h PLC heartbeat u16, 2003h.1-3 x,y,z cycles k%10 == 0
+    0x481   PLC      -> gw         2003h.4-6 rx, ry, rz (6 bytes)           cycles k%10 == 1
+    0x1C1   PLC      -> gw         2002h.1-4 setpoint length 1-4 (u16)      cycles k%10 == 2
+    0x2C1   PLC      -> gw         2002h.5-8 setpoint length 5-8 (u16)      cycles k%10 == 3
+    0x1A0   gw       -> PLC        2100h.1-4 corrected tension 1-4          each write (type 254)
+    0x2A0   gw       -> PLC        2100h.5-8 corrected tension 5-8          each write
+    0x3A0   gw       -> PLC        2101h status word u16, 2102h gateway     each write
+                                   heartbeat u16, 2103h gateway state u8
+
+0x1C1/0x2C1 are outside the predefined connection set (they are TPDO1/2 of node 0x41,
+which must not exist on this bus). The driver re-targets RPDO1/2 to 0x180/0x280 +
+``analog_node_id`` and TPDO1-3 follow ``gateway_node_id`` ($NODEID in the EDS).
+
+Scaling (module constants; resolution = one count, the quantisation error is half of it):
+
+* raw force: S7 analog counts as the module delivers them, 0..27648 = 0..sensor range
+  (500 N: 0.0181 N/count); counts > 32511 (overflow 32767) or < -4864 (underflow -32768)
+  give NaN.
+* velocity: 2e-5 m/s per count, range +-0.655 m/s (clamped). The Dahl state integrates
+  v*dt; a 1e-5 m/s error over 1 ms moves it by 1e-8 m, i.e. 5e-6 N at sigma = 500 N/m.
+* length: 1e-4 m per count, u16, 0..6.5535 m. Pose: 1e-4 m and 1e-4 rad per count,
+  +-3.2767 m / rad.
+* corrected tension: 0.02 N per count, +-655.32 N (clamped); 0x7FFF = no value (NaN).
+  Resolution 0.02 N is below the sensor's own ADC step (0.018 N) plus its noise.
+* status word: 2 bits per channel, channel i (0-based) in bits 2i..2i+1 (0 good,
+  1 substituted, 2 invalid).
+
+Bus load at 1 Mbit/s (1000 bit times per 1 ms cycle). A classic data frame with n data
+bytes takes 47 + 8n bit times including the 3-bit interframe space, plus up to
+floor((34 + 8n - 1) / 4) stuff bits: SYNC 47..55, 8-byte PDO 111..135, 5-byte PDO 87..105.
+Every cycle: SYNC + 6 eight-byte PDOs (analog x2, velocity x2, corrected tension x2) +
+the 5-byte status PDO = 8 frames = 800 bit times nominal (80 %), 970 worst-case stuffing
+(97 %). In 4 of every 10 cycles one slow PLC PDO (6..8 bytes) is added: 911 nominal
+(91 %), 1105 worst case: the lowest-priority frame can slip into the next millisecond.
+Average 84 % nominal. This is the limit of classic CAN at 1 kHz with 8 channels:
+anything more (the estimated wrench, CANopen heartbeats, EMCY, SDO) needs a 2 ms cycle,
+a second CAN line, or CAN FD. float32 everywhere would need 4 frames per 8 values and
+cannot fit.
+
+Timing: :meth:`CanopenDriver.read_into` returns the newest complete set (SYNC followed by
+all four per-cycle RPDOs) that has not been returned before, waiting up to
+``timeout_s`` (default 2.5 SYNC periods) for it; otherwise :class:`DriverTimeoutError`.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+from canopen import objectdictionary as od_types
+
+from drivers.base import Driver, Inputs, Outputs
+from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+PLC_NODE_ID = 0x01
+PLC_MASTER_EDS = "config/plc_master.eds"
+SYNC_COB_ID = 0x080
+
+# application objects (gateway.eds, plc_master.eds)
+OBJ_RAW = 0x2000
+OBJ_VELOCITY = 0x2001
+OBJ_LENGTH = 0x2002
+OBJ_POSE = 0x2003
+OBJ_PLC_HEARTBEAT = 0x2004
+OBJ_CORRECTED = 0x2100
+OBJ_STATUS = 0x2101
+OBJ_GW_HEARTBEAT = 0x2102
+OBJ_GW_STATE = 0x2103
+OBJ_ANALOG_IN = 0x6401  # CiA 401 read analog input 16-bit
+PER_CYCLE_OBJECTS = frozenset({OBJ_RAW, OBJ_VELOCITY})  # RPDOs required after every SYNC
+
+TENSION_N_PER_COUNT = 0.02
+VELOCITY_M_S_PER_COUNT = 2e-5
+LENGTH_M_PER_COUNT = 1e-4
+POSITION_M_PER_COUNT = 1e-4
+ANGLE_RAD_PER_COUNT = 1e-4
+TENSION_NO_VALUE = 0x7FFF
+S7_VALID_MIN, S7_VALID_MAX = -4864, 32511  # beyond: underflow / overflow codes
+STATUS_BITS = 2
+SLOW_PERIOD_CYCLES = 10
+READ_TIMEOUT_PERIODS = 2.5
+DRAIN_LIMIT = 100_000
+
+_STRUCT_CODES = {
+    od_types.INTEGER8: "b",
+    od_types.UNSIGNED8: "B",
+    od_types.INTEGER16: "h",
+    od_types.UNSIGNED16: "H",
+    od_types.INTEGER32: "i",
+    od_types.UNSIGNED32: "I",
+}
+
+
+@dataclass(frozen=True)
+class PdoLayout:
+    """One PDO as mapped in an EDS: COB-ID, mapped objects in order, and its codec."""
+
+    number: int  # 1-based PDO number
+    cob_id: int
+    trans_type: int
+    entries: tuple[tuple[int, int], ...]  # (index, subindex) in frame order
+    codec: struct.Struct  # little-endian, byte-aligned
+
+    @property
+    def slots(self) -> tuple[tuple[int, int], ...]:
+        """(object index, position in that object's value list): sub 0 -> 0, sub k -> k-1."""
+        return tuple((i, max(s - 1, 0)) for i, s in self.entries)
+
+    def retarget(self, cob_id: int) -> PdoLayout:
+        return PdoLayout(self.number, cob_id, self.trans_type, self.entries, self.codec)
+
+
+def resolve_path(path: str | Path) -> Path:
+    """``path`` as given when it exists, else relative to the repository root."""
+    p = Path(path)
+    return p if p.is_absolute() or p.exists() else REPO_ROOT / p
+
+
+def load_pdo_layouts(
+    eds_path: str | Path, node_id: int
+) -> tuple[dict[int, PdoLayout], dict[int, PdoLayout]]:
+    """(TPDOs, RPDOs) of an EDS by PDO number; only enabled PDOs with a mapping."""
+    path = resolve_path(eds_path)
+    try:
+        od = canopen.import_od(str(path), node_id)
+        network = canopen.Network()  # never connected: only to satisfy PdoMap.subscribe
+        node = canopen.LocalNode(node_id, od)
+        network.add_node(node)
+        node.tpdo.read(from_od=True)
+        node.rpdo.read(from_od=True)
+    except Exception as exc:
+        raise DriverInitError(f"{path}: cannot load EDS: {exc}") from exc
+    return _layouts(path, node.tpdo.map), _layouts(path, node.rpdo.map)
+
+
+def _layouts(path: Path, maps: Any) -> dict[int, PdoLayout]:
+    """PdoLayouts of the enabled, non-empty maps of one canopen ``PdoMaps`` (or None)."""
+    layouts: dict[int, PdoLayout] = {}
+    for number, pdo_map in (maps or {}).items():
+        if not pdo_map.enabled or not pdo_map.cob_id or not len(pdo_map.map):
+            continue
+        fmt = "<"
+        for var in pdo_map.map:
+            code = _STRUCT_CODES.get(var.od.data_type)
+            if code is None or var.offset % 8 or var.length != 8 * struct.calcsize(code):
+                raise DriverInitError(
+                    f"{path}: PDO {number} maps {var.index:04X}h.{var.subindex}: "
+                    "only byte-aligned integer objects are supported"
+                )
+            fmt += code
+        entries = tuple((v.index, v.subindex) for v in pdo_map.map)
+        layouts[number] = PdoLayout(
+            number, pdo_map.cob_id, pdo_map.trans_type, entries, struct.Struct(fmt)
+        )
+    return layouts
+
+
+# --- scaling ----------------------------------------------------------------------------
+def to_int16(value: float, per_count: float) -> int:
+    """Round ``value / per_count`` to int16, clamped to -32768..32767 (NaN -> 0)."""
+    if value != value:
+        return 0
+    return max(-32768, min(32767, round(value / per_count)))
+
+
+def encode_tension(value_n: float) -> int:
+    """Corrected tension -> int16 count (0.02 N); NaN/inf -> 0x7FFF, else clamped."""
+    if not math.isfinite(value_n):
+        return TENSION_NO_VALUE
+    return max(-32767, min(32766, round(value_n / TENSION_N_PER_COUNT)))
+
+
+def decode_tension(count: int) -> float:
+    return math.nan if count == TENSION_NO_VALUE else count * TENSION_N_PER_COUNT
+
+
+def pack_status(status: Any) -> int:
+    """(m,) channel status values (0..2) -> status word, 2 bits per channel."""
+    word = 0
+    for i, s in enumerate(status):
+        word |= (int(s) & 0x3) << (STATUS_BITS * i)
+    return word
+
+
+def unpack_status(word: int, out: np.ndarray) -> None:
+    for i in range(out.shape[0]):
+        out[i] = (word >> (STATUS_BITS * i)) & 0x3
+
+
+def s7_counts_to_newtons(count: int, newtons_per_count: float) -> float:
+    """S7 analog count -> N; overflow/underflow codes (outside -4864..32511) -> NaN."""
+    if S7_VALID_MIN <= count <= S7_VALID_MAX:
+        return count * newtons_per_count
+    return math.nan
+
+
+def new_slots(layouts: dict[int, PdoLayout]) -> dict[int, list[int]]:
+    """A zeroed value list for every object the layouts map, long enough for its subs."""
+    sizes: dict[int, int] = {}
+    for layout in layouts.values():
+        for index, pos in layout.slots:
+            sizes[index] = max(sizes.get(index, 0), pos + 1)
+    return {index: [0] * n for index, n in sizes.items()}
+
+
+def pack_pdo(layout: PdoLayout, slots: dict[int, list[int]]) -> bytes:
+    return layout.codec.pack(*[slots[i][p] for i, p in layout.slots])
+
+
+def unpack_pdo(layout: PdoLayout, data: bytes | bytearray, slots: dict[int, list[int]]) -> None:
+    """Decode one frame into ``slots``; a frame shorter than the mapping is an IO error."""
+    if len(data) < layout.codec.size:
+        raise DriverIOError(
+            f"PDO 0x{layout.cob_id:03X}: {len(data)} data bytes, mapping needs {layout.codec.size}"
+        )
+    for (index, pos), value in zip(layout.slots, layout.codec.unpack_from(data), strict=True):
+        slots[index][pos] = value
+
+
+def open_bus(cfg: Any) -> can.BusABC:
+    """A python-can bus from a ``CanopenConfig`` (interface, channel, bitrate)."""
+    return can.Bus(interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate)
+
+
+class CanopenDriver(Driver):
+    """The gateway as CANopen node ``bus.canopen.gateway_node_id`` (config/gateway.eds).
+
+    ``bus``: an existing python-can bus to use (not shut down by :meth:`close`); default
+    one is created from ``config.bus.canopen`` at :meth:`open`. ``timeout_s``: how long
+    a read waits for a complete SYNC set (default 2.5 SYNC periods).
+    """
+
+    name = "canopen"
+    #: The bus sets the pace: read_into blocks until the next SYNC set, so a loop should
+    #: call it without sleeping to its own deadline first (SYNC is the cycle clock).
+    paced_by_bus = True
+
+    def __init__(
+        self, config: Any, bus: can.BusABC | None = None, timeout_s: float | None = None
+    ) -> None:
+        super().__init__(config)
+        self.can_cfg = config.bus.canopen
+        self.timeout_s = (
+            timeout_s or self.can_cfg.timeout_s or READ_TIMEOUT_PERIODS * self.can_cfg.sync_period_s
+        )
+        self._n_per_count = config.sensor.range_n / config.sensor.adc_full_scale
+        self._external_bus = bus
+        self._bus: can.BusABC | None = None
+        self._rx: dict[int, tuple[PdoLayout, int]] = {}  # cob_id -> (layout, required bit)
+        self._tx: list[PdoLayout] = []
+        self._slots: dict[int, list[int]] = {}
+        self._tx_slots: dict[int, list[int]] = {}
+        self._required = 0
+        self._received = 0
+        self._sync_seen = False
+        self._sync_timestamp = 0.0
+        self.syncs = 0  # SYNC frames seen
+        self.sets = 0  # complete SYNC sets returned by read_into
+        self.last_sync_timestamp = 0.0  # can.Message.timestamp (time.time base) of that SYNC
+        self.ignored_frames = 0  # error/remote frames and unknown COB-IDs
+
+    # --- hooks ----------------------------------------------------------------------------
+    def _open(self) -> None:
+        cfg = self.can_cfg
+        tpdos, rpdos = load_pdo_layouts(cfg.gateway_eds, cfg.gateway_node_id)
+        analog_tpdos, _ = load_pdo_layouts(cfg.analog_eds, cfg.analog_node_id)
+        for number in (1, 2):  # consume the analog module's TPDO1/2 (predefined set)
+            if number not in rpdos or number not in analog_tpdos:
+                raise DriverInitError(f"{cfg.gateway_eds}: RPDO{number} or analog TPDO missing")
+            if rpdos[number].codec.format != analog_tpdos[number].codec.format:
+                raise DriverInitError(
+                    f"{cfg.gateway_eds}: RPDO{number} does not match TPDO{number} of "
+                    f"{cfg.analog_eds}"
+                )
+            rpdos[number] = rpdos[number].retarget(analog_tpdos[number].cob_id)
+        self._check_channels(rpdos)
+        self._rx, self._required = {}, 0
+        for bit, layout in enumerate(rpdos.values()):
+            required = any(i in PER_CYCLE_OBJECTS for i, _ in layout.entries)
+            self._rx[layout.cob_id] = (layout, (1 << bit) if required else 0)
+            self._required |= (1 << bit) if required else 0
+        self._tx = list(tpdos.values())
+        self._slots = new_slots(rpdos)
+        self._tx_slots = new_slots(tpdos)
+        self._bus = self._external_bus if self._external_bus is not None else open_bus(cfg)
+        self._drain()
+        self._sync_seen, self._received = False, 0
+
+    def _check_channels(self, rpdos: dict[int, PdoLayout]) -> None:
+        for obj in PER_CYCLE_OBJECTS:
+            count = sum(1 for lay in rpdos.values() for i, _ in lay.entries if i == obj)
+            if count != self.cables:
+                raise DriverInitError(
+                    f"{self.can_cfg.gateway_eds}: RPDOs map {count} entries of {obj:04X}h, "
+                    f"config has {self.cables} cables"
+                )
+
+    def _drain(self) -> None:
+        """Drop frames queued before open (bounded)."""
+        assert self._bus is not None
+        for _ in range(DRAIN_LIMIT):
+            if self._bus.recv(0) is None:
+                return
+
+    def _read(self, inputs: Inputs) -> None:
+        if self._bus is None:
+            raise DriverIOError("canopen: read on a closed driver")
+        deadline = time.monotonic() + self.timeout_s
+        try:
+            complete = self._collect(deadline)
+        except can.CanError as exc:
+            raise DriverIOError(f"canopen: receive failed: {exc}") from exc
+        if not complete:
+            missing = [
+                f"0x{lay.cob_id:03X}"
+                for lay, bit in self._rx.values()
+                if bit and not self._received & bit
+            ]
+            what = "no SYNC" if not self._sync_seen else "missing PDOs " + ", ".join(missing)
+            raise DriverTimeoutError(f"canopen: {what} within {self.timeout_s * 1e3:.1f} ms")
+        self._sync_seen, self._received = False, 0
+        self.sets += 1
+        self.last_sync_timestamp = self._sync_timestamp
+        self._fill(inputs)
+
+    def _collect(self, deadline: float) -> bool:
+        """Receive until a SYNC and all per-cycle RPDOs after it are in and the queue is
+        empty (a newer SYNC restarts the set). False when ``deadline`` passes first."""
+        bus = self._bus
+        assert bus is not None
+        for _ in range(DRAIN_LIMIT):
+            if self._sync_seen and self._received == self._required:
+                msg = bus.recv(0)
+                if msg is None:
+                    return True
+            else:
+                # past the deadline, frames already queued are still taken (a stall of
+                # this thread must not turn into a timeout)
+                remaining = deadline - time.monotonic()
+                msg = bus.recv(remaining if remaining > 0 else 0.0)
+                if msg is None:
+                    return False
+            self._handle(msg)
+        return False
+
+    def _handle(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            self.ignored_frames += 1
+            return
+        cob_id = msg.arbitration_id
+        if cob_id == SYNC_COB_ID:
+            self.syncs += 1
+            self._sync_seen, self._received = True, 0
+            self._sync_timestamp = msg.timestamp
+            return
+        entry = self._rx.get(cob_id)
+        if entry is None:
+            self.ignored_frames += 1
+            return
+        layout, bit = entry
+        unpack_pdo(layout, msg.data, self._slots)
+        if self._sync_seen:
+            self._received |= bit
+
+    def _fill(self, inputs: Inputs) -> None:
+        slots, k = self._slots, self._n_per_count
+        raw, vel = slots[OBJ_RAW], slots[OBJ_VELOCITY]
+        length = slots.get(OBJ_LENGTH)
+        for i in range(self.cables):
+            inputs.tension_raw_n[i] = s7_counts_to_newtons(raw[i], k)
+            inputs.velocity_m_s[i] = vel[i] * VELOCITY_M_S_PER_COUNT
+            if length is not None:
+                inputs.length_m[i] = length[i] * LENGTH_M_PER_COUNT
+        pose = slots.get(OBJ_POSE)
+        if pose is not None:
+            for j in range(6):
+                scale = POSITION_M_PER_COUNT if j < 3 else ANGLE_RAD_PER_COUNT
+                inputs.pose[j] = pose[j] * scale
+        if OBJ_PLC_HEARTBEAT in slots:
+            inputs.plc_heartbeat = slots[OBJ_PLC_HEARTBEAT][0]
+
+    def _write(self, outputs: Outputs) -> None:
+        bus = self._bus
+        if bus is None:
+            raise DriverIOError("canopen: write on a closed driver")
+        tx = self._tx_slots
+        if OBJ_CORRECTED in tx:
+            corrected = tx[OBJ_CORRECTED]
+            for i in range(self.cables):
+                corrected[i] = encode_tension(float(outputs.tension_corrected_n[i]))
+        if OBJ_STATUS in tx:
+            tx[OBJ_STATUS][0] = pack_status(outputs.channel_status)
+        if OBJ_GW_HEARTBEAT in tx:
+            tx[OBJ_GW_HEARTBEAT][0] = int(outputs.gateway_heartbeat) & 0xFFFF
+        if OBJ_GW_STATE in tx:
+            tx[OBJ_GW_STATE][0] = int(outputs.gateway_state) & 0xFF
+        try:
+            for layout in self._tx:
+                data = pack_pdo(layout, tx)
+                bus.send(can.Message(arbitration_id=layout.cob_id, data=data, is_extended_id=False))
+        except can.CanError as exc:
+            raise DriverIOError(f"canopen: send failed: {exc}") from exc
+
+    def _close(self) -> None:
+        bus, self._bus = self._bus, None
+        if bus is not None and bus is not self._external_bus:
+            bus.shutdown()

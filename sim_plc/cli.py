@@ -1,0 +1,134 @@
+"""``cdpr-gateway record`` and ``cdpr-gateway sim-plc``.
+
+* ``record --config FILE --seconds N --out FILE.csv[.gz]``: the plant in batch mode,
+  written as a recording (spec/recording.md); progress on stderr.
+* ``sim-plc --config FILE [--host H] [--port P] [--bus modbus_tcp|canopen]``: the plant
+  stepped in real time at the config's period and served on the bus until SIGINT or
+  SIGTERM; prints ``sim-plc: serving modbus_tcp on HOST:PORT`` once listening.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from gateway.config import DEFAULT_CONFIG_PATH, Config, load_config
+from gateway.errors import ConfigError
+from gateway.recording import write_recording
+from sim_plc.config import load_sim_config
+
+
+def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="config file (YAML)")
+    if command == "record":
+        parser.add_argument("--seconds", type=float, required=True, help="duration (s)")
+        parser.add_argument("--out", required=True, help="recording to write (.csv or .csv.gz)")
+        parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    else:
+        parser.add_argument("--host", default=None, help="address to listen on")
+        parser.add_argument("--port", type=int, default=None, help="TCP port (0: any free)")
+        parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None)
+        parser.add_argument("--seconds", type=float, default=None, help="stop after (s)")
+
+
+def run_command(command: str, args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    if command == "record":
+        return _record(cfg, args)
+    return _serve(cfg, args)
+
+
+class _ProgressBar:
+    def __init__(self, label: str, quiet: bool = False) -> None:
+        self.label, self.quiet, self.last = label, quiet, -1
+
+    def __call__(self, fraction: float) -> None:
+        pct = int(fraction * 100)
+        if not self.quiet and pct != self.last:
+            self.last = pct
+            end = "\n" if pct >= 100 else ""
+            print(f"\r{self.label}: {pct:3d} %", end=end, file=sys.stderr, flush=True)
+
+
+def _record(cfg: Config, args: argparse.Namespace) -> int:
+    from sim_plc.plant import make_recording
+
+    if not args.seconds > 0:
+        raise ConfigError("--seconds must be > 0")
+    out = Path(args.out)
+    sim = load_sim_config(cfg)
+    t0 = time.perf_counter()
+    rec = make_recording(cfg, sim, args.seconds, _ProgressBar("record", args.quiet))
+    write_recording(out, rec)
+    if not args.quiet:
+        took = time.perf_counter() - t0
+        print(f"record: {rec.samples} samples x {rec.cables} cables -> {out} ({took:.1f} s)",
+              file=sys.stderr)  # fmt: skip
+    return 0
+
+
+def _server(cfg: Config, image: Any, bus: str, host: str | None, port: int | None):
+    """Start the bus server; returns (server, description of where it serves)."""
+    if bus == "canopen":
+        from sim_plc.canopen_nodes import CanopenPlc  # lazy: needs python-can
+
+        plc = CanopenPlc(cfg, image)
+        plc.start(realtime=True)
+        return plc, f"canopen on {cfg.bus.canopen.interface}:{cfg.bus.canopen.channel}"
+    try:
+        from sim_plc.modbus_server import ModbusPlcServer  # lazy: needs pymodbus
+    except ImportError as exc:
+        raise ConfigError(
+            f"bus modbus_tcp: the soft PLC's Modbus server is missing: {exc}"
+        ) from exc
+
+    mb = cfg.bus.modbus_tcp
+    host = mb.host if host is None else host
+    srv = ModbusPlcServer(cfg, image, host, mb.port if port is None else port)
+    srv.start()
+    return srv, f"modbus_tcp on {host}:{srv.port}"
+
+
+def _serve(cfg: Config, args: argparse.Namespace) -> int:
+    from sim_plc.image import ProcessImage
+    from sim_plc.plant import Plant
+    from sim_plc.runtime import PlcRuntime
+
+    sim = load_sim_config(cfg)
+    plant = Plant(cfg, sim)
+    image = ProcessImage(cfg.cables)
+    plant.step(image)  # the image holds a valid first sample before anyone can read it
+    runtime = PlcRuntime(plant, image, sim.period_s)
+    done = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        done.set()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    server = None
+    try:
+        runtime.start()
+        bus = args.bus or (cfg.bus.driver if cfg.bus.driver == "canopen" else "modbus_tcp")
+        server, where = _server(cfg, image, bus, args.host, args.port)
+        print(f"sim-plc: serving {where}", flush=True)
+        deadline = None if args.seconds is None else time.monotonic() + args.seconds
+        while not done.wait(0.2):
+            if runtime.error is not None:
+                raise runtime.error
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+    finally:
+        if server is not None:
+            server.stop()
+        runtime.stop()
+        for s, handler in old.items():
+            signal.signal(s, handler)
+    st = runtime.stats
+    print(f"sim-plc: stopped after {st.cycles} cycles, {st.late} late, {st.missed} skipped, "
+          f"longest step {st.max_step_s * 1e3:.2f} ms", file=sys.stderr)  # fmt: skip
+    return 0

@@ -1,0 +1,323 @@
+"""The ``sim_plc:`` section of a config file: YAML -> frozen dataclasses.
+
+``load_sim_config(cfg)`` validates ``cfg.sim_plc`` (kept raw by :mod:`gateway.config`) with
+key paths prefixed ``sim_plc`` and resolves what defaults to other sections: the truth
+friction (``sim_plc.friction`` is merged over the config's ``friction:``), the tension
+limits of the plant's tension distribution (``sim_plc.tension`` over ``tension:``) and the
+initial platform mass (``geometry.platform_mass_kg``).
+
+Effects (physics.md sec. 5) are switched on by naming them under ``sim_plc.effects``;
+``enabled: false`` switches a named one off again. Their parameter names are those of the
+diagnosis report (spec/recording.md). Each parameter is a scalar for every cable or a
+list with one value per cable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from gateway.config import Config, FrictionConfig, TensionConfig
+from gateway.configtypes import convert, require
+from gateway.errors import ConfigError
+
+PerCable = float | tuple[float, ...]
+Vec6 = tuple[float, float, float, float, float, float]
+
+
+@dataclass(frozen=True)
+class PaperPathConfig:
+    """Paper eq. 20 path in mm: x = 200 sin(5 - u), y = 15 (15 - u), z = 10 u.
+
+    ``u`` runs over [u_start, u_end]; u = 0..15 is where y = 15 (15 - u) runs down to 0
+    (0.40 x 0.225 x 0.15 m). ``offset_m`` is added to the path (None: the path's bounding
+    box, both layers, is centred on ``geometry.home_pose``). Layer k >= 2 is the same path
+    lifted by (k - 1) ``layer_height_m``, printed in the opposite direction (a continuous
+    bead) after a vertical lift at rest. Each segment starts and stops at rest with
+    cycloidal speed ramps of ``ramp_s``.
+    """
+
+    speed_m_s: float = 0.04
+    layers: int = 2
+    u_start: float = 0.0
+    u_end: float = 15.0
+    layer_height_m: float = 0.02
+    ramp_s: float = 0.5
+    offset_m: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        require(self.speed_m_s > 0, "speed_m_s must be > 0")
+        require(self.layers >= 1, "layers must be >= 1")
+        require(self.u_end > self.u_start, "u_end must be > u_start")
+        require(self.layer_height_m >= 0, "layer_height_m must be >= 0")
+        require(self.ramp_s >= 0, "ramp_s must be >= 0")
+
+
+@dataclass(frozen=True)
+class CyclicConfig:
+    """``pose_k(t) = center_k + amplitude_k sin(2 pi f_k t + phase_k)`` in all six DOF.
+
+    Equal frequencies and phases (the default) move the platform back and forth along one
+    line in pose space through ``center`` (None: ``geometry.home_pose``), paper Fig. 9.
+    """
+
+    amplitude: Vec6 = (0.2, 0.15, 0.1, 0.05, 0.05, 0.08)
+    frequency_hz: Vec6 = (0.1, 0.1, 0.1, 0.1, 0.1, 0.1)
+    phase_rad: Vec6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    center: Vec6 | None = None
+
+    def __post_init__(self) -> None:
+        require(all(f >= 0 for f in self.frequency_hz), "frequency_hz must be >= 0")
+
+
+@dataclass(frozen=True)
+class RandomConfig:
+    """Smooth random motion: per DOF a sum of ``components`` sinusoids with random
+    frequencies in [min_frequency_hz, max_frequency_hz] and phases, bounded by
+    ``amplitude`` around ``center`` (None: home pose); reverses direction often."""
+
+    seed: int = 7
+    amplitude: Vec6 = (0.2, 0.15, 0.1, 0.04, 0.04, 0.06)
+    components: int = 4
+    min_frequency_hz: float = 0.02
+    max_frequency_hz: float = 0.3
+    center: Vec6 | None = None
+
+    def __post_init__(self) -> None:
+        require(self.components >= 1, "components must be >= 1")
+        require(0 < self.min_frequency_hz <= self.max_frequency_hz, "need 0 < min <= max freq")
+
+
+@dataclass(frozen=True)
+class FileTrajectoryConfig:
+    """CSV with columns t, x, y, z, rx, ry, rz (s, m, rad) and optionally printing (0/1).
+
+    A relative ``path`` is taken relative to the config file's directory.
+    """
+
+    path: str = ""
+
+
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    kind: Literal["paper", "cyclic", "random", "file"] = "paper"
+    repeat: bool = True  # start again (mass refilled) after a finite trajectory ends
+    paper: PaperPathConfig = field(default_factory=PaperPathConfig)
+    cyclic: CyclicConfig = field(default_factory=CyclicConfig)
+    random: RandomConfig = field(default_factory=RandomConfig)
+    file: FileTrajectoryConfig = field(default_factory=FileTrajectoryConfig)
+
+
+@dataclass(frozen=True)
+class CoulombEffect:
+    """Truth bearing ``mu`` (per cable, every pulley; None: the friction's) and ``f0_n``."""
+
+    mu: PerCable | None = None
+    f0_n: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class PreslidingEffect:
+    sigma_n_m: PerCable = 500.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class ViscousEffect:
+    c_ns_m: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class StribeckEffect:
+    k: PerCable = 0.0
+    v_s_m_s: PerCable = 0.01
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class InertiaEffect:
+    m_eff_kg: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class DelayEffect:
+    d_s: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class LowpassEffect:
+    tau_s: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class GainEffect:
+    g: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class OffsetEffect:
+    c_n: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class DriftEffect:
+    k_n_s: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class EccentricityEffect:
+    a_n: PerCable = 0.0
+    r_m: PerCable | None = None  # None: friction.pulley_radius_m
+    phi_rad: PerCable = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class MassChangeEffect:
+    """Hidden mass change ``q t`` (kg/s): in the truth, not in the recorded mass."""
+
+    q_kg_s: float = 0.0
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class EffectsConfig:
+    coulomb: CoulombEffect | None = None
+    presliding: PreslidingEffect | None = None
+    viscous: ViscousEffect | None = None
+    stribeck: StribeckEffect | None = None
+    inertia: InertiaEffect | None = None
+    delay: DelayEffect | None = None
+    lowpass: LowpassEffect | None = None
+    gain: GainEffect | None = None
+    offset: OffsetEffect | None = None
+    drift: DriftEffect | None = None
+    eccentricity: EccentricityEffect | None = None
+    mass_change: MassChangeEffect | None = None
+
+    def active(self) -> dict[str, Any]:
+        """Effects that are on, by id (physics.md sec. 5), in declaration order."""
+        out = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if value is not None and value.enabled:
+                out[f.name] = value
+        return out
+
+
+@dataclass(frozen=True)
+class SimPlcRaw:
+    """The ``sim_plc:`` mapping as written (``friction``/``tension`` are partial overrides)."""
+
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    period_s: float = 0.001
+    extrusion_kg_s: float = 0.1
+    initial_mass_kg: float | None = None
+    noise_std_n: PerCable = 0.5
+    seed: int = 1
+    saturation_n: float | None = None
+    friction: dict[str, Any] = field(default_factory=dict)
+    tension: dict[str, Any] = field(default_factory=dict)
+    effects: EffectsConfig = field(default_factory=EffectsConfig)
+
+    def __post_init__(self) -> None:
+        require(1e-4 <= self.period_s <= 1.0, "period_s must be in 0.0001..1")
+        require(self.extrusion_kg_s >= 0, "extrusion_kg_s must be >= 0")
+
+
+@dataclass(frozen=True)
+class SimPlcConfig:
+    """Resolved soft-PLC settings (see module docstring). ``source``: the config file."""
+
+    trajectory: TrajectoryConfig
+    period_s: float
+    extrusion_kg_s: float
+    initial_mass_kg: float
+    noise_std_n: PerCable
+    seed: int
+    saturation_n: float  # analog sensor output limit (N), above the 500 N range
+    friction: FrictionConfig  # truth friction before effects
+    tension: TensionConfig  # limits of the plant's tension distribution
+    effects: EffectsConfig
+    source: str = ""
+    base_dir: str = "."
+
+
+def per_cable(value: PerCable | None, cables: int, default: float = 0.0) -> np.ndarray:
+    """Scalar or per-cable list -> (m,) float array."""
+    if value is None:
+        return np.full(cables, default)
+    if isinstance(value, tuple):
+        return np.asarray(value, dtype=float)
+    return np.full(cables, float(value))
+
+
+def _check_per_cable(effects: EffectsConfig, noise: PerCable, cables: int, src: str) -> None:
+    items: list[tuple[str, Any]] = [("sim_plc.noise_std_n", noise)]
+    for name, eff in effects.active().items():
+        for f in dataclasses.fields(eff):
+            items.append((f"sim_plc.effects.{name}.{f.name}", getattr(eff, f.name)))
+    positive = ("sigma_n_m", "v_s_m_s", "r_m")
+    non_negative = ("noise_std_n", "f0_n", "c_ns_m", "d_s", "tau_s", "m_eff_kg", "mu")
+    for key, value in items:
+        if isinstance(value, tuple) and len(value) != cables:
+            raise ConfigError(f"{src}: {key}: expected one value per cable ({cables}), "
+                              f"got {len(value)}")  # fmt: skip
+        if isinstance(value, bool) or not isinstance(value, (int, float, tuple)):
+            continue
+        arr = np.atleast_1d(np.asarray(value, dtype=float))
+        leaf = key.rsplit(".", 1)[-1]
+        if leaf in positive and np.any(arr <= 0):
+            raise ConfigError(f"{src}: {key}: must be > 0")
+        if leaf in non_negative and np.any(arr < 0):
+            raise ConfigError(f"{src}: {key}: must be >= 0")
+
+
+def load_sim_config(cfg: Config) -> SimPlcConfig:
+    """Validate ``cfg.sim_plc`` and resolve its defaults; errors name ``sim_plc.<key>``."""
+    src = cfg.source
+    raw = convert(SimPlcRaw, cfg.sim_plc, "sim_plc", src)
+    friction = convert(
+        FrictionConfig,
+        {**dataclasses.asdict(cfg.friction), **raw.friction},
+        "sim_plc.friction",
+        src,
+    )
+    tension = convert(
+        TensionConfig, {**dataclasses.asdict(cfg.tension), **raw.tension}, "sim_plc.tension", src
+    )
+    _check_per_cable(raw.effects, raw.noise_std_n, cfg.cables, src)
+    mass = cfg.geometry.platform_mass_kg if raw.initial_mass_kg is None else raw.initial_mass_kg
+    if mass <= 0:
+        raise ConfigError(f"{src}: sim_plc.initial_mass_kg: must be > 0")
+    saturation = 1.2 * cfg.sensor.range_n if raw.saturation_n is None else raw.saturation_n
+    if saturation <= 0:
+        raise ConfigError(f"{src}: sim_plc.saturation_n: must be > 0")
+    if raw.trajectory.kind == "file" and not raw.trajectory.file.path:
+        raise ConfigError(f"{src}: sim_plc.trajectory.file.path: required for kind 'file'")
+    return SimPlcConfig(
+        trajectory=raw.trajectory,
+        period_s=raw.period_s,
+        extrusion_kg_s=raw.extrusion_kg_s,
+        initial_mass_kg=float(mass),
+        noise_std_n=raw.noise_std_n,
+        seed=raw.seed,
+        saturation_n=float(saturation),
+        friction=friction,
+        tension=tension,
+        effects=raw.effects,
+        source=src,
+        base_dir=str(Path(src).resolve().parent) if src else ".",
+    )
