@@ -24,7 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.config import FrictionConfig, PulleyConfig
+from gateway.config import (
+    DEFAULT_CONFIG_PATH,
+    Config,
+    FrictionConfig,
+    PulleyConfig,
+    config_from_mapping,
+)
+from gateway.configtypes import read_yaml
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate
 from gateway.recording import Recording
@@ -49,6 +56,7 @@ class Scenario:
     nominal_model: str = "dahl"
     noise_n: float = NOISE_N
     slow: bool = False
+    plant: bool = False  # made by the soft PLC's plant (8-cable robot, statics, S7 ADC)
 
     def nominal(self) -> FrictionConfig:
         """The nominal model file's friction mapping (what the diagnosis is given)."""
@@ -142,8 +150,31 @@ def _path_sensor(sc: Scenario) -> fx.PathSensorEffects:
     )
 
 
+def plant_config(sc: Scenario) -> Config:
+    """Full config (default geometry, nominal friction) whose ``sim_plc`` section is ``sc``.
+
+    Random 6-DOF motion (many reversals), no extrusion (the mass is constant unless the
+    hidden ``mass_change`` is on), the scenario's noise, seed and effects.
+    """
+    data = read_yaml(DEFAULT_CONFIG_PATH)
+    nom = sc.nominal()
+    data["friction"] = {**data.get("friction", {}), "model": nom.model}
+    eff = {name: {k: (list(v) if isinstance(v, tuple) else v) for k, v in p.items()}
+           for name, p in sc.effects.items()}  # fmt: skip
+    data["sim_plc"] = {
+        "period_s": 1.0 / sc.rate_hz, "extrusion_kg_s": 0.0, "noise_std_n": sc.noise_n,
+        "seed": sc.seed, "trajectory": {"kind": "random", "random": {"seed": sc.seed}},
+        "effects": eff,
+    }  # fmt: skip
+    return config_from_mapping(data, str(DEFAULT_CONFIG_PATH))
+
+
 def make_recording(sc: Scenario) -> Recording:
     """The recording the "real" machine of ``sc`` produces (see the module docstring)."""
+    if sc.plant:
+        from sim_plc.plant import make_recording as plant_recording
+
+        return plant_recording(plant_config(sc), None, sc.seconds)
     t, v, tp = motion(sc)
     m = v.shape[1]
     ts = simulate(_truth_chain(sc, m), tp, v, t)
@@ -205,8 +236,15 @@ def suite() -> list[Scenario]:
         _s("clean_uneven", uneven=True, seed=5),
         _s("clean_coulomb_nominal", nominal_model="coulomb", seed=6),
         _s("clean_8_cables", cables=8, seconds=20.0, seed=7, slow=True),
+        _s("plant_clean", plant=True, cables=8, seconds=20.0, seed=8, slow=True),
     ]
-    return single + pairs + special + clean
+    plant = [
+        _s("plant_mass_change", {"mass_change": {"q_kg_s": 0.03}}, plant=True, cables=8,
+           seconds=20.0, slow=True),
+        _s("plant_viscous", {"viscous": {"c_ns_m": 6.0}}, plant=True, cables=8, seconds=20.0,
+           slow=True),
+    ]
+    return single + pairs + special + plant + clean
 
 
 # Tolerance per reported parameter: (kind, value). "rel": |fit - true| / |true|;
@@ -262,9 +300,17 @@ def evaluate(sc: Scenario) -> dict:
     from gateway.diagnose.engine import diagnose
 
     rec = make_recording(sc)
-    val = make_recording(replace(sc, seed=sc.seed + 500))
+    vsc = replace(sc, seed=sc.seed + 500)
+    val = make_recording(vsc)
+    dm = vdm = None
+    if sc.plant:
+        from gateway.diagnose.platform import mass_sensitivity
+
+        dm = mass_sensitivity(rec, plant_config(sc))
+        vdm = mass_sensitivity(val, plant_config(vsc))
     start = time.perf_counter()
-    report = diagnose(rec, sc.nominal(), validation=(val, val.tension_platform, None)).report
+    report = diagnose(rec, sc.nominal(), dtp_dm=dm,
+                      validation=(val, val.tension_platform, vdm)).report  # fmt: skip
     seconds = time.perf_counter() - start
     found = [f["effect"] for f in report["findings"]]
     truth = set(sc.effects)

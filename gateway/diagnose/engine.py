@@ -16,6 +16,7 @@ import numpy as np
 
 from gateway.config import FrictionConfig
 from gateway.diagnose import locate
+from gateway.diagnose.fit import joint_fit
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal
 from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds
 from gateway.errors import RecordingError
@@ -55,6 +56,51 @@ def time_blocks(t: np.ndarray) -> tuple[np.ndarray, int]:
     nb += nb % 2
     edges = t[0] + span * np.arange(1, nb) / nb
     return np.searchsorted(edges, t, side="right").astype(np.int64), nb
+
+
+SELECTION_BUDGET = 150_000
+"""Samples per cable above which the selection runs on a subset (then refit on all)."""
+WARMUP_S = 1.0
+
+
+def selection_subset(t: np.ndarray, blocks: np.ndarray, budget: int = SELECTION_BUDGET):
+    """For long recordings: samples to select on, their blocks and the scoreable ones.
+
+    Only *training* blocks of the whole recording are used (the held-out blocks stay
+    unseen by selection and fit alike): evenly chosen training blocks up to ``budget``
+    samples, each with ``WARMUP_S`` of the samples before it (simulated, never scored) and
+    split into halves that train and test the selection. None: use everything.
+    """
+    if t.size <= budget:
+        return None
+    train_blocks = np.unique(blocks[blocks % 2 == 0])
+    per_block = t.size / (blocks.max() + 1)
+    take = max(2, int(budget // per_block))
+    chosen = train_blocks[np.unique(np.linspace(0, train_blocks.size - 1, take).astype(int))]
+    idx_parts, blk_parts, use_parts = [], [], []
+    for k, b in enumerate(chosen):
+        members = np.nonzero(blocks == b)[0]
+        lo, hi = members[0], members[-1] + 1
+        warm = int(np.searchsorted(t, t[lo] - WARMUP_S))
+        rows = np.arange(warm, hi)
+        half = lo + (hi - lo) // 2
+        idx_parts.append(rows)
+        blk_parts.append(np.where(rows < half, 2 * k, 2 * k + 1))
+        use_parts.append(rows >= lo)
+    idx = np.concatenate(idx_parts)
+    idx, first = np.unique(idx, return_index=True)
+    return idx, np.concatenate(blk_parts)[first], np.concatenate(use_parts)[first]
+
+
+def refit_full(fw: Forward, outcome: CableOutcome, train: np.ndarray) -> CableOutcome:
+    """Refit the effects selected on a subset jointly on every training sample."""
+    if not outcome.kept:
+        return outcome
+    stride = max(1, int(train.sum()) // SELECTION_BUDGET)
+    fit = joint_fit(fw, outcome.theta, outcome.specs, train, max_nfev=20, stride=stride)
+    if fit.ok:
+        outcome.theta, outcome.stderr = fit.theta, fit.stderr
+    return outcome
 
 
 @dataclass
@@ -107,14 +153,22 @@ def diagnose(
     datas = cable_data(rec, tp, dtp_dm)
     blocks, nb = time_blocks(rec.t)
     cands = candidates_for(dtp_dm is not None)
-    stride = max(1, rec.samples // 200_000)
+    subset = selection_subset(rec.t, blocks)
     outcomes, forwards = [], []
     for i, d in enumerate(datas):
         fw = Forward(d, nom)
-        say(f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects")
-        outcome = CableSelector(fw, blocks, nb, cands, th, stride=stride).run()
-        say(f"cable {i + 1}/{rec.cables}: kept {', '.join(outcome.kept) or 'nothing'}"
-            f" ({fw.simulations} chain simulations)")  # fmt: skip
+        say(f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects"
+            + ("" if subset is None else f" on {subset[0].size} of {rec.samples} samples"))
+        if subset is None:
+            outcome = CableSelector(fw, blocks, nb, cands, th).run()
+        else:
+            idx, sub_blocks, usable = subset
+            sub_fw = Forward(d.subset(idx), nom)
+            outcome = CableSelector(sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th,
+                                    usable=usable).run()  # fmt: skip
+            outcome = refit_full(fw, outcome, blocks % 2 == 0)
+        say(f"cable {i + 1}/{rec.cables}: kept {', '.join(outcome.kept) or 'nothing'}")
+        fw.clear_cache()
         outcomes.append(outcome)
         forwards.append(fw)
     from gateway.diagnose.report import build_report  # local: report imports engine types

@@ -100,9 +100,9 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
         return lin(0.0, 1.0)
     if effect == "stribeck":
         lv = math.log10(v95)
-        starts = tuple(a([0.0, lv + o]) for o in (-2.5, -2.0, -1.5, -1.0, -0.5))
-        # v_s at most half the typical speed: above that it would mimic a Coulomb change
-        return Spec(a([0.0, lv - 1.0]), a([-0.95, lv - 4.0]), a([20.0, lv - 0.3]), (0,),
+        starts = tuple(a([0.0, lv + o]) for o in (-2.5, -2.0, -1.5, -1.0))
+        # v_s at most 1/8 of the typical speed: above that it would mimic a Coulomb change
+        return Spec(a([0.0, lv - 1.5]), a([-0.95, lv - 4.0]), a([20.0, lv - 0.9]), (0,),
                     a([0.05, 0.05]), starts)  # fmt: skip
     if effect == "inertia":
         return lin(0.0, 1.0)

@@ -40,6 +40,8 @@ class CableData:
     ``x`` displacement (m) and ``a`` acceleration (m/s^2) from ``v``; ``t0`` the
     recording's first time (drift is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of
     platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
+    ``x`` and ``a`` are computed here unless given (a subset of a longer recording takes
+    them from the whole recording).
     """
 
     t: np.ndarray
@@ -48,12 +50,20 @@ class CableData:
     ts: np.ndarray
     t0: float
     dtp_dm: np.ndarray | None = None
-    x: np.ndarray = field(init=False)
-    a: np.ndarray = field(init=False)
+    x: np.ndarray = field(default=None)  # type: ignore[assignment]
+    a: np.ndarray = field(default=None)  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
-        self.x = fx.displacement(self.t, self.v)
-        self.a = fx.acceleration(self.t, self.v) if self.t.size > 1 else np.zeros_like(self.v)
+        if self.x is None:
+            self.x = fx.displacement(self.t, self.v)
+        if self.a is None:
+            self.a = fx.acceleration(self.t, self.v) if self.t.size > 1 else np.zeros_like(self.v)
+
+    def subset(self, idx: np.ndarray) -> CableData:
+        """The samples ``idx`` (sorted), keeping ``x``, ``a`` and ``t0`` of the whole."""
+        dm = None if self.dtp_dm is None else self.dtp_dm[idx]
+        return CableData(self.t[idx], self.v[idx], self.tp[idx], self.ts[idx], self.t0, dm,
+                         self.x[idx], self.a[idx])  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -146,6 +156,10 @@ class Forward:
         self._cache: dict[tuple, np.ndarray] = {}
         self._cache_size = cache_size
         self.simulations = 0
+
+    def clear_cache(self) -> None:
+        """Free the cached chain simulations."""
+        self._cache.clear()
 
     def chain(self, eff: dict[str, np.ndarray]) -> np.ndarray:
         """Sensor-side tension (N,) from the friction chain (and mass change) alone."""

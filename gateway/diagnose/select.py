@@ -25,9 +25,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gateway.diagnose.fit import Spec, best_start, block_sse, joint_fit, spec_for
+from gateway.diagnose.fit import FitResult, Spec, best_start, block_sse, joint_fit, spec_for
 from gateway.diagnose.forward import Forward
 
+ROUNDS = 3
 RIVALS: dict[str, tuple[str, ...]] = {
     "delay": ("lowpass", "inertia"),
     "lowpass": ("delay", "inertia"),
@@ -105,10 +106,12 @@ class CableSelector:
     """Forward selection for one cable (``fw``) over ``candidates``."""
 
     def __init__(self, fw: Forward, blocks: np.ndarray, n_blocks: int, candidates: list[str],
-                 th: Thresholds, stride: int = 1) -> None:  # fmt: skip
+                 th: Thresholds, stride: int = 1, usable: np.ndarray | None = None) -> None:  # fmt: skip
+        """``usable`` (N,) bool: samples that may be scored (None: all; warm-up excluded)."""
         self.fw, self.blocks, self.nb = fw, blocks, n_blocks
-        self.train = blocks % 2 == 0
-        self.test = ~self.train
+        use = np.ones(blocks.shape, bool) if usable is None else usable
+        self.train = (blocks % 2 == 0) & use
+        self.test = (blocks % 2 == 1) & use
         self.candidates = candidates
         self.th = th
         self.stride = stride
@@ -135,20 +138,46 @@ class CableSelector:
         )
 
     def _screen(self, kept: dict[str, np.ndarray], effect: str, pred: np.ndarray):
+        """Fit ``effect`` alone on top of ``kept`` (held fixed) for ranking.
+
+        Effects whose parameters are all (nearly) linear are solved by one Gauss-Newton
+        step from their signatures; the others are refined by a short least squares.
+        """
         spec = spec_for(effect, self.fw.data, self.fw.nom, self.fw.data.ts - pred, self.train)
         start = best_start(self.fw, kept, effect, spec, self.train)
-        fit = joint_fit(self.fw, {effect: start}, {effect: spec}, self.train, max_nfev=25,
+        if len(spec.linear) == spec.neutral.size:
+            theta = {effect: start}
+            nan = {effect: np.full(start.size, np.nan)}
+            return spec, FitResult(theta, nan, self.fw.predict({**kept, **theta}), True)
+        fit = joint_fit(self.fw, {effect: start}, {effect: spec}, self.train, max_nfev=15,
                         stride=self.stride, fixed=kept)  # fmt: skip
         return spec, fit
 
     def run(self) -> CableOutcome:
-        """Select, refit jointly, then compare confusable rivals."""
-        kept: dict[str, np.ndarray] = {}
-        specs: dict[str, Spec] = {}
-        stderr: dict[str, np.ndarray] = {}
+        """Rounds of forward steps, swaps and the strict backward check (until the set of
+        kept effects stops changing, at most ``ROUNDS``), then the confusable rivals."""
+        state: tuple = ({}, {}, {}, self.fw.predict({}))
         order: list[str] = []
-        pred = self.fw.predict({})
-        for _ in range(self.th.max_effects):
+        seen: list[set[str]] = []
+        for _ in range(ROUNDS):
+            state, order = self._forward(state, order)
+            state = self._swap(*state)
+            state = self._backward(*state)
+            kept = set(state[0])
+            if kept in seen:
+                break
+            seen.append(kept)
+        kept, specs, stderr, pred = state
+        order = [e for e in order if e in kept] + [e for e in kept if e not in order]
+        out = CableOutcome(order, kept, stderr, specs)
+        out.rivals = self._rivals(kept, specs, pred)
+        return out
+
+    def _forward(self, state: tuple, order: list[str]) -> tuple[tuple, list[str]]:
+        """Add the best candidate while one passes the (lenient) forward test."""
+        kept, specs, stderr, pred = state
+        order = list(order)
+        while len(kept) < self.th.max_effects:
             best = None
             for effect in (c for c in self.candidates if c not in kept):
                 spec, fit = self._screen(kept, effect, pred)
@@ -166,12 +195,7 @@ class CableSelector:
                 break
             kept, specs, stderr, pred = joint.theta, trial_specs, joint.stderr, joint.pred
             order.append(effect)
-        kept, specs, stderr, pred = self._backward(kept, specs, stderr, pred)
-        kept, specs, stderr, pred = self._swap(kept, specs, stderr, pred)
-        order = [e for e in order if e in kept] + [e for e in kept if e not in order]
-        out = CableOutcome(order, kept, stderr, specs)
-        out.rivals = self._rivals(kept, specs, pred)
-        return out
+        return (kept, specs, stderr, pred), order
 
     def _backward(self, kept, specs, stderr, pred):
         """Drop, one at a time, the weakest kept effect that fails the strict test.
