@@ -87,8 +87,10 @@ def motion(sc: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if sc.rig:
         tp = 150 * np.sin(2 * math.pi * 0.071 * tt + ph[3]) + 40 * np.sin(2 * math.pi * 0.37 * tt)
     else:
-        tp = 180 + 70 * np.sin(2 * math.pi * 0.061 * tt + ph[3]) + 25 * np.sin(
-            2 * math.pi * 0.33 * tt + ph[0]
+        tp = (
+            180
+            + 70 * np.sin(2 * math.pi * 0.061 * tt + ph[3])
+            + 25 * np.sin(2 * math.pi * 0.33 * tt + ph[0])
         )
     return t, v, tp + load_steps(t, m, rng)
 
@@ -126,12 +128,16 @@ def _truth_chain(sc: Scenario, m: int) -> ChainParams:
     if "presliding" in e:
         model, sigma = "dahl", e["presliding"]["sigma_n_m"]
     return ChainParams.build(
-        model=model, cables=m, wrap_rad=np.asarray(nom.wrap_rad), mu=mu, sigma_n_m=sigma,
+        model=model,
+        cables=m,
+        wrap_rad=np.asarray(nom.wrap_rad),
+        mu=mu,
+        sigma_n_m=sigma,
         f0_n=e.get("coulomb", {}).get("f0_n", 0.0),
         stribeck_k=e.get("stribeck", {}).get("k", 0.0),
         stribeck_v_m_s=e.get("stribeck", {}).get("v_s_m_s", 0.01),
         viscous_ns_m=nom.viscous_ns_m + e.get("viscous", {}).get("c_ns_m", 0.0),
-    )  # fmt: skip
+    )
 
 
 def _path_sensor(sc: Scenario) -> fx.PathSensorEffects:
@@ -159,13 +165,18 @@ def plant_config(sc: Scenario) -> Config:
     data = read_yaml(DEFAULT_CONFIG_PATH)
     nom = sc.nominal()
     data["friction"] = {**data.get("friction", {}), "model": nom.model}
-    eff = {name: {k: (list(v) if isinstance(v, tuple) else v) for k, v in p.items()}
-           for name, p in sc.effects.items()}  # fmt: skip
+    eff = {
+        name: {k: (list(v) if isinstance(v, tuple) else v) for k, v in p.items()}
+        for name, p in sc.effects.items()
+    }
     data["sim_plc"] = {
-        "period_s": 1.0 / sc.rate_hz, "extrusion_kg_s": 0.0, "noise_std_n": sc.noise_n,
-        "seed": sc.seed, "trajectory": {"kind": "random", "random": {"seed": sc.seed}},
+        "period_s": 1.0 / sc.rate_hz,
+        "extrusion_kg_s": 0.0,
+        "noise_std_n": sc.noise_n,
+        "seed": sc.seed,
+        "trajectory": {"kind": "random", "random": {"seed": sc.seed}},
         "effects": eff,
-    }  # fmt: skip
+    }
     return config_from_mapping(data, str(DEFAULT_CONFIG_PATH))
 
 
@@ -184,8 +195,13 @@ def make_recording(sc: Scenario) -> Recording:
     ts = ts + rng.normal(0.0, sc.noise_n, ts.shape)
     step = RANGE_N / ADC_FULL_SCALE
     ts = np.round(ts / step) * step
-    return Recording(t=t, velocity=v, tension_sensor=ts, tension_platform=tp,
-                     metadata={"source": "sim_plc.scenarios", "scenario": sc.name})  # fmt: skip
+    return Recording(
+        t=t,
+        velocity=v,
+        tension_sensor=ts,
+        tension_platform=tp,
+        metadata={"source": "sim_plc.scenarios", "scenario": sc.name},
+    )
 
 
 def _s(name: str, effects: dict | None = None, **kw) -> Scenario:
@@ -218,8 +234,10 @@ def suite() -> list[Scenario]:
         _s("viscous+offset", {"viscous": {"c_ns_m": 6.0}, "offset": {"c_n": 0.25}}),
         _s("gain+eccentricity", {"gain": {"g": 0.002}, "eccentricity": ecc}),
         _s("delay+drift", {"delay": {"d_s": 0.004}, "drift": {"k_n_s": 0.012}}),
-        _s("stribeck+inertia",
-           {"stribeck": {"k": 0.5, "v_s_m_s": 0.004}, "inertia": {"m_eff_kg": 2.0}}),
+        _s(
+            "stribeck+inertia",
+            {"stribeck": {"k": 0.5, "v_s_m_s": 0.004}, "inertia": {"m_eff_kg": 2.0}},
+        ),
         _s("lowpass+inertia", {"lowpass": {"tau_s": 0.004}, "inertia": {"m_eff_kg": 2.0}}),
         _s("offset+drift", {"offset": {"c_n": 0.25}, "drift": {"k_n_s": 0.012}}),
         _s("gain+coulomb", {"gain": {"g": 0.002}, "coulomb": {"mu": 0.0165, "f0_n": 0.0}}),
@@ -239,10 +257,22 @@ def suite() -> list[Scenario]:
         _s("plant_clean", plant=True, cables=8, seconds=20.0, seed=8, slow=True),
     ]
     plant = [
-        _s("plant_mass_change", {"mass_change": {"q_kg_s": 0.03}}, plant=True, cables=8,
-           seconds=20.0, slow=True),
-        _s("plant_viscous", {"viscous": {"c_ns_m": 6.0}}, plant=True, cables=8, seconds=20.0,
-           slow=True),
+        _s(
+            "plant_mass_change",
+            {"mass_change": {"q_kg_s": 0.03}},
+            plant=True,
+            cables=8,
+            seconds=20.0,
+            slow=True,
+        ),
+        _s(
+            "plant_viscous",
+            {"viscous": {"c_ns_m": 6.0}},
+            plant=True,
+            cables=8,
+            seconds=20.0,
+            slow=True,
+        ),
     ]
     return single + pairs + special + plant + clean
 
@@ -250,12 +280,23 @@ def suite() -> list[Scenario]:
 # Tolerance per reported parameter: (kind, value). "rel": |fit - true| / |true|;
 # "abs": |fit - true|; "change": relative to the change from the nominal value.
 TOLERANCE: dict[str, tuple[str, float]] = {
-    "mu": ("change", 0.3), "f0_n": ("abs", 0.15), "sigma_n_m": ("rel", 0.35),
-    "c_ns_m": ("rel", 0.15), "k": ("rel", 0.35), "v_s_m_s": ("rel", 0.35),
-    "m_eff_kg": ("rel", 0.25), "d_s": ("rel", 0.2), "tau_s": ("rel", 0.2), "g": ("rel", 0.2),
-    "c_n": ("rel", 0.2), "k_n_s": ("rel", 0.2), "a_n": ("rel", 0.2), "r_m": ("rel", 0.05),
-    "phi_rad": ("abs", 0.3), "q_kg_s": ("rel", 0.2),
-}  # fmt: skip
+    "mu": ("change", 0.3),
+    "f0_n": ("abs", 0.15),
+    "sigma_n_m": ("rel", 0.35),
+    "c_ns_m": ("rel", 0.15),
+    "k": ("rel", 0.35),
+    "v_s_m_s": ("rel", 0.35),
+    "m_eff_kg": ("rel", 0.25),
+    "d_s": ("rel", 0.2),
+    "tau_s": ("rel", 0.2),
+    "g": ("rel", 0.2),
+    "c_n": ("rel", 0.2),
+    "k_n_s": ("rel", 0.2),
+    "a_n": ("rel", 0.2),
+    "r_m": ("rel", 0.05),
+    "phi_rad": ("abs", 0.3),
+    "q_kg_s": ("rel", 0.2),
+}
 
 
 def expected_cables(sc: Scenario, effect: str) -> list[int]:
@@ -309,8 +350,9 @@ def evaluate(sc: Scenario) -> dict:
         dm = mass_sensitivity(rec, plant_config(sc))
         vdm = mass_sensitivity(val, plant_config(vsc))
     start = time.perf_counter()
-    report = diagnose(rec, sc.nominal(), dtp_dm=dm,
-                      validation=(val, val.tension_platform, vdm)).report  # fmt: skip
+    report = diagnose(
+        rec, sc.nominal(), dtp_dm=dm, validation=(val, val.tension_platform, vdm)
+    ).report
     seconds = time.perf_counter() - start
     found = [f["effect"] for f in report["findings"]]
     truth = set(sc.effects)
@@ -322,9 +364,14 @@ def evaluate(sc: Scenario) -> dict:
             cables_ok &= f["cables"] == expected_cables(sc, f["effect"])
     named = set(found) == truth and (not truth or found[0] in truth) and cables_ok
     return {
-        "scenario": sc, "report": report, "found": found, "named": named,
-        "param_err": max(errors.values(), default=0.0), "errors": errors, "seconds": seconds,
-    }  # fmt: skip
+        "scenario": sc,
+        "report": report,
+        "found": found,
+        "named": named,
+        "param_err": max(errors.values(), default=0.0),
+        "errors": errors,
+        "seconds": seconds,
+    }
 
 
 def _row(res: dict) -> str:

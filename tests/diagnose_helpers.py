@@ -10,7 +10,6 @@ import jsonschema
 from gateway.recording import write_recording
 from sim_plc.scenarios import Scenario, make_recording
 
-
 MODEL_YAML = """friction:
   model: {model}
   pulleys:

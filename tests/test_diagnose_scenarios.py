@@ -9,10 +9,22 @@ from sim_plc.scenarios import evaluate, expected_cables, suite
 from tests.diagnose_helpers import check_report
 
 FAST = {
-    "viscous", "offset", "delay", "lowpass", "eccentricity", "presliding", "coulomb",
-    "viscous+offset", "offset+drift", "rig_viscous", "uneven_delay",
-    "clean_seed1", "clean_seed2", "clean_rig", "clean_uneven",
-}  # fmt: skip
+    "viscous",
+    "offset",
+    "delay",
+    "lowpass",
+    "eccentricity",
+    "presliding",
+    "coulomb",
+    "viscous+offset",
+    "offset+drift",
+    "rig_viscous",
+    "uneven_delay",
+    "clean_seed1",
+    "clean_seed2",
+    "clean_rig",
+    "clean_uneven",
+}
 
 
 def _cases():

@@ -32,27 +32,54 @@ def test_forward_matches_effects_module():
     nom = nominal_from(fr)
     params = ChainParams.from_friction(fr, 1)
     ts = simulate(params, tp[:, None], v[:, None], t)
-    eff = fx.PathSensorEffects(inertia_kg=1.5, eccentricity_a_n=0.3, eccentricity_r_m=0.04,
-                               eccentricity_phi_rad=0.5, gain=0.01, offset_n=0.2,
-                               drift_n_s=0.05, lowpass_tau_s=0.003, delay_s=0.002)  # fmt: skip
+    eff = fx.PathSensorEffects(
+        inertia_kg=1.5,
+        eccentricity_a_n=0.3,
+        eccentricity_r_m=0.04,
+        eccentricity_phi_rad=0.5,
+        gain=0.01,
+        offset_n=0.2,
+        drift_n_s=0.05,
+        lowpass_tau_s=0.003,
+        delay_s=0.002,
+    )
     truth = fx.apply_sensor_effects(t, fx.apply_path_effects(t, v[:, None], ts, eff), eff)[:, 0]
     fw = Forward(CableData(t, v, tp, truth, float(t[0])), nom)
     ecc = np.array([0.3 * math.cos(0.5), 0.3 * math.sin(0.5), 1 / 0.04])
-    theta = {"inertia": np.array([1.5]), "eccentricity": ecc, "gain": np.array([0.01]),
-             "offset": np.array([0.2]), "drift": np.array([0.05]),
-             "lowpass": np.array([0.003]), "delay": np.array([0.002])}  # fmt: skip
+    theta = {
+        "inertia": np.array([1.5]),
+        "eccentricity": ecc,
+        "gain": np.array([0.01]),
+        "offset": np.array([0.2]),
+        "drift": np.array([0.05]),
+        "lowpass": np.array([0.003]),
+        "delay": np.array([0.002]),
+    }
     assert_allclose(fw.predict(theta), truth, atol=1e-9)
 
 
 def test_forward_chain_effects_match_chainparams():
     t, v, tp = _data()
     nom = nominal_from(FrictionConfig())
-    params = ChainParams.build("dahl", 1, nom.wrap_rad, 0.02, sigma_n_m=300.0, f0_n=0.4,
-                               stribeck_k=0.5, stribeck_v_m_s=0.01, viscous_ns_m=5.0)  # fmt: skip
+    params = ChainParams.build(
+        "dahl",
+        1,
+        nom.wrap_rad,
+        0.02,
+        sigma_n_m=300.0,
+        f0_n=0.4,
+        stribeck_k=0.5,
+        stribeck_v_m_s=0.01,
+        viscous_ns_m=5.0,
+    )
     truth = simulate(params, tp[:, None], v[:, None], t)[:, 0]
     fw = Forward(CableData(t, v, tp, truth, float(t[0])), nom)
-    theta = {"coulomb": np.array([0.02, 0.4]), "presliding": np.array([math.log10(300.0)]),
-             "stribeck": np.array([0.5, -2.0]), "viscous": np.array([5.0])}  # fmt: skip
+    theta = {
+        "coulomb": np.array([0.02, 0.4]),
+        "presliding": np.array([math.log10(300.0)]),
+        "stribeck": np.array([0.5, -2.0]),
+        "viscous": np.array([5.0]),
+    }
     assert_allclose(fw.predict(theta), truth, atol=1e-9)
 
 
@@ -112,3 +139,32 @@ def test_regions_locate_a_burst():
     assert regs[0].cable == 2
     assert 11.8 < regs[0].start_s < 12.2 and 12.8 < regs[0].end_s < 13.2
     assert regs[0].share > 0.8
+
+
+def test_selection_subset_uses_training_blocks_only():
+    from gateway.diagnose.engine import selection_subset
+
+    t = np.arange(400_000) * 1e-3
+    blocks, nb = time_blocks(t)
+    sub = selection_subset(t, blocks, budget=100_000)
+    assert sub is not None
+    idx, sub_blocks, usable = sub
+    assert np.all(np.diff(idx) > 0)
+    assert np.all(blocks[idx[usable]] % 2 == 0)  # scored samples never from held-out blocks
+    assert (~usable).sum() > 0  # warm-up simulated but not scored
+    assert set(np.unique(sub_blocks[usable] % 2)) == {0, 1}  # it trains and tests itself
+    assert usable.sum() <= 100_000 + nb
+    assert selection_subset(t[:1000], blocks[:1000]) is None
+
+
+def test_rows_with_missing_values_are_dropped_and_counted():
+    from gateway.diagnose.engine import diagnose
+    from sim_plc.scenarios import Scenario, make_recording
+
+    sc = Scenario("nan", {}, cables=1, seconds=10.0)
+    rec = make_recording(sc)
+    rec.tension_sensor[100:110, 0] = np.nan
+    report = diagnose(rec, sc.nominal()).report
+    assert report["samples"] == rec.samples - 10
+    assert report["skipped_rows"] == 10
+    assert math.isfinite(report["baseline"]["rmse_n"])

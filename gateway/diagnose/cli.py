@@ -19,12 +19,19 @@ from gateway.recording import Recording, read_recording
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", type=Path, help="recording CSV (.csv or .csv.gz)")
-    parser.add_argument("--model", type=Path, required=True,
-                        help="nominal model YAML: a friction: mapping, or a full config")  # fmt: skip
+    parser.add_argument(
+        "--model",
+        type=Path,
+        required=True,
+        help="nominal model YAML: a friction: mapping, or a full config",
+    )
     parser.add_argument("--json", type=Path, required=True, help="write the JSON report here")
     parser.add_argument("--report", type=Path, help="write PNG pictures and summary.md here")
-    parser.add_argument("--validate", type=Path,
-                        help="a second recording of the same machine, scored but never fitted")  # fmt: skip
+    parser.add_argument(
+        "--validate",
+        type=Path,
+        help="a second recording of the same machine, scored but never fitted",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
@@ -55,8 +62,10 @@ def run_command(command: str, args: argparse.Namespace) -> int:
 
     friction, cfg = load_model(args.model)
     rec = read_recording(args.recording)
-    say(f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
-        + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else ""))  # fmt: skip
+    say(
+        f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
+        + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
+    )
     tp, dm = _tensions(rec, cfg, say)
     validation = None
     if args.validate is not None:
@@ -76,6 +85,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         say(f"pictures and summary.md in {args.report}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"
-    print(f"verdict: {verdict}; RMSE {rep['baseline']['rmse_n']:.3f} N -> "
-          f"{rep['final']['rmse_n']:.3f} N (held out {rep['final']['holdout_rmse_n']:.3f} N)")  # fmt: skip
+    print(
+        f"verdict: {verdict}; RMSE {rep['baseline']['rmse_n']:.3f} N -> "
+        f"{rep['final']['rmse_n']:.3f} N (held out {rep['final']['holdout_rmse_n']:.3f} N)"
+    )
     return 0

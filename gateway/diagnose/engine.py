@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -28,22 +28,53 @@ Progress = Callable[[str], None]
 def nominal_from(friction: FrictionConfig) -> Nominal:
     """The per-cable nominal chain of a friction config."""
     return Nominal(
-        model=friction.model, wrap_rad=np.asarray(friction.wrap_rad, dtype=float),
-        mu=np.asarray(friction.mu, dtype=float), sigma_n_m=friction.sigma_n_m,
-        beta=friction.beta, viscous_ns_m=friction.viscous_ns_m,
+        model=friction.model,
+        wrap_rad=np.asarray(friction.wrap_rad, dtype=float),
+        mu=np.asarray(friction.mu, dtype=float),
+        sigma_n_m=friction.sigma_n_m,
+        beta=friction.beta,
+        viscous_ns_m=friction.viscous_ns_m,
         pulley_radius_m=friction.pulley_radius_m,
-    )  # fmt: skip
+    )
 
 
 def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None) -> list[CableData]:
     """One :class:`CableData` per cable; ``tp``, ``dtp_dm``: (N, m)."""
     t0 = float(rec.t[0])
     return [
-        CableData(rec.t, rec.velocity[:, i].copy(), tp[:, i].copy(),
-                  rec.tension_sensor[:, i].copy(), t0,
-                  None if dtp_dm is None else dtp_dm[:, i].copy())  # fmt: skip
+        CableData(
+            rec.t,
+            rec.velocity[:, i].copy(),
+            tp[:, i].copy(),
+            rec.tension_sensor[:, i].copy(),
+            t0,
+            None if dtp_dm is None else dtp_dm[:, i].copy(),
+        )
         for i in range(rec.cables)
     ]
+
+
+def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None):
+    """Drop the samples where any cable lacks a finite value (counted in skipped_rows)."""
+    ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
+    ok &= np.isfinite(tp).all(1)
+    if ok.all():
+        return rec, tp, dtp_dm
+    if not ok.any():
+        raise RecordingError(f"{rec.source}: no sample has every required value")
+    sub = replace(
+        rec,
+        t=rec.t[ok],
+        velocity=rec.velocity[ok],
+        tension_sensor=rec.tension_sensor[ok],
+        tension_platform=None if rec.tension_platform is None else rec.tension_platform[ok],
+        length=None,
+        pose=None if rec.pose is None else rec.pose[ok],
+        mass=None if rec.mass is None else rec.mass[ok],
+        extra={},
+        skipped_rows=rec.skipped_rows + int((~ok).sum()),
+    )
+    return sub, tp[ok], None if dtp_dm is None else dtp_dm[ok]
 
 
 def time_blocks(t: np.ndarray) -> tuple[np.ndarray, int]:
@@ -150,6 +181,7 @@ def diagnose(
     if tp is None:
         raise RecordingError(f"{rec.source}: no platform tensions")
     nom = nominal_from(friction)
+    rec, tp, dtp_dm = finite_rows(rec, tp, dtp_dm)
     datas = cable_data(rec, tp, dtp_dm)
     blocks, nb = time_blocks(rec.t)
     cands = candidates_for(dtp_dm is not None)
@@ -157,15 +189,18 @@ def diagnose(
     outcomes, forwards = [], []
     for i, d in enumerate(datas):
         fw = Forward(d, nom)
-        say(f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects"
-            + ("" if subset is None else f" on {subset[0].size} of {rec.samples} samples"))
+        say(
+            f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects"
+            + ("" if subset is None else f" on {subset[0].size} of {rec.samples} samples")
+        )
         if subset is None:
             outcome = CableSelector(fw, blocks, nb, cands, th).run()
         else:
             idx, sub_blocks, usable = subset
             sub_fw = Forward(d.subset(idx), nom)
-            outcome = CableSelector(sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th,
-                                    usable=usable).run()  # fmt: skip
+            outcome = CableSelector(
+                sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th, usable=usable
+            ).run()
             outcome = refit_full(fw, outcome, blocks % 2 == 0)
         say(f"cable {i + 1}/{rec.cables}: kept {', '.join(outcome.kept) or 'nothing'}")
         fw.clear_cache()

@@ -16,8 +16,7 @@ LOOK = {
     "(plot residual against v)",
     "stribeck": "the residual is largest at low speed on either side of a reversal and "
     "fades with speed (plot residual against v near zero)",
-    "inertia": "the residual follows the cable acceleration without lag "
-    "(plot residual against a)",
+    "inertia": "the residual follows the cable acceleration without lag (plot residual against a)",
     "delay": "the measurement lags the model by a fixed time, visible at every fast edge "
     "(overlay the two around a reversal)",
     "lowpass": "the measurement rounds off every fast edge of the model exponentially "
@@ -57,16 +56,23 @@ def _confusion(effect: str, outcomes: list[CableOutcome]) -> str:
             (sep if rv.separable else unsep).add(rv.effect)
     if unsep:
         names = ", ".join(sorted(unsep))
-        return (f"; the held-out data cannot tell it from {names} (both fit about as well, "
-                f"too few fast or two-signed samples to separate them), so the better one is "
-                f"reported")  # fmt: skip
+        return (
+            f"; the held-out data cannot tell it from {names} (both fit about as well, "
+            f"too few fast or two-signed samples to separate them), so the better one is "
+            f"reported"
+        )
     if sep:
         return f"; held out it fits clearly better than {', '.join(sorted(sep))}"
     return ""
 
 
-def evidence(effect: str, outcomes: list[CableOutcome], regime: np.ndarray,
-             holdout_before: float, holdout_after: float) -> str:  # fmt: skip
+def evidence(
+    effect: str,
+    outcomes: list[CableOutcome],
+    regime: np.ndarray,
+    holdout_before: float,
+    holdout_after: float,
+) -> str:
     """One sentence for the finding ``effect``."""
     cables = [str(i + 1) for i, o in enumerate(outcomes) if effect in o.theta]
     pct = 100.0 * (1.0 - holdout_after / holdout_before) if holdout_before > 0 else 0.0

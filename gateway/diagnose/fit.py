@@ -40,8 +40,9 @@ def _speeds(d: CableData) -> tuple[float, float]:
     return v95, dt
 
 
-def eccentricity_kappas(d: CableData, resid: np.ndarray, mask: np.ndarray, r_nom: float,
-                        top: int = 3) -> list[float]:  # fmt: skip
+def eccentricity_kappas(
+    d: CableData, resid: np.ndarray, mask: np.ndarray, r_nom: float, top: int = 3
+) -> list[float]:
     """Wave numbers ``1/r`` (rad/m) where the residual is most periodic in cable travel.
 
     A least-squares periodogram of ``resid`` against the displacement ``x`` on a grid of
@@ -50,7 +51,7 @@ def eccentricity_kappas(d: CableData, resid: np.ndarray, mask: np.ndarray, r_nom
     """
     idx = np.nonzero(mask)[0]
     if idx.size > 20000:
-        idx = idx[:: int(math.ceil(idx.size / 20000))]
+        idx = idx[:: math.ceil(idx.size / 20000)]
     x, r = d.x[idx], resid[idx] - resid[idx].mean()
     span = float(np.ptp(d.x)) if d.x.size else 0.0
     if span <= 0:
@@ -90,8 +91,9 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
     if effect == "coulomb":
         mu0 = nom.mu_mean if nom.model != "none" else 0.0
         # f0 >= 0: seals, brushes and preload only ever add friction (nominal f0 is 0)
-        return Spec(a([mu0, 0.0]), a([0.0, 0.0]), a([0.5, INF]), (0, 1), a([1e-3, 0.1]),
-                    (a([mu0, 0.0]),))  # fmt: skip
+        return Spec(
+            a([mu0, 0.0]), a([0.0, 0.0]), a([0.5, INF]), (0, 1), a([1e-3, 0.1]), (a([mu0, 0.0]),)
+        )
     if effect == "presliding":
         s0 = math.log10(nom.sigma_n_m) if nom.model == "dahl" else 7.0
         starts = tuple(a([s]) for s in (1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0))
@@ -102,14 +104,26 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
         lv = math.log10(v95)
         starts = tuple(a([0.0, lv + o]) for o in (-2.5, -2.0, -1.5, -1.0))
         # v_s at most 1/8 of the typical speed: above that it would mimic a Coulomb change
-        return Spec(a([0.0, lv - 1.5]), a([-0.95, lv - 4.0]), a([20.0, lv - 0.9]), (0,),
-                    a([0.05, 0.05]), starts)  # fmt: skip
+        return Spec(
+            a([0.0, lv - 1.5]),
+            a([-0.95, lv - 4.0]),
+            a([20.0, lv - 0.9]),
+            (0,),
+            a([0.05, 0.05]),
+            starts,
+        )
     if effect == "inertia":
         return lin(0.0, 1.0)
     if effect in ("delay", "lowpass"):
         grid = (1, 2, 3, 5, 8, 13, 20, 35, 60, 100, 200)
-        return Spec(a([0.0]), a([0.0]), a([max(1.0, 300 * dt)]), (), a([dt / 4]),
-                    tuple(a([g * dt]) for g in grid))  # fmt: skip
+        return Spec(
+            a([0.0]),
+            a([0.0]),
+            a([max(1.0, 300 * dt)]),
+            (),
+            a([dt / 4]),
+            tuple(a([g * dt]) for g in grid),
+        )
     if effect == "gain":
         return lin(0.0, 1e-3)
     if effect == "offset":
@@ -119,8 +133,14 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
     if effect == "eccentricity":
         kap = eccentricity_kappas(d, resid, mask, nom.pulley_radius_m)
         span = max(float(np.ptp(d.x)), 1e-6)
-        return Spec(a([0.0, 0.0, kap[-1]]), a([-INF, -INF, 2 * math.pi / span]), a([INF, INF, 1e3]),
-                    (0, 1), a([0.1, 0.1, 0.01]), tuple(a([0.0, 0.0, k]) for k in kap))  # fmt: skip
+        return Spec(
+            a([0.0, 0.0, kap[-1]]),
+            a([-INF, -INF, 2 * math.pi / span]),
+            a([INF, INF, 1e3]),
+            (0, 1),
+            a([0.1, 0.1, 0.01]),
+            tuple(a([0.0, 0.0, k]) for k in kap),
+        )
     if effect == "mass_change":
         return lin(0.0, 1e-3)
     raise ValueError(f"unknown effect {effect!r}")
@@ -136,8 +156,14 @@ class FitResult:
     ok: bool
 
 
-def _linear_step(fw: Forward, base: dict[str, np.ndarray], effect: str, spec: Spec,
-                 theta: np.ndarray, mask: np.ndarray) -> np.ndarray:  # fmt: skip
+def _linear_step(
+    fw: Forward,
+    base: dict[str, np.ndarray],
+    effect: str,
+    spec: Spec,
+    theta: np.ndarray,
+    mask: np.ndarray,
+) -> np.ndarray:
     """Solve the linear parameters of ``effect`` at fixed nonlinear ones (one GN step)."""
     if not spec.linear:
         return theta
@@ -155,8 +181,9 @@ def _linear_step(fw: Forward, base: dict[str, np.ndarray], effect: str, spec: Sp
     return np.clip(out, spec.lower, spec.upper)
 
 
-def best_start(fw: Forward, base: dict[str, np.ndarray], effect: str, spec: Spec,
-               mask: np.ndarray) -> np.ndarray:  # fmt: skip
+def best_start(
+    fw: Forward, base: dict[str, np.ndarray], effect: str, spec: Spec, mask: np.ndarray
+) -> np.ndarray:
     """The starting point (linear parts solved) with the lowest training SSE."""
     best, best_sse = spec.neutral, math.inf
     for start in spec.starts:
@@ -167,9 +194,15 @@ def best_start(fw: Forward, base: dict[str, np.ndarray], effect: str, spec: Spec
     return best
 
 
-def joint_fit(fw: Forward, theta0: dict[str, np.ndarray], specs: dict[str, Spec],
-              mask: np.ndarray, max_nfev: int = 60, stride: int = 1,
-              fixed: dict[str, np.ndarray] | None = None) -> FitResult:  # fmt: skip
+def joint_fit(
+    fw: Forward,
+    theta0: dict[str, np.ndarray],
+    specs: dict[str, Spec],
+    mask: np.ndarray,
+    max_nfev: int = 60,
+    stride: int = 1,
+    fixed: dict[str, np.ndarray] | None = None,
+) -> FitResult:
     """Refine every effect in ``theta0`` together on the samples in ``mask``.
 
     ``stride`` > 1 scores only every stride-th training sample (the forward model still
@@ -184,8 +217,10 @@ def joint_fit(fw: Forward, theta0: dict[str, np.ndarray], specs: dict[str, Spec]
     hi = np.concatenate([specs[n].upper for n in names])
     step = np.concatenate([specs[n].step for n in names])
     pad = 1e-9 * (np.abs(x0) + 1.0)
-    x0 = np.minimum(np.maximum(x0, np.where(np.isfinite(lo), lo + pad, lo)),
-                    np.where(np.isfinite(hi), hi - pad, hi))  # fmt: skip
+    x0 = np.minimum(
+        np.maximum(x0, np.where(np.isfinite(lo), lo + pad, lo)),
+        np.where(np.isfinite(hi), hi - pad, hi),
+    )
     idx = np.nonzero(mask)[0][::stride]
     ts = fw.data.ts[idx]
 
@@ -197,8 +232,17 @@ def joint_fit(fw: Forward, theta0: dict[str, np.ndarray], specs: dict[str, Spec]
 
     scale = np.where(np.isfinite(step), step, 1.0)
     try:
-        res = least_squares(fun, x0, bounds=(lo, hi), x_scale=scale, diff_step=None,
-                            method="trf", max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)  # fmt: skip
+        res = least_squares(
+            fun,
+            x0,
+            bounds=(lo, hi),
+            x_scale=scale,
+            diff_step=None,
+            method="trf",
+            max_nfev=max_nfev,
+            xtol=1e-10,
+            ftol=1e-10,
+        )
         x, jac, resid, ok = res.x, res.jac, res.fun, True
     except (ValueError, np.linalg.LinAlgError):
         x, jac, resid, ok = x0, None, fun(x0), False

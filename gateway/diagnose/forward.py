@@ -28,9 +28,19 @@ from gateway.model.chain import ChainParams, simulate
 
 CHAIN_EFFECTS = ("coulomb", "presliding", "viscous", "stribeck", "mass_change")
 ALL_EFFECTS = (
-    "coulomb", "presliding", "viscous", "stribeck", "inertia", "delay", "lowpass",
-    "gain", "offset", "drift", "eccentricity", "mass_change",
-)  # fmt: skip
+    "coulomb",
+    "presliding",
+    "viscous",
+    "stribeck",
+    "inertia",
+    "delay",
+    "lowpass",
+    "gain",
+    "offset",
+    "drift",
+    "eccentricity",
+    "mass_change",
+)
 
 
 @dataclass
@@ -62,8 +72,16 @@ class CableData:
     def subset(self, idx: np.ndarray) -> CableData:
         """The samples ``idx`` (sorted), keeping ``x``, ``a`` and ``t0`` of the whole."""
         dm = None if self.dtp_dm is None else self.dtp_dm[idx]
-        return CableData(self.t[idx], self.v[idx], self.tp[idx], self.ts[idx], self.t0, dm,
-                         self.x[idx], self.a[idx])  # fmt: skip
+        return CableData(
+            self.t[idx],
+            self.v[idx],
+            self.tp[idx],
+            self.ts[idx],
+            self.t0,
+            dm,
+            self.x[idx],
+            self.a[idx],
+        )
 
 
 @dataclass(frozen=True)
@@ -97,8 +115,15 @@ def to_report(effect: str, theta: np.ndarray) -> dict[str, float]:
     if effect == "eccentricity":
         amp = math.hypot(p[0], p[1])
         return {"a_n": amp, "r_m": 1.0 / p[2], "phi_rad": math.atan2(p[1], p[0])}
-    name = {"inertia": "m_eff_kg", "delay": "d_s", "lowpass": "tau_s", "gain": "g",
-            "offset": "c_n", "drift": "k_n_s", "mass_change": "q_kg_s"}[effect]  # fmt: skip
+    name = {
+        "inertia": "m_eff_kg",
+        "delay": "d_s",
+        "lowpass": "tau_s",
+        "gain": "g",
+        "offset": "c_n",
+        "drift": "k_n_s",
+        "mass_change": "q_kg_s",
+    }[effect]
     return {name: p[0]}
 
 
@@ -137,10 +162,17 @@ def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
     if "stribeck" in eff:
         sk, svs = float(eff["stribeck"][0]), 10 ** float(eff["stribeck"][1])
     return ChainParams.build(
-        model=model, cables=1, wrap_rad=nom.wrap_rad, mu=np.maximum(mu, 0.0)[None, :],
-        sigma_n_m=sigma, beta=nom.beta, f0_n=f0, stribeck_k=sk, stribeck_v_m_s=svs,
+        model=model,
+        cables=1,
+        wrap_rad=nom.wrap_rad,
+        mu=np.maximum(mu, 0.0)[None, :],
+        sigma_n_m=sigma,
+        beta=nom.beta,
+        f0_n=f0,
+        stribeck_k=sk,
+        stribeck_v_m_s=svs,
         viscous_ns_m=visc,
-    )  # fmt: skip
+    )
 
 
 class Forward:

@@ -43,9 +43,10 @@ def _check(cfg: Config | None, rec: Recording, why: str) -> Config:
 
 def _solve(cfg: Config, rec: Recording, idx: np.ndarray, mass: np.ndarray) -> np.ndarray:
     a_mats = kinematics.structure_matrix_batch(
-        np.asarray(cfg.geometry.frame_anchors_m), np.asarray(cfg.geometry.platform_anchors_m),
+        np.asarray(cfg.geometry.frame_anchors_m),
+        np.asarray(cfg.geometry.platform_anchors_m),
         rec.pose[idx],  # type: ignore[index]
-    )  # fmt: skip
+    )
     w = _wrenches(cfg, rec, idx, mass)
     return statics.distribute_tensions_batch(a_mats, w, cfg.tension.min_n, cfg.tension.max_n)
 
@@ -60,12 +61,15 @@ def platform_tensions(rec: Recording, cfg: Config | None) -> np.ndarray:
         raise RecordingError(f"{rec.source}: platform tensions from pose and mass: {exc}") from exc
 
 
-def mass_sensitivity(rec: Recording, cfg: Config | None,
-                     say: Callable[[str], None] | None = None) -> np.ndarray | None:  # fmt: skip
+def mass_sensitivity(
+    rec: Recording, cfg: Config | None, say: Callable[[str], None] | None = None
+) -> np.ndarray | None:
     """(N, m) ``dT_p/dm`` in N/kg, or None when pose, mass or geometry are missing."""
     if rec.pose is None or rec.mass is None or cfg is None or cfg.cables != rec.cables:
         return None
-    idx = np.unique(np.linspace(0, rec.samples - 1, min(rec.samples, SENSITIVITY_POINTS)).astype(int))
+    idx = np.unique(
+        np.linspace(0, rec.samples - 1, min(rec.samples, SENSITIVITY_POINTS)).astype(int)
+    )
     if say:
         say(f"mass sensitivity of the platform tensions at {idx.size} poses")
     mass = rec.mass[idx]

@@ -16,10 +16,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from gateway.diagnose.engine import Diagnosis  # noqa: E402
+from gateway.diagnose.engine import Diagnosis
 
 MAX_POINTS = 20000
 
@@ -110,36 +110,56 @@ def summary(diag: Diagnosis, source: str) -> str:
     """The markdown summary for an engineer."""
     rep = diag.report
     lines = [f"# Diagnosis of `{source}`", ""]
-    lines.append(f"{rep['cables']} cable(s), {rep['samples']} samples. Nominal model residual "
-                 f"RMSE {rep['baseline']['rmse_n']:.3f} N; after the findings "
-                 f"{rep['final']['rmse_n']:.3f} N (held out: {rep['final']['holdout_rmse_n']:.3f} N).")  # fmt: skip
+    lines.append(
+        f"{rep['cables']} cable(s), {rep['samples']} samples. Nominal model residual "
+        f"RMSE {rep['baseline']['rmse_n']:.3f} N; after the findings "
+        f"{rep['final']['rmse_n']:.3f} N (held out: {rep['final']['holdout_rmse_n']:.3f} N)."
+    )
     if "validation_rmse_after_n" in rep["final"]:
         f = rep["final"]
-        lines.append(f"On the validation recording: {f['validation_rmse_before_n']:.3f} N -> "
-                     f"{f['validation_rmse_after_n']:.3f} N.")  # fmt: skip
+        lines.append(
+            f"On the validation recording: {f['validation_rmse_before_n']:.3f} N -> "
+            f"{f['validation_rmse_after_n']:.3f} N."
+        )
     lines.append("")
     if not rep["findings"]:
-        lines += ["**Verdict: none** - nothing significant is missing from the nominal model "
-                  "(no candidate effect improved the held-out fit beyond the noise).", ""]  # fmt: skip
+        lines += [
+            "**Verdict: none** - nothing significant is missing from the nominal model "
+            "(no candidate effect improved the held-out fit beyond the noise).",
+            "",
+        ]
     else:
-        lines += ["| # | effect | cables | parameters | held-out RMSE before -> after (N) |",
-                  "|---|---|---|---|---|"]  # fmt: skip
+        lines += [
+            "| # | effect | cables | parameters | held-out RMSE before -> after (N) |",
+            "|---|---|---|---|---|",
+        ]
         for k, f in enumerate(rep["findings"], 1):
             par = "; ".join(f"{n} = {_fmt(v)}" for n, v in f["parameters"].items())
-            lines.append(f"| {k} | {f['effect']} | {_fmt(f['cables'])} | {par} | "
-                         f"{f['holdout_rmse_before_n']:.3f} -> {f['holdout_rmse_after_n']:.3f} |")  # fmt: skip
+            lines.append(
+                f"| {k} | {f['effect']} | {_fmt(f['cables'])} | {par} | "
+                f"{f['holdout_rmse_before_n']:.3f} -> {f['holdout_rmse_after_n']:.3f} |"
+            )
         lines.append("")
         for k, f in enumerate(rep["findings"], 1):
-            lines += [f"{k}. **{f['effect']}**: {f['evidence']} "
-                      f"![signature](signature_{f['effect']}.png)", ""]  # fmt: skip
-    lines += ["## Where the nominal model's residual lives", "",
-              "| regime | share of residual energy | share of samples |", "|---|---|---|"]  # fmt: skip
+            lines += [
+                f"{k}. **{f['effect']}**: {f['evidence']} "
+                f"![signature](signature_{f['effect']}.png)",
+                "",
+            ]
+    lines += [
+        "## Where the nominal model's residual lives",
+        "",
+        "| regime | share of residual energy | share of samples |",
+        "|---|---|---|",
+    ]
     for name, s in rep["regime_shares"].items():
         lines.append(f"| {name} | {s['energy']:.1%} | {s['samples']:.1%} |")
     lines += ["", "Largest regions (shaded in the residual plot):", ""]
     for r in rep["mismatch"][:8]:
-        lines.append(f"- cable {r['cable']}, {r['start_s']:.2f}-{r['end_s']:.2f} s, "
-                     f"{r['regime']}: {r['share']:.1%} of the residual energy")  # fmt: skip
+        lines.append(
+            f"- cable {r['cable']}, {r['start_s']:.2f}-{r['end_s']:.2f} s, "
+            f"{r['regime']}: {r['share']:.1%} of the residual energy"
+        )
     lines += ["", "![residual](residual.png)", "", "![overlay](overlay.png)", ""]
     return "\n".join(lines)
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from gateway.diagnose import locate
-from gateway.diagnose.engine import Diagnosis, Forward, Nominal, _rmse, cable_data
+from gateway.diagnose.engine import Diagnosis, Forward, Nominal, _rmse, cable_data, finite_rows
 from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import report_stderr, to_report
 from gateway.diagnose.select import CableOutcome
@@ -31,14 +31,16 @@ def _order(forwards, outcomes, measured) -> list[str]:
     worth = {}
     for e in effects:
         others = [x for x in effects if x != e]
-        worth[e] = float(np.sum((measured - _preds(forwards, _subset(outcomes, others))) ** 2)) - base
+        worth[e] = (
+            float(np.sum((measured - _preds(forwards, _subset(outcomes, others))) ** 2)) - base
+        )
     return sorted(effects, key=lambda e: worth[e], reverse=True)
 
 
 def _validation_forwards(validation, nom: Nominal, cables: int) -> list[Forward] | None:
     if validation is None:
         return None
-    vrec, vtp, vdm = validation
+    vrec, vtp, vdm = finite_rows(*validation)
     if vrec.cables != cables:
         from gateway.errors import RecordingError
 
@@ -58,8 +60,7 @@ def _finding(effect, outcomes, rmse_pairs, ev) -> dict:
             params.setdefault(k, []).append(_num(v))
         for k, v in report_stderr(effect, o.theta[effect], o.stderr[effect]).items():
             errs.setdefault(k, []).append(_num(v))
-    out = {"effect": effect, "cables": cables, "parameters": params, "stderr": errs,
-           "evidence": ev}  # fmt: skip
+    out = {"effect": effect, "cables": cables, "parameters": params, "stderr": errs, "evidence": ev}
     out.update(rmse_pairs)
     return out
 
@@ -69,8 +70,14 @@ def _num(v: float) -> float:
     return float(v) if math.isfinite(v) else -1.0
 
 
-def build_report(rec: Recording, forwards: list[Forward], outcomes: list[CableOutcome],
-                 blocks: np.ndarray, validation, nom: Nominal) -> Diagnosis:  # fmt: skip
+def build_report(
+    rec: Recording,
+    forwards: list[Forward],
+    outcomes: list[CableOutcome],
+    blocks: np.ndarray,
+    validation,
+    nom: Nominal,
+) -> Diagnosis:
     """The report dict and the arrays behind it."""
     measured = np.column_stack([fw.data.ts for fw in forwards])
     test = (blocks % 2 == 1)[:, None] & np.ones((1, rec.cables), bool)
@@ -92,8 +99,12 @@ def build_report(rec: Recording, forwards: list[Forward], outcomes: list[CableOu
     findings = []
     for k, effect in enumerate(order):
         after = scores(order[: k + 1])
-        pairs = {"rmse_before_n": before[0], "rmse_after_n": after[0],
-                 "holdout_rmse_before_n": before[1], "holdout_rmse_after_n": after[1]}  # fmt: skip
+        pairs = {
+            "rmse_before_n": before[0],
+            "rmse_after_n": after[0],
+            "holdout_rmse_before_n": before[1],
+            "holdout_rmse_after_n": after[1],
+        }
         if vfw is not None:
             pairs["validation_rmse_before_n"] = before[2]
             pairs["validation_rmse_after_n"] = after[2]
@@ -108,13 +119,18 @@ def build_report(rec: Recording, forwards: list[Forward], outcomes: list[CableOu
         "cables": rec.cables,
         "samples": rec.samples,
         "skipped_rows": rec.skipped_rows,
-        "baseline": {"rmse_n": _rmse(resid0),
-                     "per_cable_rmse_n": [_rmse(resid0[:, i]) for i in range(rec.cables)]},
+        "baseline": {
+            "rmse_n": _rmse(resid0),
+            "per_cable_rmse_n": [_rmse(resid0[:, i]) for i in range(rec.cables)],
+        },
         "mismatch": [r.__dict__ for r in regions],
-        "regime_shares": {k: {"energy": e, "samples": s}
-                          for k, (e, s) in locate.regime_shares(resid0, regime).items()},
+        "regime_shares": {
+            k: {"energy": e, "samples": s}
+            for k, (e, s) in locate.regime_shares(resid0, regime).items()
+        },
         "findings": findings,
         "final": final,
-    }  # fmt: skip
-    return Diagnosis(report, rec.t, measured, nominal_pred, before[3], regime, regions,
-                     outcomes, order, forwards)  # fmt: skip
+    }
+    return Diagnosis(
+        report, rec.t, measured, nominal_pred, before[3], regime, regions, outcomes, order, forwards
+    )

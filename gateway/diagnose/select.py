@@ -105,8 +105,16 @@ def significance(spec: Spec, theta: np.ndarray, se: np.ndarray, effect: str) -> 
 class CableSelector:
     """Forward selection for one cable (``fw``) over ``candidates``."""
 
-    def __init__(self, fw: Forward, blocks: np.ndarray, n_blocks: int, candidates: list[str],
-                 th: Thresholds, stride: int = 1, usable: np.ndarray | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        fw: Forward,
+        blocks: np.ndarray,
+        n_blocks: int,
+        candidates: list[str],
+        th: Thresholds,
+        stride: int = 1,
+        usable: np.ndarray | None = None,
+    ) -> None:
         """``usable`` (N,) bool: samples that may be scored (None: all; warm-up excluded)."""
         self.fw, self.blocks, self.nb = fw, blocks, n_blocks
         use = np.ones(blocks.shape, bool) if usable is None else usable
@@ -123,8 +131,9 @@ class CableSelector:
     def _z(self, pred_a: np.ndarray, pred_b: np.ndarray) -> float:
         """Held-out z of model B (``pred_b``) over model A."""
         r_b = self.fw.data.ts - pred_b
-        cross = np.bincount(self.blocks[self.test], weights=(r_b * (pred_b - pred_a))[self.test],
-                            minlength=self.nb)  # fmt: skip
+        cross = np.bincount(
+            self.blocks[self.test], weights=(r_b * (pred_b - pred_a))[self.test], minlength=self.nb
+        )
         return holdout_z(self._test_sse(pred_a), self._test_sse(pred_b), cross)
 
     def _accept(self, pred_a: np.ndarray, pred_b: np.ndarray, z_min: float) -> bool:
@@ -149,8 +158,15 @@ class CableSelector:
             theta = {effect: start}
             nan = {effect: np.full(start.size, np.nan)}
             return spec, FitResult(theta, nan, self.fw.predict({**kept, **theta}), True)
-        fit = joint_fit(self.fw, {effect: start}, {effect: spec}, self.train, max_nfev=15,
-                        stride=self.stride, fixed=kept)  # fmt: skip
+        fit = joint_fit(
+            self.fw,
+            {effect: start},
+            {effect: spec},
+            self.train,
+            max_nfev=15,
+            stride=self.stride,
+            fixed=kept,
+        )
         return spec, fit
 
     def run(self) -> CableOutcome:
@@ -189,8 +205,13 @@ class CableSelector:
                 break
             effect, spec, _, fit = best
             trial_specs = {**specs, effect: spec}
-            joint = joint_fit(self.fw, {**kept, effect: fit.theta[effect]}, trial_specs,
-                              self.train, stride=self.stride)  # fmt: skip
+            joint = joint_fit(
+                self.fw,
+                {**kept, effect: fit.theta[effect]},
+                trial_specs,
+                self.train,
+                stride=self.stride,
+            )
             if not self._accept(pred, joint.pred, self.th.z_screen):
                 break
             kept, specs, stderr, pred = joint.theta, trial_specs, joint.stderr, joint.pred
@@ -208,8 +229,18 @@ class CableSelector:
             weakest, worst = None, math.inf
             for effect in kept:
                 rest = {k: v for k, v in kept.items() if k != effect}
-                fit = joint_fit(self.fw, rest, {k: specs[k] for k in rest}, self.train,
-                                max_nfev=30, stride=self.stride) if rest else None  # fmt: skip
+                fit = (
+                    joint_fit(
+                        self.fw,
+                        rest,
+                        {k: specs[k] for k in rest},
+                        self.train,
+                        max_nfev=30,
+                        stride=self.stride,
+                    )
+                    if rest
+                    else None
+                )
                 reduced = fit.pred if fit else self.fw.predict({})
                 z_par = significance(specs[effect], kept[effect], stderr[effect], effect)
                 ok = self._accept(reduced, pred, self.th.z_holdout) and z_par >= self.th.z_min
@@ -241,8 +272,13 @@ class CableSelector:
             screened.sort(key=lambda row: row[0])
             for _, cand, spec, fit in screened[:2]:  # the two best, each refitted jointly
                 trial_specs = {**{k: specs[k] for k in rest}, cand: spec}
-                joint = joint_fit(self.fw, {**rest, cand: fit.theta[cand]}, trial_specs,
-                                  self.train, stride=self.stride)  # fmt: skip
+                joint = joint_fit(
+                    self.fw,
+                    {**rest, cand: fit.theta[cand]},
+                    trial_specs,
+                    self.train,
+                    stride=self.stride,
+                )
                 z_par = significance(spec, joint.theta[cand], joint.stderr[cand], cand)
                 if self._accept(pred, joint.pred, self.th.z_screen) and z_par >= self.th.z_min:
                     kept, specs, stderr, pred = joint.theta, trial_specs, joint.stderr, joint.pred
@@ -259,12 +295,19 @@ class CableSelector:
                     continue
                 rest = {k: v for k, v in kept.items() if k != effect}
                 base_pred = self.fw.predict(rest)
-                spec = spec_for(rival, self.fw.data, self.fw.nom, self.fw.data.ts - base_pred,
-                                self.train)  # fmt: skip
+                spec = spec_for(
+                    rival, self.fw.data, self.fw.nom, self.fw.data.ts - base_pred, self.train
+                )
                 start = best_start(self.fw, rest, rival, spec, self.train)
                 rest_specs = {k: specs[k] for k in rest}
-                fit = joint_fit(self.fw, {**rest, rival: start}, {**rest_specs, rival: spec},
-                                self.train, max_nfev=30, stride=self.stride)  # fmt: skip
+                fit = joint_fit(
+                    self.fw,
+                    {**rest, rival: start},
+                    {**rest_specs, rival: spec},
+                    self.train,
+                    max_nfev=30,
+                    stride=self.stride,
+                )
                 separable = self._z(fit.pred, pred) >= self.th.z_separate
                 rows.append(Rival(rival, float(self._test_sse(fit.pred).sum()), separable))
             if rows:
