@@ -259,7 +259,7 @@ def suite() -> list[Scenario]:
     plant = [
         _s(
             "plant_mass_change",
-            {"mass_change": {"q_kg_s": 0.03}},
+            {"mass_change": {"q_kg_s": 0.01}},
             plant=True,
             cables=8,
             seconds=20.0,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gateway.diagnose.forward import to_report
+from gateway.diagnose.forward import report_stderr, to_report
 from gateway.diagnose.select import CableOutcome
 
 LOOK = {
@@ -47,6 +47,31 @@ def _summary(effect: str, outcomes: list[CableOutcome]) -> str:
     return ", ".join(parts)
 
 
+def pooled(effect: str, outcomes: list[CableOutcome]) -> str:
+    """Whether the first parameter is the same on every cable within its errors.
+
+    Inverse-variance weighted mean and the chi-square of the per-cable values about it;
+    ``chi2 / dof < 4`` reads as "the same" (a pooled value would do).
+    """
+    vals, errs = [], []
+    for o in outcomes:
+        if effect in o.theta:
+            name, v = next(iter(to_report(effect, o.theta[effect]).items()))
+            vals.append(v)
+            errs.append(
+                next(iter(report_stderr(effect, o.theta[effect], o.stderr[effect]).values()))
+            )
+    v, e = np.asarray(vals), np.asarray(errs)
+    if v.size < 2 or not np.all(np.isfinite(e)) or np.any(e <= 0):
+        return ""
+    w = 1.0 / e**2
+    mean = float(np.sum(w * v) / np.sum(w))
+    chi2 = float(np.sum(w * (v - mean) ** 2)) / (v.size - 1)
+    if chi2 < 4.0:
+        return f" ({name} the same on these cables within its errors: pooled {mean:.4g})"
+    return f" ({name} differs between cables beyond its errors)"
+
+
 def _confusion(effect: str, outcomes: list[CableOutcome]) -> str:
     """Sentence part on confusable rivals: separated, or not."""
     unsep: set[str] = set()
@@ -78,7 +103,8 @@ def evidence(
     pct = 100.0 * (1.0 - holdout_after / holdout_before) if holdout_before > 0 else 0.0
     return (
         f"On cable{'s' if len(cables) > 1 else ''} {', '.join(cables)} {LOOK[effect]}; "
-        f"fitted {_summary(effect, outcomes)}, it lowers the held-out RMSE from "
+        f"fitted {_summary(effect, outcomes)}{pooled(effect, outcomes)}, "
+        f"it lowers the held-out RMSE from "
         f"{holdout_before:.3g} N to {holdout_after:.3g} N ({pct:.1f} %)"
         f"{_confusion(effect, outcomes)}."
     )

@@ -170,19 +170,17 @@ class CableSelector:
         return spec, fit
 
     def run(self) -> CableOutcome:
-        """Rounds of forward steps, swaps and the strict backward check (until the set of
-        kept effects stops changing, at most ``ROUNDS``), then the confusable rivals."""
+        """Rounds of forward steps, swaps and the strict backward check (until a forward
+        pass adds nothing, at most ``ROUNDS``), then the confusable rivals."""
         state: tuple = ({}, {}, {}, self.fw.predict({}))
         order: list[str] = []
-        seen: list[set[str]] = []
         for _ in range(ROUNDS):
+            before = set(state[0])
             state, order = self._forward(state, order)
+            if set(state[0]) == before:
+                break  # nothing new: the swaps and the check of the last round stand
             state = self._swap(*state)
             state = self._backward(*state)
-            kept = set(state[0])
-            if kept in seen:
-                break
-            seen.append(kept)
         kept, specs, stderr, pred = state
         order = [e for e in order if e in kept] + [e for e in kept if e not in order]
         out = CableOutcome(order, kept, stderr, specs)
