@@ -168,3 +168,19 @@ def test_rows_with_missing_values_are_dropped_and_counted():
     assert report["samples"] == rec.samples - 10
     assert report["skipped_rows"] == 10
     assert math.isfinite(report["baseline"]["rmse_n"])
+
+
+def test_standstill_recording_finds_offset_not_eccentricity():
+    """No motion: only the sensor effects can be told; an offset stays an offset."""
+    from gateway.diagnose.engine import diagnose
+    from gateway.recording import Recording
+
+    rng = np.random.default_rng(5)
+    t = np.arange(10000) * 1e-3
+    tp = 150 + 20 * np.sin(2 * math.pi * 0.3 * t)
+    ts = tp + 0.3 + rng.normal(0, 0.4, t.size)
+    rec = Recording(t=t, velocity=np.zeros((t.size, 1)), tension_sensor=ts[:, None],
+                    tension_platform=tp[:, None])  # fmt: skip
+    report = diagnose(rec, FrictionConfig()).report
+    assert [f["effect"] for f in report["findings"]] == ["offset"]
+    assert report["findings"][0]["parameters"]["c_n"][0] == pytest.approx(0.3, abs=0.03)

@@ -160,6 +160,20 @@ def candidates_for(has_mass: bool) -> list[str]:
     return [e for e in ALL_EFFECTS if has_mass or e != "mass_change"]
 
 
+def cable_candidates(cands: list[str], d: CableData, nom: Nominal) -> list[str]:
+    """Drop what this cable's motion cannot show: eccentricity needs at least half a turn
+    of the nominal pulley of travel (else it is an offset); motion effects need motion."""
+    moving = bool(np.any(d.v != 0))
+    span = float(np.ptp(d.x)) if d.x.size else 0.0
+    still = ("coulomb", "presliding", "viscous", "stribeck", "inertia")
+    return [
+        c
+        for c in cands
+        if (c != "eccentricity" or span >= math.pi * nom.pulley_radius_m)
+        and (moving or c not in still)
+    ]
+
+
 def diagnose(
     rec: Recording,
     friction: FrictionConfig,
@@ -184,11 +198,12 @@ def diagnose(
     rec, tp, dtp_dm = finite_rows(rec, tp, dtp_dm)
     datas = cable_data(rec, tp, dtp_dm)
     blocks, nb = time_blocks(rec.t)
-    cands = candidates_for(dtp_dm is not None)
+    all_cands = candidates_for(dtp_dm is not None)
     subset = selection_subset(rec.t, blocks)
     outcomes, forwards = [], []
     for i, d in enumerate(datas):
         fw = Forward(d, nom)
+        cands = cable_candidates(all_cands, d, nom)
         say(
             f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects"
             + ("" if subset is None else f" on {subset[0].size} of {rec.samples} samples")
