@@ -57,6 +57,7 @@ class Scenario:
     noise_n: float = NOISE_N
     slow: bool = False
     plant: bool = False  # made by the soft PLC's plant (8-cable robot, statics, S7 ADC)
+    edges: bool = True  # load steps with fast edges (without: delay ~ lowpass)
 
     def nominal(self) -> FrictionConfig:
         """The nominal model file's friction mapping (what the diagnosis is given)."""
@@ -92,7 +93,7 @@ def motion(sc: Scenario) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             + 70 * np.sin(2 * math.pi * 0.061 * tt + ph[3])
             + 25 * np.sin(2 * math.pi * 0.33 * tt + ph[0])
         )
-    return t, v, tp + load_steps(t, m, rng)
+    return t, v, (tp + load_steps(t, m, rng)) if sc.edges else tp
 
 
 def load_steps(t: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim_plc.scenarios import evaluate, expected_cables, suite
+from sim_plc.scenarios import Scenario, evaluate, expected_cables, suite
 from tests.diagnose_helpers import check_report
 
 FAST = {
@@ -52,3 +52,13 @@ def test_scenario(sc):
         assert err <= 1.0, f"{name}: error {err:.2f} x tolerance"
     assert report["final"]["holdout_rmse_n"] < report["baseline"]["rmse_n"]
     assert report["final"]["holdout_rmse_n"] < 1.05 * sc.noise_n
+
+
+def test_delay_without_fast_edges_is_reported_as_unseparable_from_lowpass():
+    """Slow signals only: a delay and a first-order filter fit alike; the report says so."""
+    sc = Scenario("delay_no_edges", {"delay": {"d_s": 0.004}}, cables=1, edges=False)
+    report = evaluate(sc)["report"]
+    check_report(report)
+    found = [f["effect"] for f in report["findings"]]
+    assert len(found) == 1 and found[0] in ("delay", "lowpass")
+    assert "cannot tell it from" in report["findings"][0]["evidence"]

@@ -149,25 +149,15 @@ class CableSelector:
     def _screen(self, kept: dict[str, np.ndarray], effect: str, pred: np.ndarray):
         """Fit ``effect`` alone on top of ``kept`` (held fixed) for ranking.
 
-        Effects whose parameters are all (nearly) linear are solved by one Gauss-Newton
-        step from their signatures; the others are refined by a short least squares.
+        The best of the effect's starting points (grids, periodogram) with its linear
+        parameters solved by one Gauss-Newton step; only the effect that is taken is
+        refined by least squares (jointly with the kept ones), which keeps a step cheap.
         """
         spec = spec_for(effect, self.fw.data, self.fw.nom, self.fw.data.ts - pred, self.train)
         start = best_start(self.fw, kept, effect, spec, self.train)
-        if len(spec.linear) == spec.neutral.size:
-            theta = {effect: start}
-            nan = {effect: np.full(start.size, np.nan)}
-            return spec, FitResult(theta, nan, self.fw.predict({**kept, **theta}), True)
-        fit = joint_fit(
-            self.fw,
-            {effect: start},
-            {effect: spec},
-            self.train,
-            max_nfev=15,
-            stride=self.stride,
-            fixed=kept,
-        )
-        return spec, fit
+        theta = {effect: start}
+        nan = {effect: np.full(start.size, np.nan)}
+        return spec, FitResult(theta, nan, self.fw.predict({**kept, **theta}), True)
 
     def run(self) -> CableOutcome:
         """Rounds of forward steps, swaps and the strict backward check (until a forward
