@@ -127,7 +127,7 @@ def _truth_chain(sc: Scenario, m: int) -> ChainParams:
         scale = np.asarray(e["coulomb"].get("mu", float(np.mean(mu)))) / float(np.mean(mu))
         mu = np.multiply.outer(np.broadcast_to(scale, (m,)), mu)
     if "presliding" in e:
-        model, sigma = "dahl", e["presliding"]["sigma_n_m"]
+        model, sigma = "dahl", e["presliding"]["sigma_n_m"]  # type: ignore[assignment]
     return ChainParams.build(
         model=model,
         cables=m,
@@ -352,7 +352,10 @@ def evaluate(sc: Scenario) -> dict:
         vdm = mass_sensitivity(val, plant_config(vsc))
     start = time.perf_counter()
     report = diagnose(
-        rec, sc.nominal(), dtp_dm=dm, validation=(val, val.tension_platform, vdm)
+        rec,
+        sc.nominal(),
+        dtp_dm=dm,
+        validation=(val, val.tension_platform, vdm),  # type: ignore[arg-type]
     ).report
     seconds = time.perf_counter() - start
     found = [f["effect"] for f in report["findings"]]

@@ -38,8 +38,8 @@ def _summary(effect: str, outcomes: list[CableOutcome]) -> str:
             for k, v in to_report(effect, o.theta[effect]).items():
                 vals.setdefault(k, []).append(v)
     parts = []
-    for k, v in vals.items():
-        arr = np.asarray(v)
+    for k, series in vals.items():
+        arr = np.asarray(series)
         if arr.size == 1:
             parts.append(f"{k} = {arr[0]:.4g}")
         else:
@@ -53,15 +53,18 @@ def pooled(effect: str, outcomes: list[CableOutcome]) -> str:
     Inverse-variance weighted mean and the chi-square of the per-cable values about it;
     ``chi2 / dof < 4`` reads as "the same" (a pooled value would do).
     """
-    vals, errs = [], []
+    vals: list[float] = []
+    errs: list[float] = []
+    name = ""
     for o in outcomes:
         if effect in o.theta:
-            name, v = next(iter(to_report(effect, o.theta[effect]).items()))
-            vals.append(v)
+            name, value = next(iter(to_report(effect, o.theta[effect]).items()))
+            vals.append(value)
             errs.append(
                 next(iter(report_stderr(effect, o.theta[effect], o.stderr[effect]).values()))
             )
-    v, e = np.asarray(vals), np.asarray(errs)
+    v = np.asarray(vals, dtype=float)
+    e = np.asarray(errs, dtype=float)
     if v.size < 2 or not np.all(np.isfinite(e)) or np.any(e <= 0):
         return ""
     w = 1.0 / e**2

@@ -60,8 +60,8 @@ class CableData:
     ts: np.ndarray
     t0: float
     dtp_dm: np.ndarray | None = None
-    x: np.ndarray = field(default=None)  # type: ignore[assignment]
-    a: np.ndarray = field(default=None)  # type: ignore[assignment]
+    x: np.ndarray = field(default=None)  # type: ignore[arg-type]
+    a: np.ndarray = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         if self.x is None:
@@ -162,7 +162,7 @@ def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
     if "stribeck" in eff:
         sk, svs = float(eff["stribeck"][0]), 10 ** float(eff["stribeck"][1])
     return ChainParams.build(
-        model=model,
+        model=model,  # type: ignore[arg-type]
         cables=1,
         wrap_rad=nom.wrap_rad,
         mu=np.maximum(mu, 0.0)[None, :],

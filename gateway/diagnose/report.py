@@ -106,15 +106,15 @@ def build_report(
             "holdout_rmse_after_n": after[1],
         }
         if vfw is not None:
-            pairs["validation_rmse_before_n"] = before[2]
-            pairs["validation_rmse_after_n"] = after[2]
+            pairs["validation_rmse_before_n"] = float(before[2] or 0.0)
+            pairs["validation_rmse_after_n"] = float(after[2] or 0.0)
         ev = evidence(effect, outcomes, regime, before[1], after[1])
         findings.append(_finding(effect, outcomes, pairs, ev))
         before = after
     final = {"rmse_n": before[0], "holdout_rmse_n": before[1]}
     if vfw is not None:
         final["validation_rmse_before_n"] = _rmse(vmeas - _preds(vfw, [{} for _ in vfw]))
-        final["validation_rmse_after_n"] = before[2]
+        final["validation_rmse_after_n"] = float(before[2] or 0.0)
     report = {
         "cables": rec.cables,
         "samples": rec.samples,
