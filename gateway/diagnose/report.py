@@ -1,4 +1,12 @@
-"""Assemble the JSON report of recording.md from the per-cable selections."""
+"""Assemble the JSON report of recording.md from the per-cable selections.
+
+Beyond the schema's keys the report carries ``skipped_rows`` (rows without a required
+value) and ``regime_shares`` (per regime: share of the nominal residual energy and of the
+samples). ``rmse_*`` are over every cable and sample, ``holdout_*`` over the held-out
+blocks, ``validation_*`` over the ``--validate`` recording; each finding's before/after
+are cumulative in the findings' order. A standard error that could not be computed
+(singular Jacobian, parameter at a bound) is written as -1.
+"""
 
 from __future__ import annotations
 
