@@ -1,1 +1,34 @@
-"""Offline diagnosis of mismatches between a recording and the nominal model."""
+"""Offline diagnosis of mismatches between a recording and the nominal model.
+
+``cdpr-gateway diagnose RECORDING --model MODEL.yaml --json REPORT.json [--report DIR]
+[--validate OTHER]`` (spec/recording.md). Python API: :func:`engine.diagnose`.
+
+Method
+------
+1. **Simulate** the sensor reading of every cable from ``tension_platform_i`` (or statics
+   from pose and mass, :mod:`.platform`) and ``velocity_i`` with the nominal friction chain
+   (:func:`gateway.model.chain.simulate`); residual ``r = measured - simulated``.
+2. **Locate** (:mod:`.locate`): regimes per sample (reversal, rest, low/high speed,
+   acceleration, steady) and contiguous regions where the smoothed residual energy is
+   above twice its mean, with their share of the total residual energy.
+3. **Split** the recording into ~1 s interleaved time blocks (10..40); even blocks train,
+   odd blocks are held out, so both halves see every regime of a repeated motion.
+4. **Select per cable** (:mod:`.select`), among the candidate effects of physics.md sec. 5
+   that the columns allow (``mass_change`` needs pose, mass and a geometry), each a
+   forward model built on :mod:`gateway.model` (:mod:`.forward`), fitted by bounded
+   nonlinear least squares from grid / periodogram starting values (:mod:`.fit`):
+   rounds of forward steps (best held-out candidate on top of those kept, lenient test),
+   swaps (replace a kept effect by a better one) and a strict backward check, in which
+   every kept effect must, against the model refitted without it, lower the held-out SSE
+   by >= 0.3 % and by >= 4 standard errors of the noise of that decrease (estimated from
+   held-out block sums), and differ from its nominal value by >= 4 standard errors.
+   Long recordings (> 150 000 samples) are selected on evenly spread training blocks
+   (with 1 s of warm-up each) and the result refitted on all training samples.
+5. **Confusable rivals** (delay / lowpass / inertia, gain / coulomb, drift / offset): each
+   kept one is swapped for its rivals and refitted; the evidence sentence says whether
+   the held-out data separates them (>= 3 standard errors) or not.
+6. **Report** (:mod:`.report`): effects gathered over the cables that kept them (one value
+   per cable), ordered by the residual energy they explain in the final model (drop-one);
+   RMSE before/after each finding, cumulatively, on all samples, the held-out blocks and
+   the ``--validate`` recording (same parameters, never fitted there).
+"""

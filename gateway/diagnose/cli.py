@@ -1,0 +1,92 @@
+"""``cdpr-gateway diagnose RECORDING --model MODEL.yaml --json REPORT.json [--report DIR]
+[--validate OTHER]``: see spec/recording.md and :mod:`gateway.diagnose.engine`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from gateway.config import Config, config_from_mapping, load_friction
+from gateway.configtypes import read_yaml
+from gateway.diagnose import platform
+from gateway.diagnose.engine import diagnose
+from gateway.errors import GatewayError
+from gateway.recording import Recording, read_recording
+
+
+def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", type=Path, help="recording CSV (.csv or .csv.gz)")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        required=True,
+        help="nominal model YAML: a friction: mapping, or a full config",
+    )
+    parser.add_argument("--json", type=Path, required=True, help="write the JSON report here")
+    parser.add_argument("--report", type=Path, help="write PNG pictures and summary.md here")
+    parser.add_argument(
+        "--validate",
+        type=Path,
+        help="a second recording of the same machine, scored but never fitted",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def load_model(path: Path) -> tuple[object, Config | None]:
+    """The friction config and, if the file is a full config with a geometry, the config."""
+    data = read_yaml(path)
+    friction = load_friction(path)
+    cfg = config_from_mapping(data, str(path)) if "geometry" in data else None
+    return friction, cfg
+
+
+def _tensions(rec: Recording, cfg: Config | None, say):
+    """Platform tensions (N, m) and dT_p/dm (N, m) or None."""
+    if rec.tension_platform is not None:
+        tp = rec.tension_platform
+    else:
+        say(f"{rec.source}: platform tensions from pose and mass (statics)")
+        tp = platform.platform_tensions(rec, cfg)
+    return tp, platform.mass_sensitivity(rec, cfg, say)
+
+
+def run_command(command: str, args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    friction, cfg = load_model(args.model)
+    rec = read_recording(args.recording)
+    say(
+        f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
+        + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
+    )
+    tp, dm = _tensions(rec, cfg, say)
+    validation = None
+    if args.validate is not None:
+        vrec = read_recording(args.validate)
+        vtp, vdm = _tensions(vrec, cfg, say)
+        validation = (vrec, vtp, vdm if dm is not None else None)
+    diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
+    try:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
+    except OSError as exc:
+        raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
+    if args.report is not None:
+        from gateway.diagnose.plots import write_report
+
+        write_report(diag, args.report, str(args.recording))
+        say(f"pictures and summary.md in {args.report}")
+    rep = diag.report
+    verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"
+    print(
+        f"verdict: {verdict}; RMSE {rep['baseline']['rmse_n']:.3f} N -> "
+        f"{rep['final']['rmse_n']:.3f} N (held out {rep['final']['holdout_rmse_n']:.3f} N)"
+    )
+    return 0

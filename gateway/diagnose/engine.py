@@ -1,0 +1,226 @@
+"""The diagnosis: nominal simulation, residual, location, selection per cable, scores.
+
+``diagnose(rec, friction)`` returns a :class:`Diagnosis` whose ``report`` is the JSON
+report of recording.md. Each cable is selected on its own (effects act per cable), then
+the effects are gathered into findings over the cables that kept them, ordered by how
+much held-out residual energy they explain together (drop-one from the final model).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from gateway.config import FrictionConfig
+from gateway.diagnose import locate
+from gateway.diagnose.fit import joint_fit
+from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal
+from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds
+from gateway.errors import RecordingError
+from gateway.recording import Recording
+
+Progress = Callable[[str], None]
+
+
+def nominal_from(friction: FrictionConfig) -> Nominal:
+    """The per-cable nominal chain of a friction config."""
+    return Nominal(
+        model=friction.model,
+        wrap_rad=np.asarray(friction.wrap_rad, dtype=float),
+        mu=np.asarray(friction.mu, dtype=float),
+        sigma_n_m=friction.sigma_n_m,
+        beta=friction.beta,
+        viscous_ns_m=friction.viscous_ns_m,
+        pulley_radius_m=friction.pulley_radius_m,
+    )
+
+
+def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None) -> list[CableData]:
+    """One :class:`CableData` per cable; ``tp``, ``dtp_dm``: (N, m)."""
+    t0 = float(rec.t[0])
+    return [
+        CableData(
+            rec.t,
+            rec.velocity[:, i].copy(),
+            tp[:, i].copy(),
+            rec.tension_sensor[:, i].copy(),
+            t0,
+            None if dtp_dm is None else dtp_dm[:, i].copy(),
+        )
+        for i in range(rec.cables)
+    ]
+
+
+def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None):
+    """Drop the samples where any cable lacks a finite value (counted in skipped_rows)."""
+    ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
+    ok &= np.isfinite(tp).all(1)
+    if ok.all():
+        return rec, tp, dtp_dm
+    if not ok.any():
+        raise RecordingError(f"{rec.source}: no sample has every required value")
+    sub = replace(
+        rec,
+        t=rec.t[ok],
+        velocity=rec.velocity[ok],
+        tension_sensor=rec.tension_sensor[ok],
+        tension_platform=None if rec.tension_platform is None else rec.tension_platform[ok],
+        length=None,
+        pose=None if rec.pose is None else rec.pose[ok],
+        mass=None if rec.mass is None else rec.mass[ok],
+        extra={},
+        skipped_rows=rec.skipped_rows + int((~ok).sum()),
+    )
+    return sub, tp[ok], None if dtp_dm is None else dtp_dm[ok]
+
+
+def time_blocks(t: np.ndarray) -> tuple[np.ndarray, int]:
+    """Block index (N,) of interleaved time blocks; even blocks train, odd ones are held out.
+
+    About one block per second of recording, between 10 and 40 blocks (an even number).
+    """
+    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    nb = int(np.clip(round(span / 1.0), 10, 40))
+    nb += nb % 2
+    edges = t[0] + span * np.arange(1, nb) / nb
+    return np.searchsorted(edges, t, side="right").astype(np.int64), nb
+
+
+SELECTION_BUDGET = 150_000
+"""Samples per cable above which the selection runs on a subset (then refit on all)."""
+WARMUP_S = 1.0
+
+
+def selection_subset(t: np.ndarray, blocks: np.ndarray, budget: int = SELECTION_BUDGET):
+    """For long recordings: samples to select on, their blocks and the scoreable ones.
+
+    Only *training* blocks of the whole recording are used (the held-out blocks stay
+    unseen by selection and fit alike): evenly chosen training blocks up to ``budget``
+    samples, each with ``WARMUP_S`` of the samples before it (simulated, never scored) and
+    split into halves that train and test the selection. None: use everything.
+    """
+    if t.size <= budget:
+        return None
+    train_blocks = np.unique(blocks[blocks % 2 == 0])
+    per_block = t.size / (blocks.max() + 1)
+    take = max(2, int(budget // per_block))
+    chosen = train_blocks[np.unique(np.linspace(0, train_blocks.size - 1, take).astype(int))]
+    idx_parts, blk_parts, use_parts = [], [], []
+    for k, b in enumerate(chosen):
+        members = np.nonzero(blocks == b)[0]
+        lo, hi = members[0], members[-1] + 1
+        warm = int(np.searchsorted(t, t[lo] - WARMUP_S))
+        rows = np.arange(warm, hi)
+        half = lo + (hi - lo) // 2
+        idx_parts.append(rows)
+        blk_parts.append(np.where(rows < half, 2 * k, 2 * k + 1))
+        use_parts.append(rows >= lo)
+    idx = np.concatenate(idx_parts)
+    idx, first = np.unique(idx, return_index=True)
+    return idx, np.concatenate(blk_parts)[first], np.concatenate(use_parts)[first]
+
+
+def refit_full(fw: Forward, outcome: CableOutcome, train: np.ndarray) -> CableOutcome:
+    """Refit the effects selected on a subset jointly on every training sample."""
+    if not outcome.kept:
+        return outcome
+    stride = max(1, int(train.sum()) // SELECTION_BUDGET)
+    fit = joint_fit(fw, outcome.theta, outcome.specs, train, max_nfev=20, stride=stride)
+    if fit.ok:
+        outcome.theta, outcome.stderr = fit.theta, fit.stderr
+    return outcome
+
+
+@dataclass
+class Diagnosis:
+    """Everything the report and the pictures are made of."""
+
+    report: dict
+    t: np.ndarray
+    measured: np.ndarray
+    nominal_pred: np.ndarray
+    final_pred: np.ndarray
+    regime: np.ndarray
+    regions: list[locate.Region]
+    outcomes: list[CableOutcome]
+    findings_order: list[str]
+    forwards: list[Forward] = field(default_factory=list)
+
+
+def _rmse(res: np.ndarray, mask: np.ndarray | None = None) -> float:
+    r = res if mask is None else res[mask]
+    return float(math.sqrt(np.mean(r**2))) if r.size else 0.0
+
+
+def candidates_for(has_mass: bool) -> list[str]:
+    """Effects the recording's columns allow (mass_change needs pose and mass)."""
+    return [e for e in ALL_EFFECTS if has_mass or e != "mass_change"]
+
+
+def cable_candidates(cands: list[str], d: CableData, nom: Nominal) -> list[str]:
+    """Drop what this cable's motion cannot show: eccentricity needs at least half a turn
+    of the nominal pulley of travel (else it is an offset); motion effects need motion."""
+    moving = bool(np.any(d.v != 0))
+    span = float(np.ptp(d.x)) if d.x.size else 0.0
+    still = ("coulomb", "presliding", "viscous", "stribeck", "inertia")
+    return [
+        c
+        for c in cands
+        if (c != "eccentricity" or span >= math.pi * nom.pulley_radius_m)
+        and (moving or c not in still)
+    ]
+
+
+def diagnose(
+    rec: Recording,
+    friction: FrictionConfig,
+    tp: np.ndarray | None = None,
+    dtp_dm: np.ndarray | None = None,
+    validation: tuple[Recording, np.ndarray, np.ndarray | None] | None = None,
+    thresholds: Thresholds | None = None,
+    progress: Progress | None = None,
+) -> Diagnosis:
+    """Diagnose ``rec`` against the nominal ``friction`` model (see the module docstring).
+
+    ``tp`` (N, m): platform tensions (default: the recording's); ``dtp_dm`` (N, m) N/kg:
+    platform tension per kg of platform mass (enables ``mass_change``); ``validation``:
+    a second recording of the same machine, its platform tensions and dtp_dm.
+    """
+    say = progress or (lambda _msg: None)
+    th = thresholds or Thresholds()
+    tp = rec.tension_platform if tp is None else tp
+    if tp is None:
+        raise RecordingError(f"{rec.source}: no platform tensions")
+    nom = nominal_from(friction)
+    rec, tp, dtp_dm = finite_rows(rec, tp, dtp_dm)
+    datas = cable_data(rec, tp, dtp_dm)
+    blocks, nb = time_blocks(rec.t)
+    all_cands = candidates_for(dtp_dm is not None)
+    subset = selection_subset(rec.t, blocks)
+    outcomes, forwards = [], []
+    for i, d in enumerate(datas):
+        fw = Forward(d, nom)
+        cands = cable_candidates(all_cands, d, nom)
+        say(
+            f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects"
+            + ("" if subset is None else f" on {subset[0].size} of {rec.samples} samples")
+        )
+        if subset is None:
+            outcome = CableSelector(fw, blocks, nb, cands, th).run()
+        else:
+            idx, sub_blocks, usable = subset
+            sub_fw = Forward(d.subset(idx), nom)
+            outcome = CableSelector(
+                sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th, usable=usable
+            ).run()
+            outcome = refit_full(fw, outcome, blocks % 2 == 0)
+        say(f"cable {i + 1}/{rec.cables}: kept {', '.join(outcome.kept) or 'nothing'}")
+        fw.clear_cache()
+        outcomes.append(outcome)
+        forwards.append(fw)
+    from gateway.diagnose.report import build_report  # local: report imports engine types
+
+    return build_report(rec, forwards, outcomes, blocks, validation, nom)

@@ -1,0 +1,232 @@
+"""Forward models of the candidate effects (physics.md sec. 5) for one cable.
+
+Every candidate is a set of parameters acting on the nominal chain: the friction-side ones
+(``coulomb``, ``presliding``, ``viscous``, ``stribeck``) change the
+:class:`gateway.model.chain.ChainParams` that :func:`gateway.model.chain.simulate` runs;
+``inertia`` and ``eccentricity`` act on the path, ``gain``, ``offset``, ``drift``,
+``lowpass`` and ``delay`` on the sensor, in the order of
+:func:`gateway.model.effects.apply_path_effects` then
+:func:`gateway.model.effects.apply_sensor_effects` (gain, offset, drift, filter, delay).
+``mass_change`` changes the platform tension through the statics (``dTp_dm`` below).
+
+Internal parameter vectors (what the fit varies) and reported parameters
+(recording.md) differ only where a transform helps the fit: ``presliding`` and
+``stribeck`` fit ``log10`` of sigma and v_s; ``eccentricity`` fits
+``(A cos phi, A sin phi, 1/r)`` so that amplitude and phase are linear.
+Everything is one cable: arrays (N,), parameters scalars.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gateway.model import effects as fx
+from gateway.model.chain import ChainParams, simulate
+
+CHAIN_EFFECTS = ("coulomb", "presliding", "viscous", "stribeck", "mass_change")
+ALL_EFFECTS = (
+    "coulomb",
+    "presliding",
+    "viscous",
+    "stribeck",
+    "inertia",
+    "delay",
+    "lowpass",
+    "gain",
+    "offset",
+    "drift",
+    "eccentricity",
+    "mass_change",
+)
+
+
+@dataclass
+class CableData:
+    """One cable's series. ``t``, ``v``, ``tp``, ``ts`` (N,): s, m/s, N, N.
+
+    ``x`` displacement (m) and ``a`` acceleration (m/s^2) from ``v``; ``t0`` the
+    recording's first time (drift is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of
+    platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
+    ``x`` and ``a`` are computed here unless given (a subset of a longer recording takes
+    them from the whole recording).
+    """
+
+    t: np.ndarray
+    v: np.ndarray
+    tp: np.ndarray
+    ts: np.ndarray
+    t0: float
+    dtp_dm: np.ndarray | None = None
+    x: np.ndarray = field(default=None)  # type: ignore[arg-type]
+    a: np.ndarray = field(default=None)  # type: ignore[arg-type]
+
+    def __post_init__(self) -> None:
+        if self.x is None:
+            self.x = fx.displacement(self.t, self.v)
+        if self.a is None:
+            self.a = fx.acceleration(self.t, self.v) if self.t.size > 1 else np.zeros_like(self.v)
+
+    def subset(self, idx: np.ndarray) -> CableData:
+        """The samples ``idx`` (sorted), keeping ``x``, ``a`` and ``t0`` of the whole."""
+        dm = None if self.dtp_dm is None else self.dtp_dm[idx]
+        return CableData(
+            self.t[idx],
+            self.v[idx],
+            self.tp[idx],
+            self.ts[idx],
+            self.t0,
+            dm,
+            self.x[idx],
+            self.a[idx],
+        )
+
+
+@dataclass(frozen=True)
+class Nominal:
+    """The nominal chain of one cable: model, per-pulley wrap and mu, sigma, beta, viscous."""
+
+    model: str
+    wrap_rad: np.ndarray
+    mu: np.ndarray
+    sigma_n_m: float
+    beta: float
+    viscous_ns_m: float
+    pulley_radius_m: float
+
+    @property
+    def mu_mean(self) -> float:
+        return float(np.mean(self.mu)) if self.mu.size else 0.0
+
+
+def to_report(effect: str, theta: np.ndarray) -> dict[str, float]:
+    """Internal parameter vector -> reported parameters (names and units of recording.md)."""
+    p = [float(v) for v in theta]
+    if effect == "coulomb":
+        return {"mu": p[0], "f0_n": p[1]}
+    if effect == "presliding":
+        return {"sigma_n_m": 10 ** p[0]}
+    if effect == "viscous":
+        return {"c_ns_m": p[0]}
+    if effect == "stribeck":
+        return {"k": p[0], "v_s_m_s": 10 ** p[1]}
+    if effect == "eccentricity":
+        amp = math.hypot(p[0], p[1])
+        return {"a_n": amp, "r_m": 1.0 / p[2], "phi_rad": math.atan2(p[1], p[0])}
+    name = {
+        "inertia": "m_eff_kg",
+        "delay": "d_s",
+        "lowpass": "tau_s",
+        "gain": "g",
+        "offset": "c_n",
+        "drift": "k_n_s",
+        "mass_change": "q_kg_s",
+    }[effect]
+    return {name: p[0]}
+
+
+def report_stderr(effect: str, theta: np.ndarray, se: np.ndarray) -> dict[str, float]:
+    """Standard errors of the reported parameters (delta method for the transforms)."""
+    p, s = [float(v) for v in theta], [float(v) for v in se]
+    ln10 = math.log(10.0)
+    if effect == "presliding":
+        return {"sigma_n_m": 10 ** p[0] * ln10 * s[0]}
+    if effect == "stribeck":
+        return {"k": s[0], "v_s_m_s": 10 ** p[1] * ln10 * s[1]}
+    if effect == "eccentricity":
+        amp = max(math.hypot(p[0], p[1]), 1e-300)
+        return {
+            "a_n": math.hypot(p[0] * s[0], p[1] * s[1]) / amp,
+            "r_m": s[2] / p[2] ** 2,
+            "phi_rad": math.hypot(p[1] * s[0], p[0] * s[1]) / amp**2,
+        }
+    names = list(to_report(effect, theta))
+    return dict(zip(names, s, strict=True))
+
+
+def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
+    """One cable's ChainParams with the friction-side effects in ``eff`` applied."""
+    model, mu, sigma = nom.model, nom.mu, nom.sigma_n_m
+    f0, visc, sk, svs = 0.0, nom.viscous_ns_m, 0.0, 0.01
+    if "coulomb" in eff:
+        mu_new = float(eff["coulomb"][0])
+        mu = nom.mu * (mu_new / nom.mu_mean) if nom.mu_mean > 0 else np.full_like(nom.mu, mu_new)
+        f0 = float(eff["coulomb"][1])
+        model = "coulomb" if model == "none" else model
+    if "presliding" in eff:
+        model, sigma = "dahl", 10 ** float(eff["presliding"][0])
+    if "viscous" in eff:
+        visc = visc + float(eff["viscous"][0])
+    if "stribeck" in eff:
+        sk, svs = float(eff["stribeck"][0]), 10 ** float(eff["stribeck"][1])
+    return ChainParams.build(
+        model=model,  # type: ignore[arg-type]
+        cables=1,
+        wrap_rad=nom.wrap_rad,
+        mu=np.maximum(mu, 0.0)[None, :],
+        sigma_n_m=sigma,
+        beta=nom.beta,
+        f0_n=f0,
+        stribeck_k=sk,
+        stribeck_v_m_s=svs,
+        viscous_ns_m=visc,
+    )
+
+
+class Forward:
+    """Prediction of one cable's sensor reading for a set of effects, with a chain cache.
+
+    The chain simulation is the expensive part; it is cached on the friction-side
+    parameters so that varying a sensor or path parameter costs no new simulation.
+    """
+
+    def __init__(self, data: CableData, nom: Nominal, cache_size: int = 6) -> None:
+        self.data = data
+        self.nom = nom
+        self._cache: dict[tuple, np.ndarray] = {}
+        self._cache_size = cache_size
+        self.simulations = 0
+
+    def clear_cache(self) -> None:
+        """Free the cached chain simulations."""
+        self._cache.clear()
+
+    def chain(self, eff: dict[str, np.ndarray]) -> np.ndarray:
+        """Sensor-side tension (N,) from the friction chain (and mass change) alone."""
+        key = tuple((k, tuple(np.round(eff[k], 14))) for k in CHAIN_EFFECTS if k in eff)
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        d = self.data
+        tp = d.tp
+        if "mass_change" in eff and d.dtp_dm is not None:
+            tp = tp + float(eff["mass_change"][0]) * (d.t - d.t0) * d.dtp_dm
+        out = simulate(chain_params(self.nom, eff), tp[:, None], d.v[:, None], d.t)[:, 0]
+        self.simulations += 1
+        if len(self._cache) >= self._cache_size:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[key] = out
+        return out
+
+    def predict(self, eff: dict[str, np.ndarray]) -> np.ndarray:
+        """The sensor reading (N,) the nominal model plus ``eff`` predicts (N)."""
+        d = self.data
+        y = self.chain(eff)
+        if "inertia" in eff:
+            y = y - float(eff["inertia"][0]) * d.a
+        if "eccentricity" in eff:
+            a_s, a_c, kappa = (float(v) for v in eff["eccentricity"])
+            y = y + a_s * np.sin(kappa * d.x) + a_c * np.cos(kappa * d.x)
+        if "gain" in eff:
+            y = (1.0 + float(eff["gain"][0])) * y
+        if "offset" in eff:
+            y = y + float(eff["offset"][0])
+        if "drift" in eff:
+            y = y + float(eff["drift"][0]) * (d.t - d.t0)
+        if "lowpass" in eff and eff["lowpass"][0] > 0:
+            y = fx.lowpass(d.t, y, float(eff["lowpass"][0]))
+        if "delay" in eff and eff["delay"][0] != 0:
+            y = fx.delay(d.t, y, float(eff["delay"][0]))
+        return y

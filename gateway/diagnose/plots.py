@@ -1,0 +1,174 @@
+"""``diagnose --report DIR``: PNG pictures (matplotlib, Agg) and a markdown summary.
+
+* ``residual.png``: residual of the nominal model (and of the final one) over time per
+  cable, the located regions shaded;
+* ``signature_<effect>.png``: per finding, the residual the final model leaves without
+  that effect against the effect's own contribution (binned means; on the 1:1 line
+  when the effect explains it);
+* ``overlay.png``: measured, nominal and fitted sensor reading around the largest region;
+* ``summary.md``: the verdict, the findings table, where the residual lives.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from gateway.diagnose.engine import Diagnosis
+
+MAX_POINTS = 20000
+
+
+def _thin(n: int) -> slice:
+    return slice(None, None, max(1, n // MAX_POINTS))
+
+
+def residual_plot(diag: Diagnosis, path: Path) -> None:
+    """Residual over time per cable, regions shaded."""
+    m = diag.measured.shape[1]
+    fig, axes = plt.subplots(m, 1, figsize=(10, 1.8 * m + 1), sharex=True, squeeze=False)
+    sl = _thin(diag.t.size)
+    for i, ax in enumerate(axes[:, 0]):
+        ax.plot(diag.t[sl], (diag.measured - diag.nominal_pred)[sl, i], lw=0.5, label="nominal")
+        ax.plot(diag.t[sl], (diag.measured - diag.final_pred)[sl, i], lw=0.5, label="fitted")
+        for reg in diag.regions:
+            if reg.cable == i + 1:
+                ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
+        ax.set_ylabel(f"cable {i + 1}\nresidual (N)")
+    axes[0, 0].legend(loc="upper right", fontsize=8)
+    axes[0, 0].set_title("measured - simulated sensor reading (shaded: located regions)")
+    axes[-1, 0].set_xlabel("t (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
+    """Residual without ``effect`` against its contribution, binned, all its cables."""
+    xs, ys = [], []
+    for fw, o, i in zip(diag.forwards, diag.outcomes, range(len(diag.outcomes)), strict=True):
+        if effect not in o.theta:
+            continue
+        rest = {k: v for k, v in o.theta.items() if k != effect}
+        without = fw.predict(rest)
+        xs.append(diag.final_pred[:, i] - without)
+        ys.append(diag.measured[:, i] - without)
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, 41)))
+    which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
+    count = np.bincount(which, minlength=edges.size)
+    keep = count > 0
+    mx = np.bincount(which, x, minlength=edges.size)[keep] / count[keep]
+    my = np.bincount(which, y, minlength=edges.size)[keep] / count[keep]
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    sl = _thin(x.size)
+    ax.plot(x[sl], y[sl], ".", ms=1, alpha=0.2, color="grey")
+    ax.plot(mx, my, "o-", color="tab:blue", label="binned mean")
+    lim = [float(x.min()), float(x.max())]
+    ax.plot(lim, lim, "k--", lw=1, label="1:1")
+    ax.set_xlabel(f"{effect} contribution (N)")
+    ax.set_ylabel(f"residual without {effect} (N)")
+    ax.set_title(f"signature of {effect}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def overlay_plot(diag: Diagnosis, path: Path) -> None:
+    """Measured, nominal and fitted reading around the largest located region."""
+    if diag.regions:
+        reg = diag.regions[0]
+        i, mid = reg.cable - 1, 0.5 * (reg.start_s + reg.end_s)
+        half = max(1.0, reg.end_s - reg.start_s)
+    else:
+        i, mid, half = 0, float(diag.t[diag.t.size // 2]), 1.0
+    sel = (diag.t >= mid - half) & (diag.t <= mid + half)
+    fig, ax = plt.subplots(figsize=(10, 4))
+    ax.plot(diag.t[sel], diag.measured[sel, i], lw=0.8, label="measured", color="grey")
+    ax.plot(diag.t[sel], diag.nominal_pred[sel, i], lw=1.0, label="nominal model")
+    ax.plot(diag.t[sel], diag.final_pred[sel, i], lw=1.0, label="fitted model")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel(f"cable {i + 1} sensor reading (N)")
+    ax.set_title("before / after around the largest mismatch region")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _fmt(values: list[float]) -> str:
+    return ", ".join(f"{v:.4g}" for v in values)
+
+
+def summary(diag: Diagnosis, source: str) -> str:
+    """The markdown summary for an engineer."""
+    rep = diag.report
+    lines = [f"# Diagnosis of `{source}`", ""]
+    lines.append(
+        f"{rep['cables']} cable(s), {rep['samples']} samples. Nominal model residual "
+        f"RMSE {rep['baseline']['rmse_n']:.3f} N; after the findings "
+        f"{rep['final']['rmse_n']:.3f} N (held out: {rep['final']['holdout_rmse_n']:.3f} N)."
+    )
+    if "validation_rmse_after_n" in rep["final"]:
+        f = rep["final"]
+        lines.append(
+            f"On the validation recording: {f['validation_rmse_before_n']:.3f} N -> "
+            f"{f['validation_rmse_after_n']:.3f} N."
+        )
+    lines.append("")
+    if not rep["findings"]:
+        lines += [
+            "**Verdict: none** - nothing significant is missing from the nominal model "
+            "(no candidate effect improved the held-out fit beyond the noise).",
+            "",
+        ]
+    else:
+        lines += [
+            "| # | effect | cables | parameters | held-out RMSE before -> after (N) |",
+            "|---|---|---|---|---|",
+        ]
+        for k, f in enumerate(rep["findings"], 1):
+            par = "; ".join(f"{n} = {_fmt(v)}" for n, v in f["parameters"].items())
+            lines.append(
+                f"| {k} | {f['effect']} | {_fmt(f['cables'])} | {par} | "
+                f"{f['holdout_rmse_before_n']:.3f} -> {f['holdout_rmse_after_n']:.3f} |"
+            )
+        lines.append("")
+        for k, f in enumerate(rep["findings"], 1):
+            lines += [
+                f"{k}. **{f['effect']}**: {f['evidence']} "
+                f"![signature](signature_{f['effect']}.png)",
+                "",
+            ]
+    lines += [
+        "## Where the nominal model's residual lives",
+        "",
+        "| regime | share of residual energy | share of samples |",
+        "|---|---|---|",
+    ]
+    for name, s in rep["regime_shares"].items():
+        lines.append(f"| {name} | {s['energy']:.1%} | {s['samples']:.1%} |")
+    lines += ["", "Largest regions (shaded in the residual plot):", ""]
+    for r in rep["mismatch"][:8]:
+        lines.append(
+            f"- cable {r['cable']}, {r['start_s']:.2f}-{r['end_s']:.2f} s, "
+            f"{r['regime']}: {r['share']:.1%} of the residual energy"
+        )
+    lines += ["", "![residual](residual.png)", "", "![overlay](overlay.png)", ""]
+    return "\n".join(lines)
+
+
+def write_report(diag: Diagnosis, directory: Path, source: str) -> None:
+    """Write the pictures and ``summary.md`` into ``directory`` (created if needed)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    residual_plot(diag, directory / "residual.png")
+    overlay_plot(diag, directory / "overlay.png")
+    for f in diag.report["findings"]:
+        signature_plot(diag, f["effect"], directory / f"signature_{f['effect']}.png")
+    (directory / "summary.md").write_text(summary(diag, source), encoding="utf-8")

@@ -1,0 +1,144 @@
+"""Assemble the JSON report of recording.md from the per-cable selections.
+
+Beyond the schema's keys the report carries ``skipped_rows`` (rows without a required
+value) and ``regime_shares`` (per regime: share of the nominal residual energy and of the
+samples). ``rmse_*`` are over every cable and sample, ``holdout_*`` over the held-out
+blocks, ``validation_*`` over the ``--validate`` recording; each finding's before/after
+are cumulative in the findings' order. A standard error that could not be computed
+(singular Jacobian, parameter at a bound) is written as -1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gateway.diagnose import locate
+from gateway.diagnose.engine import Diagnosis, Forward, Nominal, _rmse, cable_data, finite_rows
+from gateway.diagnose.evidence import evidence
+from gateway.diagnose.forward import report_stderr, to_report
+from gateway.diagnose.select import CableOutcome
+from gateway.recording import Recording
+
+
+def _preds(forwards: list[Forward], thetas: list[dict]) -> np.ndarray:
+    return np.column_stack([fw.predict(th) for fw, th in zip(forwards, thetas, strict=True)])
+
+
+def _subset(outcomes: list[CableOutcome], effects: list[str]) -> list[dict]:
+    """Per cable, the fitted parameters of those of ``effects`` the cable kept."""
+    return [{e: o.theta[e] for e in effects if e in o.theta} for o in outcomes]
+
+
+def _order(forwards, outcomes, measured) -> list[str]:
+    """Effects ordered by the residual energy they explain in the final model (drop-one)."""
+    effects = sorted({e for o in outcomes for e in o.kept})
+    full = _preds(forwards, _subset(outcomes, effects))
+    base = float(np.sum((measured - full) ** 2))
+    worth = {}
+    for e in effects:
+        others = [x for x in effects if x != e]
+        worth[e] = (
+            float(np.sum((measured - _preds(forwards, _subset(outcomes, others))) ** 2)) - base
+        )
+    return sorted(effects, key=lambda e: worth[e], reverse=True)
+
+
+def _validation_forwards(validation, nom: Nominal, cables: int) -> list[Forward] | None:
+    if validation is None:
+        return None
+    vrec, vtp, vdm = finite_rows(*validation)
+    if vrec.cables != cables:
+        from gateway.errors import RecordingError
+
+        raise RecordingError(
+            f"{vrec.source}: has {vrec.cables} cables, the diagnosed recording {cables}"
+        )
+    return [Forward(d, nom) for d in cable_data(vrec, vtp, vdm)]
+
+
+def _finding(effect, outcomes, rmse_pairs, ev) -> dict:
+    cables = [i + 1 for i, o in enumerate(outcomes) if effect in o.theta]
+    params: dict[str, list[float]] = {}
+    errs: dict[str, list[float]] = {}
+    for i in cables:
+        o = outcomes[i - 1]
+        for k, v in to_report(effect, o.theta[effect]).items():
+            params.setdefault(k, []).append(_num(v))
+        for k, v in report_stderr(effect, o.theta[effect], o.stderr[effect]).items():
+            errs.setdefault(k, []).append(_num(v))
+    out = {"effect": effect, "cables": cables, "parameters": params, "stderr": errs, "evidence": ev}
+    out.update(rmse_pairs)
+    return out
+
+
+def _num(v: float) -> float:
+    """JSON-safe float (NaN/inf -> a large sentinel is worse than 0 for a stderr: use -1)."""
+    return float(v) if math.isfinite(v) else -1.0
+
+
+def build_report(
+    rec: Recording,
+    forwards: list[Forward],
+    outcomes: list[CableOutcome],
+    blocks: np.ndarray,
+    validation,
+    nom: Nominal,
+) -> Diagnosis:
+    """The report dict and the arrays behind it."""
+    measured = np.column_stack([fw.data.ts for fw in forwards])
+    test = (blocks % 2 == 1)[:, None] & np.ones((1, rec.cables), bool)
+    nominal_pred = _preds(forwards, [{} for _ in forwards])
+    resid0 = measured - nominal_pred
+    regime = np.column_stack([locate.regimes(fw.data.v, fw.data.a) for fw in forwards])
+    regions = locate.regions(rec.t, resid0, regime)
+    vfw = _validation_forwards(validation, nom, rec.cables)
+    vmeas = None if vfw is None else np.column_stack([fw.data.ts for fw in vfw])
+    order = _order(forwards, outcomes, measured)
+
+    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray]:
+        pred = _preds(forwards, _subset(outcomes, effects))
+        r = measured - pred
+        v = None if vfw is None else _rmse(vmeas - _preds(vfw, _subset(outcomes, effects)))
+        return _rmse(r), _rmse(r, test), v, pred
+
+    before = scores([])
+    findings = []
+    for k, effect in enumerate(order):
+        after = scores(order[: k + 1])
+        pairs = {
+            "rmse_before_n": before[0],
+            "rmse_after_n": after[0],
+            "holdout_rmse_before_n": before[1],
+            "holdout_rmse_after_n": after[1],
+        }
+        if vfw is not None:
+            pairs["validation_rmse_before_n"] = float(before[2] or 0.0)
+            pairs["validation_rmse_after_n"] = float(after[2] or 0.0)
+        ev = evidence(effect, outcomes, regime, before[1], after[1])
+        findings.append(_finding(effect, outcomes, pairs, ev))
+        before = after
+    final = {"rmse_n": before[0], "holdout_rmse_n": before[1]}
+    if vfw is not None:
+        final["validation_rmse_before_n"] = _rmse(vmeas - _preds(vfw, [{} for _ in vfw]))
+        final["validation_rmse_after_n"] = float(before[2] or 0.0)
+    report = {
+        "cables": rec.cables,
+        "samples": rec.samples,
+        "skipped_rows": rec.skipped_rows,
+        "baseline": {
+            "rmse_n": _rmse(resid0),
+            "per_cable_rmse_n": [_rmse(resid0[:, i]) for i in range(rec.cables)],
+        },
+        "mismatch": [r.__dict__ for r in regions],
+        "regime_shares": {
+            k: {"energy": e, "samples": s}
+            for k, (e, s) in locate.regime_shares(resid0, regime).items()
+        },
+        "findings": findings,
+        "final": final,
+    }
+    return Diagnosis(
+        report, rec.t, measured, nominal_pred, before[3], regime, regions, outcomes, order, forwards
+    )
