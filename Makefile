@@ -31,5 +31,8 @@ format: $(STAMP)
 	$(BIN)/ruff format .
 	$(BIN)/ruff check --fix .
 
+suite-table: $(STAMP)
+	$(BIN)/python -m sim_plc.scenarios --table docs/diagnose-suite.md
+
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
