@@ -9,6 +9,7 @@ section belongs to the soft PLC: it is kept as a raw mapping here and validated 
 
 from __future__ import annotations
 
+import ipaddress
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -284,6 +285,27 @@ class Config:
     @property
     def cables(self) -> int:
         return self.geometry.cables
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and localhost: an address no other host can reach."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def exposure_warning(key: str, host: str, port: int, source: str = "") -> str | None:
+    """The line to log when ``key`` binds a listener other hosts can reach, else None."""
+    if is_loopback_host(host):
+        return None
+    where = f" in {source}" if source else ""
+    return (
+        f"{key}{where} binds {host}:{port}: reachable from other hosts, not only this "
+        "one (the default is 127.0.0.1); make sure a firewall limits who can connect"
+    )
 
 
 def config_from_mapping(data: dict[str, Any], source: str = "") -> Config:

@@ -16,7 +16,7 @@ import sys
 from typing import Any
 
 from drivers.base import Driver, make_driver
-from gateway.config import DEFAULT_CONFIG_PATH, Config, load_config
+from gateway.config import DEFAULT_CONFIG_PATH, Config, exposure_warning, load_config
 from gateway.errors import ConfigError, DriverInitError
 from gateway.loop import CyclicService, LoopState
 from gateway.metrics import MetricsServer, make_registry
@@ -80,6 +80,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if cfg.metrics.enabled:
         server = MetricsServer(cfg.metrics, make_registry(service), cfg.source)
         log.info("metrics on http://%s:%d/metrics", server.host, server.port)
+        exposed = exposure_warning("metrics.host", server.host, server.port, cfg.source)
+        if exposed:
+            log.warning("%s", exposed)
     previous = service.install_signal_handlers()
     try:
         service.configure()

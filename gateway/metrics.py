@@ -127,7 +127,21 @@ class _QuietHandler(WSGIRequestHandler):
 
 
 class _ThreadingServer(ThreadingMixIn, WSGIServer):
+    """One thread per scrape. With TLS the handshake runs in that thread, bounded by
+    ``HANDSHAKE_TIMEOUT_S``, not in the accept loop: an idle or slow client cannot stall
+    the other scrapes."""
+
     daemon_threads = True
+    handshake_timeout_s = 5.0
+
+    def finish_request(self, request: Any, client_address: Any) -> None:
+        if isinstance(request, ssl.SSLSocket):
+            request.settimeout(self.handshake_timeout_s)
+            request.do_handshake()  # an error ends this thread only (handle_error)
+        super().finish_request(request, client_address)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A failed handshake or a dropped client is not worth a traceback."""
 
 
 def _basic_auth(app: Any, user: str, password_sha256: str) -> Any:
@@ -182,7 +196,9 @@ class MetricsServer:
             except (OSError, ssl.SSLError) as exc:
                 server.server_close()
                 raise ConfigError(f"{where}metrics.certfile: {exc}") from exc
-            server.socket = context.wrap_socket(server.socket, server_side=True)
+            server.socket = context.wrap_socket(
+                server.socket, server_side=True, do_handshake_on_connect=False
+            )
         self._server: _ThreadingServer | None = server
         self._thread = threading.Thread(
             target=server.serve_forever, name="metrics-http", daemon=True

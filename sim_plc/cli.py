@@ -17,7 +17,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gateway.config import DEFAULT_CONFIG_PATH, Config, TlsConfig, load_config
+from gateway.config import (
+    DEFAULT_CONFIG_PATH,
+    Config,
+    TlsConfig,
+    exposure_warning,
+    load_config,
+)
 from gateway.errors import ConfigError
 from gateway.recording import write_recording
 from sim_plc.config import load_sim_config
@@ -135,6 +141,10 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
         bus = args.bus or (cfg.bus.driver if cfg.bus.driver == "canopen" else "modbus_tcp")
         server, where = _server(cfg, image, bus, args.host, args.port, _tls_from_args(args))
         print(f"sim-plc: serving {where}", flush=True)
+        listen = getattr(server, "host", None)
+        exposed = listen and exposure_warning("--host", listen, getattr(server, "port", 0))
+        if exposed:
+            print(f"sim-plc: warning: {exposed}", file=sys.stderr, flush=True)
         deadline = None if args.seconds is None else time.monotonic() + args.seconds
         while not done.wait(0.2):
             if runtime.error is not None:

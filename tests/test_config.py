@@ -81,3 +81,13 @@ def test_nominal_model_file_alone_or_in_full_config(tmp_path: Path) -> None:
     alone.write_text("friction:\n  modle: dahl\n")
     with pytest.raises(ConfigError, match=r"model\.yaml: friction\.modle: unknown key"):
         load_friction(alone)
+
+
+def test_listeners_beyond_loopback_are_called_out() -> None:
+    from gateway.config import exposure_warning, is_loopback_host
+
+    assert all(is_loopback_host(h) for h in ("127.0.0.1", "127.3.0.9", "::1", "localhost"))
+    assert not any(is_loopback_host(h) for h in ("0.0.0.0", "10.0.0.5", "::", "plc.example"))
+    assert exposure_warning("metrics.host", "127.0.0.1", 9109) is None
+    line = exposure_warning("metrics.host", "0.0.0.0", 9109, "site.yaml")
+    assert line is not None and "metrics.host in site.yaml binds 0.0.0.0:9109" in line

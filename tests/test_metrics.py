@@ -181,12 +181,17 @@ def test_tls_exporter(tmp_path):
     reg = make_registry(ran_service(3))
     cfg = MetricsConfig(host="127.0.0.1", port=0, certfile=str(cert), keyfile=str(key))
     server = MetricsServer(cfg, reg)
+    import socket
+
+    idle = socket.create_connection(("127.0.0.1", server.port), timeout=5)  # never handshakes
     try:
         context = ssl.create_default_context(cafile=str(cert))
         url = f"https://127.0.0.1:{server.port}/metrics"
-        with urllib.request.urlopen(url, timeout=5, context=context) as reply:
+        # an idle client holding a connection must not stall the scrape behind it
+        with urllib.request.urlopen(url, timeout=3, context=context) as reply:
             assert b"cdpr_gateway_cycle_seconds_count 3.0" in reply.read()
     finally:
+        idle.close()
         server.close()
     with pytest.raises(ConfigError, match=r"metrics\.certfile"):
         MetricsServer(MetricsConfig(host="127.0.0.1", port=0, certfile=str(key)), reg)
