@@ -152,7 +152,9 @@ def _close_orphaned_sockets(loop: asyncio.AbstractEventLoop) -> None:
     ResourceWarning. The loop has ended, so no callback will touch these sockets again.
     """
     for obj in gc.get_objects():
-        if isinstance(obj, asyncio.Transport) and getattr(obj, "_loop", None) is loop:
+        # type(), not isinstance(): some objects (canopen's placeholder network) raise
+        # on any attribute access, __class__ included
+        if issubclass(type(obj), asyncio.Transport) and getattr(obj, "_loop", None) is loop:
             sock = getattr(obj, "_sock", None)
             if sock is not None:
                 sock.close()
