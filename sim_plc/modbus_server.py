@@ -158,7 +158,7 @@ def _close_orphaned_sockets(loop: asyncio.AbstractEventLoop) -> None:
             sock = getattr(obj, "_sock", None)
             if sock is not None:
                 sock.close()
-                obj._sock = None  # type: ignore[attr-defined]
+                obj._sock = None
 
 
 class ImageRegisters:
