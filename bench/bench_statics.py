@@ -12,35 +12,16 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
+from gateway.config import load_config
 from gateway.model import kinematics, statics
 
-FRAME_ANCHORS = np.array(
-    [
-        [2.0, 1.5, 3.0],
-        [-2.0, 1.5, 3.0],
-        [-2.0, -1.5, 3.0],
-        [2.0, -1.5, 3.0],
-        [2.0, 1.5, 0.0],
-        [-2.0, 1.5, 0.0],
-        [-2.0, -1.5, 0.0],
-        [2.0, -1.5, 0.0],
-    ]
-)
-PLATFORM_ANCHORS = np.array(
-    [
-        [0.2, 0.15, 0.1],
-        [-0.2, 0.15, 0.1],
-        [-0.2, -0.15, 0.1],
-        [0.2, -0.15, 0.1],
-        [0.2, 0.15, -0.1],
-        [-0.2, 0.15, -0.1],
-        [-0.2, -0.15, -0.1],
-        [0.2, -0.15, -0.1],
-    ]
-)
-HOME = np.array([0.0, 0.0, 1.5, 0.0, 0.0, 0.0])
-SPAN = np.array([0.5, 0.5, 0.5, *np.radians([5.0, 5.0, 5.0])])
-MASS_KG, G, TAU_MIN, TAU_MAX = 50.0, 9.81, 20.0, 1000.0
+_CFG = load_config()  # the shipped geometry, mass and tension limits
+FRAME_ANCHORS = np.asarray(_CFG.geometry.frame_anchors_m)
+PLATFORM_ANCHORS = np.asarray(_CFG.geometry.platform_anchors_m)
+HOME = np.asarray(_CFG.geometry.home_pose)
+SPAN = np.array([0.3, 0.3, 0.3, *np.radians([5.0, 5.0, 5.0])])
+MASS_KG, G = _CFG.geometry.platform_mass_kg, _CFG.geometry.gravity_m_s2
+TAU_MIN, TAU_MAX = _CFG.tension.min_n, _CFG.tension.max_n
 
 
 def feasible_cases(

@@ -9,34 +9,8 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from gateway.model import kinematics as kin
-
-FRAME = np.array(
-    [
-        [2.0, 1.5, 3.0],
-        [-2.0, 1.5, 3.0],
-        [-2.0, -1.5, 3.0],
-        [2.0, -1.5, 3.0],
-        [2.0, 1.5, 0.0],
-        [-2.0, 1.5, 0.0],
-        [-2.0, -1.5, 0.0],
-        [2.0, -1.5, 0.0],
-    ]
-)
-"""Frame anchors a_i (m, 3) in m: the default 4.0 x 3.0 x 3.0 m frame."""
-PLATFORM = np.array(
-    [
-        [0.2, 0.15, 0.1],
-        [-0.2, 0.15, 0.1],
-        [-0.2, -0.15, 0.1],
-        [0.2, -0.15, 0.1],
-        [0.2, 0.15, -0.1],
-        [-0.2, 0.15, -0.1],
-        [-0.2, -0.15, -0.1],
-        [0.2, -0.15, -0.1],
-    ]
-)
-"""Platform anchors b_i (m, 3) in m, uncrossed: 0.4 x 0.3 x 0.2 m platform."""
-HOME = np.array([0.0, 0.0, 1.5, 0.0, 0.0, 0.0])
+from tests.geometry_helpers import BOX as PLATFORM
+from tests.geometry_helpers import FRAME, HOME
 
 angle = st.floats(-np.pi, np.pi, allow_nan=False)
 small_angle = st.floats(-0.5, 0.5, allow_nan=False)

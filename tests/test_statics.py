@@ -12,36 +12,8 @@ from scipy.optimize import linprog, minimize
 from gateway.errors import InfeasiblePoseError
 from gateway.model import kinematics as kin
 from gateway.model import statics
+from tests.geometry_helpers import BOX, CROSSED, FRAME, HOME
 
-FRAME = np.array(
-    [
-        [2.0, 1.5, 3.0],
-        [-2.0, 1.5, 3.0],
-        [-2.0, -1.5, 3.0],
-        [2.0, -1.5, 3.0],
-        [2.0, 1.5, 0.0],
-        [-2.0, 1.5, 0.0],
-        [-2.0, -1.5, 0.0],
-        [2.0, -1.5, 0.0],
-    ]
-)
-"""Frame anchors a_i (m, 3) in m: the default 4.0 x 3.0 x 3.0 m frame."""
-BOX = np.array(
-    [
-        [0.2, 0.15, 0.1],
-        [-0.2, 0.15, 0.1],
-        [-0.2, -0.15, 0.1],
-        [0.2, -0.15, 0.1],
-        [0.2, 0.15, -0.1],
-        [-0.2, 0.15, -0.1],
-        [-0.2, -0.15, -0.1],
-        [0.2, -0.15, -0.1],
-    ]
-)
-"""Uncrossed platform anchors b_i (m, 3) in m: a_i and b_i have proportional x, y."""
-CROSSED = BOX[[1, 0, 3, 2, 7, 6, 5, 4]]
-"""Upper pairs crossed in x (1-2, 3-4), lower pairs crossed in y (5-8, 6-7)."""
-HOME = np.array([0.0, 0.0, 1.5, 0.0, 0.0, 0.0])
 MASS_KG, G = 50.0, 9.81
 LO, HI = 20.0, 1000.0
 
