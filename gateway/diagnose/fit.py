@@ -106,7 +106,7 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
         # v_s at most 1/8 of the typical speed: above that it would mimic a Coulomb change
         return Spec(
             a([0.0, lv - 1.5]),
-            a([-0.95, lv - 4.0]),
+            a([0.0, lv - 4.0]),
             a([20.0, lv - 0.9]),
             (0,),
             a([0.05, 0.05]),
