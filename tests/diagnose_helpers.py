@@ -77,7 +77,7 @@ class Foreign:
     rig: bool = False
     motion: str = "moves"  # moves | slow | constant
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
-    noise: str = "white"  # white | coloured | spikes | quant | hum | mixed
+    noise: str = "white"  # white | coloured | wander | spikes | quant | hum | mixed
     noise_n: float = 0.3
     seed: int = 3
     t0: float = 0.5  # time of the first row (s); e.g. a Unix time stamp
@@ -188,10 +188,10 @@ def _noise(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     out = np.zeros(n)
     if "white" in kinds or "spikes" in kinds or "quant" in kinds or "hum" in kinds:
         out += rng.normal(0, s, n)
-    if "coloured" in kinds:
-        w = rng.normal(0, 1, n)
-        col = _lowpass_fast(t, w, 0.05)
-        out += s * col / col.std()
+    for kind, tau in (("coloured", 0.05), ("wander", 3.0)):
+        if kind in kinds:
+            col = _lowpass_fast(t, rng.normal(0, 1, n), tau)
+            out += s * col / col.std()
     if "hum" in kinds:
         out += 1.5 * s * np.sin(2 * math.pi * 50.0 * t + 0.4)
     if "spikes" in kinds:
