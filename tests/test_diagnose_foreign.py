@@ -154,3 +154,40 @@ def test_cli_reads_a_foreign_csv_with_quirks(tmp_path):
     assert report["skipped_rows"] == 30
     assert _effects(report) == ["delay"]
     assert report["findings"][0]["parameters"]["d_s"][0] == pytest.approx(0.02, rel=0.1)
+
+
+def test_report_says_when_a_mismatch_outside_the_candidates_remains(tmp_path):
+    """High loads and a quiet sensor: the generator's Dahl chain (explicit, its state clipped
+    to the Coulomb level when the load drops at rest) differs from the nominal one in ways
+    no candidate holds. No finding, but the report says that the residual left is far above
+    the noise instead of implying that the model is right."""
+    fo = Foreign(tension=2000, noise_n=0.1)
+    report = _run(fo)
+    assert _effects(report) == []
+    fin = report["final"]
+    assert fin["noise_n"] == pytest.approx(0.1, rel=0.3)
+    assert fin["unexplained_n"] > 5 * fin["noise_n"]
+    clean = _run(Foreign(noise_n=0.3, model="coulomb"))
+    assert clean["final"]["unexplained_n"] < 2 * clean["final"]["noise_n"]
+
+
+def test_summary_mentions_unexplained_residual():
+    from types import SimpleNamespace
+
+    from gateway.diagnose.plots import summary
+
+    rep = {
+        "cables": 1,
+        "samples": 10,
+        "baseline": {"rmse_n": 3.0},
+        "final": {"rmse_n": 3.0, "holdout_rmse_n": 3.0, "noise_n": 0.1, "unexplained_n": 2.99},
+        "findings": [],
+        "regime_shares": {},
+        "mismatch": [],
+    }
+    text = summary(SimpleNamespace(report=rep), "x.csv")  # type: ignore[arg-type]
+    assert "none of the candidate effects explains" in text
+    rep["final"] = {**rep["final"], "holdout_rmse_n": 0.1, "unexplained_n": 0.0}
+    assert "none of the candidate effects explains" not in summary(
+        SimpleNamespace(report=rep), "x.csv"
+    )  # type: ignore[arg-type]
