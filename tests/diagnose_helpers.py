@@ -87,11 +87,12 @@ class Foreign:
 
 
 @njit(cache=True)
-def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl):  # pragma: no cover - numba
+def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: no cover
     """Sensor tension (N,) from platform tension and velocity; explicit Euler on x.
 
     Normal force from the law of cosines with the pulley's sensor-side tension of the
-    previous step (explicit), friction level ``mu F_N + f0`` per pulley."""
+    previous step (explicit), friction level ``(mu F_N + f0) (1 + sk exp(-(v/svs)^2))`` per
+    pulley."""
     n, p = tp.size, wrap.size
     out = np.empty(n)
     f = np.zeros(p)
@@ -103,7 +104,7 @@ def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl):  # pragma: no cover - numba
         for j in range(p - 1, -1, -1):
             tb = prev[j]
             fn = math.sqrt(max(tb * tb - 2.0 * tb * tj * math.cos(wrap[j]) + tj * tj, 0.0))
-            fr = mu[j] * fn + f0
+            fr = (mu[j] * fn + f0) * (1.0 + sk * math.exp(-((v[k] / svs) ** 2)))
             if dahl:
                 if fr > 0:
                     f[j] += sigma * (1.0 - f[j] / fr * s) * dx
@@ -233,7 +234,8 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
     dahl = fo.model == "dahl" or "presliding" in fo.effects
     for i in range(1, fo.cables + 1):
         v, tp, x = _motion(fo, fine, rng)
-        ts = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl)
+        st = fo.effects.get("stribeck", {"k": 0.0, "v_s_m_s": 0.01})
+        ts = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
         ts = _effects(fo, fine, v, x, ts)
         sens = np.interp(ts_out, fine, ts) + _noise(fo, ts_out, rng)
         if fo.noise in ("quant", "mixed"):

@@ -191,3 +191,25 @@ def test_summary_mentions_unexplained_residual():
     assert "none of the candidate effects explains" not in summary(
         SimpleNamespace(report=rep), "x.csv"
     )  # type: ignore[arg-type]
+
+
+def test_screen_frees_the_kept_linear_parameters():
+    """A drift screened on top of an offset that holds the drift's mean: with the offset's
+    linear part free the pair is recovered exactly (noise-free), not a weakened drift."""
+    from gateway.diagnose.fit import linear_refit, spec_for
+    from gateway.diagnose.forward import Forward
+
+    t = np.arange(0.0, 30.0, 0.01)
+    v = 0.1 * np.sin(2 * np.pi * 0.2 * t)
+    tp = 300 + 50 * np.sin(2 * np.pi * 0.05 * t)
+    nom = nominal_from(FrictionConfig())
+    probe = Forward(CableData(t, v, tp, tp, 0.0), nom)
+    truth = probe.predict({"offset": np.array([0.2]), "drift": np.array([0.02])})
+    d = CableData(t, v, tp, truth, 0.0)
+    fw = Forward(d, nom)
+    mask = np.ones(t.size, bool)
+    specs = {e: spec_for(e, d, nom, truth, mask) for e in ("offset", "drift")}
+    mean_offset = np.array([0.2 + 0.02 * 15.0])  # what an offset alone takes
+    out = linear_refit(fw, {"offset": mean_offset, "drift": np.zeros(1)}, specs, mask)
+    assert out["offset"][0] == pytest.approx(0.2, abs=1e-6)
+    assert out["drift"][0] == pytest.approx(0.02, abs=1e-8)
