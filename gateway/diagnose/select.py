@@ -2,8 +2,9 @@
 
 The recording is cut into ``n_blocks`` time blocks; even blocks train, odd blocks are held
 out, so both halves see every regime of a repeated motion. Each step fits every remaining
-candidate on top of the effects already kept (those held fixed), scores it on the held-out
-blocks, and keeps the best one only if
+candidate on top of the effects already kept (their nonlinear parameters held, their
+linear ones re-solved with the candidate's), scores it on the held-out blocks, and keeps
+the best one only if
 
 * it lowers the held-out sum of squares by at least ``rel_min`` of it (relative) and by
   ``abs_min_n2`` per held-out sample in N^2 (absolute),
