@@ -1,11 +1,26 @@
-"""Shared helpers of the diagnosis tests: schema check, scenario files on disk."""
+"""Shared helpers of the diagnosis tests: schema check, scenario files on disk, and an
+independent generator of "foreign" recordings (:class:`Foreign`, :func:`generate`,
+:func:`write_csv`, :func:`model_yaml`).
+
+The foreign generator is written without :mod:`sim_plc.scenarios` or :mod:`gateway.model`:
+one cable's pulley chain (Coulomb or Dahl, any number of pulleys, wrap angles and mu, normal
+force by the law of cosines from the previous step's tensions) integrated by explicit
+Euler on a fine time grid, path and sensor effects applied on that grid, then resampled at
+the recording's (possibly uneven) times, with non-white noise (coloured, spikes, 50 Hz hum,
+0.1 N quantisation), and written as CSV with the quirks recording.md allows.
+"""
 
 from __future__ import annotations
 
+import gzip
 import json
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import jsonschema
+import numpy as np
+from numba import njit
 
 from gateway.recording import write_recording
 from sim_plc.scenarios import Scenario, make_recording
@@ -40,6 +55,234 @@ def write_scenario(tmp: Path, sc: Scenario, name: str = "rec.csv") -> tuple[Path
     model = tmp / "model.yaml"
     model.write_text(MODEL_YAML.format(model=sc.nominal_model), encoding="utf-8")
     return rec_path, model
+
+
+# ---- foreign recordings: an independent generator ----
+
+
+@dataclass(frozen=True)
+class Foreign:
+    """A foreign machine and recording. Effects: ids and parameters of recording.md."""
+
+    seconds: float = 30.0
+    rate_hz: float = 250.0
+    fine_hz: float = 5000.0
+    jitter: float = 0.0  # relative std of the sample period
+    gaps: int = 0  # number of dropped stretches of rows
+    cables: int = 1
+    pulleys: tuple[tuple[float, float], ...] = ((120.0, 0.02), (45.0, 0.02))  # (wrap deg, mu)
+    model: str = "dahl"  # truth chain: coulomb | dahl
+    sigma_n_m: float = 800.0
+    tension: float = 300.0  # mean platform tension (N); rig: amplitude around zero
+    rig: bool = False
+    motion: str = "moves"  # moves | slow | constant
+    effects: dict[str, dict[str, float]] = field(default_factory=dict)
+    noise: str = "white"  # white | coloured | wander | spikes | quant | hum | mixed
+    noise_n: float = 0.3
+    seed: int = 3
+    t0: float = 0.5  # time of the first row (s); e.g. a Unix time stamp
+    vel_noise: float = 0.0  # std of noise on the velocity column (a measured velocity)
+    long_gap_s: float = 0.0  # one stretch of this many seconds without rows, mid-recording
+    blanks: int = 0  # rows with an empty tension_sensor field
+
+
+@njit(cache=True)
+def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: no cover
+    """Sensor tension (N,) from platform tension and velocity; explicit Euler on x.
+
+    Normal force from the law of cosines with the pulley's sensor-side tension of the
+    previous step (explicit), friction level ``(mu F_N + f0) (1 + sk exp(-(v/svs)^2))`` per
+    pulley."""
+    n, p = tp.size, wrap.size
+    out = np.empty(n)
+    f = np.zeros(p)
+    prev = np.full(p, tp[0])
+    for k in range(n):
+        tj = tp[k]
+        s = 1.0 if v[k] > 0 else (-1.0 if v[k] < 0 else 0.0)
+        dx = v[k] * dt
+        for j in range(p - 1, -1, -1):
+            tb = prev[j]
+            fn = math.sqrt(max(tb * tb - 2.0 * tb * tj * math.cos(wrap[j]) + tj * tj, 0.0))
+            fr = (mu[j] * fn + f0) * (1.0 + sk * math.exp(-((v[k] / svs) ** 2)))
+            if dahl:
+                if fr > 0:
+                    f[j] += sigma * (1.0 - f[j] / fr * s) * dx
+                    if abs(f[j]) > fr:
+                        f[j] = fr * np.sign(f[j])
+                else:
+                    f[j] = 0.0
+            else:
+                f[j] = s * fr
+            tj = tj - f[j]
+            prev[j] = tj
+        out[k] = tj
+    return out
+
+
+def _motion(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """Fine-grid velocity (m/s) and platform tension (N) for one cable."""
+    n = t.size
+    if fo.motion == "constant":
+        v = 0.05 + 0.002 * np.sin(2 * math.pi * 0.05 * t)
+    elif fo.motion == "slow":
+        v = 0.04 * np.sin(2 * math.pi * t / max(fo.seconds, 1.0) + 0.3)
+    else:  # point-to-point moves: trapezoid profiles between random waypoints, pauses
+        v = np.zeros(n)
+        k, dt = 0, t[1] - t[0]
+        while k < n:
+            dur = rng.uniform(0.8, 3.0)
+            vmax = rng.uniform(0.03, 0.25) * rng.choice([-1, 1])
+            ramp = rng.uniform(0.05, 0.3)
+            m = int(dur / dt)
+            tt = np.arange(m) * dt
+            prof = np.clip(np.minimum(tt, dur - tt) / ramp, 0, 1) * vmax
+            v[k : k + m] = prof[: n - k]
+            k += m + int(rng.uniform(0.0, 0.6) / dt)
+    x = np.concatenate(([0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))))
+    if fo.rig:
+        tp = fo.tension * (np.sin(2 * math.pi * 0.09 * t + 1) + 0.3 * np.sin(2 * math.pi * 0.6 * t))
+    else:
+        tp = fo.tension * (1 + 0.3 * np.sin(2 * math.pi * 0.05 * t) + 0.4 * np.tanh(3 * x))
+        steps = np.sort(rng.uniform(t[0], t[-1], int(fo.seconds / 4) + 1))
+        for when in steps:
+            tp = tp + 0.08 * fo.tension * rng.choice([-1, 1]) * np.clip((t - when) / 0.03, 0, 1)
+    return v, tp, x
+
+
+def _effects(fo: Foreign, t, v, x, ts) -> np.ndarray:
+    e = fo.effects
+    a = np.gradient(v, t)
+    if "viscous" in e:
+        ts = ts - e["viscous"]["c_ns_m"] * v
+    if "inertia" in e:
+        ts = ts - e["inertia"]["m_eff_kg"] * a
+    if "eccentricity" in e:
+        p = e["eccentricity"]
+        ts = ts + p["a_n"] * np.sin(x / p["r_m"] + p.get("phi_rad", 0.0))
+    if "gain" in e:
+        ts = ts * (1 + e["gain"]["g"])
+    if "offset" in e:
+        ts = ts + e["offset"]["c_n"]
+    if "drift" in e:
+        ts = ts + e["drift"]["k_n_s"] * (t - t[0])
+    if "lowpass" in e:
+        ts = _lowpass_fast(t, ts, e["lowpass"]["tau_s"])
+    if "delay" in e:
+        ts = np.interp(t - e["delay"]["d_s"], t, ts)
+    return ts
+
+
+@njit(cache=True)
+def _lowpass_fast(t, y, tau):  # pragma: no cover - numba
+    out = np.empty_like(y)
+    out[0] = y[0]
+    for k in range(1, y.size):
+        a = math.exp(-(t[k] - t[k - 1]) / tau)
+        out[k] = a * out[k - 1] + (1 - a) * y[k]
+    return out
+
+
+def _noise(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    n, s = t.size, fo.noise_n
+    kinds = {"coloured", "spikes", "hum", "white"} if fo.noise == "mixed" else {fo.noise}
+    out = np.zeros(n)
+    if "white" in kinds or "spikes" in kinds or "quant" in kinds or "hum" in kinds:
+        out += rng.normal(0, s, n)
+    for kind, tau in (("coloured", 0.05), ("wander", 3.0)):
+        if kind in kinds:
+            col = _lowpass_fast(t, rng.normal(0, 1, n), tau)
+            out += s * col / col.std()
+    if "hum" in kinds:
+        out += 1.5 * s * np.sin(2 * math.pi * 50.0 * t + 0.4)
+    if "spikes" in kinds:
+        idx = rng.choice(n, max(3, n // 2000), replace=False)
+        out[idx] += rng.choice([-1, 1], idx.size) * rng.uniform(20, 60, idx.size) * s
+    return out
+
+
+def sample_times(fo: Foreign, rng: np.random.Generator) -> np.ndarray:
+    """Recording times (s): the rate, with jitter and gaps (dropped stretches)."""
+    n = int(fo.seconds * fo.rate_hz)
+    dt = np.full(n, 1.0 / fo.rate_hz)
+    if fo.jitter:
+        dt = dt * np.clip(1 + fo.jitter * rng.normal(0, 1, n), 0.2, 3)
+    t = np.concatenate(([0.0], np.cumsum(dt[1:]))) + 0.5
+    t = t[t < fo.seconds]
+    keep = np.ones(t.size, bool)
+    if fo.long_gap_s:
+        mid = 0.5 * fo.seconds
+        keep &= (t < mid) | (t > mid + fo.long_gap_s)
+    for _ in range(fo.gaps):
+        lo = rng.integers(0, t.size)
+        keep[lo : lo + rng.integers(5, max(6, t.size // 50))] = False
+    return t[keep]
+
+
+def generate(fo: Foreign) -> dict[str, np.ndarray]:
+    """Columns of the recording: ``t``, and per cable velocity/tension_sensor/platform."""
+    rng = np.random.default_rng(fo.seed)
+    fine = np.arange(0.0, fo.seconds + 0.1, 1.0 / fo.fine_hz)
+    ts_out = sample_times(fo, rng)
+    cols: dict[str, np.ndarray] = {"t": ts_out - 0.5 + fo.t0}
+    wrap = np.radians([p[0] for p in fo.pulleys])
+    mu = np.array([p[1] for p in fo.pulleys])
+    f0 = fo.effects.get("coulomb", {}).get("f0_n", 0.0)
+    if "coulomb" in fo.effects and "mu" in fo.effects["coulomb"]:
+        mu = mu * fo.effects["coulomb"]["mu"] / mu.mean()
+    sigma = fo.effects.get("presliding", {}).get("sigma_n_m", fo.sigma_n_m)
+    dahl = fo.model == "dahl" or "presliding" in fo.effects
+    for i in range(1, fo.cables + 1):
+        v, tp, x = _motion(fo, fine, rng)
+        st = fo.effects.get("stribeck", {"k": 0.0, "v_s_m_s": 0.01})
+        ts = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
+        ts = _effects(fo, fine, v, x, ts)
+        sens = np.interp(ts_out, fine, ts) + _noise(fo, ts_out, rng)
+        if fo.noise in ("quant", "mixed"):
+            sens = np.round(sens / 0.1) * 0.1
+        if fo.blanks:
+            sens[rng.choice(sens.size, fo.blanks, replace=False)] = np.nan
+        cols[f"velocity_{i}"] = (
+            np.interp(ts_out, fine, v) + rng.normal(0, 1, sens.size) * fo.vel_noise
+        )
+        cols[f"tension_sensor_{i}"] = sens
+        cols[f"tension_platform_{i}"] = np.interp(ts_out, fine, tp)
+    return cols
+
+
+def model_yaml(pulleys, model: str = "dahl", sigma: float = 800.0, radius: float = 0.05) -> str:
+    """A nominal model file for ``pulleys`` ((wrap deg, mu), ...)."""
+    rows = "".join(f"    - {{wrap_deg: {w}, mu: {m}}}\n" for w, m in pulleys)
+    return (
+        f"# nominal model of a foreign machine\nfriction:\n  model: {model}\n  pulleys:\n{rows}"
+        f"  sigma_n_m: {sigma}\n  pulley_radius_m: {radius}\n"
+    )
+
+
+def write_csv(path: Path, cols: dict[str, np.ndarray], quirks: bool = False) -> Path:
+    """Write ``cols``; with ``quirks``: metadata, shuffled columns, an extra unknown column,
+    CRLF endings, scientific notation (gzip if ``path`` ends in .gz)."""
+    names = list(cols)
+    rng = np.random.default_rng(0)
+    fmt = "{:.15g}"
+    lines = []
+    if quirks:
+        names = [names[k] for k in rng.permutation(len(names))]
+        names.insert(1, "temperature_c")
+        cols = {**cols, "temperature_c": 21.5 + 0 * cols["t"]}
+        fmt = "{:.14e}"
+        lines += ["# source: someone else's logger", "# operator: x: y", "# units: SI"]
+    lines.append(",".join(names))
+    data = np.column_stack([cols[n] for n in names])
+    lines += [",".join("" if v != v else fmt.format(v) for v in row) for row in data]
+    nl = "\r\n" if quirks else "\n"
+    text = nl.join(lines) + nl
+    if path.suffix == ".gz":
+        with gzip.open(path, "wt", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+    else:
+        path.write_text(text, encoding="utf-8", newline="")
+    return path
 
 
 SCHEMA = r"""

@@ -8,6 +8,10 @@ Method
 1. **Simulate** the sensor reading of every cable from ``tension_platform_i`` (or statics
    from pose and mass, :mod:`.platform`) and ``velocity_i`` with the nominal friction chain
    (:func:`gateway.model.chain.simulate`); residual ``r = measured - simulated``.
+   A velocity column with white noise on it (a measured velocity logged in place of the
+   setpoint) is put through a dead band of 4 noise standard deviations (the noise
+   estimated from second differences; a clean setpoint is left alone), so that the
+   simulated friction does not flip sign on noise while the cable stands still.
 2. **Locate** (:mod:`.locate`): regimes per sample (reversal, rest, low/high speed,
    acceleration, steady) and contiguous regions where the smoothed residual energy is
    above twice its mean, with their share of the total residual energy.
@@ -22,6 +26,10 @@ Method
    every kept effect must, against the model refitted without it, lower the held-out SSE
    by >= 0.3 % and by >= 4 standard errors of the noise of that decrease (estimated from
    held-out block sums), and differ from its nominal value by >= 4 standard errors.
+   The first samples of each cable, until it has travelled 4 relaxation lengths
+   ``F_R / sigma`` of the nominal chain (at most 10 % of the recording), are neither
+   fitted nor scored: a recording may start in mid-motion with the friction state
+   developed, while the simulation starts relaxed.
    Long recordings (> 150 000 samples) are selected on evenly spread training blocks
    (with 1 s of warm-up each) and the result refitted on all training samples.
 5. **Confusable rivals** (delay / lowpass / inertia, gain / coulomb, drift / offset): each

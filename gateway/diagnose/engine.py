@@ -38,13 +38,43 @@ def nominal_from(friction: FrictionConfig) -> Nominal:
     )
 
 
+VELOCITY_DEADBAND_SIGMAS = 4.0
+
+
+def velocity_noise(v: np.ndarray) -> float:
+    """Robust estimate of white noise on a velocity column (m/s), 0 for a clean setpoint.
+
+    A setpoint is smooth or piecewise linear, so its second difference is zero or tiny
+    almost everywhere; white noise of std ``s`` gives second differences of std
+    ``sqrt(6) s``. Median absolute deviation, so ramps and steps do not count.
+    """
+    if v.size < 5:
+        return 0.0
+    d2 = np.diff(v, 2)
+    return float(np.median(np.abs(d2)) / 0.6745 / math.sqrt(6.0))
+
+
+def deadband(v: np.ndarray) -> np.ndarray:
+    """``v`` with values within ``VELOCITY_DEADBAND_SIGMAS`` noise stds of zero set to 0.
+
+    A measured (noisy) velocity logged in place of the setpoint would otherwise flip the
+    sign of the simulated friction at every noise sample while the cable stands still.
+    Noise below 1e-4 of the typical speed (95th percentile) is left alone.
+    """
+    noise = velocity_noise(v)
+    if v.size == 0 or noise <= 1e-4 * float(np.percentile(np.abs(v), 95)):
+        return v.copy()  # a clean setpoint (numerical roughness only)
+    return np.where(np.abs(v) < VELOCITY_DEADBAND_SIGMAS * noise, 0.0, v)
+
+
 def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None) -> list[CableData]:
-    """One :class:`CableData` per cable; ``tp``, ``dtp_dm``: (N, m)."""
+    """One :class:`CableData` per cable; ``tp``, ``dtp_dm``: (N, m); velocity through
+    :func:`deadband`."""
     t0 = float(rec.t[0])
     return [
         CableData(
             rec.t,
-            rec.velocity[:, i].copy(),
+            deadband(rec.velocity[:, i]),
             tp[:, i].copy(),
             rec.tension_sensor[:, i].copy(),
             t0,
@@ -89,6 +119,34 @@ def time_blocks(t: np.ndarray) -> tuple[np.ndarray, int]:
     return np.searchsorted(edges, t, side="right").astype(np.int64), nb
 
 
+WARMUP_LENGTHS = 4.0
+"""Relaxation lengths ``F_R / sigma`` of cable travel after which the chain state has
+forgotten its unknown start (error ``exp(-4)`` ~ 2 %)."""
+WARMUP_MAX_SHARE = 0.1
+
+
+def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
+    """(N,) bool: samples the selection may fit and score on (False: warm-up).
+
+    A recording may start in mid-motion with the pulleys' friction state developed, while
+    the simulation starts relaxed; the difference decays as ``exp(-sigma |x| / F_R)`` over
+    the cable travel ``x``. Samples before the cable has travelled ``WARMUP_LENGTHS``
+    relaxation lengths (``F_R``: the largest pulley's Coulomb level at the 99th percentile
+    of the platform tension; ``sigma``: the nominal stiffness) are left out, at most
+    ``WARMUP_MAX_SHARE`` of the samples.
+    """
+    n = d.t.size
+    if nom.model == "none" or nom.mu.size == 0 or n < 2:
+        return np.ones(n, bool)
+    lam = float(np.max(nom.mu * 2.0 * np.sin(0.5 * nom.wrap_rad)))
+    f_r = lam * float(np.percentile(np.abs(d.tp), 99))
+    travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(d.x)))))
+    first = int(np.searchsorted(travel, WARMUP_LENGTHS * f_r / nom.sigma_n_m))
+    out = np.ones(n, bool)
+    out[: min(first, int(WARMUP_MAX_SHARE * n))] = False
+    return out
+
+
 SELECTION_BUDGET = 150_000
 """Samples per cable above which the selection runs on a subset (then refit on all)."""
 WARMUP_S = 1.0
@@ -124,7 +182,7 @@ def selection_subset(t: np.ndarray, blocks: np.ndarray, budget: int = SELECTION_
 
 
 def refit_full(fw: Forward, outcome: CableOutcome, train: np.ndarray) -> CableOutcome:
-    """Refit the effects selected on a subset jointly on every training sample."""
+    """Refit the effects selected on a subset jointly on the training samples ``train``."""
     if not outcome.kept:
         return outcome
     stride = max(1, int(train.sum()) // SELECTION_BUDGET)
@@ -204,19 +262,20 @@ def diagnose(
     for i, d in enumerate(datas):
         fw = Forward(d, nom)
         cands = cable_candidates(all_cands, d, nom)
+        warm = warmup_mask(d, nom)
         say(
             f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects"
             + ("" if subset is None else f" on {subset[0].size} of {rec.samples} samples")
         )
         if subset is None:
-            outcome = CableSelector(fw, blocks, nb, cands, th).run()
+            outcome = CableSelector(fw, blocks, nb, cands, th, usable=warm).run()
         else:
             idx, sub_blocks, usable = subset
             sub_fw = Forward(d.subset(idx), nom)
             outcome = CableSelector(
-                sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th, usable=usable
+                sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th, usable=usable & warm[idx]
             ).run()
-            outcome = refit_full(fw, outcome, blocks % 2 == 0)
+            outcome = refit_full(fw, outcome, (blocks % 2 == 0) & warm)
         say(f"cable {i + 1}/{rec.cables}: kept {', '.join(outcome.kept) or 'nothing'}")
         fw.clear_cache()
         outcomes.append(outcome)

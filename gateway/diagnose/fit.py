@@ -106,7 +106,7 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
         # v_s at most 1/8 of the typical speed: above that it would mimic a Coulomb change
         return Spec(
             a([0.0, lv - 1.5]),
-            a([-0.95, lv - 4.0]),
+            a([0.0, lv - 4.0]),
             a([20.0, lv - 0.9]),
             (0,),
             a([0.05, 0.05]),
@@ -179,6 +179,31 @@ def _linear_step(
     out = theta.copy()
     out[list(spec.linear)] += sol
     return np.clip(out, spec.lower, spec.upper)
+
+
+def linear_refit(
+    fw: Forward, theta: dict[str, np.ndarray], specs: dict[str, Spec], mask: np.ndarray
+) -> dict[str, np.ndarray]:
+    """One joint Gauss-Newton step on the linear parameters of every effect in ``theta``
+    (nonlinear ones held), so that a new effect is judged with the kept ones' linear parts
+    free: a drift screened on top of an offset fixed at the mean would otherwise look
+    weaker than it is (the offset holds the drift's mean)."""
+    y0 = fw.predict(theta)
+    r = (fw.data.ts - y0)[mask]
+    cols, where = [], []
+    for e, th in theta.items():
+        for j in specs[e].linear:
+            trial = {**theta, e: th.copy()}
+            trial[e][j] += specs[e].step[j]
+            cols.append(((fw.predict(trial) - y0) / specs[e].step[j])[mask])
+            where.append((e, j))
+    if not cols:
+        return theta
+    sol, *_ = np.linalg.lstsq(np.column_stack(cols), r, rcond=None)
+    out = {e: v.astype(float).copy() for e, v in theta.items()}
+    for (e, j), step in zip(where, sol, strict=True):
+        out[e][j] += step
+    return {e: np.clip(v, specs[e].lower, specs[e].upper) for e, v in out.items()}
 
 
 def best_start(

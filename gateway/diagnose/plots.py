@@ -121,6 +121,14 @@ def summary(diag: Diagnosis, source: str) -> str:
             f"On the validation recording: {f['validation_rmse_before_n']:.3f} N -> "
             f"{f['validation_rmse_after_n']:.3f} N."
         )
+    fin = rep["final"]
+    if fin.get("unexplained_n", 0.0) > 2.0 * fin.get("noise_n", 0.0):
+        lines.append(
+            f"The held-out residual ({fin['holdout_rmse_n']:.3f} N) is still well above the "
+            f"sensor noise estimated from sample-to-sample differences ({fin['noise_n']:.3f} N): "
+            "the recording holds a mismatch that none of the candidate effects explains (see "
+            "where the residual lives, below), or noise that is not white."
+        )
     lines.append("")
     if not rep["findings"]:
         lines += [

@@ -2,10 +2,14 @@
 
 Beyond the schema's keys the report carries ``skipped_rows`` (rows without a required
 value) and ``regime_shares`` (per regime: share of the nominal residual energy and of the
-samples). ``rmse_*`` are over every cable and sample, ``holdout_*`` over the held-out
-blocks, ``validation_*`` over the ``--validate`` recording; each finding's before/after
-are cumulative in the findings' order. A standard error that could not be computed
-(singular Jacobian, parameter at a bound) is written as -1.
+samples); ``final`` also carries ``noise_n`` (white noise of the final residual, estimated
+from sample-to-sample differences) and ``unexplained_n`` (the held-out RMSE beyond that
+noise, ``sqrt(holdout^2 - noise^2)``: what no finding explains; large when the recording
+holds physics outside the candidate list, or noise that is not white). ``rmse_*`` are over
+every cable and sample, ``holdout_*`` over the held-out blocks, ``validation_*`` over the
+``--validate`` recording; each finding's before/after are cumulative in the findings'
+order. A standard error that could not be computed (singular Jacobian, parameter at a
+bound) is written as -1.
 """
 
 from __future__ import annotations
@@ -73,6 +77,15 @@ def _finding(effect, outcomes, rmse_pairs, ev) -> dict:
     return out
 
 
+def noise_estimate(resid: np.ndarray) -> float:
+    """White-noise std (N) of a residual (N, m): median absolute first difference / sqrt 2,
+    robust to the slow part of the residual and to outliers; RMS over the cables."""
+    if resid.shape[0] < 3:
+        return 0.0
+    per = np.median(np.abs(np.diff(resid, axis=0)), axis=0) / 0.6745 / math.sqrt(2.0)
+    return float(math.sqrt(np.mean(per**2)))
+
+
 def _num(v: float) -> float:
     """JSON-safe float (NaN/inf -> a large sentinel is worse than 0 for a stderr: use -1)."""
     return float(v) if math.isfinite(v) else -1.0
@@ -119,7 +132,13 @@ def build_report(
         ev = evidence(effect, outcomes, regime, before[1], after[1])
         findings.append(_finding(effect, outcomes, pairs, ev))
         before = after
-    final = {"rmse_n": before[0], "holdout_rmse_n": before[1]}
+    noise = noise_estimate(measured - before[3])
+    final = {
+        "rmse_n": before[0],
+        "holdout_rmse_n": before[1],
+        "noise_n": noise,
+        "unexplained_n": math.sqrt(max(before[1] ** 2 - noise**2, 0.0)),
+    }
     if vfw is not None:
         final["validation_rmse_before_n"] = _rmse(vmeas - _preds(vfw, [{} for _ in vfw]))
         final["validation_rmse_after_n"] = float(before[2] or 0.0)

@@ -2,8 +2,9 @@
 
 The recording is cut into ``n_blocks`` time blocks; even blocks train, odd blocks are held
 out, so both halves see every regime of a repeated motion. Each step fits every remaining
-candidate on top of the effects already kept (those held fixed), scores it on the held-out
-blocks, and keeps the best one only if
+candidate on top of the effects already kept (their nonlinear parameters held, their
+linear ones re-solved with the candidate's), scores it on the held-out blocks, and keeps
+the best one only if
 
 * it lowers the held-out sum of squares by at least ``rel_min`` of it (relative) and by
   ``abs_min_n2`` per held-out sample in N^2 (absolute),
@@ -25,7 +26,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gateway.diagnose.fit import FitResult, Spec, best_start, block_sse, joint_fit, spec_for
+from gateway.diagnose.fit import (
+    FitResult,
+    Spec,
+    best_start,
+    block_sse,
+    joint_fit,
+    linear_refit,
+    spec_for,
+)
 from gateway.diagnose.forward import Forward
 
 ROUNDS = 3
@@ -146,18 +155,24 @@ class CableSelector:
             and self._z(pred_a, pred_b) >= z_min
         )
 
-    def _screen(self, kept: dict[str, np.ndarray], effect: str, pred: np.ndarray):
-        """Fit ``effect`` alone on top of ``kept`` (held fixed) for ranking.
+    def _screen(
+        self, kept: dict[str, np.ndarray], effect: str, pred: np.ndarray, specs: dict[str, Spec]
+    ):
+        """Fit ``effect`` on top of ``kept`` for ranking.
 
         The best of the effect's starting points (grids, periodogram) with its linear
-        parameters solved by one Gauss-Newton step; only the effect that is taken is
-        refined by least squares (jointly with the kept ones), which keeps a step cheap.
+        parameters solved by one Gauss-Newton step, then one joint step on the linear
+        parameters of the kept effects and the new one (:func:`linear_refit`); only the
+        effect that is taken is refined by least squares (jointly with the kept ones),
+        which keeps a step cheap.
         """
         spec = spec_for(effect, self.fw.data, self.fw.nom, self.fw.data.ts - pred, self.train)
         start = best_start(self.fw, kept, effect, spec, self.train)
-        theta = {effect: start}
+        theta = {**kept, effect: start}
+        if kept:
+            theta = linear_refit(self.fw, theta, {**specs, effect: spec}, self.train)
         nan = {effect: np.full(start.size, np.nan)}
-        return spec, FitResult(theta, nan, self.fw.predict({**kept, **theta}), True)
+        return spec, FitResult({effect: theta[effect]}, nan, self.fw.predict(theta), True)
 
     def run(self) -> CableOutcome:
         """Rounds of forward steps, swaps and the strict backward check (until a forward
@@ -184,7 +199,7 @@ class CableSelector:
         while len(kept) < self.th.max_effects:
             best = None
             for effect in (c for c in self.candidates if c not in kept):
-                spec, fit = self._screen(kept, effect, pred)
+                spec, fit = self._screen(kept, effect, pred, specs)
                 after = self._test_sse(fit.pred)
                 ok = self._accept(pred, fit.pred, self.th.z_screen)
                 if ok and (best is None or after.sum() < best[2]):
@@ -255,7 +270,9 @@ class CableSelector:
             rest = {k: v for k, v in kept.items() if k != effect}
             screened = []
             for cand in (c for c in self.candidates if c not in kept):
-                spec, fit = self._screen(rest, cand, self.fw.predict(rest))
+                spec, fit = self._screen(
+                    rest, cand, self.fw.predict(rest), {k: specs[k] for k in rest}
+                )
                 screened.append((float(self._test_sse(fit.pred).sum()), cand, spec, fit))
             screened.sort(key=lambda row: row[0])
             for _, cand, spec, fit in screened[:2]:  # the two best, each refitted jointly
