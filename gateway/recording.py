@@ -54,8 +54,8 @@ class Recording:
 
 def _open_text(path: Path) -> io.TextIOWrapper:
     if path.suffix == ".gz":
-        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8")
-    return open(path, encoding="utf-8")
+        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8-sig")
+    return open(path, encoding="utf-8-sig")  # utf-8-sig: spreadsheets write a BOM
 
 
 def _split_header(path: Path, lines: list[str]) -> tuple[dict[str, str], int, list[str]]:
@@ -72,7 +72,8 @@ def _split_header(path: Path, lines: list[str]) -> tuple[dict[str, str], int, li
         i += 1
     if i >= len(lines):
         raise RecordingError(f"{path}: no header row")
-    names = [c.strip() for c in lines[i].rstrip("\r\n").split(",")]
+    # spreadsheets may quote every header name: "t","velocity_1",...
+    names = [c.strip().strip('"').strip() for c in lines[i].rstrip("\r\n").split(",")]
     seen: set[str] = set()
     for col, name in enumerate(names, start=1):
         if not name:

@@ -103,3 +103,14 @@ def test_corrupt_gzip_is_refused(tmp_path: Path) -> None:
     path.write_bytes(gzip.compress(b"t,velocity_1\n")[:10])
     with pytest.raises(RecordingError, match="cannot read"):
         read_recording(path)
+
+
+def test_spreadsheet_csv_with_bom_and_quoted_header(tmp_path: Path) -> None:
+    path = tmp_path / "excel.csv"
+    text = '# source: excel\r\n"t","velocity_1","tension_sensor_1","tension_platform_1"\r\n'
+    text += "0,0.1,100,101\r\n1e-3,0.1,100.5,101.5\r\n"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    rec = read_recording(path)
+    assert rec.metadata == {"source": "excel"}
+    assert rec.samples == 2 and rec.cables == 1
+    assert_allclose(rec.tension_sensor[:, 0], [100.0, 100.5])
