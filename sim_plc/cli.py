@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import signal
 import sys
 import threading
@@ -35,6 +36,13 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--seconds", type=float, required=True, help="duration (s)")
         parser.add_argument("--out", required=True, help="recording to write (.csv or .csv.gz)")
         parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+        parser.add_argument(
+            "--seed",
+            type=int,
+            default=None,
+            help="noise (and random-motion) seed instead of the config's: a second "
+            "recording of the same machine for diagnose --validate",
+        )
     else:
         parser.add_argument("--host", default=None, help="address to listen on")
         parser.add_argument("--port", type=int, default=None, help="TCP port (0: any free)")
@@ -60,8 +68,11 @@ class _ProgressBar:
         pct = int(fraction * 100)
         if not self.quiet and pct != self.last:
             self.last = pct
-            end = "\n" if pct >= 100 else ""
-            print(f"\r{self.label}: {pct:3d} %", end=end, file=sys.stderr, flush=True)
+            if sys.stderr.isatty():  # one line, rewritten
+                end = "\n" if pct >= 100 else ""
+                print(f"\r{self.label}: {pct:3d} %", end=end, file=sys.stderr, flush=True)
+            elif pct % 10 == 0:  # a log file gets a line every 10 %
+                print(f"{self.label}: {pct:3d} %", file=sys.stderr, flush=True)
 
 
 def _record(cfg: Config, args: argparse.Namespace) -> int:
@@ -71,6 +82,12 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
         raise ConfigError("--seconds must be > 0")
     out = Path(args.out)
     sim = load_sim_config(cfg)
+    if getattr(args, "seed", None) is not None:
+        traj = sim.trajectory
+        motion = dataclasses.replace(traj.random, seed=args.seed + 1000)
+        sim = dataclasses.replace(
+            sim, seed=args.seed, trajectory=dataclasses.replace(traj, random=motion)
+        )
     t0 = time.perf_counter()
     rec = make_recording(cfg, sim, args.seconds, _ProgressBar("record", args.quiet))
     write_recording(out, rec)
