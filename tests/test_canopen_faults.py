@@ -7,8 +7,6 @@ and once the fault clears resumes writing good channels within a bounded time.
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
 import threading
 import time
 from collections.abc import Callable
@@ -25,10 +23,7 @@ from gateway.demo import StandInPlant
 from gateway.loop import CyclicService
 from sim_plc.canopen_nodes import CanopenPlc
 from sim_plc.image import ProcessImage
-from tests.loop_helpers import config
-from tests.test_loop_canopen import PlantThread
-
-_channels = itertools.count()
+from tests.test_loop_canopen import PlantThread, virtual_canopen_config
 
 
 def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
@@ -50,12 +45,7 @@ def _stop_sync(plc: CanopenPlc, on: bool) -> None:
 
 @pytest.mark.parametrize("fault", [_silence_analog, _stop_sync], ids=["lost-pdos", "no-sync"])
 def test_canopen_fault_stops_writes_is_counted_and_recovers(fault) -> None:
-    base = config()
-    channel = f"cdpr-fault-test-{next(_channels)}-{id(base)}"
-    can_cfg = dataclasses.replace(base.bus.canopen, interface="virtual", channel=channel)
-    cfg = dataclasses.replace(
-        base, bus=dataclasses.replace(base.bus, driver="canopen", canopen=can_cfg)
-    )
+    cfg = virtual_canopen_config()
     image = ProcessImage(cfg.cables)
     plant = StandInPlant(cfg, image)
     plant.step()

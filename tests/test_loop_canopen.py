@@ -21,6 +21,7 @@ pytest.importorskip("canopen")
 
 from drivers.base import GatewayState
 from drivers.canopen import CanopenDriver
+from gateway.config import Config
 from gateway.demo import StandInPlant
 from gateway.loop import CyclicService
 from sim_plc.canopen_nodes import CanopenPlc
@@ -58,13 +59,18 @@ class PlantThread:
         self.thread.join(timeout=10)
 
 
-def test_gateway_over_canopen_virtual_bus_compensates():
+def virtual_canopen_config() -> Config:
+    """The test config on a private python-can virtual channel (no cross-talk)."""
     base = config()
     channel = f"cdpr-loop-test-{next(_channels)}-{id(base)}"
     can_cfg = dataclasses.replace(base.bus.canopen, interface="virtual", channel=channel)
-    cfg = dataclasses.replace(
+    return dataclasses.replace(
         base, bus=dataclasses.replace(base.bus, driver="canopen", canopen=can_cfg)
     )
+
+
+def test_gateway_over_canopen_virtual_bus_compensates():
+    cfg = virtual_canopen_config()
     image = ProcessImage(cfg.cables)
     plant = StandInPlant(cfg, image)
     plant.step()
