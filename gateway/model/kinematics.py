@@ -78,10 +78,17 @@ def cable_vectors_batch(
     frame_anchors: ArrayLike, platform_anchors: ArrayLike, poses: ArrayLike
 ) -> FloatArray:
     """Cable vectors ``l_i = a_i - r - R b_i`` (eq. 1) for poses (N, 6). Returns (N, m, 3) in m."""
+    return _rotated_anchors_and_vectors(frame_anchors, platform_anchors, poses)[1]
+
+
+def _rotated_anchors_and_vectors(
+    frame_anchors: ArrayLike, platform_anchors: ArrayLike, poses: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """``R b_i`` (the moment arms) and ``l_i = a_i - r - R b_i``, both (N, m, 3) in m."""
     a, b = _as_anchors(frame_anchors, platform_anchors)
     p = _as_poses(poses)
     rb = np.einsum("nij,mj->nmi", rotation_matrices(p[:, 3:]), b)
-    return a[None, :, :] - p[:, None, :3] - rb
+    return rb, a[None, :, :] - p[:, None, :3] - rb
 
 
 def cable_vectors(
@@ -127,10 +134,7 @@ def structure_matrix_batch(
     frame_anchors: ArrayLike, platform_anchors: ArrayLike, poses: ArrayLike
 ) -> FloatArray:
     """Structure matrices for poses (N, 6). Returns (N, 6, m); see ``structure_matrix``."""
-    a, b = _as_anchors(frame_anchors, platform_anchors)
-    p = _as_poses(poses)
-    rb = np.einsum("nij,mj->nmi", rotation_matrices(p[:, 3:]), b)
-    vec = a[None, :, :] - p[:, None, :3] - rb
+    rb, vec = _rotated_anchors_and_vectors(frame_anchors, platform_anchors, poses)
     u = vec / np.linalg.norm(vec, axis=-1, keepdims=True)
     moment = np.cross(rb, u)
     return np.concatenate([u, moment], axis=-1).transpose(0, 2, 1)
