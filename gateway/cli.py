@@ -18,7 +18,7 @@ from gateway.errors import GatewayError
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("gateway.daemon", "run the gateway daemon against the PLC in the config"),
-    "demo": ("gateway.demo", "soft PLC and gateway on loopback, then a table of results"),
+    "demo": ("sim_plc.demo", "soft PLC and gateway on loopback, then a table of results"),
     "sim-plc": ("sim_plc.cli", "serve the soft PLC (Modbus TCP / CANopen) until stopped"),
     "record": ("sim_plc.cli", "run the soft PLC's plant and write a recording (CSV)"),
     "replicate": ("sim_plc.replicate", "reproduce the paper's experiment (JSON, markdown, PNG)"),
