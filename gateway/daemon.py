@@ -60,7 +60,8 @@ def add_log_level(parser: argparse.ArgumentParser) -> None:
 
 def setup_logging(level: str) -> None:
     """The project's log format on stderr; foreign loggers at WARNING unless DEBUG."""
-    logging.basicConfig(level=level, stream=sys.stderr, format=LOG_FORMAT, force=True)
+    logging.basicConfig(stream=sys.stderr, format=LOG_FORMAT)  # no-op if already set up
+    logging.getLogger().setLevel(level)
     foreign = logging.DEBUG if level == "DEBUG" else logging.WARNING
     for name in FOREIGN_LOGGERS:
         logging.getLogger(name).setLevel(foreign)

@@ -363,6 +363,13 @@ class CyclicService:
         gc.unfreeze()
 
 
+def _cause(where: str, error: BaseException | None) -> str:
+    """The driver's error text, prefixed with the bus unless it names the address."""
+    text = str(error) if error is not None else "no error reported"
+    address = where.split(" ")[1] if " " in where else where
+    return text if address in text else f"{where}: {text}"
+
+
 class _Reporter:
     """What the loop says, outside the cycle's work: state changes (each once), the
     rate-limited summary of counters, and the systemd notifications."""
@@ -402,9 +409,9 @@ class _Reporter:
                     f"{svc.cfg.loop.heartbeat_timeout_s:g} s; tension writes stopped"
                 )
             elif old is Lifecycle.STOPPED and not svc._ever_connected:
-                line = f"cannot reach the PLC at {where} yet ({svc.last_error}); retrying"
+                line = f"cannot reach the PLC yet: {_cause(where, svc.last_error)}; retrying"
             else:
-                line = f"disconnected from the PLC at {where}: {svc.last_error}; reconnecting"
+                line = f"disconnected from the PLC: {_cause(where, svc.last_error)}; reconnecting"
             # within one outage a reopen that fails again says so only when the cause changed
             level = logging.WARNING if not in_outage else logging.DEBUG
             if in_outage and line != self.cause:
@@ -418,11 +425,14 @@ class _Reporter:
             log.log(logging.DEBUG if in_outage else logging.INFO, "connected to the PLC at %s", where)
         elif new is Lifecycle.ACTIVE:
             if in_outage:
-                log.warning("recovered: active again after %.1f s", now - self.fault_since)
+                log.warning(
+                    "recovered: connected to the PLC at %s, active again after %.1f s",
+                    where, now - self.fault_since,
+                )  # fmt: skip
                 self.fault_since = math.nan
                 self.cause = ""
             else:
-                log.info("active: writing corrected tensions to %s", where)
+                log.info("connected to the PLC at %s; active, writing corrected tensions", where)
             self._status("active")
             if svc.notifier is not None and not self.ready_sent:
                 self.ready_sent = True

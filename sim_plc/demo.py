@@ -87,7 +87,8 @@ class TruthScorer:
 
     ``source(truth)`` fills ``truth`` and returns the PLC heartbeat of that plant step
     (None: unknown, score anyway); a heartbeat other than the gateway's reading means
-    the plant has stepped since: that sample is skipped (``mismatched``).
+    the plant has stepped since: that sample is skipped (``mismatched``) and the next
+    cycle tries again.
     """
 
     def __init__(self, cables: int, source: TruthSource, every: int = 1) -> None:
@@ -116,6 +117,7 @@ class TruthScorer:
             return
         if heartbeat is not None and heartbeat != inputs.plc_heartbeat:
             self.mismatched += 1
+            self._countdown = 1  # the plant stepped in between: try again next cycle
             return
         self.score.add(self.truth, comp.raw_n, comp.corrected_n, comp.status)
 
