@@ -335,3 +335,74 @@ def test_overrun_warnings_are_rate_limited(caplog):
         sum(int(r.getMessage().split("overruns +")[1].split()[0].rstrip(",")) for r in warnings)
         <= 25
     )
+
+
+# --- plausibility of the setpoints (issue 13.6) -----------------------------------------
+
+
+def test_pose_of_1e20_m_is_flagged_counted_and_gives_no_wrench():
+    snap = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        img = holder["img"]
+        if n == 30:
+            img.pose[0] = 1e20  # from read 30 on
+        if n == 40:
+            snap["status"] = img.channel_status.copy()
+            snap["wrench"] = img.wrench.copy()
+
+    svc, _, img, _ = make(on_read=record)
+    holder["img"] = img
+    good_wrench = None
+
+    def observe(inputs, comp, now):
+        nonlocal good_wrench
+        if good_wrench is None and np.all(np.isfinite(comp.wrench)):
+            good_wrench = comp.wrench.copy()
+
+    svc.add_observer(observe)
+    svc.run(cycles=45)
+    assert good_wrench is not None and np.all(np.isfinite(good_wrench))  # before: a wrench
+    assert np.all(np.isnan(snap["wrench"]))  # after: none
+    assert np.all(snap["status"] != ChannelStatus.GOOD)  # every channel flagged
+    assert svc.stats.errors["implausible"] == 45 - 30 + 1
+
+
+def test_velocity_of_3_4e38_m_s_flags_that_channel_only():
+    snap = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        img = holder["img"]
+        if n == 20:
+            img.velocity_m_s[3] = 3.4e38
+        if n == 30:
+            snap["status"] = img.channel_status.copy()
+            snap["corrected"] = img.corrected_n.copy()
+
+    svc, _, img, _ = make(on_read=record, substitute_max_s=0.005)
+    holder["img"] = img
+    svc.run(cycles=35)
+    assert snap["status"][3] == ChannelStatus.INVALID and np.isnan(snap["corrected"][3])
+    others = np.delete(snap["status"], 3)
+    assert np.all(others == ChannelStatus.GOOD)
+    assert svc.stats.errors["implausible"] == 35 - 20 + 1
+    assert svc.stats.errors["invalid_value"] == 1
+
+
+def test_plausibility_bounds_come_from_the_geometry():
+    from gateway.plausibility import Plausibility
+
+    cfg = config()
+    bounds = Plausibility(cfg)
+    np.testing.assert_allclose(bounds.lo, [-2.5, -2.0, -0.5], atol=1e-12)  # frame - 0.5 m
+    np.testing.assert_allclose(bounds.hi, [2.5, 2.0, 3.5], atol=1e-12)
+    from drivers.base import Inputs
+
+    inputs = Inputs.allocate(cfg.cables)
+    inputs.pose[:] = cfg.geometry.home_pose
+    inputs.length_m[:] = 2.0
+    assert bounds.check(inputs) == 0 and np.all(np.isfinite(inputs.pose))
+    inputs.length_m[5] = 1e6  # no cable of this frame is a kilometre long
+    assert bounds.check(inputs) == 1 and np.isnan(inputs.velocity_m_s[5])
