@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ipaddress
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -344,6 +345,23 @@ def config_warnings(cfg: Config) -> list[str]:
             "overflow (invalid)"
         )
     return lines
+
+
+def output_path(path: str | Path, option: str) -> Path:
+    """``path`` for a file a command will write, checked before the work starts.
+
+    The directory must exist and be writable (it is never created: a typo in a path must
+    not leave directories behind); errors name the option and the path.
+    """
+    p = Path(path)
+    parent = p.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{option} {p}: directory {parent} does not exist")
+    if p.is_dir():
+        raise ConfigError(f"{option} {p}: is a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {p}: directory {parent} is not writable")
+    return p
 
 
 def config_from_mapping(data: dict[str, Any], source: str = "") -> Config:

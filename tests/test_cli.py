@@ -157,3 +157,26 @@ def test_check_connect_says_why_it_cannot_read(tmp_path, capsys) -> None:
     assert main(["check", "--config", write_config(tmp_path, point), "--connect"]) == 1
     err = capsys.readouterr().err
     assert "cannot read from the PLC" in err and "refused" in err.lower()
+
+
+def test_record_into_a_missing_directory_fails_before_simulating(tmp_path, capsys) -> None:
+    import time
+
+    out = tmp_path / "missing" / "x.csv"
+    t0 = time.perf_counter()
+    assert main(["record", "--seconds", "600", "--out", str(out), "--quiet"]) == 2
+    assert time.perf_counter() - t0 < 60  # 600 s of plant were not simulated first
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--out {out}: directory" in err[0] and "does not exist" in err[0]
+    assert not out.parent.exists()
+
+
+def test_diagnose_json_into_a_missing_directory_is_refused_and_not_created(tmp_path,
+                                                                           capsys) -> None:  # fmt: skip
+    target = tmp_path / "nonexistent" / "x.json"
+    argv = ["diagnose", str(tmp_path / "rec.csv"), "--model", str(DEFAULT_CONFIG_PATH),
+            "--json", str(target)]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"--json {target}: directory" in err
+    assert not target.parent.exists()
