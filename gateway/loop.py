@@ -422,7 +422,9 @@ class _Reporter:
             log.log(level, "%s", line)
             self._status(line)
         elif new is Lifecycle.CONNECTED:
-            log.log(logging.DEBUG if in_outage else logging.INFO, "connected to the PLC at %s", where)
+            log.log(
+                logging.DEBUG if in_outage else logging.INFO, "connected to the PLC at %s", where
+            )
         elif new is Lifecycle.ACTIVE:
             if in_outage:
                 log.warning(

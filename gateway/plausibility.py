@@ -67,12 +67,11 @@ class Plausibility:
 
     def check(self, inputs: Inputs) -> int:
         """Flag implausible setpoints of ``inputs`` (NaN in place); return their number."""
-        return int(
-            _check(
-                inputs.velocity_m_s, inputs.length_m, inputs.pose, self.speed_max,
-                self.length_max, self.lo, self.hi, self.rotation_max,
-            )  # fmt: skip
-        )
+        bad = _check(
+            inputs.velocity_m_s, inputs.length_m, inputs.pose, self.speed_max,
+            self.length_max, self.lo, self.hi, self.rotation_max,
+        )  # fmt: skip
+        return int(bad)
 
     def describe(self) -> str:
         lo = ", ".join(f"{x:g}" for x in self.lo)

@@ -59,6 +59,8 @@ def truth_fields(cables: int) -> tuple[RegisterField, RegisterField]:
     """The side channel's true tensions (float32) and heartbeat copy (uint16)."""
     truth = RegisterField(TRUTH_ADDRESS, cables, "float32")
     return truth, RegisterField(truth.end, 1, "uint16")
+
+
 _DECODABLE = frozenset((1, 2, 3, 4, 5, 6, 7, 8, 11, 12, 15, 16, 17, 20, 21, 22, 23, 24, 43))
 
 

@@ -171,8 +171,7 @@ def test_record_into_a_missing_directory_fails_before_simulating(tmp_path, capsy
     assert not out.parent.exists()
 
 
-def test_diagnose_json_into_a_missing_directory_is_refused_and_not_created(tmp_path,
-                                                                           capsys) -> None:  # fmt: skip
+def test_diagnose_json_into_a_missing_directory_is_refused(tmp_path, capsys) -> None:
     target = tmp_path / "nonexistent" / "x.json"
     argv = ["diagnose", str(tmp_path / "rec.csv"), "--model", str(DEFAULT_CONFIG_PATH),
             "--json", str(target)]  # fmt: skip

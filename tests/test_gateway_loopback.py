@@ -25,8 +25,8 @@ from pymodbus.client import ModbusTcpClient
 from drivers.base import Lifecycle
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver
-from sim_plc.demo import TRUTH_EVERY_CYCLES, SoftPlc, TruthChannel, TruthScorer, with_port
 from gateway.loop import CyclicService
+from sim_plc.demo import TRUTH_EVERY_CYCLES, SoftPlc, TruthChannel, TruthScorer, with_port
 
 pytestmark = pytest.mark.loopback
 RUN_S = 4.0  # how long the gateway runs; no assertion depends on it being exact

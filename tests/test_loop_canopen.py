@@ -22,9 +22,9 @@ pytest.importorskip("canopen")
 from drivers.base import Lifecycle
 from drivers.canopen import CanopenDriver
 from gateway.config import Config
-from sim_plc.demo import StandInPlant, TruthScorer
 from gateway.loop import CyclicService
 from sim_plc.canopen_nodes import CanopenPlc
+from sim_plc.demo import StandInPlant, TruthScorer
 from sim_plc.image import ProcessImage
 from tests.loop_helpers import config
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import threading
@@ -104,10 +105,8 @@ class Drain:
 
     def _run(self) -> None:
         while not self.stop.is_set():
-            try:
+            with contextlib.suppress(TimeoutError):
                 self.msgs.append(self.sock.recv(4096).decode())
-            except TimeoutError:
-                pass
 
     def finish(self) -> list[str]:
         time.sleep(0.2)
@@ -132,7 +131,7 @@ def test_loop_sends_ready_once_active_watchdog_while_cycling_and_stopping(notify
     path, sock = notify_socket
     notifier = Notifier.from_env({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "200000"})
     assert notifier is not None
-    svc, _, clock = make(VirtualFaults(drop_on_read=1000), notifier=notifier)
+    svc, _, _ = make(VirtualFaults(drop_on_read=1000), notifier=notifier)
     drain = Drain(sock)
     svc.run(cycles=2500)  # 2.5 s of loop time on the fake clock
     msgs = drain.finish()
