@@ -106,7 +106,7 @@ def test_corrected_tracks_the_true_tension_far_better_than_raw():
     err_corrected = rms(regs["corrected"][good] - regs["true"][good])
     assert err_corrected < 0.5 * err_raw, (err_raw, err_corrected)
     # the demo's scoring through the side channel agrees (same plant step only)
-    assert scorer.score.samples.min() > 100, (scorer.score.samples, scorer.mismatched)
+    assert scorer.score.samples.min() >= 30, (scorer.score.samples, scorer.mismatched)
     raw, corrected = scorer.score.rmse()
     assert corrected.mean() < 0.5 * raw.mean()
     assert service.stats.written > 1000
