@@ -433,6 +433,7 @@ class _Reporter:
                 )  # fmt: skip
                 self.fault_since = math.nan
                 self.cause = ""
+                self.next_check = now  # the next summary (if any) says the state is active
             else:
                 log.info("connected to the PLC at %s; active, writing corrected tensions", where)
             self._status("active")

@@ -31,7 +31,9 @@ def messages(caplog) -> list[str]:
 
 
 def test_each_state_change_is_logged_once_with_its_cause(caplog):
-    svc, _, _ = make(VirtualFaults(drop_on_read=100), overrun_warning_interval_s=0.2)
+    # a summary at ~0.5 s (channels stuck on the static image) holds the next one back
+    # for 10 s; the outage at read 1000 must not leave it unsaid that the bus recovered
+    svc, _, _ = make(VirtualFaults(drop_on_read=1000))
     with caplog.at_level(logging.INFO, logger="cdpr_gateway.loop"):
         svc.run(cycles=1500)
     lines = messages(caplog)
@@ -41,8 +43,10 @@ def test_each_state_change_is_logged_once_with_its_cause(caplog):
     assert len(connected) == 1 and len(lost) == 1 and len(recovered) == 1, lines
     assert "connection dropped (fault injection)" in lost[0]  # the driver's cause
     assert lines.index(lost[0]) < lines.index(recovered[0])
-    summaries = [m for m in lines if m.startswith("gateway: ")]
-    assert summaries and summaries[-1].endswith("(state active)"), summaries
+    after = lines[lines.index(recovered[0]) + 1 :]
+    summaries = [m for m in after if m.startswith("gateway: ")]
+    assert len(summaries) == 1 and "reconnects +1" in summaries[0], lines
+    assert summaries[0].endswith("(state active)")
 
 
 def test_unreachable_plc_at_start_says_why(caplog):
