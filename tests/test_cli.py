@@ -179,3 +179,21 @@ def test_diagnose_json_into_a_missing_directory_is_refused(tmp_path, capsys) -> 
     err = capsys.readouterr().err
     assert f"--json {target}: directory" in err
     assert not target.parent.exists()
+
+
+def test_the_daemons_modules_never_import_sim_plc() -> None:
+    """sim_plc (soft PLC, demo, record) is on top of everything: the daemon never loads it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    code = (
+        "import sys, gateway.cli, gateway.daemon, gateway.loop, gateway.metrics, gateway.check, "
+        "gateway.stats, gateway.pacing, gateway.plausibility, gateway.sdnotify; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sim_plc'))"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=root, timeout=120)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]"
