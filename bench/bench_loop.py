@@ -26,8 +26,9 @@ import numpy as np
 
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver
-from gateway.demo import InProcessCanopenPlc, SoftPlc, with_port
-from gateway.loop import CyclicService, Ring
+from gateway.loop import CyclicService
+from gateway.stats import Ring
+from sim_plc.demo import InProcessCanopenPlc, SoftPlc, with_port
 
 FLOOR_MAX = 20000  # floor transactions (back to back)
 

@@ -43,20 +43,28 @@ class ChannelStatus(enum.IntEnum):
     INVALID = 2
 
 
-class GatewayState(enum.IntEnum):
-    """Written to the PLC (register 125 by default)."""
+class Lifecycle(enum.IntEnum):
+    """The one lifecycle of the gateway (driver and loop); the value is the wire code the
+    PLC sees in the gateway state register (125 by default) and the metric
+    ``cdpr_gateway_state``.
+
+    ``STOPPED`` (0): not running, closed or ended (alias ``UNCONFIGURED``: a driver not
+    yet opened); ``CONNECTED`` (1): open and reading, nothing written yet (alias
+    ``CONNECTING``); ``ACTIVE`` (2): writing corrected tensions; ``FAULT`` (3): bus down
+    or the PLC heartbeat frozen.
+    """
 
     STOPPED = 0
-    CONNECTING = 1
+    CONNECTED = 1
     ACTIVE = 2
     FAULT = 3
+    UNCONFIGURED = 0
+    CONNECTING = 1
 
 
-class DriverState(enum.Enum):
-    UNCONFIGURED = "unconfigured"
-    CONNECTED = "connected"  # reading
-    ACTIVE = "active"  # writing
-    FAULT = "fault"
+# Former names of the one enum, kept so that code written against them keeps working.
+GatewayState = Lifecycle
+DriverState = Lifecycle
 
 
 @dataclass
@@ -69,16 +77,14 @@ class Inputs:
     pose: np.ndarray  # (6,) x, y, z m; rx, ry, rz rad
     plc_heartbeat: int = 0
     read_time_s: float = 0.0  # time.monotonic() when the reply arrived
-    true_tension_n: np.ndarray | None = None  # soft PLC only (registers 200-215)
 
     @staticmethod
-    def allocate(cables: int, with_truth: bool = False) -> Inputs:
+    def allocate(cables: int) -> Inputs:
         return Inputs(
             tension_raw_n=np.zeros(cables),
             velocity_m_s=np.zeros(cables),
             length_m=np.zeros(cables),
             pose=np.zeros(6),
-            true_tension_n=np.zeros(cables) if with_truth else None,
         )
 
 
@@ -90,7 +96,7 @@ class Outputs:
     channel_status: np.ndarray  # (m,) uint16, ChannelStatus values
     wrench: np.ndarray  # (6,) N, N m
     gateway_heartbeat: int = 0
-    gateway_state: int = int(GatewayState.CONNECTING)
+    gateway_state: int = int(Lifecycle.CONNECTED)
 
     @staticmethod
     def allocate(cables: int) -> Outputs:

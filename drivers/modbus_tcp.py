@@ -4,8 +4,7 @@ One transaction per cycle. With ``use_fc23`` the outputs given to :meth:`write_f
 staged and sent with the next :meth:`read_into` in one function-23 read/write
 transaction (write the outputs span, read the inputs span); :meth:`flush` sends a staged
 write alone with function 16. Without ``use_fc23`` a cycle is a function-3 read and a
-function-16 write. The simulation truth block is read in the same transaction when it
-fits one read (<= 125 registers with the inputs), else by :meth:`read_truth`.
+function-16 write.
 
 Why a socket-level MBAP client and not pymodbus' client: the cycle is 1 ms and the
 gateway benchmark holds the driver's round trip against a bare socket loop doing the same
@@ -116,8 +115,6 @@ class ModbusTcpDriver(Driver):
             "channel_status": (r.channel_status, self.cables),
             "wrench": (r.wrench, 6),
         }
-        if r.true_tensions is not None:
-            expect["true_tensions"] = (r.true_tensions, self.cables)
         for name, (f, n) in expect.items():
             if f.count != n:
                 raise ConfigError(f"bus.modbus_tcp.registers.{name}: count {f.count}, need {n}")
@@ -138,24 +135,18 @@ class ModbusTcpDriver(Driver):
         )
         self._fc3 = self._frame(FC_READ, struct.pack(">HH", rs.start, rs.count), 0)
         self._fc16 = self._frame(FC_WRITE, struct.pack(">HHB", ws.start, ws.count, nbytes), nbytes)
-        ts = self.layout.truth_span
-        self._fc3_truth = (
-            self._frame(FC_READ, struct.pack(">HH", ts.start, ts.count), 0) if ts else None
-        )
         sensor = config.sensor
         r = self.mb.registers
         off = MBAP + 2
 
-        def inp(f: Any, base: Span = rs) -> FieldCodec:
-            return FieldCodec(f, self._rx, base.start, off, sensor)
+        def inp(f: Any) -> FieldCodec:
+            return FieldCodec(f, self._rx, rs.start, off, sensor)
 
         self._raw = inp(r.raw_tensions)
         self._vel = inp(r.setpoint_velocities)
         self._len = inp(r.setpoint_lengths)
         self._pose = inp(r.pose)
         self._hb = inp(r.plc_heartbeat)
-        self._truth_in_read = inp(r.true_tensions) if self.layout.truth_in_read else None
-        self._truth_alone = inp(r.true_tensions, ts) if ts is not None else None
 
         def outp(f: Any) -> FieldCodec:
             return FieldCodec(f, self._wdata, ws.start, 0, sensor)
@@ -392,8 +383,6 @@ class ModbusTcpDriver(Driver):
         self._len.decode(inputs.length_m)
         self._pose.decode(inputs.pose)
         inputs.plc_heartbeat = self._hb.decode_int()
-        if self._truth_in_read is not None and inputs.true_tension_n is not None:
-            self._truth_in_read.decode(inputs.true_tension_n)
         if self.state is DriverState.FAULT or self.state is DriverState.UNCONFIGURED:
             self.state = DriverState.CONNECTED
 
@@ -427,23 +416,6 @@ class ModbusTcpDriver(Driver):
         except DriverIOError:
             self.state = DriverState.FAULT
             raise
-
-    def read_truth(self, inputs: Inputs) -> None:
-        """Read the simulation truth block into ``inputs.true_tension_n`` (own transaction).
-
-        A no-op when the map has no truth block or ``inputs`` has no truth array; when the
-        truth block fits the cycle's read, :meth:`read_into` fills it already.
-        """
-        if self._truth_alone is None or inputs.true_tension_n is None:
-            return
-        ts = self.layout.truth_span
-        assert ts is not None and self._fc3_truth is not None
-        try:
-            self._read_span(self._fc3_truth, FC_READ, ts)
-        except DriverIOError:
-            self.state = DriverState.FAULT
-            raise
-        self._truth_alone.decode(inputs.true_tension_n)
 
     @property
     def staged(self) -> bool:

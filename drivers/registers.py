@@ -20,7 +20,7 @@ them and NaN encode as the overflow/underflow codes.
 
 :func:`layout_map` checks a whole :class:`RegisterMap` (no two fields overlap; the write
 span never covers a PLC input register) and computes the contiguous spans a driver
-transfers: the inputs, the outputs and the simulation truth block.
+transfers: the inputs and the outputs.
 """
 
 from __future__ import annotations
@@ -221,11 +221,8 @@ class MapLayout:
 
     inputs: dict[str, RegisterField]
     outputs: dict[str, RegisterField]
-    truth: RegisterField | None
-    read_span: Span  # the inputs (and the truth block when ``truth_in_read``)
+    read_span: Span  # the inputs
     write_span: Span  # the outputs
-    truth_span: Span | None  # the truth block alone
-    truth_in_read: bool  # the truth block fits the cycle's read (<= 125 registers)
 
 
 def _overlap(a: RegisterField, b: RegisterField) -> bool:
@@ -239,8 +236,6 @@ def check_map(rmap: RegisterMap) -> None:
     gaps included, since one function-16/23 write covers it) may be a PLC input register.
     """
     named = {**rmap.inputs(), **rmap.outputs()}
-    if rmap.true_tensions is not None:
-        named["true_tensions"] = rmap.true_tensions
     for (na, a), (nb, b) in combinations(named.items(), 2):
         if _overlap(a, b):
             raise ConfigError(
@@ -276,11 +271,4 @@ def layout_map(rmap: RegisterMap) -> MapLayout:
             f"registers: the outputs span {write_span.start}..{write_span.end - 1} "
             f"({write_span.count} registers) exceeds one write ({MAX_WRITE_REGISTERS_FC23})"
         )
-    truth = rmap.true_tensions
-    truth_span = Span.covering([truth]) if truth is not None else None
-    truth_in_read = False
-    if truth is not None:
-        combined = Span.covering([*inputs.values(), truth])
-        if combined.count <= MAX_READ_REGISTERS:
-            read_span, truth_in_read = combined, True
-    return MapLayout(inputs, outputs, truth, read_span, write_span, truth_span, truth_in_read)
+    return MapLayout(inputs, outputs, read_span, write_span)

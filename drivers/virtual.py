@@ -2,8 +2,8 @@
 
 Registered as ``virtual``. It reads and writes the process image directly: the raw
 channels are scaled from the S7 analog format (``0..adc_full_scale = 0..range_n``), the
-setpoints, pose and heartbeat copied, and the simulation's true tensions handed out when
-the :class:`Inputs` carry a truth buffer. What the gateway writes lands in the image's
+setpoints, pose and heartbeat copied (the plant's truth stays in the image: the gateway
+never sees it). What the gateway writes lands in the image's
 gateway fields, and ``image.gateway_writes`` counts accepted writes.
 
 Modes:
@@ -117,8 +117,6 @@ class VirtualDriver(Driver):
             inputs.length_m[:] = img.length_m
             inputs.pose[:] = img.pose
             heartbeat = img.plc_heartbeat
-            if inputs.true_tension_n is not None:
-                inputs.true_tension_n[:] = img.true_tension_n
         inputs.plc_heartbeat = self._heartbeat(n, heartbeat)
         self._apply_channel_faults(n, inputs.tension_raw_n)
 

@@ -1,9 +1,12 @@
-"""``cdpr-gateway`` command line: ``run | demo | sim-plc | record | replicate | diagnose``.
+"""``cdpr-gateway`` command line: ``run | check | demo | sim-plc | record | replicate | diagnose``.
 
 Each command lives in its own module, imported only when that command is chosen. A command
 module provides ``configure_parser(command, parser)`` and ``run_command(command, args)``
 returning the exit status. Errors of the project (:class:`GatewayError`) end the program
-with status 2 and one clear line on stderr; anything else is a bug and shows a traceback.
+with status 2 and one clear line on stderr, and so do bad command-line arguments; anything
+else is a bug and shows a traceback. The soft PLC's commands (``demo``, ``sim-plc``,
+``record``, ``replicate``) live in ``sim_plc`` and are imported only when chosen: the
+daemon's modules never import ``sim_plc``.
 """
 
 from __future__ import annotations
@@ -12,18 +15,27 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from gateway import __version__
 from gateway.errors import GatewayError
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("gateway.daemon", "run the gateway daemon against the PLC in the config"),
-    "demo": ("gateway.demo", "soft PLC and gateway on loopback, then a table of results"),
+    "check": ("gateway.check", "validate a config; with --connect read once (writes nothing)"),
+    "demo": ("sim_plc.demo", "soft PLC and gateway on loopback, then a table of results"),
     "sim-plc": ("sim_plc.cli", "serve the soft PLC (Modbus TCP / CANopen) until stopped"),
     "record": ("sim_plc.cli", "run the soft PLC's plant and write a recording (CSV)"),
     "replicate": ("sim_plc.replicate", "reproduce the paper's experiment (JSON, markdown, PNG)"),
     "diagnose": ("gateway.diagnose.cli", "find and model the physics a recording shows"),
 }
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """A bad argument ends the program with one line (no usage block) and status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
 def _top_parser() -> argparse.ArgumentParser:
@@ -49,7 +61,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = argv[0]
     module_name, help_text = COMMANDS[command]
     module = importlib.import_module(module_name)
-    parser = argparse.ArgumentParser(prog=f"cdpr-gateway {command}", description=help_text)
+    parser = _OneLineParser(prog=f"cdpr-gateway {command}", description=help_text)
     module.configure_parser(command, parser)
     args = parser.parse_args(argv[1:])
     try:

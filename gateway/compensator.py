@@ -218,33 +218,10 @@ class Compensator:
         out.wrench[:] = np.nan
 
 
-class TruthScore:
-    """Sums of squared error of raw and corrected tensions against the plant's truth."""
-
-    def __init__(self, cables: int) -> None:
-        self.raw_sq = np.zeros(cables)
-        self.corrected_sq = np.zeros(cables)
-        self.samples = np.zeros(cables, dtype=np.int64)
-
-    def rmse(self) -> tuple[np.ndarray, np.ndarray]:
-        n = np.maximum(self.samples, 1)
-        return np.sqrt(self.raw_sq / n), np.sqrt(self.corrected_sq / n)
-
-
-@njit(cache=True)
-def score_into(truth, raw, corrected, status, raw_sq, corrected_sq, samples):
-    """Add the squared errors of good channels against ``truth`` (all (m,), N)."""
-    for i in range(truth.size):
-        if status[i] == 0 and math.isfinite(corrected[i]):
-            raw_sq[i] += (raw[i] - truth[i]) ** 2
-            corrected_sq[i] += (corrected[i] - truth[i]) ** 2
-            samples[i] += 1
-
-
 def warm_up(cfg: Config) -> None:
     """Compile every numba kernel of the cycle now, on throwaway buffers (not in cycle 1)."""
     comp = Compensator(cfg)
-    inputs = Inputs.allocate(cfg.cables, with_truth=True)
+    inputs = Inputs.allocate(cfg.cables)
     outputs = Outputs.allocate(cfg.cables)
     inputs.tension_raw_n[:] = 100.0
     inputs.velocity_m_s[:] = 0.01
@@ -253,8 +230,3 @@ def warm_up(cfg: Config) -> None:
         inputs.read_time_s = float(k)
         comp.step(inputs, 0.001 * k, outputs)
     comp.mark_unread(1.0)
-    score = TruthScore(cfg.cables)
-    score_into(
-        inputs.true_tension_n, comp.raw_n, comp.corrected_n, comp.status,
-        score.raw_sq, score.corrected_sq, score.samples,
-    )  # fmt: skip

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ipaddress
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -130,7 +131,11 @@ class LoopConfig:
     def __post_init__(self) -> None:
         require(1e-4 <= self.period_s <= 1.0, "period_s must be in 0.0001..1")
         require(self.substitute_max_s >= 0, "substitute_max_s must be >= 0")
+        require(self.stuck_after_s > 0, "stuck_after_s must be > 0")
+        require(self.stale_after_s > 0, "stale_after_s must be > 0")
         require(self.heartbeat_timeout_s > 0, "heartbeat_timeout_s must be > 0")
+        require(self.overrun_warning_interval_s > 0, "overrun_warning_interval_s must be > 0")
+        require(0 <= self.busy_wait_s < self.period_s, "busy_wait_s must be in 0..period_s")
         require(self.fixed_point_max_iter >= 1, "fixed_point_max_iter must be >= 1")
 
 
@@ -182,7 +187,6 @@ class RegisterMap:
     gateway_heartbeat: RegisterField = RegisterField(124, 1, "uint16")
     gateway_state: RegisterField = RegisterField(125, 1, "uint16")
     wrench: RegisterField = RegisterField(126, 6, "float32")
-    true_tensions: RegisterField | None = RegisterField(200, 8, "float32")  # simulation only
 
     def inputs(self) -> dict[str, RegisterField]:
         names = ("raw_tensions", "setpoint_velocities", "setpoint_lengths", "pose", "plc_heartbeat")
@@ -263,11 +267,32 @@ class BusConfig:
 class MetricsConfig:
     enabled: bool = True
     host: str = "127.0.0.1"
-    port: int = 9109
+    port: int = 9109  # 0: any free port
     certfile: str | None = None
     keyfile: str | None = None
     basic_auth_user: str | None = None
     basic_auth_password_sha256: str | None = None
+
+    def __post_init__(self) -> None:
+        require(0 <= self.port <= 65535, "port must be in 0..65535")
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    """Plausibility bounds of the PLC's setpoints (gateway/plausibility.py).
+
+    The pose must lie in the frame's bounding box widened by ``workspace_margin_m``, with
+    rotations up to ``max_rotation_rad``; cable speeds up to ``max_cable_speed_m_s``.
+    """
+
+    max_cable_speed_m_s: float = 10.0
+    max_rotation_rad: float = math.pi
+    workspace_margin_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        require(self.max_cable_speed_m_s > 0, "max_cable_speed_m_s must be > 0")
+        require(0 < self.max_rotation_rad <= 2 * math.pi, "max_rotation_rad must be in 0..2 pi")
+        require(self.workspace_margin_m >= 0, "workspace_margin_m must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -279,6 +304,7 @@ class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     bus: BusConfig = field(default_factory=BusConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
     source: str = ""
 
@@ -306,6 +332,36 @@ def exposure_warning(key: str, host: str, port: int, source: str = "") -> str | 
         f"{key}{where} binds {host}:{port}: reachable from other hosts, not only this "
         "one (the default is 127.0.0.1); make sure a firewall limits who can connect"
     )
+
+
+def config_warnings(cfg: Config) -> list[str]:
+    """Values that are legal but probably wrong, one line each naming the file and key."""
+    where = f"{cfg.source}: " if cfg.source else ""
+    lines = []
+    if cfg.tension.max_n > cfg.sensor.range_n:
+        lines.append(
+            f"{where}tension.max_n: {cfg.tension.max_n:g} N is above the sensor range "
+            f"(sensor.range_n: {cfg.sensor.range_n:g} N): tensions above the range read as "
+            "overflow (invalid)"
+        )
+    return lines
+
+
+def output_path(path: str | Path, option: str) -> Path:
+    """``path`` for a file a command will write, checked before the work starts.
+
+    The directory must exist and be writable (it is never created: a typo in a path must
+    not leave directories behind); errors name the option and the path.
+    """
+    p = Path(path)
+    parent = p.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{option} {p}: directory {parent} does not exist")
+    if p.is_dir():
+        raise ConfigError(f"{option} {p}: is a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {p}: directory {parent} is not writable")
+    return p
 
 
 def config_from_mapping(data: dict[str, Any], source: str = "") -> Config:

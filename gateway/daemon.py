@@ -1,10 +1,17 @@
-"""``cdpr-gateway run --config FILE [--cycles N]``: the gateway daemon.
+"""``cdpr-gateway run --config FILE [--cycles N] [--log-level LEVEL]``: the gateway daemon.
 
 Loads and validates the config, builds the driver named in ``bus.driver``, serves the
-Prometheus metrics on ``metrics.host:metrics.port`` and runs the cyclic service until
-SIGTERM/SIGINT (or ``--cycles``), then writes the STOPPED state and exits 0. A PLC that
-cannot be reached at start is not fatal: the loop retries with backoff and says so.
-Configuration problems end the program with one line naming the file and the key.
+Prometheus metrics on ``metrics.host:metrics.port`` and runs the cyclic service until a
+terminating signal (SIGTERM, SIGINT, SIGHUP, SIGQUIT, SIGUSR1, SIGUSR2, SIGALRM) or
+``--cycles``, then writes the STOPPED state and exits 0. A PLC that cannot be reached at
+start is not fatal: the loop retries with backoff and says why. Configuration problems end
+the program with one line naming the file and the key (exit 2).
+
+Logging: ``TIME LEVEL LOGGER: message`` on stderr; a start-up banner (version, config
+file, bus, model, real-time settings); the loop logs each state change once (connected,
+active, disconnected/fault with the cause, recovered). Foreign libraries' loggers
+(canopen, can, pymodbus) are quieted to WARNING unless ``--log-level DEBUG``. Under systemd
+(``NOTIFY_SOCKET`` set) the loop sends READY=1 once active and WATCHDOG=1 while it cycles.
 """
 
 from __future__ import annotations
@@ -15,23 +22,59 @@ import signal
 import sys
 from typing import Any
 
-from drivers.base import Driver, make_driver
-from gateway.config import DEFAULT_CONFIG_PATH, Config, exposure_warning, load_config
+from drivers.base import Driver, Lifecycle, make_driver
+from gateway import __version__
+from gateway.config import (
+    DEFAULT_CONFIG_PATH,
+    Config,
+    config_warnings,
+    exposure_warning,
+    load_config,
+)
 from gateway.errors import ConfigError, DriverInitError
-from gateway.loop import CyclicService, LoopState
+from gateway.loop import CyclicService, describe_bus
 from gateway.metrics import MetricsServer, make_registry
+from gateway.sdnotify import Notifier
 
 log = logging.getLogger("cdpr_gateway")
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+FOREIGN_LOGGERS = ("canopen", "can", "pymodbus")
+
+
+def log_level(text: str) -> str:
+    """argparse type for ``--log-level``: one of :data:`LOG_LEVELS`, any case."""
+    level = text.upper()
+    if level not in LOG_LEVELS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a log level (choose from {', '.join(LOG_LEVELS)})"
+        )
+    return level
+
+
+def add_log_level(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--log-level", type=log_level, default="INFO",
+                        help="DEBUG, INFO, WARNING, ERROR or CRITICAL (default INFO)")  # fmt: skip
+
+
+def setup_logging(level: str) -> None:
+    """The project's log format on stderr; foreign loggers at WARNING unless DEBUG."""
+    logging.basicConfig(stream=sys.stderr, format=LOG_FORMAT)  # no-op if already set up
+    logging.getLogger().setLevel(level)
+    foreign = logging.DEBUG if level == "DEBUG" else logging.WARNING
+    for name in FOREIGN_LOGGERS:
+        logging.getLogger(name).setLevel(foreign)
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
     parser.add_argument("--cycles", type=int, default=None, help="stop after N cycles")
-    parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
+    add_log_level(parser)
 
 
 def build_driver(cfg: Config, name: str | None = None, **kwargs: Any) -> Driver:
-    """The configured driver; failures become :class:`ConfigError` naming ``bus.*``."""
+    """The configured driver; failures become :class:`ConfigError` naming file and key."""
     name = name or cfg.bus.driver
     try:
         if kwargs:
@@ -42,21 +85,44 @@ def build_driver(cfg: Config, name: str | None = None, **kwargs: Any) -> Driver:
     except DriverInitError as exc:
         key = "bus.driver" if "unknown driver" in str(exc) else f"bus.{name}"
         raise ConfigError(f"{cfg.source}: {key}: {exc}") from exc
+    except ConfigError as exc:
+        raise _with_source(cfg, name, exc) from exc
     except ImportError as exc:
         raise ConfigError(
             f"{cfg.source}: bus.driver: driver {name!r} is not available: {exc}"
         ) from exc
 
 
-def describe_bus(cfg: Config) -> str:
-    bus = cfg.bus.driver
-    if bus == "modbus_tcp":
-        m = cfg.bus.modbus_tcp
-        return f"modbus_tcp {m.host}:{m.port} unit {m.unit_id} (bus.modbus_tcp)"
-    if bus == "canopen":
-        c = cfg.bus.canopen
-        return f"canopen {c.interface}:{c.channel} node {c.gateway_node_id} (bus.canopen)"
-    return bus
+def _with_source(cfg: Config, bus: str, exc: ConfigError) -> ConfigError:
+    """A driver's config error (register map, counts) with the file and full key."""
+    text = str(exc)
+    if cfg.source and text.startswith(cfg.source):
+        return exc
+    if text.startswith("registers"):
+        text = f"bus.{bus}.{text}"
+    return ConfigError(f"{cfg.source}: {text}" if cfg.source else text)
+
+
+def describe_model(cfg: Config) -> str:
+    f = cfg.friction
+    wraps = "/".join(f"{p.wrap_deg:g}" for p in f.pulleys)
+    return (
+        f"{f.model}, {len(f.pulleys)} pulleys (wrap {wraps} deg), sigma {f.sigma_n_m:g} N/m, "
+        f"{cfg.cables} cables"
+    )
+
+
+def banner(cfg: Config) -> list[str]:
+    """The start-up lines: what runs, from which file, against which PLC, how fast."""
+    lp = cfg.loop
+    return [
+        f"cdpr-gateway {__version__} starting; config {cfg.source or '(built in)'}",
+        f"bus: {describe_bus(cfg)} (bus.{cfg.bus.driver})",
+        f"model: {describe_model(cfg)}",
+        f"loop: period {lp.period_s * 1e3:g} ms, busy-wait {lp.busy_wait_s * 1e6:g} us, "
+        f"PLC heartbeat timeout {lp.heartbeat_timeout_s:g} s; real-time scheduling: "
+        "not configured (default scheduler)",
+    ]
 
 
 def summary(service: CyclicService) -> str:
@@ -69,13 +135,16 @@ def summary(service: CyclicService) -> str:
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
-    logging.basicConfig(
-        level=args.log_level.upper(), stream=sys.stderr, format="%(levelname)s %(message)s"
-    )
+    setup_logging(args.log_level)
     if args.cycles is not None and args.cycles < 1:
         raise ConfigError("--cycles: must be >= 1")
     cfg = load_config(args.config)
-    service = CyclicService(cfg, build_driver(cfg))
+    for line in banner(cfg):
+        log.info("%s", line)
+    for line in config_warnings(cfg):
+        log.warning("%s", line)
+    notifier = Notifier.from_env()
+    service = CyclicService(cfg, build_driver(cfg), notifier=notifier)
     server = None
     if cfg.metrics.enabled:
         server = MetricsServer(cfg.metrics, make_registry(service), cfg.source)
@@ -86,15 +155,14 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     previous = service.install_signal_handlers()
     try:
         service.configure()
-        if service.state is LoopState.FAULT:
-            log.warning("cannot reach the PLC at %s yet; retrying", describe_bus(cfg))
-        else:
-            log.info("connected to %s", describe_bus(cfg))
         service.run(args.cycles)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if server is not None:
             server.close()
+        if notifier is not None:
+            notifier.close()
+    assert service.state is Lifecycle.STOPPED
     print(f"stopped: {summary(service)}", file=sys.stderr, flush=True)
     return 0

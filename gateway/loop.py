@@ -1,43 +1,44 @@
 """The cyclic service: read -> compensate -> write against absolute deadlines.
 
 ros2_control style (style.md): the hardware (a :class:`drivers.base.Driver`), the update
-(:class:`gateway.compensator.Compensator`) and the loop are separate. Each cycle
+(:class:`gateway.compensator.Compensator`) and the loop are separate. There is one loop
+body (:meth:`CyclicService._loop`); when a cycle starts and how its timing is booked is a
+pacing strategy (:mod:`gateway.pacing`): :class:`~gateway.pacing.PeriodicPacing` waits for
+the loop's own absolute deadlines (``next += period``; an overrun is counted and the missed
+deadlines skipped), :class:`~gateway.pacing.BusPacing` lets the bus be the clock (CANopen:
+the PLC's SYNC; ``read_into`` blocks until the next set). Each cycle
 
-1. waits for its absolute deadline (``next += period``): sleep, then busy-wait the last
-   ``loop.busy_wait_s`` for a low start jitter;
-2. reads, compensates, writes, timing each phase into preallocated statistics
-   (:class:`LoopStats`: histogram bucket counters and ring buffers) that the metrics
-   collector reads at scrape time;
-3. counts an overrun when it ends after the next deadline and skips the missed cycles
-   (the phase of the schedule is kept).
+1. waits as its pacing says;
+2. reads, checks the setpoints' plausibility (:mod:`gateway.plausibility`), compensates,
+   writes, timing each phase into preallocated statistics (:class:`gateway.stats.LoopStats`)
+   that the metrics collector reads at scrape time; observers added with
+   :meth:`CyclicService.add_observer` see each successful cycle (the demo's scoring, a
+   recorder);
+3. books its timing with the pacing.
 
-Nothing in a cycle logs, does HTTP or allocates what it can avoid; warnings (overruns,
-bus errors, watchdog) are rate-limited and emitted after the cycle's work.
+Nothing in a cycle logs, does HTTP or allocates what it can avoid; state changes, warnings
+(overruns, bus errors, watchdog) and the systemd notifications are emitted after the
+cycle's work, rate-limited (:meth:`CyclicService._report`).
 
-Lifecycle (:class:`LoopState`): unconfigured -> connected (driver open, reading) ->
-active (writing) -> fault (bus down or PLC heartbeat frozen) -> back to connected/active;
-stopped at the end. Only this module catches driver errors: a cycle whose read fails
-writes nothing, flags every channel stale, closes the driver and reconnects (first retry
-the next cycle, then exponential backoff ``reconnect_min_s .. reconnect_max_s``).
+Lifecycle (:class:`drivers.base.Lifecycle`, the value is the wire code of register 125):
+STOPPED (not started) -> CONNECTED (driver open, reading) -> ACTIVE (writing) -> FAULT
+(bus down or PLC heartbeat frozen) -> back to CONNECTED/ACTIVE; STOPPED at the end. Only
+this module catches driver errors: a cycle whose read fails writes nothing and flags every
+channel stale (:meth:`CyclicService._failed`, :meth:`CyclicService._connect`).
 
 The PLC heartbeat that does not change for ``loop.heartbeat_timeout_s`` stops the tension
-writes: one frame with gateway state FAULT, every channel invalid and NaN tensions is
-written, then nothing until the heartbeat changes again. The gateway heartbeat is +1 per
-written cycle. :meth:`CyclicService.stop` (and SIGTERM/SIGINT via
-:meth:`CyclicService.install_signal_handlers`) end the loop after the current cycle; the
-last frame written says STOPPED (state 0), every channel invalid, NaN tensions.
-
-A driver with ``paced_by_bus = True`` (CANopen: the PLC's SYNC is the cycle clock) is
-read without waiting for the loop's own deadline; see :meth:`CyclicService._run_paced`.
+writes: one frame with state FAULT, every channel invalid and NaN tensions is written, then
+nothing until the heartbeat changes again. The gateway heartbeat is +1 per written cycle.
+:meth:`CyclicService.stop` (and every catchable terminating signal, see
+:data:`STOP_SIGNALS`) ends the loop after the current cycle; the last frame written says
+STOPPED (state 0), every channel invalid, NaN tensions.
 
 Clock and sleep are injectable (a fake clock for tests); ``run(cycles=N)`` is bounded.
 """
 
 from __future__ import annotations
 
-import bisect
 import contextlib
-import enum
 import gc
 import logging
 import math
@@ -49,93 +50,44 @@ from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
-import numpy as np
-
-from drivers.base import Driver, GatewayState, Inputs, Outputs
-from gateway.compensator import Compensator, TruthScore, score_into, warm_up
+from drivers.base import Driver, Inputs, Lifecycle, Outputs
+from gateway.compensator import Compensator, warm_up
 from gateway.config import Config
 from gateway.errors import DriverError, DriverTimeoutError
+from gateway.pacing import Pacing, make_pacing
+from gateway.plausibility import Plausibility
+from gateway.plausibility import warm_up as warm_up_plausibility
+from gateway.sdnotify import Notifier
+from gateway.stats import ERROR_KINDS, LoopStats
 
 log = logging.getLogger("cdpr_gateway.loop")
 
-CYCLE_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3)
-JITTER_BUCKETS_S = (10e-6, 20e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3)
-ROUNDTRIP_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3, 0.05)
-ERROR_KINDS = ("timeout", "io", "connect", "write", "invalid_value", "heartbeat")
 REOPEN_AFTER = 3  # failed cycles in a row before the loop closes and reopens the driver
-SCORE_AFTER_S = 0.5  # truth scoring skips the model's warm-up
-TRUTH_EVERY_CYCLES = 10  # truth over the bus (simulation only) is read and scored this seldom
+
+# Every signal whose default action ends the process and that a handler can catch: each
+# ends the loop after the current cycle and the STOPPED frame is written. SIGPIPE is left
+# ignored (Python's default: a broken socket is an error of that write, handled as one);
+# SIGKILL and SIGSTOP cannot be caught (the PLC must watch the gateway heartbeat).
+STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
+    getattr(signal, name)
+    for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM")
+    if hasattr(signal, name)
+)
+
+Observer = Callable[[Inputs, Compensator, float], None]
 
 
-class LoopState(enum.Enum):
-    UNCONFIGURED = "unconfigured"
-    CONNECTED = "connected"
-    ACTIVE = "active"
-    FAULT = "fault"
-    STOPPED = "stopped"
-
-
-class Histogram:
-    """Prometheus-style histogram: per-bucket counts (not cumulative), sum and count."""
-
-    def __init__(self, bounds: tuple[float, ...]) -> None:
-        self.bounds = bounds
-        self.counts = [0] * (len(bounds) + 1)  # last: above every bound (+Inf only)
-        self.sum = 0.0
-        self.count = 0
-
-    def add(self, value: float) -> None:
-        self.counts[bisect.bisect_left(self.bounds, value)] += 1
-        self.sum += value
-        self.count += 1
-
-    def cumulative(self) -> list[tuple[str, int]]:
-        """``[(le, cumulative count), ..., ('+Inf', count)]`` for the exposition."""
-        out, total = [], 0
-        for bound, n in zip((*self.bounds, math.inf), self.counts, strict=True):
-            total += n
-            out.append(("+Inf" if bound == math.inf else repr(bound), total))
-        return out
-
-
-class Ring:
-    """The last ``size`` values (s); written in the cycle, read for percentiles."""
-
-    def __init__(self, size: int) -> None:
-        self.values = np.zeros(size)
-        self.count = 0
-
-    def add(self, value: float) -> None:
-        self.values[self.count % self.values.size] = value
-        self.count += 1
-
-    def recent(self) -> np.ndarray:
-        return self.values[: min(self.count, self.values.size)]
-
-    def percentile(self, q: float) -> float:
-        data = self.recent()
-        return float(np.percentile(data, q)) if data.size else math.nan
-
-
-class LoopStats:
-    """Everything the loop measures, preallocated; read at scrape time."""
-
-    def __init__(self, history: int = 1 << 16) -> None:
-        self.cycle = Histogram(CYCLE_BUCKETS_S)
-        self.jitter = Histogram(JITTER_BUCKETS_S)
-        self.roundtrip = Histogram(ROUNDTRIP_BUCKETS_S)
-        self.cycle_ring = Ring(history)
-        self.jitter_ring = Ring(history)
-        self.roundtrip_ring = Ring(history)
-        self.read_ring = Ring(history)
-        self.compensate_ring = Ring(history)
-        self.write_ring = Ring(history)
-        self.cycles = 0  # cycles executed
-        self.written = 0  # cycles whose outputs were written
-        self.overruns = 0  # cycles that ended after the next deadline
-        self.skipped = 0  # deadlines skipped because of overruns
-        self.reconnects = 0  # successful reconnections after a loss
-        self.errors = dict.fromkeys(ERROR_KINDS, 0)
+def describe_bus(cfg: Config) -> str:
+    """``modbus_tcp 127.0.0.1:5020 unit 1`` and the like, for log lines."""
+    bus = cfg.bus.driver
+    if bus == "modbus_tcp":
+        m = cfg.bus.modbus_tcp
+        tls = " (TLS)" if m.tls is not None else ""
+        return f"modbus_tcp {m.host}:{m.port} unit {m.unit_id}{tls}"
+    if bus == "canopen":
+        c = cfg.bus.canopen
+        return f"canopen {c.interface}:{c.channel} node {c.gateway_node_id}"
+    return bus
 
 
 def _reconnect_limits(cfg: Config) -> tuple[float, float]:
@@ -157,69 +109,75 @@ class CyclicService:
         clock: Callable[[], float] = time.perf_counter,
         sleep: Callable[[float], None] = time.sleep,
         history: int = 1 << 16,
-        with_truth: bool = False,
         wall_clock: Callable[[], float] = time.time,
-        truth_source: Callable[[Inputs], None] | None = None,
+        notifier: Notifier | None = None,
     ) -> None:
         self.cfg = cfg
         self.driver = driver
         self.clock = clock
         self.sleep = sleep
         self.period_s = cfg.loop.period_s
-        self.busy_wait_s = cfg.loop.busy_wait_s
-        self.inputs = Inputs.allocate(cfg.cables, with_truth)
+        self.inputs = Inputs.allocate(cfg.cables)
         self.outputs = Outputs.allocate(cfg.cables)
         warm_up(cfg)
+        warm_up_plausibility(cfg)
         self.comp = Compensator(cfg)
+        self.plausibility = Plausibility(cfg)
         self.stats = LoopStats(history)
-        self.truth = TruthScore(cfg.cables) if with_truth else None
-        # a truth source in this process is free; the driver's costs a bus transaction
-        self._truth_every = 1 if truth_source is not None else TRUTH_EVERY_CYCLES
-        self._truth_countdown = 1
-        self.state = LoopState.UNCONFIGURED
+        self.pacing: Pacing = make_pacing(driver, cfg.loop, clock, sleep, wall_clock, self.stats)
+        self.notifier = notifier
+        self.state = Lifecycle.STOPPED
         self.heartbeat_fault = False
+        self.last_error: BaseException | None = None  # the driver error behind a fault
+        self._observers: list[Observer] = []
         self._stop = threading.Event()
         self._fault_written = False
         self._last_hb: int | None = None
-        self._hb_changed_at = 0.0
+        self._hb_changed_at = math.nan
+        self._data_at = math.nan  # loop clock of the last successful read
+        self._got_data = False
         self._ever_connected = False
         self._open = False
         self._failures = 0
-        self._read_truth: Callable[[Inputs], None] | None = truth_source or getattr(
-            driver, "read_truth", None
-        )
-        self.wall_clock = wall_clock
-        self.paced = bool(getattr(driver, "paced_by_bus", False))
-        self._data_at = 0.0
         self._backoff_min, self._backoff_max = _reconnect_limits(cfg)
         self._backoff = self._backoff_min
         self._reconnect_at = -math.inf
-        self._started_at = 0.0
-        self._logged = dict.fromkeys((*ERROR_KINDS, "overruns", "reconnects"), 0)
-        self._next_check = -math.inf
+        self._reporter = _Reporter(self)
+
+    @property
+    def paced(self) -> bool:
+        """True when the bus sets the pace (CANopen SYNC)."""
+        return self.pacing.by_bus
+
+    def add_observer(self, observer: Observer) -> None:
+        """Call ``observer(inputs, compensator, now_s)`` after each successful compensation.
+
+        Observers run inside the cycle: they must be quick and must not raise.
+        """
+        self._observers.append(observer)
 
     # --- lifecycle ----------------------------------------------------------------------
     def configure(self) -> None:
-        """Open the driver (unconfigured -> connected); on failure, fault and retry later."""
-        now = self.clock()
-        self._started_at = now
-        self._connect(now)
+        """Open the driver (STOPPED -> CONNECTED); on failure, FAULT and retry later."""
+        self._connect(self.clock())
 
     def stop(self) -> None:
         """Ask the loop to end after the current cycle (safe from signals and threads)."""
         self._stop.set()
 
-    def install_signal_handlers(self) -> dict[int, Any]:
-        """SIGTERM and SIGINT call :meth:`stop`; returns the previous handlers."""
+    def install_signal_handlers(
+        self, signals: tuple[signal.Signals, ...] = STOP_SIGNALS
+    ) -> dict[int, Any]:
+        """Every signal of ``signals`` calls :meth:`stop`; returns the previous handlers."""
 
         def handler(signum: int, frame: FrameType | None) -> None:
             self.stop()
 
-        return {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+        return {s: signal.signal(s, handler) for s in signals}
 
     def run(self, cycles: int | None = None) -> LoopStats:
         """Run ``cycles`` cycles (``None``: until :meth:`stop`); then write STOPPED."""
-        if self.state is LoopState.UNCONFIGURED:
+        if not self._ever_connected and not self._open and self._reconnect_at == -math.inf:
             self.configure()
         gc.collect()
         gc.freeze()  # everything allocated so far is permanent: no GC pauses scanning it
@@ -228,87 +186,26 @@ class CyclicService:
         switch = sys.getswitchinterval()
         sys.setswitchinterval(min(switch, self.period_s / 5))
         try:
-            self._run(cycles)
+            self._loop(cycles)
         finally:
             sys.setswitchinterval(switch)
             self._shutdown()
         return self.stats
 
-    def _run(self, cycles: int | None) -> None:
-        if self.paced:
-            self._run_paced(cycles)
-            return
-        period = self.period_s
-        deadline = self.clock()
+    def _loop(self, cycles: int | None) -> None:
+        """The one loop body: wait (pacing), cycle, book the timing, report."""
+        pacing, stats = self.pacing, self.stats
+        pacing.begin()
         done = 0
         while not self._stop.is_set() and (cycles is None or done < cycles):
-            self._wait_until(deadline)
-            start = self.clock()
-            self._add_jitter(start - deadline)
+            start = pacing.wait(self._open)
+            self._got_data = False
             reanchor = self._cycle(start)
             end = self.clock()
-            self._add_cycle(end - start)
-            self.stats.cycles += 1
+            pacing.finish(start, end, self._data_at if self._got_data else None, reanchor)
+            stats.cycles += 1
             done += 1
-            if reanchor:  # a (re)connect attempt may block: restart the schedule
-                deadline = self.clock() + period
-            else:
-                deadline += period
-                if end > deadline:
-                    missed = int((end - deadline) // period) + 1
-                    deadline += missed * period
-                    self.stats.overruns += 1
-                    self.stats.skipped += missed
-            self._report(end)
-
-    def _run_paced(self, cycles: int | None) -> None:
-        """The bus is the clock (CANopen SYNC): ``read_into`` waits for the next set.
-
-        Jitter is the lateness of the data after its SYNC (the driver's
-        ``last_sync_timestamp``, wall-clock base); the cycle time runs from the data's
-        arrival to the end of the write; an overrun is a cycle after which SYNCs were
-        missed (the driver's ``syncs`` advanced by more than one), each one skipped.
-        While the bus is down the loop falls back to its own deadlines for the retries.
-        """
-        done = 0
-        deadline = self.clock()
-        drv = self.driver
-        while not self._stop.is_set() and (cycles is None or done < cycles):
-            if not self._open:
-                self._wait_until(deadline)
-            syncs_before = int(getattr(drv, "syncs", 0))
-            start = self.clock()
-            self._data_at = start
-            self._cycle(start)
-            end = self.clock()
-            if self._data_at != start:  # a set arrived: its SYNC's lateness, the work
-                sync_at = float(getattr(drv, "last_sync_timestamp", 0.0))
-                if sync_at > 0.0:
-                    self._add_jitter(max(0.0, self.wall_clock() - sync_at))
-                self._add_cycle(end - self._data_at)
-                missed = int(getattr(drv, "syncs", 0)) - syncs_before - 1
-                if missed > 0 and syncs_before > 0:
-                    self.stats.overruns += 1
-                    self.stats.skipped += missed
-            deadline = end + self.period_s
-            self.stats.cycles += 1
-            done += 1
-            self._report(end)
-
-    def _add_jitter(self, seconds: float) -> None:
-        self.stats.jitter.add(seconds)
-        self.stats.jitter_ring.add(seconds)
-
-    def _add_cycle(self, seconds: float) -> None:
-        self.stats.cycle.add(seconds)
-        self.stats.cycle_ring.add(seconds)
-
-    def _wait_until(self, deadline: float) -> None:
-        remaining = deadline - self.clock()
-        if remaining > self.busy_wait_s:
-            self.sleep(remaining - self.busy_wait_s)
-        while self.clock() < deadline:
-            pass
+            self._reporter.report(end)
 
     # --- one cycle ----------------------------------------------------------------------
     def _cycle(self, now: float) -> bool:
@@ -321,50 +218,31 @@ class CyclicService:
             return False
         try:
             self.driver.read_into(self.inputs)
-        except DriverTimeoutError:
-            self._failed(now, "timeout")
+        except DriverTimeoutError as exc:
+            self._failed(now, "timeout", exc)
             return False
-        except DriverError:
-            self._failed(now, "io")
+        except DriverError as exc:
+            self._failed(now, "io", exc)
             return False
         self._failures = 0
         t1 = self.clock()
         self._data_at = t1
-        rt = self.driver.roundtrip_s
-        last = float(rt.values[(rt.count - 1) % rt.size])
-        self.stats.roundtrip.add(last)
-        self.stats.roundtrip_ring.add(last)
-        scored = self.truth is not None and self._read_truth is None  # came with the read
-        if self.truth is not None and self._read_truth is not None:
-            self._truth_countdown -= 1
-            if self._truth_countdown <= 0:  # truth costs a transaction: sample it
-                self._truth_countdown = self._truth_every
-                try:
-                    self._read_truth(self.inputs)  # its own transaction when the map needs one
-                except DriverError:
-                    self._failed(now, "io")
-                    return False
-                scored = True
-        self.stats.read_ring.add(t1 - now)
+        self._got_data = True
+        stats = self.stats
+        stats.add_roundtrip_from(self.driver.roundtrip_s)
+        stats.read_ring.add(t1 - now)
+        if self.plausibility.check(self.inputs):
+            stats.errors["implausible"] += 1
         self.comp.step(self.inputs, t1, self.outputs)
-        self.stats.errors["invalid_value"] = self.comp.flag_events
+        stats.errors["invalid_value"] = self.comp.flag_events
         self._watch_heartbeat(t1)
-        if scored and self.inputs.true_tension_n is not None:
-            self._score(t1)
+        for observer in self._observers:
+            observer(self.inputs, self.comp, t1)
         t2 = self.clock()
-        self.stats.compensate_ring.add(t2 - t1)
+        stats.compensate_ring.add(t2 - t1)
         self._write()
-        self.stats.write_ring.add(self.clock() - t2)
+        stats.write_ring.add(self.clock() - t2)
         return False
-
-    def _score(self, now: float) -> None:
-        if now - self._started_at < SCORE_AFTER_S or self.truth is None:
-            return
-        c = self.comp
-        score_into(
-            self.inputs.true_tension_n, c.raw_n, c.corrected_n, c.status,
-            self.truth.raw_sq, self.truth.corrected_sq, self.truth.samples,
-        )  # fmt: skip
 
     def _watch_heartbeat(self, now: float) -> None:
         hb = self.inputs.plc_heartbeat
@@ -386,24 +264,33 @@ class CyclicService:
             if self._fault_written:
                 return
             self.comp.invalidate_outputs(out)
-            out.gateway_state = int(GatewayState.FAULT)
-            self.state = LoopState.FAULT
+            out.gateway_state = int(Lifecycle.FAULT)
+            self.state = Lifecycle.FAULT
         else:
-            out.gateway_state = int(GatewayState.ACTIVE)
+            out.gateway_state = int(Lifecycle.ACTIVE)
         out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
         try:
             self.driver.write_from(out)
             if self.heartbeat_fault:
                 self.driver.flush()
                 self._fault_written = True
-        except DriverError:
-            self._failed(self.clock(), "write")
+        except DriverError as exc:
+            self._failed(self.clock(), "write", exc)
             return
         self.stats.written += 1
         if not self.heartbeat_fault:
-            self.state = LoopState.ACTIVE
+            self.state = Lifecycle.ACTIVE
 
-    # --- connection ---------------------------------------------------------------------
+    # --- ages, read at scrape time ------------------------------------------------------
+    def sample_age_s(self) -> float:
+        """Seconds since the last successful read (NaN before the first)."""
+        return self.clock() - self._data_at
+
+    def plc_heartbeat_age_s(self) -> float:
+        """Seconds since the PLC heartbeat last changed (NaN before the first read)."""
+        return self.clock() - self._hb_changed_at
+
+    # --- connection (reconnect with backoff) --------------------------------------------
     @property
     def bus_up(self) -> bool:
         """The driver is open and its last transaction succeeded."""
@@ -414,7 +301,7 @@ class CyclicService:
         """Reopens by the loop plus reconnections the driver made by itself."""
         return self.stats.reconnects + int(getattr(self.driver, "reconnects", 0))
 
-    def _failed(self, now: float, kind: str) -> None:
+    def _failed(self, now: float, kind: str, exc: BaseException) -> None:
         """A failed transaction: nothing written this cycle, channels stale.
 
         The driver is kept open (drivers heal themselves: Modbus reconnects with its own
@@ -422,8 +309,9 @@ class CyclicService:
         a row the loop closes it and reopens it with backoff.
         """
         self.stats.errors[kind] += 1
+        self.last_error = exc
         self.comp.mark_unread(now)
-        self.state = LoopState.FAULT
+        self.state = Lifecycle.FAULT
         self._last_hb = None  # after an outage, watch the PLC heartbeat afresh
         self._failures += 1
         if self._failures >= REOPEN_AFTER:
@@ -435,10 +323,11 @@ class CyclicService:
             self._close_driver()
             self.driver.open()
             self._open = True
-        except DriverError:
+        except DriverError as exc:
             if self._ever_connected or self.stats.cycles:
                 self.stats.errors["connect"] += 1
-            self.state = LoopState.FAULT
+            self.last_error = exc
+            self.state = Lifecycle.FAULT
             self._reconnect_at = now + self._backoff
             self._backoff = min(self._backoff * 2.0, self._backoff_max)
             return
@@ -448,7 +337,7 @@ class CyclicService:
         self._backoff = self._backoff_min
         self._failures = 0
         self._last_hb = None  # a restarted PLC: watch its heartbeat afresh
-        self.state = LoopState.CONNECTED
+        self.state = Lifecycle.CONNECTED
 
     def _close_driver(self) -> None:
         self._open = False
@@ -460,7 +349,7 @@ class CyclicService:
         if self._open:
             out = self.outputs
             self.comp.invalidate_outputs(out)
-            out.gateway_state = int(GatewayState.STOPPED)
+            out.gateway_state = int(Lifecycle.STOPPED)
             out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
             try:
                 self.driver.write_from(out)
@@ -469,21 +358,107 @@ class CyclicService:
             except DriverError as exc:
                 log.warning("could not write the stopped state: %s", exc)
         self._close_driver()
-        self.state = LoopState.STOPPED
+        self.state = Lifecycle.STOPPED
+        self._reporter.stopped()
         gc.unfreeze()
 
-    # --- reporting, outside the cycle's work ------------------------------------------
-    def _report(self, now: float) -> None:
-        """Rate-limited warnings about what changed since the last one."""
-        if now < self._next_check:
-            return
-        self._next_check = now + 0.5
-        current = {**self.stats.errors, "overruns": self.stats.overruns}
-        current["reconnects"] = self.reconnects
-        changed = {k: v - self._logged[k] for k, v in current.items() if v != self._logged[k]}
+
+def _cause(where: str, error: BaseException | None) -> str:
+    """The driver's error text, prefixed with the bus unless it names the address."""
+    text = str(error) if error is not None else "no error reported"
+    address = where.split(" ")[1] if " " in where else where
+    return text if address in text else f"{where}: {text}"
+
+
+class _Reporter:
+    """What the loop says, outside the cycle's work: state changes (each once), the
+    rate-limited summary of counters, and the systemd notifications."""
+
+    def __init__(self, service: CyclicService) -> None:
+        self.svc = service
+        self.logged = dict.fromkeys((*ERROR_KINDS, "overruns", "reconnects"), 0)
+        self.next_check = -math.inf
+        self.state = Lifecycle.STOPPED
+        self.heartbeat_fault = False
+        self.fault_since = math.nan  # loop clock when the current outage began
+        self.cause = ""  # the last fault line of the current outage
+        self.ready_sent = False
+        notifier = service.notifier
+        self.watchdog_s = notifier.watchdog_interval_s if notifier is not None else math.inf
+        self.next_watchdog = -math.inf
+
+    def report(self, now: float) -> None:
+        svc = self.svc
+        if svc.state is not self.state or svc.heartbeat_fault is not self.heartbeat_fault:
+            self._state_changed(now)
+        if svc.notifier is not None and now >= self.next_watchdog:
+            self.next_watchdog = now + self.watchdog_s
+            svc.notifier.notify("WATCHDOG=1")
+        if now >= self.next_check:
+            self._summary(now)
+
+    def _state_changed(self, now: float) -> None:
+        svc, old, new = self.svc, self.state, self.svc.state
+        self.state, self.heartbeat_fault = new, svc.heartbeat_fault
+        where = describe_bus(svc.cfg)
+        in_outage = not math.isnan(self.fault_since)
+        if new is Lifecycle.FAULT:
+            if svc.heartbeat_fault:
+                line = (
+                    f"fault: the PLC heartbeat has not changed for "
+                    f"{svc.cfg.loop.heartbeat_timeout_s:g} s; tension writes stopped"
+                )
+            elif old is Lifecycle.STOPPED and not svc._ever_connected:
+                line = f"cannot reach the PLC yet: {_cause(where, svc.last_error)}; retrying"
+            else:
+                line = f"disconnected from the PLC: {_cause(where, svc.last_error)}; reconnecting"
+            # within one outage a reopen that fails again says so only when the cause changed
+            level = logging.WARNING if not in_outage else logging.DEBUG
+            if in_outage and line != self.cause:
+                level = logging.INFO
+            if not in_outage:
+                self.fault_since = now
+            self.cause = line
+            log.log(level, "%s", line)
+            self._status(line)
+        elif new is Lifecycle.CONNECTED:
+            log.log(
+                logging.DEBUG if in_outage else logging.INFO, "connected to the PLC at %s", where
+            )
+        elif new is Lifecycle.ACTIVE:
+            if in_outage:
+                log.warning(
+                    "recovered: connected to the PLC at %s, active again after %.1f s",
+                    where, now - self.fault_since,
+                )  # fmt: skip
+                self.fault_since = math.nan
+                self.cause = ""
+                self.next_check = now  # the next summary (if any) says the state is active
+            else:
+                log.info("connected to the PLC at %s; active, writing corrected tensions", where)
+            self._status("active")
+            if svc.notifier is not None and not self.ready_sent:
+                self.ready_sent = True
+                svc.notifier.notify("READY=1")
+
+    def _status(self, line: str) -> None:
+        if self.svc.notifier is not None:
+            self.svc.notifier.notify(f"STATUS={line}")
+
+    def _summary(self, now: float) -> None:
+        """Rate-limited warning about the counters that changed since the last one."""
+        svc = self.svc
+        self.next_check = now + 0.5
+        current = {**svc.stats.errors, "overruns": svc.stats.overruns}
+        current["reconnects"] = svc.reconnects
+        changed = {k: v - self.logged[k] for k, v in current.items() if v != self.logged[k]}
         if not changed:
             return
-        self._logged = current
-        self._next_check = now + self.cfg.loop.overrun_warning_interval_s
+        self.logged = current
+        self.next_check = now + svc.cfg.loop.overrun_warning_interval_s
         detail = ", ".join(f"{k} +{v}" for k, v in changed.items())
-        log.warning("gateway: %s (state %s)", detail, self.state.value)
+        log.warning("gateway: %s (state %s)", detail, svc.state.name.lower())
+
+    def stopped(self) -> None:
+        if self.svc.notifier is not None:
+            self.svc.notifier.notify("STOPPING=1")

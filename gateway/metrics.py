@@ -19,7 +19,13 @@ cdpr_gateway_tension_corrected_newtons    gauge      cable            platform t
 cdpr_gateway_friction_newtons             gauge      cable            corrected - sensor
 cdpr_gateway_channel_status               gauge      cable            0 good 1 subst. 2 invalid
 cdpr_gateway_build_info                   gauge      version, bus     1
+cdpr_gateway_state                        gauge                       lifecycle, as register 125
+cdpr_gateway_plc_heartbeat_age_seconds    gauge                       since the PLC heartbeat moved
+cdpr_gateway_sample_age_seconds           gauge                       since the last good read
 ========================================  =========  ===============  ==========================
+
+``cdpr_gateway_state`` is the wire code the PLC reads: 0 stopped, 1 connected (not yet
+writing), 2 active, 3 fault. The two ages are NaN until the first reading.
 
 Cables are labelled 1..m. ``errors_total{kind="invalid_value"}`` counts channels going
 from good to flagged (events, not flagged cycles). Every label value of ``kind`` is
@@ -50,7 +56,8 @@ from prometheus_client.registry import Collector
 from gateway import __version__
 from gateway.config import MetricsConfig
 from gateway.errors import ConfigError
-from gateway.loop import CyclicService, Histogram
+from gateway.loop import CyclicService
+from gateway.stats import Histogram
 
 PREFIX = "cdpr_gateway"
 
@@ -105,6 +112,21 @@ class GatewayCollector(Collector):
         )
         info.add_metric([__version__, bus], 1.0)
         yield info
+        yield GaugeMetricFamily(
+            f"{PREFIX}_state",
+            "Lifecycle as the PLC sees it: 0 stopped, 1 connected, 2 active, 3 fault.",
+            float(int(svc.state)),
+        )
+        yield GaugeMetricFamily(
+            f"{PREFIX}_plc_heartbeat_age_seconds",
+            "Seconds since the PLC heartbeat last changed (NaN before the first reading).",
+            svc.plc_heartbeat_age_s(),
+        )
+        yield GaugeMetricFamily(
+            f"{PREFIX}_sample_age_seconds",
+            "Seconds since the last successful read from the PLC (NaN before the first).",
+            svc.sample_age_s(),
+        )
 
 
 def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, float]) -> Metric:

@@ -15,7 +15,6 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 from gateway.config import (
@@ -24,6 +23,7 @@ from gateway.config import (
     TlsConfig,
     exposure_warning,
     load_config,
+    output_path,
 )
 from gateway.errors import ConfigError
 from gateway.recording import write_recording
@@ -80,7 +80,7 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
 
     if not args.seconds > 0:
         raise ConfigError("--seconds must be > 0")
-    out = Path(args.out)
+    out = output_path(args.out, "--out")  # before the simulation, not after it
     sim = load_sim_config(cfg)
     if getattr(args, "seed", None) is not None:
         traj = sim.trajectory

@@ -9,7 +9,11 @@ out in three areas, every other address is illegal (Modbus exception 2):
   so the default area is 0..55 as a PLC data block would be;
 * the gateway's outputs, writable: corrected tensions, channel status, gateway heartbeat
   and state, estimated wrench (default 100..137);
-* the simulation truth block, read-only (default 200..215).
+* the simulation's side channel, read-only, served only by the soft PLC (it is in no
+  gateway register map): the plant's true platform tensions (float32, from register
+  ``TRUTH_ADDRESS`` = 200) followed by the PLC heartbeat of the same plant step (uint16,
+  register 216 for 8 cables), so an observer (the demo) can tell which reading of the
+  gateway a truth sample belongs to.
 
 Reads are encoded on demand from the image (under ``image.lock``); accepted writes are
 decoded into the image and counted in ``image.gateway_writes``. A write that touches a
@@ -48,6 +52,15 @@ from sim_plc.image import ProcessImage
 
 INPUT_AREA_ALIGN = 8
 REGISTER_FUNCTIONS = frozenset((3, 4, 6, 16, 23))
+TRUTH_ADDRESS = 200  # the side channel: true tensions, then the PLC heartbeat
+
+
+def truth_fields(cables: int) -> tuple[RegisterField, RegisterField]:
+    """The side channel's true tensions (float32) and heartbeat copy (uint16)."""
+    truth = RegisterField(TRUTH_ADDRESS, cables, "float32")
+    return truth, RegisterField(truth.end, 1, "uint16")
+
+
 _DECODABLE = frozenset((1, 2, 3, 4, 5, 6, 7, 8, 11, 12, 15, 16, 17, 20, 21, 22, 23, 24, 43))
 
 
@@ -76,17 +89,27 @@ class _ExceptionFixer:
 
 
 def _areas(cfg: Config) -> tuple[Span, Span, Span | None]:
-    """The input (padded), output and truth areas of the configured map."""
+    """The input (padded), output and side-channel (truth) areas of the configured map.
+
+    The truth area is left out when the configured map uses any of its registers.
+    """
     rmap = cfg.bus.modbus_tcp.registers
     layout = layout_map(rmap)
     inputs = Span.covering(list(layout.inputs.values()))
     outputs = layout.write_span
-    truth = layout.truth_span
+    truth: Span | None = Span.covering(list(truth_fields(cfg.cables)))
+    assert truth is not None
+    if any(truth.start < f.end and f.address < truth.end for f in _fields(rmap)):
+        truth = None
     padded_end = -(-inputs.end // INPUT_AREA_ALIGN) * INPUT_AREA_ALIGN
     others = [outputs.start] + ([truth.start] if truth is not None else [])
     limit = min([s for s in others if s >= inputs.end] + [65536])
     inputs = Span(inputs.start, min(padded_end, limit) - inputs.start)
     return inputs, outputs, truth
+
+
+def _fields(rmap: Any) -> list[RegisterField]:
+    return [*rmap.inputs().values(), *rmap.outputs().values()]
 
 
 class _TrackConnections:
@@ -196,7 +219,10 @@ class ImageRegisters:
             (codec(r.gateway_state), "gateway_state"),
             (codec(r.wrench), "wrench"),
         ]
-        self._truth = codec(r.true_tensions) if r.true_tensions is not None else None
+        self._truth = None
+        if self.truth_area is not None:
+            truth, heartbeat = truth_fields(cfg.cables)
+            self._truth = (codec(truth), codec(heartbeat))
         self._scratch = {c.field.address: np.zeros(c.count) for c, _ in self._out}
 
     def simdata(self) -> list[SimData]:
@@ -221,7 +247,8 @@ class ImageRegisters:
             value = getattr(img, name)
             c.encode(value & 0xFFFF if isinstance(value, int) else value)
         if self._truth is not None:
-            self._truth.encode(img.true_tension_n)
+            self._truth[0].encode(img.true_tension_n)
+            self._truth[1].encode(img.plc_heartbeat, raw=True)
 
     def read(self, address: int, count: int) -> list[int]:
         """Current register values ``address .. address + count - 1`` from the image."""

@@ -19,9 +19,9 @@ pytest.importorskip("canopen")
 
 from drivers.base import ChannelStatus
 from drivers.canopen import CanopenDriver
-from gateway.demo import StandInPlant
 from gateway.loop import CyclicService
 from sim_plc.canopen_nodes import CanopenPlc
+from sim_plc.demo import StandInPlant
 from sim_plc.image import ProcessImage
 from tests.test_loop_canopen import PlantThread, virtual_canopen_config
 

@@ -82,6 +82,14 @@ def test_run_sigterm_stops_cleanly(tmp_path):
     text = "".join(lines)
     assert re.search(r"metrics on http://127\.0\.0\.1:\d+/metrics", text)
     assert "stopped: cycles" in text
+    # issue 14: timestamps and logger names, the start-up banner, the state change
+    stamp = r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} (INFO|WARNING) cdpr_gateway(\.loop)?: "
+    assert re.search(stamp + r"cdpr-gateway \S+ starting; config " + re.escape(str(path)), text,
+                     re.MULTILINE), text  # fmt: skip
+    assert re.search(stamp + r"bus: virtual \(bus\.virtual\)", text, re.MULTILINE)
+    assert re.search(stamp + r"model: dahl, 3 pulleys", text, re.MULTILINE)
+    assert re.search(stamp + r"loop: period 1 ms, .*real-time scheduling", text, re.MULTILINE)
+    assert re.search(stamp + r"connected to the PLC at virtual", text, re.MULTILINE)
 
 
 @pytest.mark.slow

@@ -1,9 +1,10 @@
 """The gateway against the soft PLC (a subprocess) over Modbus TCP on 127.0.0.1.
 
 The corrected tensions the gateway writes (registers 100-115) track the plant's true
-platform tensions (200-215) far better than the raw channels (0-7) do, seen both by the
-gateway's own scoring and by an independent pymodbus client; the gateway survives the
-soft PLC being stopped and restarted.
+platform tensions (the soft PLC's side channel, 200-215, in no gateway map) far better
+than the raw channels (0-7) do, seen both by the demo's scorer (a loop observer reading
+the side channel on its own connection) and by an independent pymodbus client; the
+gateway survives the soft PLC being stopped and restarted.
 """
 
 from __future__ import annotations
@@ -21,18 +22,18 @@ pytest.importorskip("drivers.modbus_tcp")
 
 from pymodbus.client import ModbusTcpClient
 
-from drivers.base import GatewayState
+from drivers.base import Lifecycle
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver
-from gateway.demo import SoftPlc, with_port
 from gateway.loop import CyclicService
+from sim_plc.demo import TRUTH_EVERY_CYCLES, SoftPlc, TruthChannel, TruthScorer, with_port
 
 pytestmark = pytest.mark.loopback
 RUN_S = 4.0  # how long the gateway runs; no assertion depends on it being exact
 
 
-def start_gateway(cfg: Config, with_truth: bool = True) -> tuple[CyclicService, threading.Thread]:
-    service = CyclicService(cfg, build_driver(cfg), with_truth=with_truth, history=1 << 14)
+def start_gateway(cfg: Config) -> tuple[CyclicService, threading.Thread]:
+    service = CyclicService(cfg, build_driver(cfg), history=1 << 14)
     worker = threading.Thread(target=service.run, daemon=True)
     worker.start()
     return service, worker
@@ -84,13 +85,19 @@ def test_corrected_tracks_the_true_tension_far_better_than_raw():
     plc = SoftPlc(str(cfg.source), "modbus_tcp")
     try:
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
-        service, worker = start_gateway(live)
+        channel = TruthChannel(plc.host, plc.port, 1, cfg.cables)
+        service = CyclicService(live, build_driver(live), history=1 << 14)
+        scorer = TruthScorer(cfg.cables, channel, TRUTH_EVERY_CYCLES)
+        service.add_observer(scorer)
+        worker = threading.Thread(target=service.run, daemon=True)
+        worker.start()
         try:
             time.sleep(1.0)  # the model's warm-up
             regs = sample_registers(cfg, plc.port, 150)
             time.sleep(max(0.0, RUN_S - 2.5))
         finally:
             stop_gateway(service, worker)
+            channel.close()
     finally:
         plc.close()
     good = np.all(regs["status"] == 0, axis=1)
@@ -98,9 +105,9 @@ def test_corrected_tracks_the_true_tension_far_better_than_raw():
     err_raw = rms(regs["raw"][good] - regs["true"][good])
     err_corrected = rms(regs["corrected"][good] - regs["true"][good])
     assert err_corrected < 0.5 * err_raw, (err_raw, err_corrected)
-    # the gateway's own per-cycle scoring agrees
-    assert service.truth is not None and service.truth.samples.min() > 200
-    raw, corrected = service.truth.rmse()
+    # the demo's scoring through the side channel agrees (same plant step only)
+    assert scorer.score.samples.min() >= 30, (scorer.score.samples, scorer.mismatched)
+    raw, corrected = scorer.score.rmse()
     assert corrected.mean() < 0.5 * raw.mean()
     assert service.stats.written > 1000
 
@@ -111,7 +118,7 @@ def test_soft_plc_stopped_and_restarted_the_gateway_resumes():
     plc = SoftPlc(str(cfg.source), "modbus_tcp")
     port = plc.port
     live = with_port(cfg, "modbus_tcp", plc.host, port)
-    service, worker = start_gateway(live, with_truth=False)
+    service, worker = start_gateway(live)
     try:
         time.sleep(1.5)
         written_before = service.stats.written
@@ -132,7 +139,7 @@ def test_soft_plc_stopped_and_restarted_the_gateway_resumes():
         assert np.all(service.comp.status == 0)
         with ModbusTcpClient("127.0.0.1", port=port, timeout=2) as client:
             assert client.connect()
-            assert uint16s(client, 125, 1)[0] == GatewayState.ACTIVE
+            assert uint16s(client, 125, 1)[0] == Lifecycle.ACTIVE
             assert np.all(np.isfinite(float32s(client, 100, 8)))
             hb = uint16s(client, 124, 1)[0]
             time.sleep(0.2)
@@ -168,7 +175,7 @@ def test_mbpoll_sees_what_the_gateway_reports():
     plc = SoftPlc(str(cfg.source), "modbus_tcp")
     try:
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
-        service, worker = start_gateway(live, with_truth=False)
+        service, worker = start_gateway(live)
         try:
             time.sleep(1.0)
             corrected = mbpoll_values(plc.port, 100, 8, "4:float")
@@ -184,4 +191,4 @@ def test_mbpoll_sees_what_the_gateway_reports():
     # mbpoll and the snapshot are a few ms apart: the tensions move slowly
     np.testing.assert_allclose(values, reported, atol=2.0)
     assert [status[116 + i] for i in range(8)] == [0] * 8
-    assert state[125] == GatewayState.ACTIVE
+    assert state[125] == Lifecycle.ACTIVE

@@ -8,9 +8,9 @@ import signal
 import numpy as np
 import pytest
 
-from drivers.base import ChannelStatus, GatewayState
+from drivers.base import ChannelStatus, Lifecycle
 from drivers.virtual import VirtualDriver, VirtualFaults
-from gateway.loop import CyclicService, LoopState
+from gateway.loop import CyclicService
 from tests.loop_helpers import FakeClock, config, finite, live_image
 
 PERIOD = 0.001
@@ -73,7 +73,7 @@ def test_failed_read_writes_nothing_and_the_next_cycle_resumes():
     assert stats.errors["io"] == 1
     assert svc.reconnects == 0 and drv.opens == 1  # one failure: the driver heals itself
     assert stats.written == 30  # 29 good cycles + the STOPPED frame
-    assert svc.state is LoopState.STOPPED
+    assert svc.state is Lifecycle.STOPPED
 
 
 def test_dropped_connection_is_reopened_and_the_loop_resumes():
@@ -101,7 +101,7 @@ def test_failed_read_flags_channels_stale_and_keeps_last_good():
     assert np.all(svc.comp.flags & 8)  # FLAG_STALE
     assert np.all(svc.comp.status == ChannelStatus.SUBSTITUTED)
     assert img.gateway_writes == 4 + 1  # nothing from the failed cycle; the STOPPED frame
-    assert img.gateway_state == GatewayState.STOPPED  # the bus was still open at stop
+    assert img.gateway_state == Lifecycle.STOPPED  # the bus was still open at stop
 
 
 def test_timeouts_are_counted_by_kind():
@@ -159,10 +159,10 @@ def test_frozen_plc_heartbeat_stops_writes_and_faults_then_resumes():
     holder["img"] = img
     svc.run(cycles=250)
     writes_fault, state_fault = seen[120]
-    assert state_fault == GatewayState.FAULT
-    assert seen[190] == (writes_fault, GatewayState.FAULT)  # nothing written while frozen
+    assert state_fault == Lifecycle.FAULT
+    assert seen[190] == (writes_fault, Lifecycle.FAULT)  # nothing written while frozen
     assert 55 <= writes_fault <= 65
-    assert seen[210][1] == GatewayState.ACTIVE and seen[210][0] > writes_fault
+    assert seen[210][1] == Lifecycle.ACTIVE and seen[210][0] > writes_fault
     assert svc.stats.errors["heartbeat"] == 1
 
 
@@ -179,10 +179,10 @@ def test_fault_frame_carries_no_tensions():
 
     svc.driver.on_read = record  # type: ignore[attr-defined]
     svc.run(cycles=45)
-    assert snapshot["state"] == GatewayState.FAULT
+    assert snapshot["state"] == Lifecycle.FAULT
     assert np.all(np.isnan(snapshot["corrected"]))
     assert np.all(snapshot["status"] == ChannelStatus.INVALID)
-    assert svc.state is LoopState.STOPPED
+    assert svc.state is Lifecycle.STOPPED
 
 
 def test_stop_writes_stopped_state_and_invalid_channels():
@@ -196,10 +196,10 @@ def test_stop_writes_stopped_state_and_invalid_channels():
     holder["svc"] = svc
     stats = svc.run(cycles=1000)
     assert stats.cycles == 30
-    assert img.gateway_state == GatewayState.STOPPED == 0
+    assert img.gateway_state == Lifecycle.STOPPED == 0
     assert np.all(img.channel_status == ChannelStatus.INVALID)
     assert np.all(np.isnan(img.corrected_n))
-    assert svc.state is LoopState.STOPPED
+    assert svc.state is Lifecycle.STOPPED
 
 
 def test_sigterm_ends_the_loop_cleanly():
@@ -215,7 +215,7 @@ def test_sigterm_ends_the_loop_cleanly():
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     assert stats.cycles <= 21
-    assert img.gateway_state == GatewayState.STOPPED
+    assert img.gateway_state == Lifecycle.STOPPED
 
 
 def test_good_cycles_write_finite_tensions_and_active_state():
@@ -230,7 +230,7 @@ def test_good_cycles_write_finite_tensions_and_active_state():
     svc, _, img, _ = make(on_read=record)
     holder["img"] = img
     svc.run(cycles=60)
-    assert seen["state"] == GatewayState.ACTIVE
+    assert seen["state"] == Lifecycle.ACTIVE
     assert finite(seen["corrected"])
     # paying out (v > 0): the platform carries more tension than the sensor reads
     assert np.all(seen["corrected"] > 199.0)
@@ -265,11 +265,11 @@ def test_cycles_do_not_accumulate_allocations():
     drv = VirtualDriver(cfg, image=img, step=Wobble(img))
     svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=4096)
     svc.configure()
-    svc._run(300)  # warm-up: numba dispatch, first-time caches
+    svc._loop(300)  # warm-up: numba dispatch, first-time caches
     tracemalloc.start()
     try:
         before, _ = tracemalloc.get_traced_memory()
-        svc._run(2000)
+        svc._loop(2000)
         after, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
@@ -335,3 +335,74 @@ def test_overrun_warnings_are_rate_limited(caplog):
         sum(int(r.getMessage().split("overruns +")[1].split()[0].rstrip(",")) for r in warnings)
         <= 25
     )
+
+
+# --- plausibility of the setpoints (issue 13.6) -----------------------------------------
+
+
+def test_pose_of_1e20_m_is_flagged_counted_and_gives_no_wrench():
+    snap = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        img = holder["img"]
+        if n == 30:
+            img.pose[0] = 1e20  # from read 30 on
+        if n == 40:
+            snap["status"] = img.channel_status.copy()
+            snap["wrench"] = img.wrench.copy()
+
+    svc, _, img, _ = make(on_read=record)
+    holder["img"] = img
+    good_wrench = None
+
+    def observe(inputs, comp, now):
+        nonlocal good_wrench
+        if good_wrench is None and np.all(np.isfinite(comp.wrench)):
+            good_wrench = comp.wrench.copy()
+
+    svc.add_observer(observe)
+    svc.run(cycles=45)
+    assert good_wrench is not None and np.all(np.isfinite(good_wrench))  # before: a wrench
+    assert np.all(np.isnan(snap["wrench"]))  # after: none
+    assert np.all(snap["status"] != ChannelStatus.GOOD)  # every channel flagged
+    assert svc.stats.errors["implausible"] == 45 - 30 + 1
+
+
+def test_velocity_of_3_4e38_m_s_flags_that_channel_only():
+    snap = {}
+    holder = {}
+
+    def record(n: int) -> None:
+        img = holder["img"]
+        if n == 20:
+            img.velocity_m_s[3] = 3.4e38
+        if n == 30:
+            snap["status"] = img.channel_status.copy()
+            snap["corrected"] = img.corrected_n.copy()
+
+    svc, _, img, _ = make(on_read=record, substitute_max_s=0.005)
+    holder["img"] = img
+    svc.run(cycles=35)
+    assert snap["status"][3] == ChannelStatus.INVALID and np.isnan(snap["corrected"][3])
+    others = np.delete(snap["status"], 3)
+    assert np.all(others == ChannelStatus.GOOD)
+    assert svc.stats.errors["implausible"] == 35 - 20 + 1
+    assert svc.stats.errors["invalid_value"] == 1
+
+
+def test_plausibility_bounds_come_from_the_geometry():
+    from gateway.plausibility import Plausibility
+
+    cfg = config()
+    bounds = Plausibility(cfg)
+    np.testing.assert_allclose(bounds.lo, [-2.5, -2.0, -0.5], atol=1e-12)  # frame - 0.5 m
+    np.testing.assert_allclose(bounds.hi, [2.5, 2.0, 3.5], atol=1e-12)
+    from drivers.base import Inputs
+
+    inputs = Inputs.allocate(cfg.cables)
+    inputs.pose[:] = cfg.geometry.home_pose
+    inputs.length_m[:] = 2.0
+    assert bounds.check(inputs) == 0 and np.all(np.isfinite(inputs.pose))
+    inputs.length_m[5] = 1e6  # no cable of this frame is a kilometre long
+    assert bounds.check(inputs) == 1 and np.isnan(inputs.velocity_m_s[5])

@@ -1,7 +1,7 @@
 """The gateway's loop over CANopen on python-can's virtual bus, paced by the PLC's SYNC.
 
 The soft PLC's CANopen nodes run in real time on a private virtual channel; a stand-in
-plant (gateway.demo.StandInPlant) moves the process image at about 1 kHz; the gateway
+plant (sim_plc.demo.StandInPlant) moves the process image at about 1 kHz; the gateway
 reads the analog module's PDOs after each SYNC and its corrected tensions track the
 plant's true tensions far better than the raw channels do.
 """
@@ -19,12 +19,12 @@ import pytest
 pytest.importorskip("can")
 pytest.importorskip("canopen")
 
-from drivers.base import GatewayState
+from drivers.base import Lifecycle
 from drivers.canopen import CanopenDriver
 from gateway.config import Config
-from gateway.demo import StandInPlant
 from gateway.loop import CyclicService
 from sim_plc.canopen_nodes import CanopenPlc
+from sim_plc.demo import StandInPlant, TruthScorer
 from sim_plc.image import ProcessImage
 from tests.loop_helpers import config
 
@@ -75,12 +75,14 @@ def test_gateway_over_canopen_virtual_bus_compensates():
     plant = StandInPlant(cfg, image)
     plant.step()
 
-    def truth(inputs) -> None:
+    def truth(out: np.ndarray) -> None:  # the test's own view of the plant
         with image.lock:
-            inputs.true_tension_n[:] = image.true_tension_n
+            out[:] = image.true_tension_n
 
     plc = CanopenPlc(cfg, image)
-    service = CyclicService(cfg, CanopenDriver(cfg), with_truth=True, truth_source=truth)
+    service = CyclicService(cfg, CanopenDriver(cfg))
+    scorer = TruthScorer(cfg.cables, truth)
+    service.add_observer(scorer)
     assert service.paced
     with PlantThread(plant, cfg.loop.period_s):
         plc.start(realtime=True)
@@ -99,9 +101,9 @@ def test_gateway_over_canopen_virtual_bus_compensates():
         finally:
             plc.stop()
     assert service.stats.written >= 2500
-    assert state_seen == GatewayState.ACTIVE
+    assert state_seen == Lifecycle.ACTIVE
     assert np.all(np.isfinite(corrected_seen))
-    assert service.truth is not None and service.truth.samples.min() > 1000
-    raw, corrected = service.truth.rmse()
+    assert scorer.score.samples.min() > 1000
+    raw, corrected = scorer.score.rmse()
     assert corrected.mean() < 0.5 * raw.mean(), (raw, corrected)
     assert service.stats.jitter.count > 1000  # lateness after SYNC was measured

@@ -29,6 +29,10 @@ DESIGN_TABLE = {
     "cdpr_gateway_friction_newtons": ("gauge", {"cable"}),
     "cdpr_gateway_channel_status": ("gauge", {"cable"}),
     "cdpr_gateway_build_info": ("gauge", {"version", "bus"}),
+    # issue 14: the operator's view
+    "cdpr_gateway_state": ("gauge", set()),
+    "cdpr_gateway_plc_heartbeat_age_seconds": ("gauge", set()),
+    "cdpr_gateway_sample_age_seconds": ("gauge", set()),
 }
 
 
@@ -119,9 +123,9 @@ def test_connected_follows_the_bus():
     assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 0
     svc.configure()
     assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 1
-    svc._run(3)  # the third read fails
+    svc._loop(3)  # the third read fails
     assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 0
-    svc._run(1)
+    svc._loop(1)
     assert reg.get_sample_value("cdpr_gateway_connected", {"bus": "virtual"}) == 1
 
 
@@ -195,3 +199,33 @@ def test_tls_exporter(tmp_path):
         server.close()
     with pytest.raises(ConfigError, match=r"metrics\.certfile"):
         MetricsServer(MetricsConfig(host="127.0.0.1", port=0, certfile=str(key)), reg)
+
+
+def test_state_and_ages_follow_the_loop():
+    """state is the wire code of register 125; the ages grow while nothing arrives."""
+    cfg = config(busy_wait_s=0.0, heartbeat_timeout_s=0.05)
+    clock = FakeClock()
+    img = live_image(cfg)
+    faults = VirtualFaults(freeze_heartbeat_from=20)
+    drv = VirtualDriver(cfg, image=img, faults=faults)
+    svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=256)
+    reg = make_registry(svc)
+    assert reg.get_sample_value("cdpr_gateway_state") == 0  # stopped: not started
+    assert np.isnan(reg.get_sample_value("cdpr_gateway_sample_age_seconds"))
+    assert np.isnan(reg.get_sample_value("cdpr_gateway_plc_heartbeat_age_seconds"))
+    svc.configure()
+    assert reg.get_sample_value("cdpr_gateway_state") == 1  # connected, nothing written
+    svc._loop(10)
+    assert reg.get_sample_value("cdpr_gateway_state") == 2 == img.gateway_state
+    assert reg.get_sample_value("cdpr_gateway_sample_age_seconds") < 0.001
+    assert reg.get_sample_value("cdpr_gateway_plc_heartbeat_age_seconds") < 0.001
+    svc._loop(100)  # the heartbeat froze at read 20: ~90 ms ago, > 50 ms timeout
+    assert reg.get_sample_value("cdpr_gateway_state") == 3 == img.gateway_state
+    age = reg.get_sample_value("cdpr_gateway_plc_heartbeat_age_seconds")
+    assert age == pytest.approx(0.090, abs=0.003)
+    assert reg.get_sample_value("cdpr_gateway_sample_age_seconds") < 0.001  # reads go on
+    clock.advance(2.0)  # nothing read for 2 s
+    assert reg.get_sample_value("cdpr_gateway_sample_age_seconds") == pytest.approx(2.0, abs=0.01)
+    svc.stop()
+    svc.run()
+    assert reg.get_sample_value("cdpr_gateway_state") == 0

@@ -179,15 +179,7 @@ def test_default_map_layout() -> None:
     lay = layout_map(RegisterMap())
     assert lay.read_span == Span(0, 53)
     assert lay.write_span == Span(100, 38)
-    assert lay.truth_span == Span(200, 16)
-    assert not lay.truth_in_read  # 0..215 is more than one read
-
-
-def test_truth_block_joins_the_read_when_it_fits() -> None:
-    rmap = dataclasses.replace(RegisterMap(), true_tensions=RegisterField(60, 8, "float32"))
-    lay = layout_map(rmap)
-    assert lay.truth_in_read
-    assert lay.read_span == Span(0, 76)
+    assert not hasattr(lay, "truth_span")  # the simulation's truth is in no gateway map
 
 
 @pytest.mark.parametrize(
@@ -195,7 +187,7 @@ def test_truth_block_joins_the_read_when_it_fits() -> None:
     [
         ({"corrected_tensions": RegisterField(52, 8, "float32")}, ("plc_heartbeat", "corrected")),
         ({"wrench": RegisterField(120, 6, "float32")}, ("channel_status", "wrench")),
-        ({"gateway_state": RegisterField(200, 1)}, ("gateway_state", "true_tensions")),
+        ({"gateway_state": RegisterField(52, 1)}, ("gateway_state", "plc_heartbeat")),
     ],
 )
 def test_overlapping_fields_are_refused(change: dict, names: tuple[str, str]) -> None:
@@ -216,4 +208,4 @@ def test_write_span_may_not_cover_plc_registers() -> None:
 def test_spans_longer_than_one_transaction_are_refused() -> None:
     rmap = dataclasses.replace(RegisterMap(), plc_heartbeat=RegisterField(130 + 200, 1))
     with pytest.raises(ConfigError, match="exceeds one read"):
-        layout_map(dataclasses.replace(rmap, true_tensions=None))
+        layout_map(rmap)

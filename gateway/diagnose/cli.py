@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from gateway.config import Config, config_from_mapping, load_friction
+from gateway.config import Config, config_from_mapping, load_friction, output_path
 from gateway.configtypes import read_yaml
 from gateway.diagnose import platform
 from gateway.diagnose.engine import diagnose
@@ -60,6 +60,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
+    output_path(args.json, "--json")  # before the work; never creates directories
     friction, cfg = load_model(args.model)
     rec = read_recording(args.recording)
     say(
@@ -74,7 +75,6 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         validation = (vrec, vtp, vdm if dm is not None else None)
     diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
     try:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc

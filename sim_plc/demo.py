@@ -5,19 +5,25 @@ The whole product on one machine with no hardware: the soft PLC runs as a subpro
 on HOST:PORT`` says where), the gateway connects to it on loopback and runs its 1 kHz
 cycle; one progress line per second goes to stderr; at the end a table: cycles, overruns,
 jitter and round-trip percentiles, and per cable the RMSE of the raw and of the corrected
-tension against the plant's true platform tension (registers 200-215, read each cycle with
-the inputs).
+tension against the plant's true platform tension.
 
-With ``--bus canopen`` on python-can's ``virtual`` interface (the default), the soft PLC
-runs in this process (a virtual CAN channel does not cross processes) and the true
-tensions come from its process image; on a real interface (``socketcan``, ``udp_multicast``)
-it runs as the subprocess above and the table has no RMSE (CANopen carries no truth).
+The gateway never sees the truth: the demo observes the plant through its own channel and
+scores what the gateway computed (an observer of the loop, :class:`TruthScorer`).
 
-``--offline`` runs the soft PLC's plant in this process through the virtual driver (no
-sockets), stepped one period per gateway read, so truth and readings line up exactly.
-``--offline --stand-in`` replaces the plant by :class:`StandInPlant`: sinusoidal platform
-tensions and cable velocities, the sensor reading made by the same friction chain run
-platform -> sensor, plus noise and the S7 ADC (no trajectory, no statics).
+* Over Modbus the soft PLC serves a side channel that is in no gateway register map
+  (:data:`sim_plc.modbus_server.TRUTH_ADDRESS`: the true tensions and the PLC heartbeat
+  of the same plant step); the demo reads it on its own connection
+  (:class:`TruthChannel`) every ``TRUTH_EVERY_CYCLES`` cycles and scores only when that
+  heartbeat is the one of the gateway's reading, so truth and reading are of one step.
+* With ``--bus canopen`` on python-can's ``virtual`` interface (the default), the soft PLC
+  runs in this process (a virtual CAN channel does not cross processes) and the true
+  tensions come from its process image; on a real interface (``socketcan``,
+  ``udp_multicast``) it runs as the subprocess above and the table has no RMSE.
+* ``--offline`` runs the soft PLC's plant in this process through the virtual driver (no
+  sockets), stepped one period per gateway read, so truth and readings line up exactly.
+  ``--offline --stand-in`` replaces the plant by :class:`StandInPlant`: sinusoidal
+  platform tensions and cable velocities, the sensor reading made by the same friction
+  chain run platform -> sensor, plus noise and the S7 ADC (no trajectory, no statics).
 """
 
 from __future__ import annotations
@@ -26,23 +32,151 @@ import argparse
 import dataclasses
 import math
 import os
+import socket
+import struct
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any, TextIO
 
 import numpy as np
 
+from drivers.base import Inputs
+from gateway.compensator import Compensator
 from gateway.config import DEFAULT_CONFIG_PATH, Config, load_config
 from gateway.daemon import build_driver
 from gateway.errors import GatewayError
 from gateway.loop import CyclicService
 from gateway.model.chain import ChainParams, ChainStepper
 from sim_plc.image import ProcessImage
+from sim_plc.modbus_server import TRUTH_ADDRESS
 
 STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first start
+SCORE_AFTER_S = 0.5  # scoring skips the model's warm-up
+TRUTH_EVERY_CYCLES = 10  # the side channel costs a transaction: sample it this seldom
+TruthSource = Callable[[np.ndarray], "int | None"]  # fills truth, returns its heartbeat
+
+
+class TruthScore:
+    """Sums of squared error of raw and corrected tensions against the plant's truth."""
+
+    def __init__(self, cables: int) -> None:
+        self.raw_sq = np.zeros(cables)
+        self.corrected_sq = np.zeros(cables)
+        self.samples = np.zeros(cables, dtype=np.int64)
+
+    def add(self, truth: np.ndarray, raw: np.ndarray, corrected: np.ndarray,
+            status: np.ndarray) -> None:  # fmt: skip
+        """Add the squared errors of the good channels (status 0, finite) against ``truth``."""
+        good = (status == 0) & np.isfinite(corrected) & np.isfinite(truth)
+        self.raw_sq[good] += (raw[good] - truth[good]) ** 2
+        self.corrected_sq[good] += (corrected[good] - truth[good]) ** 2
+        self.samples[good] += 1
+
+    def rmse(self) -> tuple[np.ndarray, np.ndarray]:
+        n = np.maximum(self.samples, 1)
+        return np.sqrt(self.raw_sq / n), np.sqrt(self.corrected_sq / n)
+
+
+class TruthScorer:
+    """A loop observer: every ``every`` cycles (after ``SCORE_AFTER_S``) it asks ``source``
+    for the plant's truth and scores the gateway's raw and corrected tensions against it.
+
+    ``source(truth)`` fills ``truth`` and returns the PLC heartbeat of that plant step
+    (None: unknown, score anyway); a heartbeat other than the gateway's reading means
+    the plant has stepped since: that sample is skipped (``mismatched``) and the next
+    cycle tries again.
+    """
+
+    def __init__(self, cables: int, source: TruthSource, every: int = 1) -> None:
+        self.score = TruthScore(cables)
+        self.source = source
+        self.every = every
+        self.truth = np.zeros(cables)
+        self.mismatched = 0
+        self.failed = 0
+        self._countdown = 1
+        self._started: float | None = None
+
+    def __call__(self, inputs: Inputs, comp: Compensator, now: float) -> None:
+        if self._started is None:
+            self._started = now
+        if now - self._started < SCORE_AFTER_S:
+            return
+        self._countdown -= 1
+        if self._countdown > 0:
+            return
+        self._countdown = self.every
+        try:
+            heartbeat = self.source(self.truth)
+        except OSError:
+            self.failed += 1
+            return
+        if heartbeat is not None and heartbeat != inputs.plc_heartbeat:
+            self.mismatched += 1
+            self._countdown = 1  # the plant stepped in between: try again next cycle
+            return
+        self.score.add(self.truth, comp.raw_n, comp.corrected_n, comp.status)
+
+
+class TruthChannel:
+    """The demo's own Modbus connection to the soft PLC's side channel (function 3).
+
+    Reads the true tensions and the PLC heartbeat of one plant step in one transaction;
+    a failed connection is retried at most once per second.
+    """
+
+    def __init__(self, host: str, port: int, unit_id: int, cables: int) -> None:
+        self.address = (host, port)
+        self.unit_id = unit_id
+        self.words = 2 * cables + 1
+        self.reply_len = 9 + 2 * self.words
+        self._sock: socket.socket | None = None
+        self._tid = 0
+        self._retry_at = 0.0
+
+    def __call__(self, truth: np.ndarray) -> int:
+        sock = self._connect()
+        self._tid = (self._tid + 1) & 0xFFFF
+        request = struct.pack(">HHHBBHH", self._tid, 0, 6, self.unit_id, 3, TRUTH_ADDRESS,
+                              self.words)  # fmt: skip
+        try:
+            sock.sendall(request)
+            reply = b""
+            while len(reply) < self.reply_len:
+                chunk = sock.recv(self.reply_len - len(reply))
+                if not chunk:
+                    raise OSError("side channel closed")
+                reply += chunk
+                if len(reply) >= 9 and reply[7] & 0x80:
+                    raise OSError(f"side channel: exception {reply[8]}")
+        except OSError:
+            self.close()
+            raise
+        if struct.unpack_from(">H", reply)[0] != self._tid:
+            self.close()
+            raise OSError("side channel: wrong transaction id")
+        truth[:] = np.frombuffer(reply, ">f4", count=truth.size, offset=9)
+        return int(struct.unpack_from(">H", reply, 9 + 4 * truth.size)[0])
+
+    def _connect(self) -> socket.socket:
+        if self._sock is not None:
+            return self._sock
+        if time.monotonic() < self._retry_at:
+            raise OSError("side channel: waiting to reconnect")
+        self._retry_at = time.monotonic() + 1.0
+        sock = socket.create_connection(self.address, timeout=0.05)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock = sock
+        return sock
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
@@ -104,7 +238,7 @@ class SoftPlc:
         if bus != "modbus_tcp":
             cmd += ["--bus", bus]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        root = str(Path(__file__).resolve().parent.parent)
+        root = str(Path(__file__).resolve().parent.parent)  # the project root
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         self.proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
@@ -152,7 +286,7 @@ class InProcessCanopenPlc:
 
     A virtual CAN channel does not cross processes, so with ``bus.canopen.interface:
     virtual`` the soft PLC runs in this process, on a private channel. ``truth`` copies the
-    plant's true tensions from the process image (CANopen carries no truth PDO).
+    plant's true tensions and heartbeat from the process image (the demo's own channel).
     """
 
     def __init__(self, cfg: Config) -> None:
@@ -175,9 +309,10 @@ class InProcessCanopenPlc:
         self.runtime.start()
         self.plc.start(realtime=True)
 
-    def truth(self, inputs: Any) -> None:
+    def truth(self, truth: np.ndarray) -> int | None:
         with self.image.lock:
-            inputs.true_tension_n[:] = self.image.true_tension_n
+            truth[:] = self.image.true_tension_n
+        return None  # the analog PDOs follow SYNC, not the plant step: no heartbeat match
 
     def close(self) -> None:
         self.plc.stop()
@@ -204,7 +339,7 @@ def run_timed(service: CyclicService, seconds: float, label: str, err: TextIO) -
             s = service.stats
             print(
                 f"{label}: {time.monotonic() - start:4.0f} s  cycles {s.cycles}  "
-                f"written {s.written}  overruns {s.overruns}  state {service.state.value}  "
+                f"written {s.written}  overruns {s.overruns}  state {service.state.name.lower()}  "
                 f"T1 corrected {service.comp.corrected_n[0]:7.2f} N",
                 file=err,
                 flush=True,
@@ -220,7 +355,7 @@ def _us(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x * 1e6:.0f} us"
 
 
-def table(service: CyclicService, title: str) -> str:
+def table(service: CyclicService, title: str, score: TruthScore | None = None) -> str:
     """The closing table: loop figures, then per-cable RMSE raw vs corrected."""
     s = service.stats
     pct = 100.0 * s.overruns / max(s.cycles, 1)
@@ -235,12 +370,12 @@ def table(service: CyclicService, title: str) -> str:
         f"  round trip p50 / p99 {_us(s.roundtrip_ring.percentile(50))} / "
         f"{_us(s.roundtrip_ring.percentile(99))}",
     ]
-    if service.truth is not None and service.truth.samples.any():
-        raw, corrected = service.truth.rmse()
+    if score is not None and score.samples.any():
+        raw, corrected = score.rmse()
         rows += ["", "  cable  RMSE raw N  RMSE corrected N  samples"]
         for i in range(raw.size):
             rows.append(
-                f"  {i + 1:>5}  {raw[i]:10.3f}  {corrected[i]:16.3f}  {service.truth.samples[i]:7d}"
+                f"  {i + 1:>5}  {raw[i]:10.3f}  {corrected[i]:16.3f}  {score.samples[i]:7d}"
             )
         rows.append(f"  {'mean':>5}  {raw.mean():10.3f}  {corrected.mean():16.3f}")
     else:
@@ -248,7 +383,10 @@ def table(service: CyclicService, title: str) -> str:
     return "\n".join(rows)
 
 
-def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> CyclicService:
+Demo = tuple[CyclicService, "TruthScorer | None"]
+
+
+def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> Demo:
     from drivers.virtual import VirtualDriver
 
     image = ProcessImage(cfg.cables)
@@ -263,38 +401,52 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> CyclicSe
         def step() -> None:
             plant.step(image)
 
+    def truth(out: np.ndarray) -> None:  # same thread, same plant step as the reading
+        out[:] = image.true_tension_n
+
     driver = VirtualDriver(cfg, image=image, step=step)
-    service = CyclicService(cfg, driver, with_truth=True)
+    service = CyclicService(cfg, driver)
+    scorer = TruthScorer(cfg.cables, truth)
+    service.add_observer(scorer)
     run_timed(service, seconds, "demo (offline)", sys.stderr)
-    return service
+    return service, scorer
 
 
-def run_canopen_in_process(cfg: Config, seconds: float) -> CyclicService:
+def run_canopen_in_process(cfg: Config, seconds: float) -> Demo:
     plc = InProcessCanopenPlc(cfg)
     try:
         print(f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
               file=sys.stderr)  # fmt: skip
-        service = CyclicService(
-            plc.cfg, build_driver(plc.cfg), with_truth=True, truth_source=plc.truth
-        )
+        service = CyclicService(plc.cfg, build_driver(plc.cfg))
+        scorer = TruthScorer(cfg.cables, plc.truth)
+        service.add_observer(scorer)
         run_timed(service, seconds, "demo", sys.stderr)
     finally:
         plc.close()
-    return service
+    return service, scorer
 
 
-def run_online(cfg: Config, config_path: str, bus: str, seconds: float) -> CyclicService:
+def run_online(cfg: Config, config_path: str, bus: str, seconds: float) -> Demo:
     if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
         return run_canopen_in_process(cfg, seconds)
     plc = SoftPlc(config_path, bus)
+    channel = None
     try:
         print(f"demo: soft PLC serving {bus} on {plc.host}:{plc.port}", file=sys.stderr)
         live = with_port(cfg, bus, plc.host, plc.port)
-        service = CyclicService(live, build_driver(live), with_truth=True)
+        service = CyclicService(live, build_driver(live))
+        scorer = None
+        if bus == "modbus_tcp":
+            mb = live.bus.modbus_tcp
+            channel = TruthChannel(mb.host, mb.port, mb.unit_id, cfg.cables)
+            scorer = TruthScorer(cfg.cables, channel, TRUTH_EVERY_CYCLES)
+            service.add_observer(scorer)
         run_timed(service, seconds, "demo", sys.stderr)
     finally:
+        if channel is not None:
+            channel.close()
         plc.close()
-    return service
+    return service, scorer
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
@@ -303,14 +455,14 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     bus = args.bus or cfg.bus.driver
     if args.offline or bus == "virtual":
-        service = run_offline(cfg, args.seconds, args.stand_in)
+        service, scorer = run_offline(cfg, args.seconds, args.stand_in)
         plant = "stand-in plant" if args.stand_in else "plant"
         title = f"demo: {plant} in process, virtual driver, {args.seconds:g} s"
     else:
-        service = run_online(cfg, args.config, bus, args.seconds)
+        service, scorer = run_online(cfg, args.config, bus, args.seconds)
         where = "on loopback"
         if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
             where = "(virtual CAN, in process)"
         title = f"demo: soft PLC over {bus} {where}, {args.seconds:g} s"
-    print(table(service, title))
+    print(table(service, title, scorer.score if scorer is not None else None))
     return 0

@@ -1,0 +1,115 @@
+"""What the cyclic service measures: histograms, rings and counters, allocated once.
+
+The loop writes into :class:`LoopStats` during the cycle (no allocation: bucket counters
+and fixed-size ring buffers); the metrics collector and the demo read it at scrape or
+report time. The driver's own round-trip ring (:class:`drivers.base.RoundtripRing`) is
+merged in by :meth:`LoopStats.add_roundtrip_from`, once per successful read.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from typing import Protocol
+
+import numpy as np
+
+CYCLE_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3)
+JITTER_BUCKETS_S = (10e-6, 20e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3)
+ROUNDTRIP_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3, 0.05)
+ERROR_KINDS = ("timeout", "io", "connect", "write", "invalid_value", "heartbeat", "implausible")
+
+
+class Histogram:
+    """Prometheus-style histogram: per-bucket counts (not cumulative), sum and count."""
+
+    def __init__(self, bounds: tuple[float, ...]) -> None:
+        self.bounds = bounds
+        self.counts = [0] * (len(bounds) + 1)  # last: above every bound (+Inf only)
+        self.sum = 0.0
+        self.count = 0
+
+    def add(self, value: float) -> None:
+        self.counts[bisect.bisect_left(self.bounds, value)] += 1
+        self.sum += value
+        self.count += 1
+
+    def cumulative(self) -> list[tuple[str, int]]:
+        """``[(le, cumulative count), ..., ('+Inf', count)]`` for the exposition."""
+        out, total = [], 0
+        for bound, n in zip((*self.bounds, math.inf), self.counts, strict=True):
+            total += n
+            out.append(("+Inf" if bound == math.inf else repr(bound), total))
+        return out
+
+
+class Ring:
+    """The last ``size`` values (s); written in the cycle, read for percentiles."""
+
+    def __init__(self, size: int) -> None:
+        self.values = np.zeros(size)
+        self.count = 0
+
+    def add(self, value: float) -> None:
+        self.values[self.count % self.values.size] = value
+        self.count += 1
+
+    def last(self) -> float:
+        """The value added last (NaN before the first)."""
+        if self.count == 0:
+            return math.nan
+        return float(self.values[(self.count - 1) % self.values.size])
+
+    def recent(self) -> np.ndarray:
+        return self.values[: min(self.count, self.values.size)]
+
+    def percentile(self, q: float) -> float:
+        data = self.recent()
+        return float(np.percentile(data, q)) if data.size else math.nan
+
+
+class _DriverRing(Protocol):
+    values: np.ndarray
+    count: int
+
+
+class LoopStats:
+    """Everything the loop measures, preallocated; read at scrape time."""
+
+    def __init__(self, history: int = 1 << 16) -> None:
+        self.cycle = Histogram(CYCLE_BUCKETS_S)
+        self.jitter = Histogram(JITTER_BUCKETS_S)
+        self.roundtrip = Histogram(ROUNDTRIP_BUCKETS_S)
+        self.cycle_ring = Ring(history)
+        self.jitter_ring = Ring(history)
+        self.roundtrip_ring = Ring(history)
+        self.read_ring = Ring(history)
+        self.compensate_ring = Ring(history)
+        self.write_ring = Ring(history)
+        self.cycles = 0  # cycles executed
+        self.written = 0  # cycles whose outputs were written
+        self.overruns = 0  # cycles that ended after the next deadline
+        self.skipped = 0  # deadlines skipped because of overruns
+        self.reconnects = 0  # successful reconnections after a loss
+        self.errors = dict.fromkeys(ERROR_KINDS, 0)
+
+    def add_jitter(self, seconds: float) -> None:
+        self.jitter.add(seconds)
+        self.jitter_ring.add(seconds)
+
+    def add_cycle(self, seconds: float) -> None:
+        self.cycle.add(seconds)
+        self.cycle_ring.add(seconds)
+
+    def add_overrun(self, missed: int) -> None:
+        """One cycle that ended late; ``missed`` deadlines (or SYNCs) were skipped."""
+        self.overruns += 1
+        self.skipped += missed
+
+    def add_roundtrip_from(self, ring: _DriverRing) -> None:
+        """Merge the last transaction of the driver's round-trip ring."""
+        if ring.count == 0:
+            return
+        last = float(ring.values[(ring.count - 1) % ring.values.size])
+        self.roundtrip.add(last)
+        self.roundtrip_ring.add(last)
