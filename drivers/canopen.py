@@ -24,9 +24,10 @@ which must not exist on this bus). The driver re-targets RPDO1/2 to 0x180/0x280 
 
 Scaling (module constants; resolution = one count, the quantisation error is half of it):
 
-* raw force: S7 analog counts as the module delivers them, 0..27648 = 0..sensor range
-  (500 N: 0.0181 N/count); counts > 32511 (overflow 32767) or < -4864 (underflow -32768)
-  give NaN.
+* raw force: S7 analog counts as the module delivers them, decoded by the one S7 codec
+  (:class:`drivers.s7.S7Analog`): 0..27648 = 0..sensor range (500 N: 0.0181 N/count),
+  over/underrange included; the overflow/underflow codes and counts outside the S7
+  window give NaN.
 * velocity: 2e-5 m/s per count, range +-0.655 m/s (clamped). The Dahl state integrates
   v*dt; a 1e-5 m/s error over 1 ms moves it by 1e-8 m, i.e. 5e-6 N at sigma = 500 N/m.
 * length: 1e-4 m per count, u16, 0..6.5535 m. Pose: 1e-4 m and 1e-4 rad per count,
@@ -51,6 +52,9 @@ cannot fit.
 Timing: :meth:`CanopenDriver.read_into` returns the newest complete set (SYNC followed by
 all four per-cycle RPDOs) that has not been returned before, waiting up to
 ``timeout_s`` (default 2.5 SYNC periods) for it; otherwise :class:`DriverTimeoutError`.
+The first set after open also waits (10 SYNC periods longer) until every RPDO, the slow
+ones (heartbeat, pose, lengths) included, has arrived once: no zeros are handed out as a
+pose or a heartbeat.
 """
 
 from __future__ import annotations
@@ -68,6 +72,7 @@ import numpy as np
 from canopen import objectdictionary as od_types
 
 from drivers.base import Driver, Inputs, Outputs
+from drivers.s7 import S7Analog
 from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -94,7 +99,6 @@ LENGTH_M_PER_COUNT = 1e-4
 POSITION_M_PER_COUNT = 1e-4
 ANGLE_RAD_PER_COUNT = 1e-4
 TENSION_NO_VALUE = 0x7FFF
-S7_VALID_MIN, S7_VALID_MAX = -4864, 32511  # beyond: underflow / overflow codes
 STATUS_BITS = 2
 SLOW_PERIOD_CYCLES = 10
 READ_TIMEOUT_PERIODS = 2.5
@@ -206,13 +210,6 @@ def unpack_status(word: int, out: np.ndarray) -> None:
         out[i] = (word >> (STATUS_BITS * i)) & 0x3
 
 
-def s7_counts_to_newtons(count: int, newtons_per_count: float) -> float:
-    """S7 analog count -> N; overflow/underflow codes (outside -4864..32511) -> NaN."""
-    if S7_VALID_MIN <= count <= S7_VALID_MAX:
-        return count * newtons_per_count
-    return math.nan
-
-
 def new_slots(layouts: dict[int, PdoLayout]) -> dict[int, list[int]]:
     """A zeroed value list for every object the layouts map, long enough for its subs."""
     sizes: dict[int, int] = {}
@@ -262,7 +259,7 @@ class CanopenDriver(Driver):
         self.timeout_s = (
             timeout_s or self.can_cfg.timeout_s or READ_TIMEOUT_PERIODS * self.can_cfg.sync_period_s
         )
-        self._n_per_count = config.sensor.range_n / config.sensor.adc_full_scale
+        self.analog = S7Analog.from_sensor(config.sensor)
         self._external_bus = bus
         self._bus: can.BusABC | None = None
         self._rx: dict[int, tuple[PdoLayout, int]] = {}  # cob_id -> (layout, required bit)
@@ -271,11 +268,12 @@ class CanopenDriver(Driver):
         self._tx_slots: dict[int, list[int]] = {}
         self._required = 0
         self._received = 0
+        self._seen_bits: dict[int, int] = {}
+        self._all_rpdos = 0
+        self._seen = 0  # RPDOs received at least once since open (bit per RPDO)
         self._sync_seen = False
         self._sync_timestamp = 0.0
-        self.syncs = 0  # SYNC frames seen
         self.sets = 0  # complete SYNC sets returned by read_into
-        self.last_sync_timestamp = 0.0  # can.Message.timestamp (time.time base) of that SYNC
         self.ignored_frames = 0  # error/remote frames and unknown COB-IDs
 
     # --- hooks ----------------------------------------------------------------------------
@@ -293,11 +291,14 @@ class CanopenDriver(Driver):
                 )
             rpdos[number] = rpdos[number].retarget(analog_tpdos[number].cob_id)
         self._check_channels(rpdos)
-        self._rx, self._required = {}, 0
+        self._rx, self._required, self._seen_bits = {}, 0, {}
         for bit, layout in enumerate(rpdos.values()):
             required = any(i in PER_CYCLE_OBJECTS for i, _ in layout.entries)
             self._rx[layout.cob_id] = (layout, (1 << bit) if required else 0)
             self._required |= (1 << bit) if required else 0
+            self._seen_bits[layout.cob_id] = 1 << bit
+        self._all_rpdos = (1 << len(rpdos)) - 1
+        self._seen = 0
         self._tx = list(tpdos.values())
         self._slots = new_slots(rpdos)
         self._tx_slots = new_slots(tpdos)
@@ -324,7 +325,10 @@ class CanopenDriver(Driver):
     def _read(self, inputs: Inputs) -> None:
         if self._bus is None:
             raise DriverIOError("canopen: read on a closed driver")
-        deadline = time.monotonic() + self.timeout_s
+        timeout = self.timeout_s
+        if self._seen != self._all_rpdos:  # after open: wait for the slow PDOs once
+            timeout += SLOW_PERIOD_CYCLES * self.can_cfg.sync_period_s
+        deadline = time.monotonic() + timeout
         try:
             complete = self._collect(deadline)
         except can.CanError as exc:
@@ -336,7 +340,9 @@ class CanopenDriver(Driver):
                 if bit and not self._received & bit
             ]
             what = "no SYNC" if not self._sync_seen else "missing PDOs " + ", ".join(missing)
-            raise DriverTimeoutError(f"canopen: {what} within {self.timeout_s * 1e3:.1f} ms")
+            if self._sync_seen and not missing:
+                what = "no slow PDO yet (heartbeat, pose, lengths)"
+            raise DriverTimeoutError(f"canopen: {what} within {timeout * 1e3:.1f} ms")
         self._sync_seen, self._received = False, 0
         self.sets += 1
         self.last_sync_timestamp = self._sync_timestamp
@@ -348,7 +354,11 @@ class CanopenDriver(Driver):
         bus = self._bus
         assert bus is not None
         for _ in range(DRAIN_LIMIT):
-            if self._sync_seen and self._received == self._required:
+            if (
+                self._sync_seen
+                and self._received == self._required
+                and self._seen == self._all_rpdos
+            ):
                 msg = bus.recv(0)
                 if msg is None:
                     return True
@@ -378,15 +388,16 @@ class CanopenDriver(Driver):
             return
         layout, bit = entry
         unpack_pdo(layout, msg.data, self._slots)
+        self._seen |= self._seen_bits[cob_id]
         if self._sync_seen:
             self._received |= bit
 
     def _fill(self, inputs: Inputs) -> None:
-        slots, k = self._slots, self._n_per_count
+        slots, decode = self._slots, self.analog.decode_count
         raw, vel = slots[OBJ_RAW], slots[OBJ_VELOCITY]
         length = slots.get(OBJ_LENGTH)
         for i in range(self.cables):
-            inputs.tension_raw_n[i] = s7_counts_to_newtons(raw[i], k)
+            inputs.tension_raw_n[i] = decode(raw[i])
             inputs.velocity_m_s[i] = vel[i] * VELOCITY_M_S_PER_COUNT
             if length is not None:
                 inputs.length_m[i] = length[i] * LENGTH_M_PER_COUNT

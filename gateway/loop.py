@@ -17,8 +17,9 @@ bus errors, watchdog) are rate-limited and emitted after the cycle's work.
 Lifecycle (:class:`LoopState`): unconfigured -> connected (driver open, reading) ->
 active (writing) -> fault (bus down or PLC heartbeat frozen) -> back to connected/active;
 stopped at the end. Only this module catches driver errors: a cycle whose read fails
-writes nothing, flags every channel stale, closes the driver and reconnects (first retry
-the next cycle, then exponential backoff ``reconnect_min_s .. reconnect_max_s``).
+writes nothing, flags every channel stale; after a few in a row the loop closes the driver
+and asks it each cycle to reconnect (:meth:`drivers.base.Driver.poll_connect`, which
+never blocks more than one period and spaces attempts with the driver's own backoff).
 
 The PLC heartbeat that does not change for ``loop.heartbeat_timeout_s`` stops the tension
 writes: one frame with gateway state FAULT, every channel invalid and NaN tensions is
@@ -138,14 +139,6 @@ class LoopStats:
         self.errors = dict.fromkeys(ERROR_KINDS, 0)
 
 
-def _reconnect_limits(cfg: Config) -> tuple[float, float]:
-    bus = getattr(cfg.bus, cfg.bus.driver, None)
-    return (
-        float(getattr(bus, "reconnect_min_s", 0.05)),
-        float(getattr(bus, "reconnect_max_s", 2.0)),
-    )
-
-
 class CyclicService:
     """The gateway's cycle around one driver. Not thread-safe except :meth:`stop`."""
 
@@ -183,17 +176,16 @@ class CyclicService:
         self._last_hb: int | None = None
         self._hb_changed_at = 0.0
         self._ever_connected = False
+        self.last_connect_error = ""  # the cause of the last failed connection attempt
         self._open = False
         self._failures = 0
-        self._read_truth: Callable[[Inputs], None] | None = truth_source or getattr(
-            driver, "read_truth", None
+        self._read_truth: Callable[[Inputs], None] | None = truth_source or (
+            driver.read_truth if driver.reads_truth_separately else None
         )
         self.wall_clock = wall_clock
-        self.paced = bool(getattr(driver, "paced_by_bus", False))
+        self.paced = driver.paced_by_bus
         self._data_at = 0.0
-        self._backoff_min, self._backoff_max = _reconnect_limits(cfg)
-        self._backoff = self._backoff_min
-        self._reconnect_at = -math.inf
+        self._pending: Outputs | None = None  # written with the next read (function 23)
         self._started_at = 0.0
         self._logged = dict.fromkeys((*ERROR_KINDS, "overruns", "reconnects"), 0)
         self._next_check = -math.inf
@@ -276,17 +268,17 @@ class CyclicService:
         while not self._stop.is_set() and (cycles is None or done < cycles):
             if not self._open:
                 self._wait_until(deadline)
-            syncs_before = int(getattr(drv, "syncs", 0))
+            syncs_before = drv.syncs
             start = self.clock()
             self._data_at = start
             self._cycle(start)
             end = self.clock()
             if self._data_at != start:  # a set arrived: its SYNC's lateness, the work
-                sync_at = float(getattr(drv, "last_sync_timestamp", 0.0))
+                sync_at = drv.last_sync_timestamp
                 if sync_at > 0.0:
                     self._add_jitter(max(0.0, self.wall_clock() - sync_at))
                 self._add_cycle(end - self._data_at)
-                missed = int(getattr(drv, "syncs", 0)) - syncs_before - 1
+                missed = drv.syncs - syncs_before - 1
                 if missed > 0 and syncs_before > 0:
                     self.stats.overruns += 1
                     self.stats.skipped += missed
@@ -314,13 +306,12 @@ class CyclicService:
     def _cycle(self, now: float) -> bool:
         """One read -> compensate -> write; True when the schedule must be re-anchored."""
         if not self._open:
-            if now >= self._reconnect_at:
-                self._connect(now)
-                return True
+            self._connect(now)
             self.comp.mark_unread(now)
-            return False
+            return self._open
+        pending, self._pending = self._pending, None
         try:
-            self.driver.read_into(self.inputs)
+            self.driver.exchange(pending, self.inputs)
         except DriverTimeoutError:
             self._failed(now, "timeout")
             return False
@@ -392,9 +383,11 @@ class CyclicService:
             out.gateway_state = int(GatewayState.ACTIVE)
         out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
         try:
-            self.driver.write_from(out)
+            if self.driver.combines_write_and_read and not self.heartbeat_fault:
+                self._pending = out  # goes out with the next cycle's read, one exchange
+            else:
+                self.driver.write_from(out)
             if self.heartbeat_fault:
-                self.driver.flush()
                 self._fault_written = True
         except DriverError:
             self._failed(self.clock(), "write")
@@ -411,41 +404,41 @@ class CyclicService:
 
     @property
     def reconnects(self) -> int:
-        """Reopens by the loop plus reconnections the driver made by itself."""
-        return self.stats.reconnects + int(getattr(self.driver, "reconnects", 0))
+        """Connections the driver re-established after one was up."""
+        return self.driver.reconnects
 
     def _failed(self, now: float, kind: str) -> None:
         """A failed transaction: nothing written this cycle, channels stale.
 
-        The driver is kept open (drivers heal themselves: Modbus reconnects with its own
-        backoff, CANopen waits for the next SYNC); after ``REOPEN_AFTER`` failed cycles in
-        a row the loop closes it and reopens it with backoff.
+        The driver is kept open (CANopen waits for the next SYNC, a Modbus timeout may be
+        followed by a good reply); after ``REOPEN_AFTER`` failed cycles in a row the loop
+        closes it and asks it to reconnect (the driver's backoff spaces the attempts).
         """
         self.stats.errors[kind] += 1
         self.comp.mark_unread(now)
         self.state = LoopState.FAULT
         self._last_hb = None  # after an outage, watch the PLC heartbeat afresh
         self._failures += 1
+        self._pending = None
         if self._failures >= REOPEN_AFTER:
             self._close_driver()
-            self._reconnect_at = now  # first reopen on the next cycle, then backoff
 
     def _connect(self, now: float) -> None:
+        """Advance the driver's connection by at most one period (its backoff decides
+        when an attempt starts; the loop never resets it)."""
         try:
-            self._close_driver()
-            self.driver.open()
+            if not self.driver.poll_connect(now, self.period_s):
+                return
             self._open = True
-        except DriverError:
+        except DriverError as exc:
             if self._ever_connected or self.stats.cycles:
                 self.stats.errors["connect"] += 1
             self.state = LoopState.FAULT
-            self._reconnect_at = now + self._backoff
-            self._backoff = min(self._backoff * 2.0, self._backoff_max)
+            self.last_connect_error = str(exc)
             return
-        if self._ever_connected:
-            self.stats.reconnects += 1
+        self.stats.reconnects = self.driver.reconnects
         self._ever_connected = True
-        self._backoff = self._backoff_min
+        self._pending = None
         self._failures = 0
         self._last_hb = None  # a restarted PLC: watch its heartbeat afresh
         self.state = LoopState.CONNECTED
@@ -464,7 +457,6 @@ class CyclicService:
             out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
             try:
                 self.driver.write_from(out)
-                self.driver.flush()
                 self.stats.written += 1
             except DriverError as exc:
                 log.warning("could not write the stopped state: %s", exc)
