@@ -1,0 +1,174 @@
+"""A hostile Modbus TCP server for tests and the reconnect probe (loopback only, bounded).
+
+:class:`HostileServer` listens on 127.0.0.1 (ephemeral port) and answers every request
+according to its ``mode``:
+
+* ``good``: a valid reply (function 3/23 registers zero except the PLC heartbeat, 16 echo);
+* ``foreign_unit``: a valid reply from another unit id (``unit_id + 1``), then, with
+  ``then_good``, the valid one;
+* ``exception``: exception code ``exception_code`` (6: server device busy);
+* ``malformed``: a frame whose MBAP length is 0;
+* ``accept_drop``: accepts the connection and closes it at once;
+* ``reset_mid_frame``: half a reply, then a TCP reset (SO_LINGER 0);
+* ``split``: a valid reply in ``pieces`` parts spread over ``latency_s``;
+* ``latency``: a valid reply, whole, after ``latency_s``.
+
+``connections`` counts accepted connections (the reconnect-storm figure), ``requests``
+the request frames. One connection is served at a time, in one thread; everything stops
+after ``max_seconds``.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+from dataclasses import dataclass
+
+LOCALHOST = "127.0.0.1"
+MODES = (
+    "good",
+    "foreign_unit",
+    "exception",
+    "malformed",
+    "accept_drop",
+    "reset_mid_frame",
+    "split",
+    "latency",
+)
+HEARTBEAT_OFFSET = 52  # the PLC heartbeat in the default read span 0..52
+
+
+def _mbap(pdu: bytes, tid: int, unit: int) -> bytes:
+    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
+
+
+def valid_reply(request: bytes, heartbeat: int, unit: int | None = None) -> bytes:
+    """A valid reply to ``request`` (function 3, 23 or 16)."""
+    tid, _, _, req_unit = struct.unpack(">HHHB", request[:7])
+    fc = request[7]
+    if fc == 16:
+        return _mbap(request[7:12], tid, req_unit if unit is None else unit)
+    count = struct.unpack(">H", request[10:12])[0]
+    regs = bytearray(2 * count)
+    if HEARTBEAT_OFFSET < count:
+        struct.pack_into(">H", regs, 2 * HEARTBEAT_OFFSET, heartbeat & 0xFFFF)
+    return _mbap(bytes((fc, 2 * count)) + bytes(regs), tid, req_unit if unit is None else unit)
+
+
+@dataclass
+class HostileConfig:
+    mode: str = "good"
+    heartbeat: int = 1234
+    then_good: bool = False
+    exception_code: int = 6
+    latency_s: float = 0.0
+    pieces: int = 3
+    max_seconds: float = 30.0
+
+
+class HostileServer:
+    """See the module doc. Context manager; ``close()`` is safe twice."""
+
+    def __init__(self, mode: str = "good", **options: float | int | bool) -> None:
+        if mode not in MODES:
+            raise ValueError(f"unknown mode {mode!r}")
+        self.cfg = HostileConfig(mode=mode, **options)  # type: ignore[arg-type]
+        self.listener = socket.create_server((LOCALHOST, 0), backlog=64)
+        self.listener.settimeout(0.05)
+        self.port: int = self.listener.getsockname()[1]
+        self.connections = 0
+        self.requests = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="hostile-modbus", daemon=True)
+        self._thread.start()
+
+    def __enter__(self) -> HostileServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.listener.close()
+
+    # --- serving ------------------------------------------------------------------------
+    def _run(self) -> None:
+        end = time.monotonic() + self.cfg.max_seconds
+        while not self._stop.is_set() and time.monotonic() < end:
+            try:
+                conn, _ = self.listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self.connections += 1
+            with conn:
+                if self.cfg.mode == "accept_drop":
+                    continue
+                self._serve(conn, end)
+
+    def _serve(self, conn: socket.socket, end: float) -> None:
+        conn.settimeout(0.05)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        buf = b""
+        while not self._stop.is_set() and time.monotonic() < end:
+            try:
+                chunk = conn.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not chunk:
+                return
+            buf += chunk
+            while len(buf) >= 7:
+                size = 6 + struct.unpack(">H", buf[4:6])[0]
+                if len(buf) < size:
+                    break
+                request, buf = buf[:size], buf[size:]
+                self.requests += 1
+                if not self._answer(conn, request):
+                    return
+
+    def _answer(self, conn: socket.socket, request: bytes) -> bool:
+        """Send the mode's answer; False when the connection is finished."""
+        c = self.cfg
+        unit = request[6]
+        good = valid_reply(request, c.heartbeat)
+        try:
+            if c.mode == "good":
+                conn.sendall(good)
+            elif c.mode == "foreign_unit":
+                conn.sendall(valid_reply(request, c.heartbeat + 1, unit=(unit + 1) & 0xFF))
+                if c.then_good:
+                    conn.sendall(good)
+            elif c.mode == "exception":
+                tid = struct.unpack(">H", request[:2])[0]
+                conn.sendall(_mbap(bytes((0x80 | request[7], c.exception_code)), tid, unit))
+            elif c.mode == "malformed":
+                conn.sendall(request[:4] + b"\x00\x00" + request[6:8])
+            elif c.mode == "reset_mid_frame":
+                conn.sendall(good[: len(good) // 2])
+                conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                return False
+            elif c.mode == "latency":
+                if self._stop.wait(c.latency_s):
+                    return False
+                conn.sendall(good)
+            elif c.mode == "split":
+                self._send_split(conn, good)
+        except OSError:
+            return False
+        return True
+
+    def _send_split(self, conn: socket.socket, reply: bytes) -> None:
+        n = max(1, self.cfg.pieces)
+        step = -(-len(reply) // n)
+        for k in range(n):
+            if self._stop.wait(self.cfg.latency_s / n):
+                return
+            conn.sendall(reply[k * step : (k + 1) * step])

@@ -1,0 +1,120 @@
+"""The Modbus driver and the loop against a hostile PLC (tests/hostile_modbus.py).
+
+Regression tests for the hostile-PLC probe: a reply from another unit id is dropped and
+counted, never decoded; an erroring PLC is reconnected to at a growing interval, not in
+a storm; each wait for reply bytes ends at the transaction's own deadline (no ratcheting
+socket timeout); a PLC that accepts no connection never stalls the cycle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import threading
+import time
+
+import pytest
+
+from drivers.base import Inputs, make_driver
+from drivers.modbus_tcp import ModbusTcpDriver
+from gateway.config import Config, load_config
+from gateway.errors import DriverInitError, DriverTimeoutError
+from gateway.loop import CyclicService
+from tests.hostile_modbus import LOCALHOST, HostileServer
+
+pytestmark = pytest.mark.loopback
+
+
+def _config(port: int, **modbus: float) -> Config:
+    cfg = load_config()
+    mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
+    bus = dataclasses.replace(cfg.bus, driver="modbus_tcp", modbus_tcp=mb)
+    metrics = dataclasses.replace(cfg.metrics, enabled=False)
+    return dataclasses.replace(cfg, bus=bus, metrics=metrics)
+
+
+def test_reply_from_another_unit_is_dropped_and_counted() -> None:
+    with HostileServer("foreign_unit", then_good=True, heartbeat=1234) as server:
+        with ModbusTcpDriver(_config(server.port, timeout_s=1.0)) as drv:
+            inputs = Inputs.allocate(8)
+            drv.read_into(inputs)
+            assert inputs.plc_heartbeat == 1234  # the foreign reply said 1235
+            assert drv.foreign_unit_replies == 1
+            assert drv.dropped_replies == 1
+
+
+def test_only_foreign_replies_are_a_timeout_never_data() -> None:
+    with HostileServer("foreign_unit", heartbeat=1234) as server:
+        with ModbusTcpDriver(_config(server.port, timeout_s=0.1)) as drv:
+            inputs = Inputs.allocate(8)
+            inputs.plc_heartbeat = 7
+            with pytest.raises(DriverTimeoutError):
+                drv.read_into(inputs)
+            assert inputs.plc_heartbeat == 7  # nothing decoded
+            assert drv.foreign_unit_replies == 1
+
+
+@pytest.mark.parametrize("mode", ["exception", "malformed", "accept_drop", "reset_mid_frame"])
+def test_an_erroring_plc_is_retried_at_a_growing_interval(mode: str) -> None:
+    """The real loop, 0.8 s against a PLC that errors: attempts at 0, 0.05, 0.15, 0.35,
+    0.75 s (backoff 0.05 s doubling, reset only by a good data reply). Before the fix the
+    same run opened ~100-150 connections per second."""
+    with HostileServer(mode, max_seconds=20) as server:
+        cfg = _config(server.port, reconnect_min_s=0.05, reconnect_max_s=2.0)
+        service = CyclicService(cfg, make_driver(cfg))
+        service.run(cycles=800)
+        assert 2 <= server.connections <= 7
+        assert service.driver.backoff.interval_s >= 0.4  # it grew and was never reset
+
+
+def test_each_wait_ends_at_its_own_deadline() -> None:
+    """A reply whose pieces came late must not shorten the next transaction's wait."""
+    with HostileServer("split", latency_s=0.15, pieces=3) as server:
+        with ModbusTcpDriver(_config(server.port, timeout_s=0.25)) as drv:
+            inputs = Inputs.allocate(8)
+            drv.read_into(inputs)  # pieces at 50, 100, 150 ms
+            server.cfg.mode, server.cfg.latency_s = "latency", 0.15
+            drv.read_into(inputs)  # whole, 150 ms late: well inside 250 ms
+            assert inputs.plc_heartbeat == server.cfg.heartbeat
+
+
+def test_a_plc_that_accepts_no_connection_never_stalls_the_cycle() -> None:
+    """Connect attempts to a listener whose backlog is full (SYNs dropped) are advanced
+    one period at a time: the loop keeps cycling while the attempt hangs. Before the fix
+    the loop blocked ``connect_timeout_s`` per attempt (8 cycles in 3 s)."""
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind((LOCALHOST, 0))
+    listener.listen(0)
+    port = listener.getsockname()[1]
+    fillers = []
+    for _ in range(4):  # fill the accept queue; later SYNs get no answer
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.setblocking(False)
+        s.connect_ex((LOCALHOST, port))
+        fillers.append(s)
+    time.sleep(0.05)
+    try:
+        cfg = _config(port, connect_timeout_s=1.0)
+        service = CyclicService(cfg, make_driver(cfg))
+        worker = threading.Thread(target=service.run, daemon=True)
+        worker.start()
+        time.sleep(1.0)
+        service.stop()
+        worker.join(timeout=10)
+        assert not worker.is_alive()
+        # ~1000 expected at 1 ms; a blocking connect allows ~1
+        assert service.stats.cycles >= 300
+        assert not service.bus_up
+    finally:
+        for s in fillers:
+            s.close()
+        listener.close()
+
+
+def test_refused_connect_names_the_cause() -> None:
+    with socket.create_server((LOCALHOST, 0)) as s:
+        port = s.getsockname()[1]
+    drv = ModbusTcpDriver(_config(port))
+    with pytest.raises(DriverInitError, match="Connection refused"):
+        drv.open()
+    drv.close()
