@@ -34,7 +34,8 @@ def _config(port: int, **modbus: float) -> Config:
     cfg = load_config()
     mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
     bus = dataclasses.replace(cfg.bus, driver="modbus_tcp", modbus_tcp=mb)
-    return dataclasses.replace(cfg, bus=bus, metrics=dataclasses.replace(cfg.metrics, enabled=False))
+    metrics = dataclasses.replace(cfg.metrics, enabled=False)
+    return dataclasses.replace(cfg, bus=bus, metrics=metrics)
 
 
 def storm_one(mode: str, seconds: float) -> tuple[float, int]:

@@ -74,9 +74,7 @@ def rig() -> Iterator[CanopenRig]:
         plc.step()
     driver.read_into(inputs)
     try:
-        yield CanopenRig(
-            cfg, image, plc, driver, inputs, Outputs.allocate(cfg.cables)
-        )
+        yield CanopenRig(cfg, image, plc, driver, inputs, Outputs.allocate(cfg.cables))
     finally:
         driver.close()
         plc.stop()

@@ -52,7 +52,7 @@ def valid_reply(request: bytes, heartbeat: int, unit: int | None = None) -> byte
         return _mbap(request[7:12], tid, req_unit if unit is None else unit)
     count = struct.unpack(">H", request[10:12])[0]
     regs = bytearray(2 * count)
-    if HEARTBEAT_OFFSET < count:
+    if count > HEARTBEAT_OFFSET:
         struct.pack_into(">H", regs, 2 * HEARTBEAT_OFFSET, heartbeat & 0xFFFF)
     return _mbap(bytes((fc, 2 * count)) + bytes(regs), tid, req_unit if unit is None else unit)
 

@@ -34,24 +34,28 @@ def _config(port: int, **modbus: float) -> Config:
 
 
 def test_reply_from_another_unit_is_dropped_and_counted() -> None:
-    with HostileServer("foreign_unit", then_good=True, heartbeat=1234) as server:
-        with ModbusTcpDriver(_config(server.port, timeout_s=1.0)) as drv:
-            inputs = Inputs.allocate(8)
-            drv.read_into(inputs)
-            assert inputs.plc_heartbeat == 1234  # the foreign reply said 1235
-            assert drv.foreign_unit_replies == 1
-            assert drv.dropped_replies == 1
+    with (
+        HostileServer("foreign_unit", then_good=True, heartbeat=1234) as server,
+        ModbusTcpDriver(_config(server.port, timeout_s=1.0)) as drv,
+    ):
+        inputs = Inputs.allocate(8)
+        drv.read_into(inputs)
+        assert inputs.plc_heartbeat == 1234  # the foreign reply said 1235
+        assert drv.foreign_unit_replies == 1
+        assert drv.dropped_replies == 1
 
 
 def test_only_foreign_replies_are_a_timeout_never_data() -> None:
-    with HostileServer("foreign_unit", heartbeat=1234) as server:
-        with ModbusTcpDriver(_config(server.port, timeout_s=0.1)) as drv:
-            inputs = Inputs.allocate(8)
-            inputs.plc_heartbeat = 7
-            with pytest.raises(DriverTimeoutError):
-                drv.read_into(inputs)
-            assert inputs.plc_heartbeat == 7  # nothing decoded
-            assert drv.foreign_unit_replies == 1
+    with (
+        HostileServer("foreign_unit", heartbeat=1234) as server,
+        ModbusTcpDriver(_config(server.port, timeout_s=0.1)) as drv,
+    ):
+        inputs = Inputs.allocate(8)
+        inputs.plc_heartbeat = 7
+        with pytest.raises(DriverTimeoutError):
+            drv.read_into(inputs)
+        assert inputs.plc_heartbeat == 7  # nothing decoded
+        assert drv.foreign_unit_replies == 1
 
 
 @pytest.mark.parametrize("mode", ["exception", "malformed", "accept_drop", "reset_mid_frame"])
@@ -69,13 +73,15 @@ def test_an_erroring_plc_is_retried_at_a_growing_interval(mode: str) -> None:
 
 def test_each_wait_ends_at_its_own_deadline() -> None:
     """A reply whose pieces came late must not shorten the next transaction's wait."""
-    with HostileServer("split", latency_s=0.15, pieces=3) as server:
-        with ModbusTcpDriver(_config(server.port, timeout_s=0.25)) as drv:
-            inputs = Inputs.allocate(8)
-            drv.read_into(inputs)  # pieces at 50, 100, 150 ms
-            server.cfg.mode, server.cfg.latency_s = "latency", 0.15
-            drv.read_into(inputs)  # whole, 150 ms late: well inside 250 ms
-            assert inputs.plc_heartbeat == server.cfg.heartbeat
+    with (
+        HostileServer("split", latency_s=0.15, pieces=3) as server,
+        ModbusTcpDriver(_config(server.port, timeout_s=0.25)) as drv,
+    ):
+        inputs = Inputs.allocate(8)
+        drv.read_into(inputs)  # pieces at 50, 100, 150 ms
+        server.cfg.mode, server.cfg.latency_s = "latency", 0.15
+        drv.read_into(inputs)  # whole, 150 ms late: well inside 250 ms
+        assert inputs.plc_heartbeat == server.cfg.heartbeat
 
 
 def test_a_plc_that_accepts_no_connection_never_stalls_the_cycle() -> None:
