@@ -45,9 +45,13 @@ the 5-byte status PDO = 8 frames = 800 bit times nominal (80 %), 970 worst-case 
 (97 %). In 4 of every 10 cycles one slow PLC PDO (6..8 bytes) is added: 911 nominal
 (91 %), 1105 worst case: the lowest-priority frame can slip into the next millisecond.
 Average 84 % nominal. This is the limit of classic CAN at 1 kHz with 8 channels:
-anything more (the estimated wrench, CANopen heartbeats, EMCY, SDO) needs a 2 ms cycle,
+anything more per cycle (the estimated wrench, EMCY, SDO traffic) needs a 2 ms cycle,
 a second CAN line, or CAN FD. float32 everywhere would need 4 frames per 8 values and
 cannot fit.
+
+The node's own heartbeat (1017h, 100 ms: one 1-byte frame per 100 cycles, ~0.06 %) fits.
+NMT: boot-up at open, self-starting (operational), heartbeat producer, NMT commands and
+SDO requests served in the read (see docs/canopen.md); no TPDOs while not operational.
 
 Timing: :meth:`CanopenDriver.read_into` returns the newest complete set (SYNC followed by
 all four per-cycle RPDOs) that has not been returned before, waiting up to
@@ -59,6 +63,7 @@ pose or a heartbeat.
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import time
@@ -75,10 +80,20 @@ from drivers.base import Driver, Inputs, Outputs
 from drivers.s7 import S7Analog
 from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
 
+log = logging.getLogger("cdpr_gateway.canopen")
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PLC_NODE_ID = 0x01
 PLC_MASTER_EDS = "config/plc_master.eds"
 SYNC_COB_ID = 0x080
+NMT_COB_ID = 0x000
+NMT_START, NMT_PRE_OPERATIONAL, NMT_RESET_COMMUNICATION = 0x01, 0x80, 0x82
+NMT_OPERATIONAL_STATE = 5
+VIRTUAL_NOTE = (
+    "bus.canopen.interface is 'virtual': python-can's virtual bus connects only buses "
+    "inside ONE process; a PLC (or candump) in another process never sees this node. "
+    "Use socketcan (docs/canopen.md) to talk across processes."
+)
 
 # application objects (gateway.eds, plc_master.eds)
 OBJ_RAW = 0x2000
@@ -275,6 +290,9 @@ class CanopenDriver(Driver):
         self._sync_timestamp = 0.0
         self.sets = 0  # complete SYNC sets returned by read_into
         self.ignored_frames = 0  # error/remote frames and unknown COB-IDs
+        self._network: canopen.Network | None = None
+        self._node: canopen.LocalNode | None = None
+        self._sdo_rx = -1
 
     # --- hooks ----------------------------------------------------------------------------
     def _open(self) -> None:
@@ -303,8 +321,51 @@ class CanopenDriver(Driver):
         self._slots = new_slots(rpdos)
         self._tx_slots = new_slots(tpdos)
         self._bus = self._external_bus if self._external_bus is not None else open_bus(cfg)
+        if cfg.interface == "virtual":
+            log.warning(VIRTUAL_NOTE)
         self._drain()
         self._sync_seen, self._received = False, 0
+        self._start_nmt()
+
+    # --- NMT slave and heartbeat producer (CiA 301, the canopen library's LocalNode) ----
+    def _start_nmt(self) -> None:
+        """Boot-up message, then the 1017h heartbeat; the node starts itself (operational).
+
+        The canopen ``Network`` sends on this driver's bus but has no notifier: this
+        driver reads the bus, and hands NMT commands (COB-ID 0) and SDO requests
+        (0x600 + node id) to the node in :meth:`_handle`.
+        """
+        cfg = self.can_cfg
+        path = resolve_path(cfg.gateway_eds)
+        try:
+            od = canopen.import_od(str(path), cfg.gateway_node_id)
+        except Exception as exc:
+            raise DriverInitError(f"{path}: cannot load EDS: {exc}") from exc
+        network = canopen.Network()
+        network.bus = self._bus
+        node = canopen.LocalNode(cfg.gateway_node_id, od)
+        network.add_node(node)
+        self._network, self._node = network, node
+        self._sdo_rx = node.sdo.rx_cobid
+        self._boot()
+
+    def _boot(self) -> None:
+        assert self._node is not None
+        nmt = self._node.nmt
+        nmt.send_command(NMT_RESET_COMMUNICATION)  # INITIALISING: sends the boot-up frame
+        nmt.send_command(NMT_PRE_OPERATIONAL)  # starts the heartbeat (1017h, ms)
+        nmt.send_command(NMT_START)  # a self-starting node: PDOs flow without a master
+
+    @property
+    def nmt_state(self) -> str:
+        """The node's NMT state (``OPERATIONAL``, ``STOPPED``, ``PRE-OPERATIONAL``, ...)."""
+        return self._node.nmt.state if self._node is not None else "INITIALISING"
+
+    def _on_nmt_or_sdo(self, msg: can.Message) -> None:
+        assert self._network is not None and self._node is not None
+        self._network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        if self._node.nmt.state == "INITIALISING":  # reset node / communication
+            self._boot()
 
     def _check_channels(self, rpdos: dict[int, PdoLayout]) -> None:
         for obj in PER_CYCLE_OBJECTS:
@@ -382,6 +443,9 @@ class CanopenDriver(Driver):
             self._sync_seen, self._received = True, 0
             self._sync_timestamp = msg.timestamp
             return
+        if (cob_id == NMT_COB_ID or cob_id == self._sdo_rx) and self._node is not None:
+            self._on_nmt_or_sdo(msg)
+            return
         entry = self._rx.get(cob_id)
         if entry is None:
             self.ignored_frames += 1
@@ -424,6 +488,8 @@ class CanopenDriver(Driver):
             tx[OBJ_GW_HEARTBEAT][0] = int(outputs.gateway_heartbeat) & 0xFFFF
         if OBJ_GW_STATE in tx:
             tx[OBJ_GW_STATE][0] = int(outputs.gateway_state) & 0xFF
+        if self._node is not None and self._node.nmt.state != "OPERATIONAL":
+            return  # stopped / pre-operational by the master: no PDOs (CiA 301)
         try:
             for layout in self._tx:
                 data = pack_pdo(layout, tx)
@@ -432,6 +498,9 @@ class CanopenDriver(Driver):
             raise DriverIOError(f"canopen: send failed: {exc}") from exc
 
     def _close(self) -> None:
+        if self._node is not None:
+            self._node.nmt.stop_heartbeat()
+            self._node = None
         bus, self._bus = self._bus, None
         if bus is not None and bus is not self._external_bus:
             bus.shutdown()
