@@ -63,6 +63,7 @@ CYCLE_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e
 JITTER_BUCKETS_S = (10e-6, 20e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3)
 ROUNDTRIP_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3, 0.05)
 ERROR_KINDS = ("timeout", "io", "connect", "write", "invalid_value", "heartbeat")
+CONNECT_BUDGET_PERIODS = 0.5  # a connection attempt waits at most this much of a cycle
 REOPEN_AFTER = 3  # failed cycles in a row before the loop closes and reopens the driver
 SCORE_AFTER_S = 0.5  # truth scoring skips the model's warm-up
 TRUTH_EVERY_CYCLES = 10  # truth over the bus (simulation only) is read and scored this seldom
@@ -424,10 +425,10 @@ class CyclicService:
             self._close_driver()
 
     def _connect(self, now: float) -> None:
-        """Advance the driver's connection by at most one period (its backoff decides
-        when an attempt starts; the loop never resets it)."""
+        """Advance the driver's connection by at most half a period, so the schedule
+        holds (its backoff decides when an attempt starts; the loop never resets it)."""
         try:
-            if not self.driver.poll_connect(now, self.period_s):
+            if not self.driver.poll_connect(now, CONNECT_BUDGET_PERIODS * self.period_s):
                 return
             self._open = True
         except DriverError as exc:

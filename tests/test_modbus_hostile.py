@@ -104,12 +104,17 @@ def test_a_plc_that_accepts_no_connection_never_stalls_the_cycle() -> None:
         service = CyclicService(cfg, make_driver(cfg))
         worker = threading.Thread(target=service.run, daemon=True)
         worker.start()
+        end = time.monotonic() + 10.0
+        while service.stats.cycles == 0 and time.monotonic() < end:  # start-up (bounded)
+            time.sleep(0.01)
+        first = service.stats.cycles
         time.sleep(1.0)
+        cycles = service.stats.cycles - first
         service.stop()
         worker.join(timeout=10)
         assert not worker.is_alive()
-        # ~1000 expected at 1 ms; a blocking connect allows ~1
-        assert service.stats.cycles >= 300
+        # ~1000 expected at 1 ms; a blocking connect allows ~1 (connect_timeout_s)
+        assert cycles >= 300, cycles
         assert not service.bus_up
     finally:
         for s in fillers:
