@@ -4,8 +4,9 @@ Two probes (issue "hostile PLC" items 3 and 4), each bounded in time:
 
 * ``storm``: the real cycle (:class:`gateway.loop.CyclicService` with the Modbus driver)
   runs ``seconds`` against a PLC that answers exceptions (6, busy), malformed frames,
-  accepts then drops, or resets mid-frame; prints the TCP connections the gateway opened
-  per second (goal: a growing interval up to ``reconnect_max_s``, not a storm);
+  accepts then drops, resets mid-frame, or refuses the client certificate (TLS); prints
+  the TCP connections the gateway opened per second (goal: a growing interval up to
+  ``reconnect_max_s``, not a storm);
 * ``ratchet``: back-to-back reads for ``seconds`` against replies 46.5 ms late (timeout
   50 ms), whole and split in three; prints the timeouts of each.
 
@@ -17,20 +18,22 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import tempfile
 import threading
 import time
+from typing import Any
 
 from drivers.base import Inputs, make_driver
-from gateway.config import Config, load_config
+from gateway.config import Config, TlsConfig, load_config
 from gateway.errors import DriverError, DriverTimeoutError
 from gateway.loop import CyclicService
-from tests.hostile_modbus import LOCALHOST, HostileServer
+from tests.hostile_modbus import LOCALHOST, HostileServer, make_tls_pair
 
-STORM_MODES = ("exception", "malformed", "accept_drop", "reset_mid_frame")
+STORM_MODES = ("exception", "malformed", "accept_drop", "reset_mid_frame", "tls_refuse")
 LATENCY_S = 0.0465
 
 
-def _config(port: int, **modbus: float) -> Config:
+def _config(port: int, **modbus: Any) -> Config:
     cfg = load_config()
     mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
     bus = dataclasses.replace(cfg.bus, driver="modbus_tcp", modbus_tcp=mb)
@@ -40,15 +43,29 @@ def _config(port: int, **modbus: float) -> Config:
 
 def storm_one(mode: str, seconds: float) -> tuple[float, int]:
     """(connections per second, cycles) of the real loop against one hostile mode."""
+    if mode == "tls_refuse":
+        return _storm_tls(seconds)
     with HostileServer(mode, max_seconds=seconds + 10) as server:
-        cfg = _config(server.port)
-        service = CyclicService(cfg, make_driver(cfg))
-        worker = threading.Thread(target=service.run, daemon=True)
-        worker.start()
-        time.sleep(seconds)
-        service.stop()
-        worker.join(timeout=10)
-        return server.connections / seconds, service.stats.cycles
+        return _storm(server, _config(server.port), seconds)
+
+
+def _storm_tls(seconds: float) -> tuple[float, int]:
+    with tempfile.TemporaryDirectory() as tmp:
+        pki = make_tls_pair(tmp)
+        opts = {"tls_cert": pki["server_cert"], "tls_key": pki["server_key"]}
+        with HostileServer("tls_refuse", max_seconds=seconds + 10, **opts) as server:
+            tls = TlsConfig(pki["client_cert"], pki["client_key"], pki["server_cert"])
+            return _storm(server, _config(server.port, tls=tls), seconds)
+
+
+def _storm(server: HostileServer, cfg: Config, seconds: float) -> tuple[float, int]:
+    service = CyclicService(cfg, make_driver(cfg))
+    worker = threading.Thread(target=service.run, daemon=True)
+    worker.start()
+    time.sleep(seconds)
+    service.stop()
+    worker.join(timeout=10)
+    return server.connections / seconds, service.stats.cycles
 
 
 def storm(seconds: float = 3.0) -> None:

@@ -11,7 +11,10 @@ according to its ``mode``:
 * ``accept_drop``: accepts the connection and closes it at once;
 * ``reset_mid_frame``: half a reply, then a TCP reset (SO_LINGER 0);
 * ``split``: a valid reply in ``pieces`` parts spread over ``latency_s``;
-* ``latency``: a valid reply, whole, after ``latency_s``.
+* ``latency``: a valid reply, whole, after ``latency_s``;
+* ``tls_refuse``: a TLS server (``tls_cert``/``tls_key``) that requires a client
+  certificate signed by its own certificate, so it refuses every client certificate
+  made elsewhere (see :func:`make_tls_pair`).
 
 ``connections`` counts accepted connections (the reconnect-storm figure), ``requests``
 the request frames. One connection is served at a time, in one thread; everything stops
@@ -21,7 +24,9 @@ after ``max_seconds``.
 from __future__ import annotations
 
 import socket
+import ssl
 import struct
+import subprocess
 import threading
 import time
 from dataclasses import dataclass
@@ -36,6 +41,7 @@ MODES = (
     "reset_mid_frame",
     "split",
     "latency",
+    "tls_refuse",
 )
 HEARTBEAT_OFFSET = 52  # the PLC heartbeat in the default read span 0..52
 
@@ -66,12 +72,14 @@ class HostileConfig:
     latency_s: float = 0.0
     pieces: int = 3
     max_seconds: float = 30.0
+    tls_cert: str = ""
+    tls_key: str = ""
 
 
 class HostileServer:
     """See the module doc. Context manager; ``close()`` is safe twice."""
 
-    def __init__(self, mode: str = "good", **options: float | int | bool) -> None:
+    def __init__(self, mode: str = "good", **options: float | int | bool | str) -> None:
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}")
         self.cfg = HostileConfig(mode=mode, **options)  # type: ignore[arg-type]
@@ -109,7 +117,21 @@ class HostileServer:
             with conn:
                 if self.cfg.mode == "accept_drop":
                     continue
+                if self.cfg.mode == "tls_refuse":
+                    self._refuse_tls(conn)
+                    continue
                 self._serve(conn, end)
+
+    def _refuse_tls(self, conn: socket.socket) -> None:
+        ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=self.cfg.tls_cert)
+        ctx.load_cert_chain(self.cfg.tls_cert, self.cfg.tls_key)
+        ctx.verify_mode = ssl.CERT_REQUIRED
+        conn.settimeout(0.5)
+        try:
+            with ctx.wrap_socket(conn, server_side=True) as tls:
+                tls.recv(1)
+        except (OSError, ssl.SSLError):
+            pass
 
     def _serve(self, conn: socket.socket, end: float) -> None:
         conn.settimeout(0.05)
@@ -172,3 +194,20 @@ class HostileServer:
             if self._stop.wait(self.cfg.latency_s / n):
                 return
             conn.sendall(reply[k * step : (k + 1) * step])
+
+
+def make_tls_pair(directory: str) -> dict[str, str]:
+    """Self-signed server and client certificates (127.0.0.1) from the openssl command:
+    the client trusts the server; the server trusts only itself, so it refuses the
+    client. Paths by name: server_cert, server_key, client_cert, client_key."""
+    paths = {}
+    for who in ("server", "client"):
+        cert, key = f"{directory}/{who}.pem", f"{directory}/{who}.key"
+        subprocess.run(
+            ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+             "-keyout", key, "-out", cert, "-subj", "/CN=127.0.0.1",
+             "-addext", "subjectAltName=IP:127.0.0.1"],
+            check=True, capture_output=True, timeout=60,
+        )  # fmt: skip
+        paths[f"{who}_cert"], paths[f"{who}_key"] = cert, key
+    return paths

@@ -9,23 +9,26 @@ socket timeout); a PLC that accepts no connection never stalls the cycle.
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import socket
 import threading
 import time
+from pathlib import Path
+from typing import Any
 
 import pytest
 
 from drivers.base import Inputs, make_driver
 from drivers.modbus_tcp import ModbusTcpDriver
-from gateway.config import Config, load_config
+from gateway.config import Config, TlsConfig, load_config
 from gateway.errors import DriverInitError, DriverTimeoutError
 from gateway.loop import CyclicService
-from tests.hostile_modbus import LOCALHOST, HostileServer
+from tests.hostile_modbus import LOCALHOST, HostileServer, make_tls_pair
 
 pytestmark = pytest.mark.loopback
 
 
-def _config(port: int, **modbus: float) -> Config:
+def _config(port: int, **modbus: Any) -> Config:
     cfg = load_config()
     mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
     bus = dataclasses.replace(cfg.bus, driver="modbus_tcp", modbus_tcp=mb)
@@ -69,6 +72,20 @@ def test_an_erroring_plc_is_retried_at_a_growing_interval(mode: str) -> None:
         service.run(cycles=800)
         assert 2 <= server.connections <= 7
         assert service.driver.backoff.interval_s >= 0.4  # it grew and was never reset
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl command not found")
+def test_a_plc_refusing_the_client_certificate_is_retried_at_a_growing_interval(
+    tmp_path: Path,
+) -> None:
+    pki = make_tls_pair(str(tmp_path))
+    opts = {"tls_cert": pki["server_cert"], "tls_key": pki["server_key"], "max_seconds": 20}
+    with HostileServer("tls_refuse", **opts) as server:
+        tls = TlsConfig(pki["client_cert"], pki["client_key"], pki["server_cert"])
+        cfg = _config(server.port, tls=tls)
+        service = CyclicService(cfg, make_driver(cfg))
+        service.run(cycles=800)
+        assert 2 <= server.connections <= 7  # before the fix: ~60 handshakes per second
 
 
 def test_each_wait_ends_at_its_own_deadline() -> None:
