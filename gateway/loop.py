@@ -19,7 +19,7 @@ active (writing) -> fault (bus down or PLC heartbeat frozen) -> back to connecte
 stopped at the end. Only this module catches driver errors: a cycle whose read fails
 writes nothing, flags every channel stale; after a few in a row the loop closes the driver
 and asks it each cycle to reconnect (:meth:`drivers.base.Driver.poll_connect`, which
-never blocks more than one period and spaces attempts with the driver's own backoff).
+waits at most half a period per cycle and spaces attempts with the driver's backoff).
 
 The PLC heartbeat that does not change for ``loop.heartbeat_timeout_s`` stops the tension
 writes: one frame with gateway state FAULT, every channel invalid and NaN tensions is

@@ -152,6 +152,8 @@ class HostileServer:
                 if len(buf) < size:
                     break
                 request, buf = buf[:size], buf[size:]
+                if request[2:4] != b"\x00\x00" or size < 12:  # not Modbus (a TLS hello)
+                    continue  # silence, as a plain PLC gives
                 self.requests += 1
                 if not self._answer(conn, request):
                     return

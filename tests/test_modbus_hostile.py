@@ -101,10 +101,28 @@ def test_each_wait_ends_at_its_own_deadline() -> None:
         assert inputs.plc_heartbeat == server.cfg.heartbeat
 
 
+def _cycles_per_second_while_connecting(cfg: Config) -> int:
+    """Cycles the real loop runs in 1 s (after its first cycle) against ``cfg``'s PLC."""
+    service = CyclicService(cfg, make_driver(cfg))
+    worker = threading.Thread(target=service.run, daemon=True)
+    worker.start()
+    end = time.monotonic() + 10.0
+    while service.stats.cycles == 0 and time.monotonic() < end:  # start-up (bounded)
+        time.sleep(0.01)
+    first = service.stats.cycles
+    time.sleep(1.0)
+    cycles = service.stats.cycles - first
+    service.stop()
+    worker.join(timeout=10)
+    assert not worker.is_alive()
+    assert not service.bus_up
+    return cycles
+
+
 def test_a_plc_that_accepts_no_connection_never_stalls_the_cycle() -> None:
     """Connect attempts to a listener whose backlog is full (SYNs dropped) are advanced
-    one period at a time: the loop keeps cycling while the attempt hangs. Before the fix
-    the loop blocked ``connect_timeout_s`` per attempt (8 cycles in 3 s)."""
+    half a period at a time: the loop keeps cycling while the attempt hangs. Before the
+    fix the loop blocked ``connect_timeout_s`` per attempt (8 cycles in 3 s)."""
     listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     listener.bind((LOCALHOST, 0))
     listener.listen(0)
@@ -117,26 +135,24 @@ def test_a_plc_that_accepts_no_connection_never_stalls_the_cycle() -> None:
         fillers.append(s)
     time.sleep(0.05)
     try:
-        cfg = _config(port, connect_timeout_s=1.0)
-        service = CyclicService(cfg, make_driver(cfg))
-        worker = threading.Thread(target=service.run, daemon=True)
-        worker.start()
-        end = time.monotonic() + 10.0
-        while service.stats.cycles == 0 and time.monotonic() < end:  # start-up (bounded)
-            time.sleep(0.01)
-        first = service.stats.cycles
-        time.sleep(1.0)
-        cycles = service.stats.cycles - first
-        service.stop()
-        worker.join(timeout=10)
-        assert not worker.is_alive()
-        # ~1000 expected at 1 ms; a blocking connect allows ~1 (connect_timeout_s)
-        assert cycles >= 300, cycles
-        assert not service.bus_up
+        cycles = _cycles_per_second_while_connecting(_config(port, connect_timeout_s=1.0))
+        assert cycles >= 300, cycles  # ~1000 expected at 1 ms; a blocking connect: ~1
     finally:
         for s in fillers:
             s.close()
         listener.close()
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl command not found")
+def test_a_tls_handshake_with_a_plaintext_plc_never_stalls_the_cycle(tmp_path: Path) -> None:
+    """The PLC speaks plain Modbus and never answers the ClientHello: the handshake is
+    advanced across cycles until ``connect_timeout_s``, never blocking one."""
+    pki = make_tls_pair(str(tmp_path))
+    with HostileServer("good", max_seconds=20) as server:
+        tls = TlsConfig(pki["client_cert"], pki["client_key"], pki["server_cert"])
+        cfg = _config(server.port, tls=tls, connect_timeout_s=1.0)
+        cycles = _cycles_per_second_while_connecting(cfg)
+        assert cycles >= 300, cycles
 
 
 def test_refused_connect_names_the_cause() -> None:
