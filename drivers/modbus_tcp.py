@@ -308,7 +308,8 @@ class ModbusTcpDriver(Driver):
                 self._recv_more(sock, deadline)
             rtid, proto, length, unit = _HEADER.unpack_from(self._rx, 0)
             size = MBAP - 1 + length
-            if length < 2 or size > RX_FRAME_MAX:
+            if length < 2 or size > RX_FRAME_MAX:  # framing is lost: drop the connection
+                self.dropped_replies += 1
                 raise ConnectionResetError(f"malformed reply (MBAP length {length})")
             while self._have < size:
                 self._recv_more(sock, deadline)

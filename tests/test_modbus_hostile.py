@@ -21,7 +21,7 @@ import pytest
 from drivers.base import Inputs, make_driver
 from drivers.modbus_tcp import ModbusTcpDriver
 from gateway.config import Config, TlsConfig, load_config
-from gateway.errors import DriverInitError, DriverTimeoutError
+from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
 from gateway.loop import CyclicService
 from tests.hostile_modbus import LOCALHOST, HostileServer, make_tls_pair
 
@@ -86,6 +86,15 @@ def test_a_plc_refusing_the_client_certificate_is_retried_at_a_growing_interval(
         service = CyclicService(cfg, make_driver(cfg))
         service.run(cycles=800)
         assert 2 <= server.connections <= 7  # before the fix: ~60 handshakes per second
+
+
+def test_a_malformed_reply_is_counted_and_drops_the_connection() -> None:
+    with HostileServer("malformed") as server, ModbusTcpDriver(_config(server.port)) as drv:
+        with pytest.raises(DriverIOError, match="malformed reply"):
+            drv.read_into(Inputs.allocate(8))
+        assert drv.dropped_replies == 1
+        with pytest.raises(DriverIOError, match="not connected"):
+            drv.read_into(Inputs.allocate(8))
 
 
 def test_each_wait_ends_at_its_own_deadline() -> None:
