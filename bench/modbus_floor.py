@@ -77,14 +77,13 @@ def floor_roundtrips(
 
 
 def driver_roundtrips(driver: Any, n: int) -> np.ndarray:
-    """``n`` cycles of ``write_from`` + ``read_into`` (one function-23 transaction each), s."""
+    """``n`` cycles of ``exchange(outputs, inputs)`` (one function-23 transaction each), s."""
     inputs = Inputs.allocate(driver.cables)
     outputs = Outputs.allocate(driver.cables)
     times = np.empty(n)
     for i in range(n):
         t0 = time.perf_counter()
-        driver.write_from(outputs)
-        driver.read_into(inputs)
+        driver.exchange(outputs, inputs)
         times[i] = time.perf_counter() - t0
     return times
 

@@ -13,18 +13,40 @@ keep the state machine ``unconfigured -> connected -> active -> fault``. Errors 
 :class:`DriverError` subclasses, other libraries' errors chained with ``from``; only the
 loop catches them. ``close()`` is safe to call twice; a driver is a context manager.
 
-A driver that can write and read in one transaction (Modbus function 23) may defer the
-write of :meth:`write_from` to the next :meth:`read_into`; :meth:`flush` forces it out.
+The contract a loop relies on is declared here, with defaults, and nowhere else:
+
+* pacing: :attr:`Driver.paced_by_bus` (False: the loop keeps its own deadlines; True: the
+  bus sets the pace, e.g. the CANopen SYNC, and :meth:`read_into` waits for it);
+* sync timing: :attr:`Driver.syncs` (SYNC frames seen) and
+  :attr:`Driver.last_sync_timestamp` (``time.time()`` base) of the set last returned;
+* counts: :attr:`Driver.reconnects` (connections re-established after one was up),
+  :attr:`Driver.reconnect_attempts`, :attr:`Driver.dropped_replies` (foreign, late or
+  malformed replies read and thrown away);
+* reconnect backoff: one :class:`Backoff` per driver, owned here. Every connection
+  attempt (successful or not) schedules the next one ``interval`` later and doubles the
+  interval up to ``reconnect_max_s``; only a good data reply (:meth:`read_into` /
+  :meth:`exchange` returning normally) resets it. An exception reply, a malformed reply,
+  a connection accepted and dropped do not: a PLC in trouble is retried at a growing
+  interval, never in a storm. The loop asks :meth:`poll_connect` each cycle and never
+  touches the backoff;
+* connecting never blocks a cycle for more than the budget the loop gives
+  :meth:`poll_connect` (non-blocking drivers implement ``_open_begin``/``_open_advance``);
+* one cycle's transfer as one explicit :meth:`exchange` (``outputs`` written and
+  ``inputs`` read in one transaction where the bus can: Modbus function 23, see
+  :attr:`Driver.combines_write_and_read`); :meth:`write_from` always sends at once.
+
+Only this class changes :attr:`Driver.state`.
 """
 
 from __future__ import annotations
 
 import enum
 import importlib
+import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -108,6 +130,38 @@ class Outputs:
 
 
 @dataclass
+class Backoff:
+    """Spacing of connection attempts: ``min_s`` doubling up to ``max_s``.
+
+    :meth:`attempt` records an attempt at ``now`` (the next one is allowed one interval
+    later, and the interval doubles); :meth:`reset` (a good data reply) makes the next
+    attempt immediate with the shortest interval.
+    """
+
+    min_s: float = 0.05
+    max_s: float = 2.0
+    interval_s: float = field(init=False)
+    next_at: float = field(init=False, default=-math.inf)
+
+    def __post_init__(self) -> None:
+        self.interval_s = self.min_s
+
+    def ready(self, now: float) -> bool:
+        return now >= self.next_at
+
+    def attempt(self, now: float) -> float:
+        """Record an attempt; return the wait until the next one may start."""
+        wait = self.interval_s
+        self.next_at = now + wait
+        self.interval_s = min(2.0 * self.interval_s, self.max_s)
+        return wait
+
+    def reset(self) -> None:
+        self.interval_s = self.min_s
+        self.next_at = -math.inf
+
+
+@dataclass
 class RoundtripRing:
     """Last ``size`` transaction durations (s); written in the cycle, read at scrape time."""
 
@@ -130,42 +184,121 @@ class Driver(ABC):
     """Base of every fieldbus driver. Subclasses implement the protected hooks."""
 
     name = "abstract"
+    #: False: the loop keeps its own deadlines; True: :meth:`read_into` waits for the
+    #: bus's cycle (CANopen SYNC), so the loop reads without sleeping first.
+    paced_by_bus: ClassVar[bool] = False
+    #: The budget (s) :meth:`open` gives each ``_open_advance`` call while it blocks.
+    OPEN_POLL_S: ClassVar[float] = 0.05
 
     def __init__(self, config: Any) -> None:
         self.config = config
         self.cables: int = config.cables
         self.state = DriverState.UNCONFIGURED
         self.roundtrip_s = RoundtripRing()
-        self.reconnects = 0
+        self.backoff = Backoff()
+        self.reconnects = 0  # connections re-established after one was up
+        self.reconnect_attempts = 0  # connection attempts, first one included
+        self.dropped_replies = 0  # replies read and thrown away (foreign, late, malformed)
+        self.syncs = 0  # bus SYNCs seen (paced drivers)
+        self.last_sync_timestamp = 0.0  # time.time() base, SYNC of the set last returned
+        self._closed = False
+        self._connecting = False
+        self._ever_connected = False
+
+    @property
+    def combines_write_and_read(self) -> bool:
+        """True when :meth:`exchange` writes and reads in ONE transaction (the loop then
+        hands a cycle's outputs to the next cycle's exchange instead of writing them)."""
+        return False
+
+    # --- connecting ---------------------------------------------------------------------
+    def open(self) -> None:
+        """Connect now (blocking, not held back by the backoff); raise
+        :class:`DriverInitError` (chained, with the cause) when the PLC cannot be reached."""
+        self._begin_attempt(time.monotonic())
+        done = self._guard_open(self._open_begin)
+        while not done:
+            done = self._guard_open(lambda: self._open_advance(self.OPEN_POLL_S))
+        self._opened()
+
+    def ready_to_connect(self, now: float | None = None) -> bool:
+        """True when an attempt is in progress or the backoff allows a new one."""
+        now = time.monotonic() if now is None else now
+        return self._connecting or self.backoff.ready(now)
+
+    def poll_connect(self, now: float | None = None, budget_s: float = 0.0) -> bool:
+        """Advance the connection by at most ``budget_s``; True once connected.
+
+        Starts an attempt when none is in progress and the backoff allows one (else
+        returns False at once); a failed attempt raises :class:`DriverInitError` with
+        the cause, and the next one waits for the (grown) backoff interval.
+        """
+        if self.connected and not self._connecting:
+            return True
+        now = time.monotonic() if now is None else now
+        if not self._connecting:
+            if not self.backoff.ready(now):
+                return False
+            self._begin_attempt(now)
+            if self._guard_open(self._open_begin):
+                self._opened()
+                return True
+        if self._guard_open(lambda: self._open_advance(budget_s)):
+            self._opened()
+            return True
+        return False
+
+    def _begin_attempt(self, now: float) -> None:
+        self.backoff.attempt(now)
+        self.reconnect_attempts += 1
+        self._connecting = True
         self._closed = False
 
-    # --- public API -------------------------------------------------------------------
-    def open(self) -> None:
-        """Connect; raise :class:`DriverInitError` (chained) when the PLC cannot be reached."""
+    def _guard_open(self, step: Any) -> bool:
         try:
-            self._open()
+            return bool(step())
         except DriverError:
+            self._connecting = False
             self.state = DriverState.FAULT
             raise
         except Exception as exc:  # other libraries' errors become ours, chained
+            self._connecting = False
             self.state = DriverState.FAULT
             raise DriverInitError(f"{self.name}: cannot open: {exc}") from exc
+
+    def _opened(self) -> None:
+        self._connecting = False
+        if self._ever_connected:
+            self.reconnects += 1
+        self._ever_connected = True
         self.state = DriverState.CONNECTED
         self._closed = False
 
+    # --- transfers ----------------------------------------------------------------------
     def read_into(self, inputs: Inputs) -> None:
-        """Fill ``inputs`` from the PLC (and send a deferred write). Raises DriverIOError."""
+        """Fill ``inputs`` from the PLC. Raises DriverIOError / DriverTimeoutError."""
+        self.exchange(None, inputs)
+
+    def exchange(self, outputs: Outputs | None, inputs: Inputs) -> None:
+        """One cycle's transfer: write ``outputs`` (None: nothing to write) and read
+        ``inputs``, in one transaction where the bus can (Modbus function 23), else write
+        then read. A normal return is a good data reply: the reconnect backoff resets."""
         start = time.perf_counter()
         try:
-            self._read(inputs)
+            self._exchange(outputs, inputs)
         except DriverError:
             self.state = DriverState.FAULT
             raise
         self.roundtrip_s.add(time.perf_counter() - start)
         inputs.read_time_s = time.monotonic()
+        self.backoff.reset()
+        if outputs is not None:
+            self.state = DriverState.ACTIVE
+        elif self.state is not DriverState.ACTIVE:
+            self.state = DriverState.CONNECTED
 
     def write_from(self, outputs: Outputs) -> None:
-        """Send ``outputs`` (now, or with the next read when the bus combines them)."""
+        """Send ``outputs`` now."""
         try:
             self._write(outputs)
         except DriverError:
@@ -173,14 +306,12 @@ class Driver(ABC):
             raise
         self.state = DriverState.ACTIVE
 
-    def flush(self) -> None:  # noqa: B027 - a hook with a do-nothing default on purpose
-        """Send a deferred write now (default: writes are never deferred)."""
-
     def close(self) -> None:
-        """Disconnect; safe to call more than once."""
-        if self._closed:
+        """Disconnect (or abandon an attempt in progress); safe to call more than once."""
+        if self._closed and not self._connecting:
             return
         self._closed = True
+        self._connecting = False
         try:
             self._close()
         finally:
@@ -198,8 +329,23 @@ class Driver(ABC):
         self.close()
 
     # --- hooks ------------------------------------------------------------------------
-    @abstractmethod
-    def _open(self) -> None: ...
+    def _open(self) -> None:
+        """Connect, blocking briefly (drivers without a non-blocking connect)."""
+        raise NotImplementedError
+
+    def _open_begin(self) -> bool:
+        """Start connecting; True when connected already (default: :meth:`_open`)."""
+        self._open()
+        return True
+
+    def _open_advance(self, budget_s: float) -> bool:
+        """Advance an attempt for at most ``budget_s``; True once connected."""
+        return True
+
+    def _exchange(self, outputs: Outputs | None, inputs: Inputs) -> None:
+        if outputs is not None:
+            self._write(outputs)
+        self._read(inputs)
 
     @abstractmethod
     def _read(self, inputs: Inputs) -> None: ...

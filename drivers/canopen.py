@@ -24,9 +24,10 @@ which must not exist on this bus). The driver re-targets RPDO1/2 to 0x180/0x280 
 
 Scaling (module constants; resolution = one count, the quantisation error is half of it):
 
-* raw force: S7 analog counts as the module delivers them, 0..27648 = 0..sensor range
-  (500 N: 0.0181 N/count); counts > 32511 (overflow 32767) or < -4864 (underflow -32768)
-  give NaN.
+* raw force: S7 analog counts as the module delivers them, decoded by the one S7 codec
+  (:class:`drivers.s7.S7Analog`): 0..27648 = 0..sensor range (500 N: 0.0181 N/count),
+  over/underrange included; the overflow/underflow codes and counts outside the S7
+  window give NaN.
 * velocity: 2e-5 m/s per count, range +-0.655 m/s (clamped). The Dahl state integrates
   v*dt; a 1e-5 m/s error over 1 ms moves it by 1e-8 m, i.e. 5e-6 N at sigma = 500 N/m.
 * length: 1e-4 m per count, u16, 0..6.5535 m. Pose: 1e-4 m and 1e-4 rad per count,
@@ -44,17 +45,25 @@ the 5-byte status PDO = 8 frames = 800 bit times nominal (80 %), 970 worst-case 
 (97 %). In 4 of every 10 cycles one slow PLC PDO (6..8 bytes) is added: 911 nominal
 (91 %), 1105 worst case: the lowest-priority frame can slip into the next millisecond.
 Average 84 % nominal. This is the limit of classic CAN at 1 kHz with 8 channels:
-anything more (the estimated wrench, CANopen heartbeats, EMCY, SDO) needs a 2 ms cycle,
+anything more per cycle (the estimated wrench, EMCY, SDO traffic) needs a 2 ms cycle,
 a second CAN line, or CAN FD. float32 everywhere would need 4 frames per 8 values and
 cannot fit.
+
+The node's own heartbeat (1017h, 100 ms: one 1-byte frame per 100 cycles, ~0.06 %) fits.
+NMT: boot-up at open, self-starting (operational), heartbeat producer, NMT commands and
+SDO requests served in the read (see docs/canopen.md); no TPDOs while not operational.
 
 Timing: :meth:`CanopenDriver.read_into` returns the newest complete set (SYNC followed by
 all four per-cycle RPDOs) that has not been returned before, waiting up to
 ``timeout_s`` (default 2.5 SYNC periods) for it; otherwise :class:`DriverTimeoutError`.
+The first set after open also waits (10 SYNC periods longer) until every RPDO, the slow
+ones (heartbeat, pose, lengths) included, has arrived once: no zeros are handed out as a
+pose or a heartbeat.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import time
@@ -68,12 +77,23 @@ import numpy as np
 from canopen import objectdictionary as od_types
 
 from drivers.base import Driver, Inputs, Outputs
+from drivers.s7 import S7Analog
 from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
+
+log = logging.getLogger("cdpr_gateway.canopen")
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PLC_NODE_ID = 0x01
 PLC_MASTER_EDS = "config/plc_master.eds"
 SYNC_COB_ID = 0x080
+NMT_COB_ID = 0x000
+NMT_START, NMT_PRE_OPERATIONAL, NMT_RESET_COMMUNICATION = 0x01, 0x80, 0x82
+NMT_OPERATIONAL_STATE = 5
+VIRTUAL_NOTE = (
+    "bus.canopen.interface is 'virtual': python-can's virtual bus connects only buses "
+    "inside ONE process; a PLC (or candump) in another process never sees this node. "
+    "Use socketcan (docs/canopen.md) to talk across processes."
+)
 
 # application objects (gateway.eds, plc_master.eds)
 OBJ_RAW = 0x2000
@@ -94,7 +114,6 @@ LENGTH_M_PER_COUNT = 1e-4
 POSITION_M_PER_COUNT = 1e-4
 ANGLE_RAD_PER_COUNT = 1e-4
 TENSION_NO_VALUE = 0x7FFF
-S7_VALID_MIN, S7_VALID_MAX = -4864, 32511  # beyond: underflow / overflow codes
 STATUS_BITS = 2
 SLOW_PERIOD_CYCLES = 10
 READ_TIMEOUT_PERIODS = 2.5
@@ -206,13 +225,6 @@ def unpack_status(word: int, out: np.ndarray) -> None:
         out[i] = (word >> (STATUS_BITS * i)) & 0x3
 
 
-def s7_counts_to_newtons(count: int, newtons_per_count: float) -> float:
-    """S7 analog count -> N; overflow/underflow codes (outside -4864..32511) -> NaN."""
-    if S7_VALID_MIN <= count <= S7_VALID_MAX:
-        return count * newtons_per_count
-    return math.nan
-
-
 def new_slots(layouts: dict[int, PdoLayout]) -> dict[int, list[int]]:
     """A zeroed value list for every object the layouts map, long enough for its subs."""
     sizes: dict[int, int] = {}
@@ -262,7 +274,7 @@ class CanopenDriver(Driver):
         self.timeout_s = (
             timeout_s or self.can_cfg.timeout_s or READ_TIMEOUT_PERIODS * self.can_cfg.sync_period_s
         )
-        self._n_per_count = config.sensor.range_n / config.sensor.adc_full_scale
+        self.analog = S7Analog.from_sensor(config.sensor)
         self._external_bus = bus
         self._bus: can.BusABC | None = None
         self._rx: dict[int, tuple[PdoLayout, int]] = {}  # cob_id -> (layout, required bit)
@@ -271,12 +283,16 @@ class CanopenDriver(Driver):
         self._tx_slots: dict[int, list[int]] = {}
         self._required = 0
         self._received = 0
+        self._seen_bits: dict[int, int] = {}
+        self._all_rpdos = 0
+        self._seen = 0  # RPDOs received at least once since open (bit per RPDO)
         self._sync_seen = False
         self._sync_timestamp = 0.0
-        self.syncs = 0  # SYNC frames seen
         self.sets = 0  # complete SYNC sets returned by read_into
-        self.last_sync_timestamp = 0.0  # can.Message.timestamp (time.time base) of that SYNC
         self.ignored_frames = 0  # error/remote frames and unknown COB-IDs
+        self._network: canopen.Network | None = None
+        self._node: canopen.LocalNode | None = None
+        self._sdo_rx = -1
 
     # --- hooks ----------------------------------------------------------------------------
     def _open(self) -> None:
@@ -293,17 +309,63 @@ class CanopenDriver(Driver):
                 )
             rpdos[number] = rpdos[number].retarget(analog_tpdos[number].cob_id)
         self._check_channels(rpdos)
-        self._rx, self._required = {}, 0
+        self._rx, self._required, self._seen_bits = {}, 0, {}
         for bit, layout in enumerate(rpdos.values()):
             required = any(i in PER_CYCLE_OBJECTS for i, _ in layout.entries)
             self._rx[layout.cob_id] = (layout, (1 << bit) if required else 0)
             self._required |= (1 << bit) if required else 0
+            self._seen_bits[layout.cob_id] = 1 << bit
+        self._all_rpdos = (1 << len(rpdos)) - 1
+        self._seen = 0
         self._tx = list(tpdos.values())
         self._slots = new_slots(rpdos)
         self._tx_slots = new_slots(tpdos)
         self._bus = self._external_bus if self._external_bus is not None else open_bus(cfg)
+        if cfg.interface == "virtual":
+            log.warning(VIRTUAL_NOTE)
         self._drain()
         self._sync_seen, self._received = False, 0
+        self._start_nmt()
+
+    # --- NMT slave and heartbeat producer (CiA 301, the canopen library's LocalNode) ----
+    def _start_nmt(self) -> None:
+        """Boot-up message, then the 1017h heartbeat; the node starts itself (operational).
+
+        The canopen ``Network`` sends on this driver's bus but has no notifier: this
+        driver reads the bus, and hands NMT commands (COB-ID 0) and SDO requests
+        (0x600 + node id) to the node in :meth:`_handle`.
+        """
+        cfg = self.can_cfg
+        path = resolve_path(cfg.gateway_eds)
+        try:
+            od = canopen.import_od(str(path), cfg.gateway_node_id)
+        except Exception as exc:
+            raise DriverInitError(f"{path}: cannot load EDS: {exc}") from exc
+        network = canopen.Network()
+        network.bus = self._bus
+        node = canopen.LocalNode(cfg.gateway_node_id, od)
+        network.add_node(node)
+        self._network, self._node = network, node
+        self._sdo_rx = node.sdo.rx_cobid
+        self._boot()
+
+    def _boot(self) -> None:
+        assert self._node is not None
+        nmt = self._node.nmt
+        nmt.send_command(NMT_RESET_COMMUNICATION)  # INITIALISING: sends the boot-up frame
+        nmt.send_command(NMT_PRE_OPERATIONAL)  # starts the heartbeat (1017h, ms)
+        nmt.send_command(NMT_START)  # a self-starting node: PDOs flow without a master
+
+    @property
+    def nmt_state(self) -> str:
+        """The node's NMT state (``OPERATIONAL``, ``STOPPED``, ``PRE-OPERATIONAL``, ...)."""
+        return self._node.nmt.state if self._node is not None else "INITIALISING"
+
+    def _on_nmt_or_sdo(self, msg: can.Message) -> None:
+        assert self._network is not None and self._node is not None
+        self._network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        if self._node.nmt.state == "INITIALISING":  # reset node / communication
+            self._boot()
 
     def _check_channels(self, rpdos: dict[int, PdoLayout]) -> None:
         for obj in PER_CYCLE_OBJECTS:
@@ -324,7 +386,10 @@ class CanopenDriver(Driver):
     def _read(self, inputs: Inputs) -> None:
         if self._bus is None:
             raise DriverIOError("canopen: read on a closed driver")
-        deadline = time.monotonic() + self.timeout_s
+        timeout = self.timeout_s
+        if self._seen != self._all_rpdos:  # after open: wait for the slow PDOs once
+            timeout += SLOW_PERIOD_CYCLES * self.can_cfg.sync_period_s
+        deadline = time.monotonic() + timeout
         try:
             complete = self._collect(deadline)
         except can.CanError as exc:
@@ -336,7 +401,9 @@ class CanopenDriver(Driver):
                 if bit and not self._received & bit
             ]
             what = "no SYNC" if not self._sync_seen else "missing PDOs " + ", ".join(missing)
-            raise DriverTimeoutError(f"canopen: {what} within {self.timeout_s * 1e3:.1f} ms")
+            if self._sync_seen and not missing:
+                what = "no slow PDO yet (heartbeat, pose, lengths)"
+            raise DriverTimeoutError(f"canopen: {what} within {timeout * 1e3:.1f} ms")
         self._sync_seen, self._received = False, 0
         self.sets += 1
         self.last_sync_timestamp = self._sync_timestamp
@@ -348,7 +415,11 @@ class CanopenDriver(Driver):
         bus = self._bus
         assert bus is not None
         for _ in range(DRAIN_LIMIT):
-            if self._sync_seen and self._received == self._required:
+            if (
+                self._sync_seen
+                and self._received == self._required
+                and self._seen == self._all_rpdos
+            ):
                 msg = bus.recv(0)
                 if msg is None:
                     return True
@@ -372,21 +443,25 @@ class CanopenDriver(Driver):
             self._sync_seen, self._received = True, 0
             self._sync_timestamp = msg.timestamp
             return
+        if (cob_id == NMT_COB_ID or cob_id == self._sdo_rx) and self._node is not None:
+            self._on_nmt_or_sdo(msg)
+            return
         entry = self._rx.get(cob_id)
         if entry is None:
             self.ignored_frames += 1
             return
         layout, bit = entry
         unpack_pdo(layout, msg.data, self._slots)
+        self._seen |= self._seen_bits[cob_id]
         if self._sync_seen:
             self._received |= bit
 
     def _fill(self, inputs: Inputs) -> None:
-        slots, k = self._slots, self._n_per_count
+        slots, decode = self._slots, self.analog.decode_count
         raw, vel = slots[OBJ_RAW], slots[OBJ_VELOCITY]
         length = slots.get(OBJ_LENGTH)
         for i in range(self.cables):
-            inputs.tension_raw_n[i] = s7_counts_to_newtons(raw[i], k)
+            inputs.tension_raw_n[i] = decode(raw[i])
             inputs.velocity_m_s[i] = vel[i] * VELOCITY_M_S_PER_COUNT
             if length is not None:
                 inputs.length_m[i] = length[i] * LENGTH_M_PER_COUNT
@@ -413,6 +488,8 @@ class CanopenDriver(Driver):
             tx[OBJ_GW_HEARTBEAT][0] = int(outputs.gateway_heartbeat) & 0xFFFF
         if OBJ_GW_STATE in tx:
             tx[OBJ_GW_STATE][0] = int(outputs.gateway_state) & 0xFF
+        if self._node is not None and self._node.nmt.state != "OPERATIONAL":
+            return  # stopped / pre-operational by the master: no PDOs (CiA 301)
         try:
             for layout in self._tx:
                 data = pack_pdo(layout, tx)
@@ -421,6 +498,9 @@ class CanopenDriver(Driver):
             raise DriverIOError(f"canopen: send failed: {exc}") from exc
 
     def _close(self) -> None:
+        if self._node is not None:
+            self._node.nmt.stop_heartbeat()
+            self._node = None
         bus, self._bus = self._bus, None
         if bus is not None and bus is not self._external_bus:
             bus.shutdown()

@@ -1,10 +1,10 @@
 """Modbus TCP client driver: the gateway's side of the PLC's MB_SERVER.
 
-One transaction per cycle. With ``use_fc23`` the outputs given to :meth:`write_from` are
-staged and sent with the next :meth:`read_into` in one function-23 read/write
-transaction (write the outputs span, read the inputs span); :meth:`flush` sends a staged
-write alone with function 16. Without ``use_fc23`` a cycle is a function-3 read and a
-function-16 write.
+One transaction per cycle. With ``use_fc23`` :meth:`exchange` (outputs, inputs) is ONE
+function-23 read/write transaction (write the outputs span, read the inputs span);
+:meth:`write_from` always sends at once with function 16 and :meth:`read_into` reads
+with function 3. Without ``use_fc23`` an exchange is a function-16 write then a
+function-3 read (the 3+16 fallback for servers without function 23).
 
 Why a socket-level MBAP client and not pymodbus' client: the cycle is 1 ms and the
 gateway benchmark holds the driver's round trip against a bare socket loop doing the same
@@ -18,20 +18,26 @@ numpy views, ``recv_into`` fills the reply, ``TCP_NODELAY`` is set. pymodbus sta
 soft PLC's server and the independent client in the tests.
 
 Robustness: one request in flight; a reply whose transaction id is not the one awaited
-(a late reply to a request that timed out, or garbage) is read whole and dropped
-(``dropped_replies``). Read and connect timeouts raise :class:`DriverTimeoutError`;
-three timeouts in a row, a closed or broken connection drop the socket. Reconnects never
-block the cycle for long: a connect is started non-blocking and polled for at most
-``timeout_s`` per call, attempts are spaced with exponential backoff between
-``reconnect_min_s`` and ``reconnect_max_s`` and every failed call raises
-:class:`DriverIOError` quickly. ``reconnects`` counts connections re-established after a
-loss. Exception replies raise :class:`DriverIOError` naming the function, the register
-and the exception. Optional TLS (Modbus/TCP Security, port 802) with the ``ssl`` module.
+(a late reply to a request that timed out, or garbage) or whose unit id is not
+``unit_id`` (another device behind the same address) is read whole and dropped, never
+decoded (``dropped_replies``; ``foreign_unit_replies`` for the unit id). Every wait for
+reply bytes is computed from the transaction's own deadline (``timeout_s`` after the
+request), so a slow reply never shortens the next one's wait. Read timeouts raise
+:class:`DriverTimeoutError`; three in a row, a closed or broken connection drop the
+socket, and every later call raises :class:`DriverIOError` ("not connected") until the
+loop reconnects through :meth:`Driver.poll_connect`: the TCP connect and the TLS
+handshake are non-blocking and advanced by at most the caller's budget per call, with
+the base class's backoff (``reconnect_min_s`` doubling to ``reconnect_max_s``, reset only
+by a good data reply). Errors carry the cause: the errno text of a refused connect, the
+TLS verification reason. Exception replies raise :class:`DriverIOError` naming the
+function, the register and the exception. Optional TLS (Modbus/TCP Security, port 802)
+with the ``ssl`` module.
 """
 
 from __future__ import annotations
 
 import errno
+import os
 import select
 import socket
 import ssl
@@ -39,7 +45,7 @@ import struct
 import time
 from typing import Any
 
-from drivers.base import Driver, DriverState, Inputs, Outputs
+from drivers.base import Backoff, Driver, Inputs, Outputs
 from drivers.registers import FieldCodec, Span, layout_map
 from gateway.config import ModbusTcpConfig
 from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError
@@ -90,18 +96,19 @@ class ModbusTcpDriver(Driver):
             self._ssl = _tls_context(self.mb)
         except (OSError, ssl.SSLError) as exc:
             raise DriverInitError(f"{self.where}: TLS setup: {exc}") from exc
+        self.backoff = Backoff(self.mb.reconnect_min_s, self.mb.reconnect_max_s)
         self._sock: socket.socket | None = None
-        self._connecting: socket.socket | None = None
+        self._pending: socket.socket | None = None  # a connection being set up
+        self._handshaking = False  # _pending is a TLS socket in its handshake
         self._connect_deadline = 0.0
-        self._next_attempt = 0.0
-        self._backoff_s = self.mb.reconnect_min_s
-        self._ever_connected = False
         self._tid = 0
         self._timeouts_in_a_row = 0
-        self._staged = False
-        self.dropped_replies = 0
-        self.reconnect_attempts = 0
+        self.foreign_unit_replies = 0  # replies from another unit id (also dropped_replies)
         self._build_frames(config)
+
+    @property
+    def combines_write_and_read(self) -> bool:
+        return self.mb.use_fc23
 
     # --- setup ------------------------------------------------------------------------
     def _check_counts(self) -> None:
@@ -168,115 +175,103 @@ class ModbusTcpDriver(Driver):
         frame[MBAP : MBAP + len(pdu)] = pdu
         return frame
 
-    # --- connection -------------------------------------------------------------------
-    def _open(self) -> None:
-        self._staged = False
-        self._backoff_s = self.mb.reconnect_min_s
-        try:
-            sock = socket.create_connection(
-                (self.mb.host, self.mb.port), timeout=self.mb.connect_timeout_s
-            )
-        except TimeoutError as exc:
-            raise DriverTimeoutError(f"{self.where}: connect timed out") from exc
-        except OSError as exc:
-            raise DriverInitError(f"{self.where}: cannot connect: {exc}") from exc
-        self._sock = self._finish(sock)
-        self._ever_connected = True
-
-    def _finish(self, sock: socket.socket) -> socket.socket:
-        """TCP_NODELAY, the TLS handshake, the read timeout; a fresh receive buffer."""
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self._have = self._consumed = 0
-        if self._ssl is not None:
-            sock.settimeout(self.mb.connect_timeout_s)
-            try:
-                sock = self._ssl.wrap_socket(sock, server_hostname=self.mb.host)
-            except (OSError, ssl.SSLError) as exc:
-                sock.close()
-                raise DriverInitError(f"{self.where}: TLS handshake: {exc}") from exc
-        sock.settimeout(self.mb.timeout_s)
-        self._sock_timeout = self.mb.timeout_s
-        return sock
-
-    def _drop(self) -> None:
-        """Forget the connection; the next call reconnects (after the backoff)."""
-        for s in (self._sock, self._connecting):
-            if s is not None:
-                s.close()
-        self._sock = self._connecting = None
-        self._staged = False
-        self._timeouts_in_a_row = 0
-        self._next_attempt = time.monotonic() + self._backoff_s
-        # grows until a good reply resets it (a link that keeps dropping backs off)
-        self._backoff_s = min(2 * self._backoff_s, self.mb.reconnect_max_s)
-
-    def _failed_attempt(self, why: str, exc: BaseException | None = None) -> DriverIOError:
-        if self._connecting is not None:
-            self._connecting.close()
-            self._connecting = None
-        self._next_attempt = time.monotonic() + self._backoff_s
-        wait = self._backoff_s
-        self._backoff_s = min(2 * self._backoff_s, self.mb.reconnect_max_s)
-        err = DriverIOError(f"{self.where}: reconnect failed: {why} (next try in {wait:.3f} s)")
-        err.__cause__ = exc
-        return err
-
-    def _ensure_connected(self) -> socket.socket:
-        """The connected socket, or a quick DriverIOError while (re)connecting."""
-        if self._sock is not None:
-            return self._sock
-        now = time.monotonic()
-        if self._connecting is None:
-            if now < self._next_attempt:
-                raise DriverIOError(
-                    f"{self.where}: not connected (next try in {self._next_attempt - now:.3f} s)"
-                )
-            self._start_connect(now)
-        return self._poll_connect()
-
-    def _start_connect(self, now: float) -> None:
-        self.reconnect_attempts += 1
+    # --- connection (non-blocking; the base class paces the attempts) -----------------
+    def _open_begin(self) -> bool:
+        self._close()
+        self._connect_deadline = time.monotonic() + self.mb.connect_timeout_s
         try:
             info = socket.getaddrinfo(self.mb.host, self.mb.port, type=socket.SOCK_STREAM)[0]
             sock = socket.socket(info[0], info[1], info[2])
         except OSError as exc:
-            raise self._failed_attempt(str(exc), exc) from exc
+            raise DriverInitError(f"{self.where}: cannot connect: {exc}") from exc
         sock.setblocking(False)
-        self._connecting = sock
-        self._connect_deadline = now + self.mb.connect_timeout_s
+        self._pending = sock
         rc = sock.connect_ex(info[4])
         if rc not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK):
-            raise self._failed_attempt(errno.errorcode.get(rc, str(rc)))
+            self._abandon()
+            raise DriverInitError(f"{self.where}: cannot connect: {os.strerror(rc)}")
+        return False
 
-    def _poll_connect(self) -> socket.socket:
-        sock = self._connecting
+    def _open_advance(self, budget_s: float) -> bool:
+        sock = self._pending
+        if sock is None:
+            raise DriverInitError(f"{self.where}: no connection attempt in progress")
+        if not self._handshaking:
+            _, writable, _ = select.select([], [sock], [], max(budget_s, 0.0))
+            if not writable:
+                self._check_connect_deadline("connect")
+                return False
+            rc = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+            if rc:
+                self._abandon()
+                raise DriverInitError(f"{self.where}: cannot connect: {os.strerror(rc)}")
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if self._ssl is not None:
+                self._pending = self._ssl.wrap_socket(
+                    sock, server_hostname=self.mb.host, do_handshake_on_connect=False
+                )
+                self._handshaking = True
+        if self._handshaking and not self._handshake(budget_s):
+            return False
+        self._connected()
+        return True
+
+    def _handshake(self, budget_s: float) -> bool:
+        """Advance the TLS handshake for at most ``budget_s``; True when done."""
+        sock = self._pending
+        assert isinstance(sock, ssl.SSLSocket)
+        end = time.monotonic() + max(budget_s, 0.0)
+        while True:
+            try:
+                sock.do_handshake()
+                return True
+            except ssl.SSLWantReadError:
+                wait_read = True
+            except ssl.SSLWantWriteError:
+                wait_read = False
+            except (OSError, ssl.SSLError) as exc:
+                self._abandon()
+                raise DriverInitError(f"{self.where}: TLS handshake: {_tls_reason(exc)}") from exc
+            remaining = end - time.monotonic()
+            ready = select.select(
+                [sock] if wait_read else [], [] if wait_read else [sock], [], max(remaining, 0)
+            )
+            if not (ready[0] or ready[1]):
+                self._check_connect_deadline("TLS handshake")
+                return False
+
+    def _check_connect_deadline(self, what: str) -> None:
+        if time.monotonic() > self._connect_deadline:
+            self._abandon()
+            raise DriverTimeoutError(
+                f"{self.where}: {what} timed out after {self.mb.connect_timeout_s} s"
+            )
+
+    def _abandon(self) -> None:
+        if self._pending is not None:
+            self._pending.close()
+        self._pending = None
+        self._handshaking = False
+
+    def _connected(self) -> None:
+        sock, self._pending, self._handshaking = self._pending, None, False
         assert sock is not None
-        _, writable, _ = select.select([], [sock], [], self.mb.timeout_s)
-        if not writable:
-            if time.monotonic() > self._connect_deadline:
-                raise self._failed_attempt("connect timed out")
-            raise DriverIOError(f"{self.where}: connecting")
-        rc = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
-        if rc:
-            raise self._failed_attempt(errno.errorcode.get(rc, str(rc)))
-        self._connecting = None
-        try:
-            self._sock = self._finish(sock)
-        except DriverInitError as exc:
-            raise self._failed_attempt(str(exc), exc) from exc
-        if self._ever_connected:
-            self.reconnects += 1
-        self._ever_connected = True
-        # the backoff is reset by the first good reply, not here: a PLC that accepts and
-        # then drops every connection must not be reconnected to at full rate
-        return self._sock
+        sock.settimeout(self.mb.timeout_s)
+        self._sock = sock
+        self._sock_timeout = self.mb.timeout_s
+        self._have = self._consumed = 0
+        self._timeouts_in_a_row = 0
+
+    def _drop(self) -> None:
+        """Forget the connection: every call fails until the loop reconnects."""
+        if self._sock is not None:
+            self._sock.close()
+        self._sock = None
+        self._timeouts_in_a_row = 0
 
     def _close(self) -> None:
-        for s in (self._sock, self._connecting):
-            if s is not None:
-                s.close()
-        self._sock = self._connecting = None
-        self._staged = False
+        self._drop()
+        self._abandon()
 
     # --- transactions -----------------------------------------------------------------
     def _recv_more(self, sock: socket.socket, deadline: float) -> None:
@@ -284,9 +279,8 @@ class ModbusTcpDriver(Driver):
         remaining = deadline - time.perf_counter()
         if remaining <= 0:
             raise TimeoutError
-        if remaining < self._sock_timeout - 0.001:  # settimeout only when it matters
-            sock.settimeout(remaining)
-            self._sock_timeout = remaining
+        sock.settimeout(remaining)  # this wait ends at the transaction's own deadline
+        self._sock_timeout = remaining
         k = sock.recv_into(self._rxv[self._have :])
         if k == 0:
             raise ConnectionResetError("connection closed by the server")
@@ -301,15 +295,18 @@ class ModbusTcpDriver(Driver):
         while True:
             while self._have < MBAP:
                 self._recv_more(sock, deadline)
-            rtid, proto, length, _unit = _HEADER.unpack_from(self._rx, 0)
+            rtid, proto, length, unit = _HEADER.unpack_from(self._rx, 0)
             size = MBAP - 1 + length
-            if length < 2 or size > RX_FRAME_MAX:
+            if length < 2 or size > RX_FRAME_MAX:  # framing is lost: drop the connection
+                self.dropped_replies += 1
                 raise ConnectionResetError(f"malformed reply (MBAP length {length})")
             while self._have < size:
                 self._recv_more(sock, deadline)
-            if rtid == tid and proto == 0:
+            if rtid == tid and proto == 0 and unit == self.mb.unit_id:
                 self._consumed = size
                 return length - 1
+            if unit != self.mb.unit_id:
+                self.foreign_unit_replies += 1
             self.dropped_replies += 1
             self._shift(size)
 
@@ -321,7 +318,9 @@ class ModbusTcpDriver(Driver):
 
     def _transact(self, frame: bytearray, fc: int, address: int) -> int:
         """Send ``frame`` (its header gets a fresh transaction id) and await its reply."""
-        sock = self._ensure_connected()
+        sock = self._sock
+        if sock is None:
+            raise DriverIOError(f"{self.where}: not connected")
         if self._consumed:  # the previous reply has been decoded: drop it from the buffer
             self._shift(self._consumed)
             self._consumed = 0
@@ -329,6 +328,9 @@ class ModbusTcpDriver(Driver):
         struct.pack_into(">H", frame, 0, self._tid)
         deadline = time.perf_counter() + self.mb.timeout_s
         try:
+            if self._sock_timeout < 0.5 * self.mb.timeout_s:
+                sock.settimeout(self.mb.timeout_s)
+                self._sock_timeout = self.mb.timeout_s
             sock.sendall(frame)
             n = self._receive(sock, self._tid, deadline)
         except TimeoutError as exc:
@@ -345,8 +347,7 @@ class ModbusTcpDriver(Driver):
                 f"{self.where}: function {fc} at register {address}: {exc}"
             ) from exc
         self._timeouts_in_a_row = 0
-        self._backoff_s = self.mb.reconnect_min_s  # a good reply: the link works
-        self._check_reply(fc, address, n)
+        self._check_reply(fc, address, n)  # an exception reply is no good reply
         return n
 
     def _check_reply(self, fc: int, address: int, n: int) -> None:
@@ -371,53 +372,48 @@ class ModbusTcpDriver(Driver):
             )
 
     # --- hooks ------------------------------------------------------------------------
-    def _read(self, inputs: Inputs) -> None:
-        if self._staged:
-            self._fc23[self._wdata_at23 :] = self._wdata
-            self._staged = False
-            self._read_span(self._fc23, FC_READ_WRITE, self.layout.read_span)
-        else:
+    def _exchange(self, outputs: Outputs | None, inputs: Inputs) -> None:
+        if outputs is None:
             self._read_span(self._fc3, FC_READ, self.layout.read_span)
+        elif self.mb.use_fc23:
+            self._encode(outputs)
+            self._fc23[self._wdata_at23 :] = self._wdata
+            self._read_span(self._fc23, FC_READ_WRITE, self.layout.read_span)
+        else:  # the 3 + 16 fallback
+            self._write(outputs)
+            self._read_span(self._fc3, FC_READ, self.layout.read_span)
+        self._decode(inputs)
+
+    def _read(self, inputs: Inputs) -> None:
+        self._exchange(None, inputs)
+
+    def _decode(self, inputs: Inputs) -> None:
         self._raw.decode(inputs.tension_raw_n)
         self._vel.decode(inputs.velocity_m_s)
         self._len.decode(inputs.length_m)
         self._pose.decode(inputs.pose)
         inputs.plc_heartbeat = self._hb.decode_int()
-        if self.state is DriverState.FAULT or self.state is DriverState.UNCONFIGURED:
-            self.state = DriverState.CONNECTED
 
-    def _write(self, outputs: Outputs) -> None:
+    def _encode(self, outputs: Outputs) -> None:
         tension, status, heartbeat, state, wrench = self._out
         tension.encode(outputs.tension_corrected_n)
         status.encode(outputs.channel_status)
         heartbeat.encode(outputs.gateway_heartbeat & 0xFFFF)
         state.encode(outputs.gateway_state)
         wrench.encode(outputs.wrench)
-        if self.mb.use_fc23:
-            self._staged = True
-        else:
-            self._send_write()
 
-    def _send_write(self) -> None:
+    def _write(self, outputs: Outputs) -> None:
+        self._encode(outputs)
         self._fc16[self._wdata_at16 :] = self._wdata
         ws = self.layout.write_span
         n = self._transact(self._fc16, FC_WRITE, ws.start)
         if n != 5 or struct.unpack_from(">HH", self._rx, MBAP + 1) != (ws.start, ws.count):
             raise DriverIOError(f"{self.where}: function 16 at register {ws.start}: bad echo")
 
-    # --- extras -----------------------------------------------------------------------
-    def flush(self) -> None:
-        """Send a staged write now (function 16)."""
-        if not self._staged:
-            return
-        self._staged = False
-        try:
-            self._send_write()
-        except DriverIOError:
-            self.state = DriverState.FAULT
-            raise
 
-    @property
-    def staged(self) -> bool:
-        """True while a write waits for the next read (function-23 mode)."""
-        return self._staged
+def _tls_reason(exc: BaseException) -> str:
+    """The TLS failure as an operator reads it: the verification reason when there is one."""
+    reason = getattr(exc, "verify_message", None)
+    if reason:
+        return f"certificate verify failed: {reason}"
+    return str(getattr(exc, "reason", None) or exc)

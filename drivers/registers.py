@@ -12,11 +12,11 @@ simply big-endian; ``low_first`` swaps the two words). Plain fields decode as
 ``value = raw * scale`` and encode as ``raw = round(value / scale)`` (integers clipped to
 the type's range, NaN -> 0).
 
-``format: s7_analog`` (Siemens S7 analog values, int16): 0..``adc_full_scale`` counts is
-0..``range_n`` newtons; ``scale`` is not applied. The codes 32767 (overflow) and -32768
-(underflow) decode as NaN, so the gateway marks the channel invalid. Encoding newtons
-saturates at the S7 limits of the measuring range (-4864 .. 32511 counts); values beyond
-them and NaN encode as the overflow/underflow codes.
+``format: s7_analog`` (Siemens S7 analog values, int16): decoded and encoded by the one S7
+codec, :class:`drivers.s7.S7Analog` (see there for the reading: 0..``adc_full_scale``
+counts is 0..``range_n`` newtons, over- and underrange included; the overflow/underflow
+codes and the counts no S7 module sends decode as NaN, so the gateway marks the channel
+invalid); ``scale`` is not applied.
 
 :func:`layout_map` checks a whole :class:`RegisterMap` (no two fields overlap; the write
 span never covers a PLC input register) and computes the contiguous spans a driver
@@ -30,13 +30,9 @@ from itertools import combinations
 
 import numpy as np
 
+from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW, S7Analog
 from gateway.config import RegisterField, RegisterMap, SensorConfig
 from gateway.errors import ConfigError
-
-S7_OVERFLOW = 32767
-S7_UNDERFLOW = -32768
-S7_MAX_COUNTS = 32511  # top of the S7 overrange
-S7_MIN_COUNTS = -4864  # bottom of the S7 underrange (unipolar 0..27648 format)
 
 MAX_READ_REGISTERS = 125  # functions 3, 4, 23 (read part)
 MAX_WRITE_REGISTERS_FC16 = 123
@@ -49,21 +45,6 @@ _DTYPES: dict[str, np.dtype] = {
     "uint32": np.dtype(">u4"),
     "float32": np.dtype(">f4"),
 }
-
-
-_S7_TABLES: dict[float, np.ndarray] = {}
-
-
-def _s7_table(newtons_per_count: float) -> np.ndarray:
-    """Newtons for every 16-bit word (index = the word as unsigned), NaN at the codes."""
-    table = _S7_TABLES.get(newtons_per_count)
-    if table is None:
-        counts = np.arange(65536, dtype=np.uint16).view(np.int16).astype(float)
-        table = counts * newtons_per_count
-        table[(counts == S7_OVERFLOW) | (counts == S7_UNDERFLOW)] = np.nan
-        table.flags.writeable = False
-        _S7_TABLES[newtons_per_count] = table
-    return table
 
 
 def field_dtype(field: RegisterField) -> np.dtype:
@@ -111,8 +92,9 @@ class FieldCodec:
         if self.s7 and field.type != "int16":
             raise ConfigError(f"register {field.address}: format s7_analog needs type int16")
         sensor = sensor or SensorConfig()
-        self.newtons_per_count = sensor.range_n / sensor.adc_full_scale
-        self._lut = _s7_table(self.newtons_per_count) if self.s7 else None
+        self.analog = S7Analog.from_sensor(sensor)
+        self.newtons_per_count = self.analog.newtons_per_count
+        self._lut = self.analog.table if self.s7 else None
         self._mask = np.empty(self.count, dtype=bool)
         self._mask2 = np.empty(self.count, dtype=bool)
         self._float = np.empty(self.count)
@@ -158,11 +140,14 @@ class FieldCodec:
         f = self._float
         f[...] = values
         if self.s7 and not raw:
-            np.divide(f, self.newtons_per_count, out=f)
+            a = self.analog  # the S7 codec's encoding, without allocating
+            np.divide(f, a.newtons_per_count, out=f)
+            np.rint(f, out=f)
             np.isnan(f, out=self._mask)
-            np.greater(f, S7_MAX_COUNTS + 0.5, out=self._mask2)
-            np.copyto(f, S7_OVERFLOW, where=self._mask | self._mask2)
-            np.less(f, S7_MIN_COUNTS - 0.5, out=self._mask2)
+            np.greater(f, a.max_counts, out=self._mask2)
+            np.logical_or(self._mask, self._mask2, out=self._mask)
+            np.copyto(f, S7_OVERFLOW, where=self._mask)
+            np.less(f, a.min_counts, out=self._mask2)
             np.copyto(f, S7_UNDERFLOW, where=self._mask2)
         elif not raw and self.field.scale != 1.0:
             np.divide(f, self.field.scale, out=f)

@@ -1,10 +1,14 @@
-"""In-process driver over a :class:`sim_plc.image.ProcessImage` (ros2_control's mock hardware).
+"""In-process driver over a PLC process image (ros2_control's mock hardware).
 
-Registered as ``virtual``. It reads and writes the process image directly: the raw
-channels are scaled from the S7 analog format (``0..adc_full_scale = 0..range_n``), the
-setpoints, pose and heartbeat copied (the plant's truth stays in the image: the gateway
-never sees it). What the gateway writes lands in the image's
-gateway fields, and ``image.gateway_writes`` counts accepted writes.
+Registered as ``virtual``. It reads and writes an injected process image directly (any
+object with the fields of :class:`PlcImage`: the soft PLC's ``sim_plc.image.ProcessImage``
+is one, injected by the demo and the tests; this package never imports the soft PLC; by
+default a :class:`VirtualImage` of its own). The raw channels are decoded by the one S7
+codec (:class:`drivers.s7.S7Analog`, the same reading as every other driver: overflow,
+underflow and counts outside the S7 window are NaN), the setpoints, pose and heartbeat
+copied (the plant's truth stays in the image: the gateway never sees it). What the
+gateway writes lands in the image's gateway fields, and ``image.gateway_writes`` counts
+accepted writes.
 
 Modes:
 
@@ -22,17 +26,61 @@ heartbeat from a read on (until a read), NaN / stuck / saturated channels from a
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 
-from drivers.base import Driver, Inputs, Outputs
+from drivers.base import ChannelStatus, Driver, Inputs, Outputs
+from drivers.s7 import S7_OVERFLOW, S7Analog
 from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
-from sim_plc.image import ProcessImage
 
-S7_OVERFLOW = 32767  # S7 analog overflow code
+
+class PlcImage(Protocol):
+    """What the virtual driver reads and writes (``sim_plc.image.ProcessImage`` fits)."""
+
+    lock: Any
+    raw_counts: np.ndarray  # (m,) int16 S7 counts
+    velocity_m_s: np.ndarray
+    length_m: np.ndarray
+    pose: np.ndarray
+    plc_heartbeat: int
+    corrected_n: np.ndarray
+    channel_status: np.ndarray
+    wrench: np.ndarray
+    gateway_heartbeat: int
+    gateway_state: int
+    gateway_writes: int
+
+
+@dataclass
+class VirtualImage:
+    """The virtual driver's own process image when none is injected (all zero, PLC
+    heartbeat advanced by the driver)."""
+
+    cables: int
+    raw_counts: np.ndarray = field(init=False)
+    velocity_m_s: np.ndarray = field(init=False)
+    length_m: np.ndarray = field(init=False)
+    pose: np.ndarray = field(init=False)
+    corrected_n: np.ndarray = field(init=False)
+    channel_status: np.ndarray = field(init=False)
+    wrench: np.ndarray = field(init=False)
+    plc_heartbeat: int = 0
+    gateway_heartbeat: int = 0
+    gateway_state: int = 0
+    gateway_writes: int = 0
+    lock: Any = field(default_factory=threading.Lock, repr=False)
+
+    def __post_init__(self) -> None:
+        m = self.cables
+        self.raw_counts = np.zeros(m, dtype=np.int16)
+        self.velocity_m_s, self.length_m = np.zeros(m), np.zeros(m)
+        self.corrected_n = np.zeros(m)
+        self.channel_status = np.full(m, int(ChannelStatus.INVALID), dtype=np.uint16)
+        self.pose, self.wrench = np.zeros(6), np.zeros(6)
 
 
 @dataclass
@@ -63,14 +111,14 @@ class VirtualDriver(Driver):
     def __init__(
         self,
         config: Any,
-        image: ProcessImage | None = None,
+        image: PlcImage | None = None,
         step: Callable[[], None] | None = None,
         faults: VirtualFaults | None = None,
         advance_heartbeat: bool | None = None,
         on_read: Callable[[int], None] | None = None,
     ) -> None:
         super().__init__(config)
-        self.image = image if image is not None else ProcessImage(config.cables)
+        self.image: PlcImage = image if image is not None else VirtualImage(config.cables)
         self.step = step
         self.faults = faults or VirtualFaults()
         self.advance_heartbeat = step is None if advance_heartbeat is None else advance_heartbeat
@@ -78,7 +126,7 @@ class VirtualDriver(Driver):
         self.reads = 0
         self.opens = 0
         self.dropped = False
-        self._scale = config.sensor.range_n / config.sensor.adc_full_scale
+        self.analog = S7Analog.from_sensor(config.sensor)
         self._frozen_heartbeat = 0
         self._stuck_value = float("nan")
 
@@ -91,6 +139,10 @@ class VirtualDriver(Driver):
 
     def _close(self) -> None:
         pass
+
+    def disconnect(self) -> None:
+        """The far side goes away: every read and write fails until the driver is reopened."""
+        self.dropped = True
 
     def _read(self, inputs: Inputs) -> None:
         self.reads += 1
@@ -112,7 +164,7 @@ class VirtualDriver(Driver):
         with img.lock:
             if self.advance_heartbeat:
                 img.plc_heartbeat = (img.plc_heartbeat + 1) & 0xFFFF
-            np.multiply(img.raw_counts, self._scale, out=inputs.tension_raw_n)
+            self.analog.decode(img.raw_counts, out=inputs.tension_raw_n)
             inputs.velocity_m_s[:] = img.velocity_m_s
             inputs.length_m[:] = img.length_m
             inputs.pose[:] = img.pose
@@ -138,9 +190,11 @@ class VirtualDriver(Driver):
                 self._stuck_value = float(tension[f.stuck_channel])
             tension[f.stuck_channel] = self._stuck_value
         if f.saturated_channel is not None and n >= f.saturated_from:
-            tension[f.saturated_channel] = S7_OVERFLOW * self._scale
+            tension[f.saturated_channel] = self.analog.decode_count(S7_OVERFLOW)  # NaN
 
     def _write(self, outputs: Outputs) -> None:
+        if self.dropped:
+            raise DriverIOError("virtual: write: connection dropped")
         img = self.image
         with img.lock:
             img.corrected_n[:] = outputs.tension_corrected_n

@@ -24,7 +24,9 @@ Lifecycle (:class:`drivers.base.Lifecycle`, the value is the wire code of regist
 STOPPED (not started) -> CONNECTED (driver open, reading) -> ACTIVE (writing) -> FAULT
 (bus down or PLC heartbeat frozen) -> back to CONNECTED/ACTIVE; STOPPED at the end. Only
 this module catches driver errors: a cycle whose read fails writes nothing and flags every
-channel stale (:meth:`CyclicService._failed`, :meth:`CyclicService._connect`).
+channel stale (:meth:`CyclicService._failed`); after a few in a row the loop closes the
+driver and asks it each cycle to reconnect (:meth:`drivers.base.Driver.poll_connect`, which
+waits at most half a period per cycle and spaces attempts with the driver's backoff).
 
 The PLC heartbeat that does not change for ``loop.heartbeat_timeout_s`` stops the tension
 writes: one frame with state FAULT, every channel invalid and NaN tensions is written, then
@@ -62,6 +64,7 @@ from gateway.stats import ERROR_KINDS, LoopStats
 
 log = logging.getLogger("cdpr_gateway.loop")
 
+CONNECT_BUDGET_PERIODS = 0.5  # a connection attempt waits at most this much of a cycle
 REOPEN_AFTER = 3  # failed cycles in a row before the loop closes and reopens the driver
 
 # Every signal whose default action ends the process and that a handler can catch: each
@@ -88,14 +91,6 @@ def describe_bus(cfg: Config) -> str:
         c = cfg.bus.canopen
         return f"canopen {c.interface}:{c.channel} node {c.gateway_node_id}"
     return bus
-
-
-def _reconnect_limits(cfg: Config) -> tuple[float, float]:
-    bus = getattr(cfg.bus, cfg.bus.driver, None)
-    return (
-        float(getattr(bus, "reconnect_min_s", 0.05)),
-        float(getattr(bus, "reconnect_max_s", 2.0)),
-    )
 
 
 class CyclicService:
@@ -137,11 +132,11 @@ class CyclicService:
         self._data_at = math.nan  # loop clock of the last successful read
         self._got_data = False
         self._ever_connected = False
+        self.last_connect_error = ""  # the cause of the last failed connection attempt
         self._open = False
         self._failures = 0
-        self._backoff_min, self._backoff_max = _reconnect_limits(cfg)
-        self._backoff = self._backoff_min
-        self._reconnect_at = -math.inf
+        self._pending: Outputs | None = None  # written with the next read (function 23)
+        self._configured = False
         self._reporter = _Reporter(self)
 
     @property
@@ -159,6 +154,7 @@ class CyclicService:
     # --- lifecycle ----------------------------------------------------------------------
     def configure(self) -> None:
         """Open the driver (STOPPED -> CONNECTED); on failure, FAULT and retry later."""
+        self._configured = True
         self._connect(self.clock())
 
     def stop(self) -> None:
@@ -177,7 +173,7 @@ class CyclicService:
 
     def run(self, cycles: int | None = None) -> LoopStats:
         """Run ``cycles`` cycles (``None``: until :meth:`stop`); then write STOPPED."""
-        if not self._ever_connected and not self._open and self._reconnect_at == -math.inf:
+        if not self._configured:
             self.configure()
         gc.collect()
         gc.freeze()  # everything allocated so far is permanent: no GC pauses scanning it
@@ -211,13 +207,12 @@ class CyclicService:
     def _cycle(self, now: float) -> bool:
         """One read -> compensate -> write; True when the schedule must be re-anchored."""
         if not self._open:
-            if now >= self._reconnect_at:
-                self._connect(now)
-                return True
+            self._connect(now)
             self.comp.mark_unread(now)
-            return False
+            return self._open
+        pending, self._pending = self._pending, None
         try:
-            self.driver.read_into(self.inputs)
+            self.driver.exchange(pending, self.inputs)
         except DriverTimeoutError as exc:
             self._failed(now, "timeout", exc)
             return False
@@ -270,9 +265,11 @@ class CyclicService:
             out.gateway_state = int(Lifecycle.ACTIVE)
         out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
         try:
-            self.driver.write_from(out)
+            if self.driver.combines_write_and_read and not self.heartbeat_fault:
+                self._pending = out  # goes out with the next cycle's read, one exchange
+            else:
+                self.driver.write_from(out)
             if self.heartbeat_fault:
-                self.driver.flush()
                 self._fault_written = True
         except DriverError as exc:
             self._failed(self.clock(), "write", exc)
@@ -298,15 +295,15 @@ class CyclicService:
 
     @property
     def reconnects(self) -> int:
-        """Reopens by the loop plus reconnections the driver made by itself."""
-        return self.stats.reconnects + int(getattr(self.driver, "reconnects", 0))
+        """Connections the driver re-established after one was up."""
+        return self.driver.reconnects
 
     def _failed(self, now: float, kind: str, exc: BaseException) -> None:
         """A failed transaction: nothing written this cycle, channels stale.
 
-        The driver is kept open (drivers heal themselves: Modbus reconnects with its own
-        backoff, CANopen waits for the next SYNC); after ``REOPEN_AFTER`` failed cycles in
-        a row the loop closes it and reopens it with backoff.
+        The driver is kept open (CANopen waits for the next SYNC, a Modbus timeout may be
+        followed by a good reply); after ``REOPEN_AFTER`` failed cycles in a row the loop
+        closes it and asks it to reconnect (the driver's backoff spaces the attempts).
         """
         self.stats.errors[kind] += 1
         self.last_error = exc
@@ -314,27 +311,27 @@ class CyclicService:
         self.state = Lifecycle.FAULT
         self._last_hb = None  # after an outage, watch the PLC heartbeat afresh
         self._failures += 1
+        self._pending = None
         if self._failures >= REOPEN_AFTER:
             self._close_driver()
-            self._reconnect_at = now  # first reopen on the next cycle, then backoff
 
     def _connect(self, now: float) -> None:
+        """Advance the driver's connection by at most half a period, so the schedule
+        holds (its backoff decides when an attempt starts; the loop never resets it)."""
         try:
-            self._close_driver()
-            self.driver.open()
+            if not self.driver.poll_connect(now, CONNECT_BUDGET_PERIODS * self.period_s):
+                return
             self._open = True
         except DriverError as exc:
             if self._ever_connected or self.stats.cycles:
                 self.stats.errors["connect"] += 1
             self.last_error = exc
+            self.last_connect_error = str(exc)
             self.state = Lifecycle.FAULT
-            self._reconnect_at = now + self._backoff
-            self._backoff = min(self._backoff * 2.0, self._backoff_max)
             return
-        if self._ever_connected:
-            self.stats.reconnects += 1
+        self.stats.reconnects = self.driver.reconnects
         self._ever_connected = True
-        self._backoff = self._backoff_min
+        self._pending = None
         self._failures = 0
         self._last_hb = None  # a restarted PLC: watch its heartbeat afresh
         self.state = Lifecycle.CONNECTED
@@ -353,7 +350,6 @@ class CyclicService:
             out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
             try:
                 self.driver.write_from(out)
-                self.driver.flush()
                 self.stats.written += 1
             except DriverError as exc:
                 log.warning("could not write the stopped state: %s", exc)

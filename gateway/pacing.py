@@ -115,16 +115,16 @@ class BusPacing(Pacing):
     def wait(self, bus_open: bool) -> float:
         if not bus_open:
             self.wait_until(self.deadline)
-        self.syncs_before = int(getattr(self.driver, "syncs", 0))
+        self.syncs_before = self.driver.syncs
         return self.clock()
 
     def finish(self, start: float, end: float, data_at: float | None, reanchor: bool) -> None:
         if data_at is not None:  # a set arrived: its SYNC's lateness, the work
-            sync_at = float(getattr(self.driver, "last_sync_timestamp", 0.0))
+            sync_at = self.driver.last_sync_timestamp
             if sync_at > 0.0:
                 self.stats.add_jitter(max(0.0, self.wall_clock() - sync_at))
             self.stats.add_cycle(end - data_at)
-            missed = int(getattr(self.driver, "syncs", 0)) - self.syncs_before - 1
+            missed = self.driver.syncs - self.syncs_before - 1
             if missed > 0 and self.syncs_before > 0:
                 self.stats.add_overrun(missed)
         self.deadline = end + self.period_s
@@ -139,6 +139,6 @@ def make_pacing(
     stats: LoopStats,
 ) -> Pacing:
     """:class:`BusPacing` for a driver paced by its bus, else :class:`PeriodicPacing`."""
-    if getattr(driver, "paced_by_bus", False):
+    if driver.paced_by_bus:
         return BusPacing(loop, clock, sleep, stats, driver, wall_clock)
     return PeriodicPacing(loop, clock, sleep, stats)

@@ -45,6 +45,7 @@ from typing import IO, Any, TextIO
 import numpy as np
 
 from drivers.base import Inputs
+from drivers.s7 import S7Analog
 from gateway.compensator import Compensator
 from gateway.config import DEFAULT_CONFIG_PATH, Config, load_config
 from gateway.daemon import build_driver
@@ -208,7 +209,7 @@ class StandInPlant:
         self.t = 0.0
         self.length = np.full(m, 2.0)
         self.sensor = np.zeros(m)
-        self.counts_per_n = cfg.sensor.adc_full_scale / cfg.sensor.range_n
+        self.adc = S7Analog.from_sensor(cfg.sensor)
         image.pose[:] = cfg.geometry.home_pose
 
     def step(self) -> None:
@@ -218,7 +219,7 @@ class StandInPlant:
         self.length += v * self.dt
         self.chain.step(tp, v, self.sensor)
         noisy = self.sensor + self.rng.normal(0.0, 0.2, self.sensor.size)
-        counts = np.clip(np.rint(noisy * self.counts_per_n), -32768, 32767)
+        counts = self.adc.encode(noisy)
         img = self.image
         with img.lock:
             img.raw_counts[:] = counts

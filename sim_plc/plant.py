@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.s7 import s7_codec
 from gateway.config import Config
 from gateway.errors import InfeasiblePoseError
 from gateway.model import chain, effects, kinematics, statics
@@ -45,34 +46,16 @@ from sim_plc.trajectories import Trajectory, make_trajectory
 
 Progress = Callable[[float], None]
 
-S7_NOMINAL = 27648
-S7_OVERFLOW = 32767
-S7_UNDERFLOW = -32768
-S7_OVERRANGE_MAX = 32511  # 117.589 % of nominal
-S7_UNDERRANGE_MIN = -4864  # -17.593 % of nominal
-
-
-def adc_limits(full_scale: int) -> tuple[int, int]:
-    """Largest overrange and smallest underrange count for a nominal ``full_scale``."""
-    hi = math.floor(full_scale * S7_OVERRANGE_MAX / S7_NOMINAL)
-    lo = -math.floor(full_scale * -S7_UNDERRANGE_MIN / S7_NOMINAL)
-    return min(hi, 32766), max(lo, -32767)
-
 
 def digitise(tension_n: np.ndarray, range_n: float, full_scale: int, saturation_n: float):
     """Analog reading (N) -> int16 S7 counts, with the sensor output limit first."""
     limited = np.clip(tension_n, -saturation_n, saturation_n)
-    counts = np.rint(limited * (full_scale / range_n))
-    hi, lo = adc_limits(full_scale)
-    counts = np.where(counts > hi, S7_OVERFLOW, np.where(counts < lo, S7_UNDERFLOW, counts))
-    return counts.astype(np.int16)
+    return s7_codec(range_n, full_scale).encode(limited)
 
 
 def counts_to_newton(counts: np.ndarray, range_n: float, full_scale: int) -> np.ndarray:
-    """S7 counts -> N; overflow/underflow codes -> NaN."""
-    c = np.asarray(counts)
-    out = c.astype(float) * (range_n / full_scale)
-    return np.where((c == S7_OVERFLOW) | (c == S7_UNDERFLOW), np.nan, out)
+    """S7 counts -> N; outside the S7 window (overflow/underflow codes) -> NaN."""
+    return s7_codec(range_n, full_scale).decode(np.asarray(counts))
 
 
 @dataclass

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from drivers.base import Inputs, Outputs
-from drivers.canopen import CanopenDriver
+from drivers.canopen import SLOW_PERIOD_CYCLES, CanopenDriver
 from gateway.config import Config, load_config
 from sim_plc.canopen_nodes import CanopenPlc
 from sim_plc.image import ProcessImage
@@ -69,10 +69,12 @@ def rig() -> Iterator[CanopenRig]:
     driver = CanopenDriver(cfg, bus=gw_bus, timeout_s=0.02)
     plc.start()
     driver.open()
+    inputs = Inputs.allocate(cfg.cables)
+    for _ in range(SLOW_PERIOD_CYCLES):  # the first set after open needs every slow PDO
+        plc.step()
+    driver.read_into(inputs)
     try:
-        yield CanopenRig(
-            cfg, image, plc, driver, Inputs.allocate(cfg.cables), Outputs.allocate(cfg.cables)
-        )
+        yield CanopenRig(cfg, image, plc, driver, inputs, Outputs.allocate(cfg.cables))
     finally:
         driver.close()
         plc.stop()

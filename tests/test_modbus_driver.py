@@ -14,13 +14,20 @@ from numpy.testing import assert_allclose, assert_array_equal
 from drivers.base import DriverState, Inputs, Outputs, make_driver
 from drivers.modbus_tcp import ModbusTcpDriver
 from gateway.config import RegisterField, load_config
-from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError
+from gateway.errors import (
+    ConfigError,
+    DriverError,
+    DriverInitError,
+    DriverIOError,
+    DriverTimeoutError,
+)
 from tests.modbus_helpers import (
     LOCALHOST,
     FakeServer,
     config_for,
     exception_reply,
     fc3_reply,
+    mbap,
     plc_server,
 )
 
@@ -59,29 +66,36 @@ def test_reads_and_writes_against_the_soft_plc(use_fc23: bool) -> None:
             assert_allclose(inputs.pose, img.pose, rtol=1e-7)
             assert inputs.plc_heartbeat == img.plc_heartbeat
             out = _outputs()
-            drv.write_from(out)
+            drv.write_from(out)  # always at once (function 16)
             assert drv.state is DriverState.ACTIVE
-            assert img.gateway_writes == (0 if use_fc23 else 1)  # fc23: staged
-            drv.read_into(inputs)  # fc23: goes out with this read
             assert img.gateway_writes == 1
+            img.gateway_heartbeat = 0
+            drv.exchange(out, inputs)  # fc23: one transaction; else 16 then 3
+            assert img.gateway_writes == 2
             assert_allclose(img.corrected_n, out.tension_corrected_n, rtol=1e-7)
             assert_array_equal(img.channel_status, out.channel_status)
             assert_allclose(img.wrench, out.wrench, rtol=1e-7)
             assert (img.gateway_heartbeat, img.gateway_state) == (1, 2)
-            assert drv.roundtrip_s.count == 2
+            assert inputs.plc_heartbeat == img.plc_heartbeat
+            assert drv.combines_write_and_read is use_fc23
 
 
-def test_flush_sends_a_staged_write_with_fc16() -> None:
-    with plc_server() as (_server, img, cfg), ModbusTcpDriver(cfg) as drv:
-        out = _outputs()
-        out.gateway_state = 0
-        drv.write_from(out)
-        assert drv.staged and img.gateway_writes == 0
-        drv.flush()
-        assert not drv.staged
-        assert img.gateway_writes == 1 and img.gateway_state == 0
-        drv.flush()  # nothing staged: no transaction
-        assert img.gateway_writes == 1
+@pytest.mark.parametrize(("use_fc23", "functions"), [(True, [23, 3]), (False, [16, 3, 3])])
+def test_exchange_is_one_function_23_transaction(use_fc23: bool, functions: list[int]) -> None:
+    """With function 23 an exchange is ONE request; the fallback is 16 then 3."""
+
+    def respond(req: bytes, k: int) -> list[tuple[float, bytes]]:
+        if req[7] == 16:
+            return [(0.0, mbap(req[7:12], struct.unpack(">H", req[:2])[0]))]
+        return [(0.0, fc3_reply(req, regs={HEARTBEAT_OFFSET: 7}))]
+
+    with FakeServer(respond) as fake:
+        with ModbusTcpDriver(config_for(fake.port, use_fc23=use_fc23)) as drv:
+            inputs = Inputs.allocate(8)
+            drv.exchange(_outputs(), inputs)
+            assert inputs.plc_heartbeat == 7
+            drv.exchange(None, inputs)
+        assert [r[7] for r in fake.requests] == functions
 
 
 def test_open_fails_cleanly_without_a_server() -> None:
@@ -145,12 +159,23 @@ def test_late_reply_is_dropped_never_used() -> None:
 def test_exception_reply_names_function_and_register() -> None:
     reply = lambda req, k: [(0.0, exception_reply(req, 2))]  # noqa: E731
     with FakeServer(reply) as fake, ModbusTcpDriver(config_for(fake.port)) as drv:
-        drv.write_from(_outputs())
         with pytest.raises(DriverIOError, match=r"function 23 at register 0: exception 2 "):
-            drv.read_into(Inputs.allocate(8))
+            drv.exchange(_outputs(), Inputs.allocate(8))
         with pytest.raises(DriverIOError, match=r"function 3 .*\(illegal data address\)"):
             drv.read_into(Inputs.allocate(8))
         assert drv.state is DriverState.FAULT
+
+
+def _poll_until_connected(drv: ModbusTcpDriver, seconds: float) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:  # bounded
+        try:
+            if drv.poll_connect(budget_s=0.001):
+                return True
+        except DriverError:
+            pass
+        time.sleep(0.002)
+    return False
 
 
 def test_reconnects_after_the_server_restarts() -> None:
@@ -160,21 +185,22 @@ def test_reconnects_after_the_server_restarts() -> None:
         inputs = Inputs.allocate(8)
         drv.open()
         drv.read_into(inputs)
-    # the server is gone: errors, and attempts are spaced by the backoff
+    # the server is gone: the read fails, later calls say so until a reconnect
     with pytest.raises(DriverIOError):
         drv.read_into(inputs)
-    attempts = drv.reconnect_attempts
     with pytest.raises(DriverIOError, match="not connected"):
-        drv.read_into(inputs)  # within the backoff: no new attempt
-    assert drv.reconnect_attempts == attempts
+        drv.read_into(inputs)
+    drv.close()
+    attempts = drv.reconnect_attempts
+    with pytest.raises(DriverInitError, match="Connection refused"):  # the cause, errno text
+        drv.poll_connect(budget_s=0.05)
+    assert drv.reconnect_attempts == attempts + 1
+    assert not drv.poll_connect(budget_s=0.0)  # within the backoff: no new attempt
+    assert drv.reconnect_attempts == attempts + 1
     img.plc_heartbeat = 777
     with plc_server(img, port=port) as (_server, _img, _cfg):
-        for _ in range(500):  # bounded: the backoff is at most 40 ms
-            try:
-                drv.read_into(inputs)
-                break
-            except DriverIOError:
-                time.sleep(0.005)
+        assert _poll_until_connected(drv, 2.0)
+        drv.read_into(inputs)
         assert inputs.plc_heartbeat == 777
         assert drv.reconnects == 1
         assert drv.state is DriverState.CONNECTED
@@ -187,47 +213,3 @@ def test_map_counts_must_match_the_cables() -> None:
     cfg = config_for(5020, cfg, registers=regs)
     with pytest.raises(ConfigError, match=r"registers\.pose: count 5, need 6"):
         ModbusTcpDriver(cfg)
-
-
-def test_backoff_grows_when_the_peer_accepts_then_drops() -> None:
-    """A PLC that accepts every connection and closes it at once must not be reconnected
-    to at full rate: the backoff is reset by a good reply, not by a connect."""
-    listener = socket.create_server((LOCALHOST, 0))
-    listener.settimeout(0.05)
-    accepted = []
-    stop = time.monotonic() + 5.0
-
-    def accept_and_drop() -> None:
-        while time.monotonic() < stop:
-            try:
-                conn, _ = listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            accepted.append(time.monotonic())
-            conn.close()
-
-    import threading
-
-    thread = threading.Thread(target=accept_and_drop, daemon=True)
-    thread.start()
-    cfg = config_for(listener.getsockname()[1], reconnect_min_s=0.01, reconnect_max_s=0.16)
-    drv = ModbusTcpDriver(cfg)
-    inputs = Inputs.allocate(8)
-    end = time.monotonic() + 0.6
-    while time.monotonic() < end:  # bounded: 0.6 s of cycles
-        try:
-            if drv.state is DriverState.UNCONFIGURED:
-                drv.open()
-            drv.read_into(inputs)
-        except (DriverIOError, DriverInitError):
-            pass
-        time.sleep(0.001)
-    drv.close()
-    stop = time.monotonic()
-    thread.join(timeout=2)
-    listener.close()
-    # 0.01 + 0.02 + 0.04 + 0.08 + 0.16 + 0.16 + ... : about 7 attempts in 0.6 s; without
-    # growth (reset on connect) it would be ~60
-    assert 2 <= len(accepted) <= 12

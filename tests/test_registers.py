@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from drivers.registers import (
     check_map,
     layout_map,
 )
+from drivers.s7 import S7Analog, window
 from gateway.config import RegisterField, RegisterMap, SensorConfig
 from gateway.errors import ConfigError
 
@@ -209,3 +211,56 @@ def test_spans_longer_than_one_transaction_are_refused() -> None:
     rmap = dataclasses.replace(RegisterMap(), plc_heartbeat=RegisterField(130 + 200, 1))
     with pytest.raises(ConfigError, match="exceeds one read"):
         layout_map(rmap)
+
+
+# --- the one S7 codec (drivers/s7.py) -------------------------------------------------
+@pytest.mark.parametrize(
+    ("counts", "newtons"),
+    [
+        (32512, np.nan),  # above the overrange: no S7 module sends it
+        (32600, np.nan),
+        (32766, np.nan),
+        (-4865, np.nan),  # below the underrange
+        (-5000, np.nan),
+        (-32767, np.nan),
+        (27649, 27649 * 500.0 / 27648),  # overrange is a measurement
+        (-1, -500.0 / 27648),  # underrange too
+    ],
+)
+def test_s7_window_is_the_one_reading(counts: int, newtons: float) -> None:
+    analog = S7Analog(500.0)
+    assert_allclose(analog.decode_count(counts), newtons, rtol=1e-12)
+    assert_allclose(analog.decode(np.array([counts], dtype=np.int16)), [newtons], rtol=1e-12)
+    codec, _ = _codec(RegisterField(0, 1, "int16", format="s7_analog"))
+    codec.encode(np.array([counts]), raw=True)
+    assert_allclose(codec.decode(np.zeros(1)), [newtons], rtol=1e-12)
+
+
+def test_s7_window_scales_with_the_full_scale() -> None:
+    assert window(27648) == (-4864, 32511)
+    assert window(10000) == (-1759, 11758)
+    assert window(32767) == (-5764, 32766)  # the codes stay codes
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-2000.0, 2000.0) | st.just(math.nan), min_size=1, max_size=16))
+def test_s7_encode_then_decode_is_within_half_a_count_or_nan(values: list[float]) -> None:
+    analog = S7Analog(500.0)
+    x = np.array(values)
+    back = analog.decode(analog.encode(x))
+    inside = np.isfinite(x) & (x >= -4864 * analog.newtons_per_count)
+    inside &= x <= 32511 * analog.newtons_per_count
+    assert_allclose(back[inside], x[inside], atol=analog.newtons_per_count / 2 + 1e-9)
+    assert np.all(np.isnan(back[~inside]))
+    codec, _ = _codec(RegisterField(0, x.size, "int16", format="s7_analog"))
+    codec.encode(x)  # the register codec encodes exactly like the S7 codec
+    assert_array_equal(codec.decode(np.zeros(x.size), raw=True), analog.encode(x))
+
+
+def test_plant_adc_uses_the_codec() -> None:
+    from sim_plc.plant import counts_to_newton, digitise
+
+    x = np.array([0.0, 250.0, 587.0, 600.0, -100.0, np.nan])
+    counts = digitise(x, 500.0, 27648, saturation_n=1e9)
+    assert_array_equal(counts, S7Analog(500.0).encode(x))
+    assert_allclose(counts_to_newton(counts, 500.0, 27648), S7Analog(500.0).decode(counts))
