@@ -69,10 +69,10 @@ from canopen import objectdictionary as od_types
 
 from drivers.base import Driver, Inputs, Outputs
 from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
+from gateway.resources import data_dir
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 PLC_NODE_ID = 0x01
-PLC_MASTER_EDS = "config/plc_master.eds"
+PLC_MASTER_EDS = "plc_master.eds"
 SYNC_COB_ID = 0x080
 
 # application objects (gateway.eds, plc_master.eds)
@@ -130,9 +130,9 @@ class PdoLayout:
 
 
 def resolve_path(path: str | Path) -> Path:
-    """``path`` as given when it exists, else relative to the repository root."""
+    """``path`` as given when it exists, else one of the shipped EDS files (config/)."""
     p = Path(path)
-    return p if p.is_absolute() or p.exists() else REPO_ROOT / p
+    return p if p.is_absolute() or p.exists() else data_dir() / p
 
 
 def load_pdo_layouts(
