@@ -240,7 +240,7 @@ class CanopenConfig:
     plc_node_id: int = 0x01
     sync_period_s: float = 0.001
     timeout_s: float | None = None  # read timeout; default 2.5 SYNC periods
-    gateway_eds: str = "gateway.eds"  # relative paths: to the config file's directory
+    gateway_eds: str = "gateway.eds"  # relative: beside the config file (left out: shipped)
     analog_eds: str = "analog_in_401.eds"
     plc_eds: str = "plc_master.eds"
 
@@ -315,21 +315,25 @@ def config_from_mapping(data: dict[str, Any], source: str = "") -> Config:
     if "source" in data:  # 'source' is filled in here, never read from the file
         raise ConfigError(f"{source}: source: unknown key")
     cfg = convert(Config, {**data, "source": source}, "", source)
-    return _with_eds_beside(cfg, source if source and Path(source).is_file() else None)
+    stated = (data.get("bus") or {}).get("canopen") or {}
+    return _with_eds_resolved(cfg, stated, source if source and Path(source).is_file() else None)
 
 
-def _with_eds_beside(cfg: Config, config_file: str | None) -> Config:
-    """The EDS paths made absolute: relative ones name files beside the config file (the
-    shipped EDS files when the config did not come from a file)."""
+def _with_eds_resolved(cfg: Config, stated: dict[str, Any], config_file: str | None) -> Config:
+    """The EDS paths made absolute: a relative path the file states names a file beside the
+    config file; one it leaves out is the shipped EDS file of that name (config/)."""
     can = cfg.bus.canopen
+
+    def where(key: str, value: str) -> str:
+        return str(resolve_beside(value, config_file if key in stated else None))
+
     can = dataclasses.replace(
         can,
-        gateway_eds=str(resolve_beside(can.gateway_eds, config_file)),
-        analog_eds=str(resolve_beside(can.analog_eds, config_file)),
-        plc_eds=str(resolve_beside(can.plc_eds, config_file)),
+        gateway_eds=where("gateway_eds", can.gateway_eds),
+        analog_eds=where("analog_eds", can.analog_eds),
+        plc_eds=where("plc_eds", can.plc_eds),
     )
-    bus = dataclasses.replace(cfg.bus, canopen=can)
-    return dataclasses.replace(cfg, bus=bus)
+    return dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, canopen=can))
 
 
 def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> Config:
