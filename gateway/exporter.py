@@ -19,7 +19,8 @@ server is built to cost a known, small amount whatever the clients do:
   ``fd_reserve`` descriptors remain under the process' soft ``RLIMIT_NOFILE``, so the bus
   can always reconnect; ``EMFILE`` on accept pauses accepting instead of spinning;
 * **the payload is rendered at most once per** ``cache_s``: a burst of scrapes costs one
-  collection of the registry, not one each.
+  collection of the registry, not one each; the thread runs at nice 10 and never
+  real-time, below the cycle.
 
 TLS (``certfile``/``keyfile``) and HTTP basic auth (``basic_auth_user`` and
 ``basic_auth_password_sha256``, the hex SHA-256 of the password) as configured in
@@ -131,6 +132,18 @@ def _response(status: str, body: bytes, headers: list[tuple[str, str]], head: bo
     return ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + (b"" if head else body)
 
 
+def _yield_to_the_cycle() -> None:
+    """Run this thread below the cycle: back to SCHED_OTHER if the process was started
+    real-time (the unit's CPUSchedulingPolicy=fifo), and nice 10. Linux applies both per
+    thread; lowering needs no privilege. Elsewhere a no-op."""
+    with contextlib.suppress(AttributeError, OSError):
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(AttributeError, OSError):
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), 10))
+
+
 class MetricsServer:
     """Serve ``registry`` on ``cfg.host:cfg.port`` (port 0: any free port, see ``.port``)."""
 
@@ -224,6 +237,7 @@ class MetricsServer:
     # ---- the selector loop ---------------------------------------------------------------
 
     def _serve(self) -> None:
+        _yield_to_the_cycle()
         while not self._stop:
             now = time.monotonic()
             wait = TICK_S

@@ -272,3 +272,17 @@ def test_close_releases_the_port_and_every_connection(registry):
     finally:
         for c in clients:
             c.close()
+
+
+def test_the_exporter_thread_runs_below_the_cycle(server):
+    """nice 10 and SCHED_OTHER, per thread (Linux): the scrape path yields to the loop."""
+    import os
+
+    (thread,) = [t for t in threading.enumerate() if t.name == "metrics-http"]
+    tid = thread.native_id
+    assert tid is not None
+    stat = Path(f"/proc/self/task/{tid}/stat")
+    if not stat.exists():
+        pytest.skip("no /proc task stats")
+    assert wait_until(lambda: int(stat.read_text().rsplit(")", 1)[1].split()[16]) >= 10, 5.0)
+    assert os.sched_getscheduler(tid) == os.SCHED_OTHER
