@@ -75,7 +75,7 @@ def test_the_parser_finds_metric_names():
 
 
 def test_every_dashboard_query_uses_exported_metrics():
-    exported = exported_series()
+    exported = exported_series() | BUILTIN_SERIES
     used: set[str] = set()
     for expr in dashboard_exprs():
         names = metric_names(expr)
@@ -125,7 +125,7 @@ def test_the_dashboard_shows_state_and_tensions_in_newtons():
     state = by_metric["cdpr_gateway_state"]
     mapping = state["fieldConfig"]["defaults"]["mappings"][0]["options"]
     assert {k: v["text"] for k, v in mapping.items()} == {
-        "0": "stopped", "1": "connecting", "2": "active", "3": "fault"}  # fmt: skip
+        "0": "stopped", "1": "connected", "2": "active", "3": "fault"}  # fmt: skip
     assert "cdpr_gateway_plc_heartbeat_age_seconds" in by_metric
     assert "cdpr_gateway_sample_age_seconds" in by_metric
     for name in ("tension_raw_newtons", "tension_corrected_newtons", "friction_newtons"):
