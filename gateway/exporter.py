@@ -34,6 +34,7 @@ import contextlib
 import errno
 import hashlib
 import hmac
+import logging
 import os
 import resource
 import selectors
@@ -48,6 +49,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 
 from gateway.config import MetricsConfig
 from gateway.errors import ConfigError
+
+log = logging.getLogger("cdpr_gateway.exporter")
 
 MAX_CONNECTIONS = 64
 TIMEOUT_S = 3.0  # handshake + request + reply; Prometheus' own scrape timeout is shorter
@@ -164,6 +167,8 @@ class MetricsServer:
             raise ConfigError(
                 f"{where}metrics.basic_auth_user and metrics.basic_auth_password_sha256 go together"
             )
+        if not 0 <= cfg.port <= 65535:  # getaddrinfo would silently wrap 99999 to 34463
+            raise ConfigError(f"{where}metrics.port: must be in 0..65535, got {cfg.port}")
         self._auth = _auth_checker(cfg.basic_auth_user, cfg.basic_auth_password_sha256)
         self._tls: ssl.SSLContext | None = None
         if cfg.certfile is not None:
@@ -419,8 +424,15 @@ class MetricsServer:
                         [("WWW-Authenticate", 'Basic realm="cdpr-gateway"')], head_only,
                         keep)  # fmt: skip
         else:
+            try:
+                payload = self._render()
+            except Exception:  # a collector bug must not end the exporter thread
+                log.exception("metrics: rendering the registry failed")
+                self._queue(conn, "500 Internal Server Error", b"collector failed\n", [],
+                            False, False)  # fmt: skip
+                return
             self.counters.served += 1
-            self._queue(conn, "200 OK", self._render(), [("Content-Type", CONTENT_TYPE_LATEST)],
+            self._queue(conn, "200 OK", payload, [("Content-Type", CONTENT_TYPE_LATEST)],
                         head_only, keep)  # fmt: skip
 
     def _render(self) -> bytes:

@@ -15,6 +15,7 @@ import ssl
 import subprocess
 import threading
 import time
+import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -286,3 +287,32 @@ def test_the_exporter_thread_runs_below_the_cycle(server):
         pytest.skip("no /proc task stats")
     assert wait_until(lambda: int(stat.read_text().rsplit(")", 1)[1].split()[16]) >= 10, 5.0)
     assert os.sched_getscheduler(tid) == os.SCHED_OTHER
+
+
+def test_a_port_out_of_range_is_a_config_error_not_a_wrapped_port(registry):
+    from gateway.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"x\.yaml: metrics\.port: must be in 0\.\.65535"):
+        MetricsServer(MetricsConfig(host="127.0.0.1", port=99999), registry, "x.yaml")
+
+
+def test_a_failing_collector_answers_500_and_the_exporter_keeps_serving(caplog):
+    from prometheus_client import CollectorRegistry
+
+    class Broken:
+        def collect(self):
+            raise RuntimeError("collector bug")
+
+    reg = CollectorRegistry()
+    reg.register(Broken())
+    srv = MetricsServer(MetricsConfig(host="127.0.0.1", port=0), reg, cache_s=0.0)
+    try:
+        for _ in range(2):
+            with pytest.raises(urllib.error.HTTPError) as err:
+                scrape(srv.port)
+            assert err.value.code == 500
+            err.value.close()
+        assert any("rendering the registry failed" in r.message for r in caplog.records)
+        assert any(t.name == "metrics-http" for t in threading.enumerate())
+    finally:
+        srv.close()
