@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 SECONDS ?= 20
 
-.PHONY: demo test bench lint format typecheck clean suite-table
+.PHONY: demo test bench soak lint imports wheel-check format typecheck clean suite-table
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -19,12 +19,29 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest
 
+# All benchmarks but the soak (a few minutes); the 600-s soak is `make soak`.
 bench: $(STAMP)
 	$(BIN)/python -m bench
 
+soak: $(STAMP)
+	$(BIN)/python -m bench soak
+
+# ruff, formatting, mypy and the layer contract ([tool.importlinter] in pyproject.toml).
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
+	$(BIN)/lint-imports
+
+# The import graph between the top-level packages (evidence for the layer contract).
+imports: $(STAMP)
+	$(BIN)/python .ci/import-graph
+
+# Build the wheel, install it into a fresh venv, run the demo over both buses outside the tree.
+wheel-check:
+	.ci/wheel-check $(PYTHON)
+
+typecheck: $(STAMP)
 	$(BIN)/mypy
 
 format: $(STAMP)

@@ -79,12 +79,12 @@ from canopen import objectdictionary as od_types
 from drivers.base import Driver, Inputs, Outputs
 from drivers.s7 import S7Analog
 from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
+from gateway.resources import data_dir
 
 log = logging.getLogger("cdpr_gateway.canopen")
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 PLC_NODE_ID = 0x01
-PLC_MASTER_EDS = "config/plc_master.eds"
+PLC_MASTER_EDS = "plc_master.eds"
 SYNC_COB_ID = 0x080
 NMT_COB_ID = 0x000
 NMT_START, NMT_PRE_OPERATIONAL, NMT_RESET_COMMUNICATION = 0x01, 0x80, 0x82
@@ -149,9 +149,9 @@ class PdoLayout:
 
 
 def resolve_path(path: str | Path) -> Path:
-    """``path`` as given when it exists, else relative to the repository root."""
+    """``path`` as given when it exists, else one of the shipped EDS files (config/)."""
     p = Path(path)
-    return p if p.is_absolute() or p.exists() else REPO_ROOT / p
+    return p if p.is_absolute() or p.exists() else data_dir() / p
 
 
 def load_pdo_layouts(

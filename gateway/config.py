@@ -9,6 +9,7 @@ section belongs to the soft PLC: it is kept as a raw mapping here and validated 
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import math
 import os
@@ -18,10 +19,11 @@ from typing import Any, Literal
 
 from gateway.configtypes import convert, read_yaml, require
 from gateway.errors import ConfigError
+from gateway.resources import data_file, resolve_beside
 
 Vec3 = tuple[float, float, float]
 
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "config" / "default.yaml"
+DEFAULT_CONFIG_PATH = data_file("default.yaml")  # config/ in a checkout, package data in a wheel
 
 
 @dataclass(frozen=True)
@@ -242,9 +244,9 @@ class CanopenConfig:
     plc_node_id: int = 0x01
     sync_period_s: float = 0.001
     timeout_s: float | None = None  # read timeout; default 2.5 SYNC periods
-    gateway_eds: str = "config/gateway.eds"  # relative paths: to the project root
-    analog_eds: str = "config/analog_in_401.eds"
-    plc_eds: str = "config/plc_master.eds"
+    gateway_eds: str = "gateway.eds"  # relative: beside the config file (left out: shipped)
+    analog_eds: str = "analog_in_401.eds"
+    plc_eds: str = "plc_master.eds"
 
     def __post_init__(self) -> None:
         require(1 <= self.gateway_node_id <= 127, "gateway_node_id must be in 1..127")
@@ -368,7 +370,26 @@ def config_from_mapping(data: dict[str, Any], source: str = "") -> Config:
     """Validate a parsed YAML mapping into a :class:`Config`."""
     if "source" in data:  # 'source' is filled in here, never read from the file
         raise ConfigError(f"{source}: source: unknown key")
-    return convert(Config, {**data, "source": source}, "", source)
+    cfg = convert(Config, {**data, "source": source}, "", source)
+    stated = (data.get("bus") or {}).get("canopen") or {}
+    return _with_eds_resolved(cfg, stated, source if source and Path(source).is_file() else None)
+
+
+def _with_eds_resolved(cfg: Config, stated: dict[str, Any], config_file: str | None) -> Config:
+    """The EDS paths made absolute: a relative path the file states names a file beside the
+    config file; one it leaves out is the shipped EDS file of that name (config/)."""
+    can = cfg.bus.canopen
+
+    def where(key: str, value: str) -> str:
+        return str(resolve_beside(value, config_file if key in stated else None))
+
+    can = dataclasses.replace(
+        can,
+        gateway_eds=where("gateway_eds", can.gateway_eds),
+        analog_eds=where("analog_eds", can.analog_eds),
+        plc_eds=where("plc_eds", can.plc_eds),
+    )
+    return dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, canopen=can))
 
 
 def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> Config:

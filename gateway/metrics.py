@@ -27,6 +27,9 @@ cdpr_gateway_sample_age_seconds           gauge                       since the 
 ``cdpr_gateway_state`` is the wire code the PLC reads: 0 stopped, 1 connected (not yet
 writing), 2 active, 3 fault. The two ages are NaN until the first reading.
 
+Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.exporter`;
+``MetricsServer`` is re-exported here for the daemon.
+
 Cables are labelled 1..m. ``errors_total{kind="invalid_value"}`` counts channels going
 from good to flagged (events, not flagged cycles). Every label value of ``kind`` is
 always present (0 until it happens) so dashboards and alerts see a stable set.
@@ -34,17 +37,10 @@ always present (0 until it happens) so dashboards and alerts see a stable set.
 
 from __future__ import annotations
 
-import base64
-import hashlib
-import hmac
-import ssl
-import threading
 from collections.abc import Iterator
-from socketserver import ThreadingMixIn
 from typing import Any
-from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
-from prometheus_client import CollectorRegistry, make_wsgi_app
+from prometheus_client import CollectorRegistry
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
@@ -54,10 +50,11 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 
 from gateway import __version__
-from gateway.config import MetricsConfig
-from gateway.errors import ConfigError
+from gateway.exporter import MetricsServer
 from gateway.loop import CyclicService
 from gateway.stats import Histogram
+
+__all__ = ["GatewayCollector", "MetricsServer", "make_registry"]
 
 PREFIX = "cdpr_gateway"
 
@@ -141,98 +138,3 @@ def make_registry(service: CyclicService, bus: str | None = None) -> CollectorRe
     registry = CollectorRegistry()
     registry.register(GatewayCollector(service, bus))
     return registry
-
-
-class _QuietHandler(WSGIRequestHandler):
-    def log_message(self, format: str, *args: Any) -> None:  # no access log on stderr
-        pass
-
-
-class _ThreadingServer(ThreadingMixIn, WSGIServer):
-    """One thread per scrape. With TLS the handshake runs in that thread, bounded by
-    ``HANDSHAKE_TIMEOUT_S``, not in the accept loop: an idle or slow client cannot stall
-    the other scrapes."""
-
-    daemon_threads = True
-    handshake_timeout_s = 5.0
-
-    def finish_request(self, request: Any, client_address: Any) -> None:
-        if isinstance(request, ssl.SSLSocket):
-            request.settimeout(self.handshake_timeout_s)
-            request.do_handshake()  # an error ends this thread only (handle_error)
-        super().finish_request(request, client_address)
-
-    def handle_error(self, request: Any, client_address: Any) -> None:
-        """A failed handshake or a dropped client is not worth a traceback."""
-
-
-def _basic_auth(app: Any, user: str, password_sha256: str) -> Any:
-    """WSGI middleware: HTTP basic auth against a SHA-256 hex digest of the password."""
-    expected = password_sha256.lower()
-
-    def guarded(environ: dict[str, Any], start_response: Any) -> Any:
-        header = environ.get("HTTP_AUTHORIZATION", "")
-        ok = False
-        if header.startswith("Basic "):
-            try:
-                name, _, password = base64.b64decode(header[6:]).decode().partition(":")
-            except (ValueError, UnicodeDecodeError):
-                name, password = "", ""
-            digest = hashlib.sha256(password.encode()).hexdigest()
-            ok = hmac.compare_digest(name, user) & hmac.compare_digest(digest, expected)
-        if not ok:
-            start_response("401 Unauthorized", [("WWW-Authenticate", 'Basic realm="cdpr-gateway"')])
-            return [b"unauthorized\n"]
-        return app(environ, start_response)
-
-    return guarded
-
-
-class MetricsServer:
-    """The HTTP exporter on ``cfg.host:cfg.port`` (port 0: any free port, see ``.port``).
-
-    Optional TLS (``certfile``/``keyfile``) and HTTP basic auth (``basic_auth_user`` and
-    ``basic_auth_password_sha256``, the hex SHA-256 of the password). Serves every path
-    (``/metrics`` by convention) from its own daemon threads.
-    """
-
-    def __init__(self, cfg: MetricsConfig, registry: CollectorRegistry, source: str = "") -> None:
-        where = f"{source}: " if source else ""
-        app = make_wsgi_app(registry)
-        if (cfg.basic_auth_user is None) != (cfg.basic_auth_password_sha256 is None):
-            raise ConfigError(
-                f"{where}metrics.basic_auth_user and metrics.basic_auth_password_sha256 go together"
-            )
-        if cfg.basic_auth_user is not None and cfg.basic_auth_password_sha256 is not None:
-            app = _basic_auth(app, cfg.basic_auth_user, cfg.basic_auth_password_sha256)
-        try:
-            server = make_server(cfg.host, cfg.port, app, _ThreadingServer, _QuietHandler)
-        except OSError as exc:
-            raise ConfigError(
-                f"{where}metrics.port: cannot serve metrics on {cfg.host}:{cfg.port}: {exc}"
-            ) from exc
-        if cfg.certfile is not None:
-            try:
-                context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-                context.load_cert_chain(cfg.certfile, cfg.keyfile)
-            except (OSError, ssl.SSLError) as exc:
-                server.server_close()
-                raise ConfigError(f"{where}metrics.certfile: {exc}") from exc
-            server.socket = context.wrap_socket(
-                server.socket, server_side=True, do_handshake_on_connect=False
-            )
-        self._server: _ThreadingServer | None = server
-        self._thread = threading.Thread(
-            target=server.serve_forever, name="metrics-http", daemon=True
-        )
-        self._thread.start()
-        self.host = cfg.host
-        self.port = int(server.server_port)
-
-    def close(self) -> None:
-        """Stop serving; safe to call twice."""
-        if self._server is not None:
-            self._server.shutdown()
-            self._server.server_close()
-            self._thread.join(timeout=5)
-            self._server = None

@@ -32,10 +32,11 @@ import numpy as np
 
 from gateway.config import Config, load_config
 from gateway.model import chain
+from gateway.resources import data_file
 from sim_plc.config import SimPlcConfig, load_sim_config
 from sim_plc.plant import PlantModel, Setpoints, sensor_batch
 
-DEFAULT_REPLICATE_CONFIG = Path(__file__).resolve().parent.parent / "config" / "replicate.yaml"
+DEFAULT_REPLICATE_CONFIG = data_file("replicate.yaml")  # config/ or the wheel's package data
 PAPER = {
     "coulomb_mae_n": 10.58,
     "coulomb_std_n": 3.37,
@@ -372,4 +373,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     res = replicate(cfg, Path(args.out), args.seconds_limit, plots=not args.no_plots)
     for name, goal in res["goals"].items():
         _log(f"goal {name}: {'met' if goal['met'] else 'MISSED'} ({goal['value']})")
+    missed = [name for name, goal in res["goals"].items() if not goal["met"]]
+    if missed:
+        _log(f"error: goal missed: {', '.join(missed)} (exit status 1)")
+        return 1
     return 0
