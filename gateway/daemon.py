@@ -16,6 +16,7 @@ import sys
 from typing import Any
 
 from drivers.base import Driver, make_driver
+from gateway import realtime
 from gateway.config import DEFAULT_CONFIG_PATH, Config, exposure_warning, load_config
 from gateway.errors import ConfigError, DriverInitError
 from gateway.loop import CyclicService, LoopState
@@ -90,6 +91,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             log.warning("cannot reach the PLC at %s yet; retrying", describe_bus(cfg))
         else:
             log.info("connected to %s", describe_bus(cfg))
+        rt = realtime.apply(cfg.loop.realtime)  # this thread runs the cycle
+        (log.warning if rt.refused else log.info)("%s", rt.line())
         service.run(args.cycles)
     finally:
         for sig, handler in previous.items():
