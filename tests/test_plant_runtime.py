@@ -197,3 +197,27 @@ def test_plant_with_chunks_from_a_worker_matches_the_in_process_plant() -> None:
         assert worker.waits <= 10  # start-up and catching up back to back, not every get
     with pytest.raises(Exception, match="not started or closed"):
         worker.get(0)
+
+
+def test_sim_plc_realtime_flag_reports_one_line(monkeypatch, capsys, tmp_path) -> None:
+    """--realtime applies loop.realtime (here SCHED_OTHER, which any process may) and
+    says so in one line; --chunks-in-process serves without the worker."""
+    import yaml
+
+    data = yaml.safe_load(REPLICATE_YAML.read_text())
+    data.setdefault("loop", {})["realtime"] = {"policy": "other", "priority": 0,
+                                               "lock_memory": False, "gc_off": False}  # fmt: skip
+    path = tmp_path / "rt.yaml"
+    path.write_text(yaml.safe_dump(data))
+
+    class FakeServer:
+        def stop(self) -> None:
+            pass
+
+    monkeypatch.setattr(sim_cli, "_server", lambda *a, **k: (FakeServer(), "fake on x:0"))
+    args = argparse.Namespace(config=str(path), host="127.0.0.1", port=0, bus=None,
+                              seconds=0.2, realtime=True, chunks_in_process=True)  # fmt: skip
+    assert sim_cli.run_command("sim-plc", args) == 0
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.startswith("sim-plc: real-time")]
+    assert lines == ["sim-plc: real-time: applied SCHED_OTHER; refused nothing"]
