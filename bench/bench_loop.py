@@ -214,6 +214,7 @@ def _rows(r: dict[str, Any]) -> list[tuple[str, str]]:
         ("lateness min/mean/p99/p99.9/max", _fmt(_summary(s.jitter_ring.recent())) + " us"),
         ("cycle min/mean/p99/p99.9/max", _fmt(_summary(s.cycle_ring.recent())) + " us"),
         ("compute p50/p99/p99.9", _us(c["compute"], 50, 99, 99.9)),
+        ("  p50: decode/compensate/write", _parts(s)),
         ("round trip p50/p99", _us(rtt, 50, 99)),
         ("floor round trip p50/p99", _us(floor, 50, 99)),
         ("page faults minor/major", f"{r['minflt']} / {r['majflt']}"),
@@ -221,6 +222,15 @@ def _rows(r: dict[str, Any]) -> list[tuple[str, str]]:
         ("peak RSS (this process)", f"{r['rss']:.0f} MB"),
         ("errors", f"{sum(s.errors.values())}"),
     ]
+
+
+def _parts(s: Any) -> str:
+    """Medians of the compute's parts: decode (read phase - round trip), compensate, write."""
+    read, rtt = s.read_ring.recent(), s.roundtrip_ring.recent()
+    if read.size != rtt.size or not read.size:
+        return "n/a"
+    parts = (read - rtt, s.compensate_ring.recent(), s.write_ring.recent())
+    return " / ".join(f"{np.median(p) * 1e6:.0f}" for p in parts) + " us"
 
 
 def _print_side_by_side(off: dict[str, Any], on: dict[str, Any]) -> None:

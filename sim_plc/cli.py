@@ -213,6 +213,7 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
         for s, handler in old.items():
             signal.signal(s, handler)
     st = runtime.stats
+    waits = f", waited {chunks.waits}x for a chunk" if chunks is not None else ""
     print(f"sim-plc: stopped after {st.cycles} cycles, {st.late} late, {st.missed} skipped, "
-          f"longest step {st.max_step_s * 1e3:.2f} ms", file=sys.stderr)  # fmt: skip
+          f"longest step {st.max_step_s * 1e3:.2f} ms{waits}", file=sys.stderr)  # fmt: skip
     return 0

@@ -17,8 +17,8 @@ needed; when it is not (start-up, an overloaded machine) ``get`` waits and count
 ``waits``. An error of the worker (an infeasible pose) is raised by ``get`` for the chunk
 it concerns.
 
-The worker gives up any real-time setting it inherited (SCHED_OTHER, every CPU, nice 10):
-it is background work and must not compete with the cycle it feeds.
+The worker gives up any real-time setting it inherited (SCHED_OTHER, every CPU): it is
+background work and must not compete with the cycle it feeds.
 """
 
 from __future__ import annotations
@@ -40,19 +40,17 @@ from gateway.errors import GatewayError
 from sim_plc.config import SimPlcConfig
 
 START_TIMEOUT_S = 60.0  # a chunk (or the worker's start-up) that takes longer is an error
-WORKER_NICE = 10
 _REQUEST = struct.Struct("<q")  # chunk index; -1: stop
 _NOTE = struct.Struct("<qq")  # chunk index, length of the pickled error that follows
 
 
 def _background() -> None:
-    """Drop inherited real-time scheduling, CPU pinning and priority (best effort)."""
+    """Drop inherited real-time scheduling and CPU pinning (best effort). Not niced: on a
+    loaded machine a niced worker starved and the plant waited for its chunks."""
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
-    with contextlib.suppress(OSError):
-        os.nice(WORKER_NICE)
 
 
 FIELDS = ("t", "pose", "length", "velocity", "tension_true")  # what Plant.step reads
