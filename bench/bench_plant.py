@@ -10,7 +10,9 @@
    by as long as something else held the GIL (or the CPU), exactly what the soft PLC's
    Modbus server thread waits through. Once with chunks prepared in process (the old
    way: statics of 250 samples every 250th step) and once with them prepared by the
-   worker process (:mod:`sim_plc.prepare`), side by side;
+   worker process (:mod:`sim_plc.prepare`), side by side; all of that with real-time
+   settings off and on (SCHED_FIFO 50 for this process: the other load of the machine
+   drops out and the GIL is what is left);
 3. ``make_recording`` throughput.
 """
 
@@ -19,6 +21,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -64,10 +67,39 @@ def _stall_line(name: str, late: np.ndarray, runtime: PlcRuntime) -> str:
     p50, p99, p999 = np.percentile(late, [50, 99, 99.9]) * 1e6
     over = int(np.sum(late > 100e-6))
     st = runtime.stats
-    return (f"   {name:<22} probe wake-up late p50 {p50:5.0f} / p99 {p99:5.0f} / p99.9 "
+    return (f"   {name:<32} probe wake-up late p50 {p50:5.0f} / p99 {p99:5.0f} / p99.9 "
             f"{p999:5.0f} / max {late.max() * 1e6:6.0f} us, {over} stalls > 100 us in "
             f"{late.size} wake-ups; runtime: longest step {st.max_step_s * 1e6:.0f} us, "
             f"{st.late} late cycles of {st.cycles}")  # fmt: skip
+
+
+def _stall_run(cfg: Any, seconds: float, worker: bool, rt: bool) -> None:
+    """One stall measurement; with ``rt`` this process (runtime and probe threads) runs
+    SCHED_FIFO 50 + mlockall and the worker SCHED_FIFO 1, so the machine's other load
+    drops out and what is left is the GIL."""
+    from gateway import realtime
+    from gateway.config import RealtimeConfig
+    from sim_plc.prepare import ChunkWorker
+
+    plant = Plant(cfg)
+    chunks = None
+    if worker:
+        chunks = ChunkWorker(plant.model.cfg, plant.model.sim, plant.chunk).start()
+        plant.use_chunks(chunks)
+    report = realtime.apply(RealtimeConfig(enabled=rt, gc_off=False))
+    if rt and report.refused:
+        print(f"   ({report.line()})")
+    if chunks is not None and report.old_policy is not None:
+        chunks.lowest_realtime()
+    try:
+        late, runtime = stalls(plant, seconds)
+    finally:
+        realtime.undo(report)
+        if chunks is not None:
+            chunks.close()
+    name = f"RT {'on ' if rt else 'off'}, chunks {'in a worker' if worker else 'in process'}"
+    waits = f", waited {chunks.waits}x for a chunk" if chunks is not None else ""
+    print(_stall_line(name, late, runtime) + waits)
 
 
 def _step_cost(cfg, worker: bool) -> np.ndarray:
@@ -103,20 +135,9 @@ def run() -> None:
         print(f"   Plant.step CPU (GIL held), chunks {where}: median {med:.0f} us, p99 "
               f"{p99:.0f} us, p99.9 {p999:.0f} us, max {took.max() * 1e6:.0f} us, "
               f"{int(np.sum(took > 100e-6))} of {took.size} steps > 100 us")  # fmt: skip
-    for worker in (False, True):
-        plant = Plant(cfg)
-        chunks = None
-        if worker:
-            from sim_plc.prepare import ChunkWorker
-
-            chunks = ChunkWorker(plant.model.cfg, plant.model.sim, plant.chunk).start()
-            plant.use_chunks(chunks)
-        try:
-            late, runtime = stalls(plant, seconds)
-        finally:
-            if chunks is not None:
-                chunks.close()
-        print(_stall_line("chunks " + ("in a worker" if worker else "in process"), late, runtime))
+    for rt in (False, True):
+        for worker in (False, True):
+            _stall_run(cfg, seconds, worker, rt)
     seconds = 10.0
     t0 = time.perf_counter()
     rec = make_recording(cfg, None, seconds)
