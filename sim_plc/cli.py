@@ -182,8 +182,8 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
     # before the runtime and server threads start: they inherit the policy and affinity
     rt = realtime.apply(cfg.loop.realtime, force=bool(getattr(args, "realtime", False)))
     if chunks is not None and rt.old_policy is not None and cfg.loop.realtime.policy != "other":
-        done, what = chunks.lowest_realtime()  # background, above normal tasks
-        (rt.applied if done else rt.refused).append(what)
+        ok, what = chunks.lowest_realtime()  # background, above normal tasks
+        (rt.applied if ok else rt.refused).append(what)
     print(rt.line("sim-plc: real-time"), file=sys.stderr, flush=True)
 
     def on_signal(signum: int, frame: object) -> None:

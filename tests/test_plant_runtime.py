@@ -221,3 +221,30 @@ def test_sim_plc_realtime_flag_reports_one_line(monkeypatch, capsys, tmp_path) -
     err = capsys.readouterr().err
     lines = [x for x in err.splitlines() if x.startswith("sim-plc: real-time")]
     assert lines == ["sim-plc: real-time: applied SCHED_OTHER; refused nothing"]
+
+
+def test_sim_plc_fifo_with_the_chunk_worker_serves_then_stops(monkeypatch, capsys, tmp_path):
+    """SCHED_FIFO where permitted (root here): the worker is put at FIFO 1 and serving
+    goes on; without the permission both are refused, named, and serving goes on too."""
+    import yaml
+
+    data = yaml.safe_load(REPLICATE_YAML.read_text())
+    data.setdefault("loop", {})["realtime"] = {"lock_memory": False, "gc_off": False}
+    path = tmp_path / "rt.yaml"
+    path.write_text(yaml.safe_dump(data))
+
+    class FakeServer:
+        def stop(self) -> None:
+            pass
+
+    monkeypatch.setattr(sim_cli, "_server", lambda *a, **k: (FakeServer(), "fake on x:0"))
+    args = argparse.Namespace(config=str(path), host="127.0.0.1", port=0, bus=None,
+                              seconds=0.3, realtime=True, chunks_in_process=False)  # fmt: skip
+    before = os.sched_getscheduler(0)
+    assert sim_cli.run_command("sim-plc", args) == 0
+    assert os.sched_getscheduler(0) == before  # undone at the end (in process)
+    err = capsys.readouterr().err
+    line = next(x for x in err.splitlines() if x.startswith("sim-plc: real-time"))
+    assert ("SCHED_FIFO priority 50, chunk worker SCHED_FIFO priority 1" in line
+            or "refused SCHED_FIFO priority 50: not permitted" in line), line  # fmt: skip
+    assert "stopped after" in err
