@@ -1,15 +1,32 @@
-"""The gateway's 1 kHz cycle against the soft PLC over Modbus TCP on loopback, and the floor.
+"""The gateway's 1 kHz cycle against the soft PLC over Modbus TCP on loopback: real-time
+settings off and on, side by side in one run, and the floor.
 
-``python -m bench loop`` (``BENCH_SECONDS`` shortens the default 60 s). The soft PLC runs
-as a subprocess (``cdpr-gateway sim-plc --port 0``); the gateway runs in this process for
-the whole duration; right after, against the same server, the floor: a bare socket loop
-doing the same function-23 transaction (``bench.modbus_floor.floor_roundtrips``).
-Printed: cycles, overrun %, cycle-start jitter p50/p99/p99.9, the phases, round trip
-p50/p99, CPU % and peak RSS of this process, and the gateway/floor round-trip ratio.
-Then the same figures for CANopen on python-can's virtual bus (soft PLC in process).
-Goals (issue 4, 2-core machine): overruns <= 0.1 %, jitter p99 <= 200 us, ratio <= 1.3,
-RSS <= 80 MB. ``BENCH_BUSY_WAIT_S`` overrides ``loop.busy_wait_s``. Figures only: nothing
-here asserts on time.
+``python -m bench loop`` (``BENCH_SECONDS`` shortens the default 60 s per run;
+``BENCH_LOOP_CANOPEN=0`` leaves out the CANopen run; ``BENCH_BUSY_WAIT_S`` overrides
+``loop.busy_wait_s``). Two runs of the same length, each against a fresh soft PLC
+subprocess (``cdpr-gateway sim-plc --port 0``, chunks prepared by its worker process):
+
+* **RT off**: both processes as they start (SCHED_OTHER, no memory locking, GC on);
+* **RT on**: the config's ``loop.realtime`` forced on in this process (the gateway's
+  cycle thread: SCHED_FIFO 50, mlockall, GC frozen and off, :mod:`gateway.realtime`)
+  and ``sim-plc --realtime`` (the same for the soft PLC's threads).
+
+Reported per run, as the ROS 2 real-time demos do: min / mean / p99 / p99.9 / max of the
+cycle-start lateness (start - deadline) and of the cycle time (start - end of write);
+overruns (a cycle ending after the next deadline) split by cause -- the one that took
+the most of the period in that cycle: the **schedule** (lateness), the **bus** (the
+round trip of the transaction) or the gateway's own **compute** (decode, validate,
+compensate, wrench, encode = read phase - round trip + compensate phase + write phase);
+the compute's p99 alone; minor and major page faults of this process during the run
+(``getrusage``); CPU and peak RSS. Then the floor (a bare socket doing the same
+function-23 transaction) and, unless disabled, CANopen on python-can's virtual bus.
+
+Goals (issue 12, 2-core machine): overruns <= 0.05 % with RT, <= 0.3 % without;
+lateness p99.9 <= 150 us with RT; gateway compute p99 <= 20 us. Figures only: nothing
+here asserts on time. The loop's per-phase timings are read from ``service.stats``
+(rings ``jitter_ring``, ``cycle_ring``, ``read_ring``, ``compensate_ring``,
+``write_ring``, ``roundtrip_ring``; counters ``cycles``, ``written``, ``overruns``,
+``skipped``) and nothing else.
 """
 
 from __future__ import annotations
@@ -17,20 +34,26 @@ from __future__ import annotations
 import dataclasses
 import os
 import resource
-import socket
-import struct
+import subprocess
+import sys
+import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from gateway import realtime
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver
 from gateway.loop import CyclicService
 from gateway.stats import Ring
-from sim_plc.demo import InProcessCanopenPlc, SoftPlc, with_port
+from sim_plc.demo import InProcessCanopenPlc, with_port
 
 FLOOR_MAX = 20000  # floor transactions (back to back)
+STARTUP_TIMEOUT_S = 60.0
+ROOT = Path(__file__).resolve().parent.parent
+STATS = ("min", "mean", "p99", "p99.9", "max")
 
 
 def _us(ring: Ring | np.ndarray, *qs: float) -> str:
@@ -40,114 +63,204 @@ def _us(ring: Ring | np.ndarray, *qs: float) -> str:
     return " / ".join(f"{v * 1e6:.0f}" for v in np.percentile(data, qs)) + " us"
 
 
-def _floor(host: str, port: int, service: CyclicService, n: int) -> dict[str, np.ndarray]:
-    """The floor back to back, and paced at the loop period (one transaction per call)."""
+def _summary(data: np.ndarray) -> dict[str, float]:
+    """min / mean / p99 / p99.9 / max in us."""
+    if not data.size:
+        return dict.fromkeys(STATS, float("nan"))
+    p99, p999 = np.percentile(data, [99, 99.9])
+    values = (data.min(), data.mean(), p99, p999, data.max())
+    return {k: float(v) * 1e6 for k, v in zip(STATS, values, strict=True)}
+
+
+class BenchPlc:
+    """``sim-plc --port 0 [--realtime]`` as a subprocess; its stderr kept for the report."""
+
+    def __init__(self, config_path: str, rt: bool) -> None:
+        cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
+               "--port", "0"] + (["--realtime"] if rt else [])  # fmt: skip
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        )
+        self.err: list[str] = []
+        self._err_thread = threading.Thread(target=self._read_err, daemon=True)
+        self._err_thread.start()
+        found: list[str] = []
+        reader = threading.Thread(target=self._read_out, args=(found,), daemon=True)
+        reader.start()
+        reader.join(STARTUP_TIMEOUT_S)
+        if not found:
+            self.close()
+            raise RuntimeError(f"soft PLC did not start: {''.join(self.err)[-400:]}")
+        self.host, _, port = found[0].rpartition(":")
+        self.port = int(port)
+
+    def _read_out(self, found: list[str]) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            if line.startswith("sim-plc: serving"):
+                found.append(line.rsplit(" on ", 1)[1].strip())
+                return
+
+    def _read_err(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.err.append(line)
+
+    def lines(self, prefix: str) -> list[str]:
+        return [line.strip() for line in self.err if line.startswith(prefix)]
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        self._err_thread.join(5.0)
+        for pipe in (self.proc.stdout, self.proc.stderr):
+            if pipe is not None:
+                pipe.close()
+
+
+def _causes(service: CyclicService) -> dict[str, Any]:
+    """Per-cycle attribution of the overruns, and the gateway's compute per cycle."""
+    s, period = service.stats, service.period_s
+    late, cycle = s.jitter_ring.recent(), s.cycle_ring.recent()
+    read, comp, write = s.read_ring.recent(), s.compensate_ring.recent(), s.write_ring.recent()
+    rtt = s.roundtrip_ring.recent()
+    n = late.size
+    aligned = all(a.size == n for a in (cycle, read, comp, write, rtt))
+    out: dict[str, Any] = {"aligned": aligned, "compute": np.empty(0)}
+    if not aligned:  # a failed read skips the phase rings: no per-cycle split
+        return out
+    compute = (read - rtt) + comp + write
+    over = late + cycle > period
+    parts = np.stack([late, rtt, compute])  # schedule, bus, compute
+    cause = np.argmax(parts[:, over], axis=0)
+    out["split"] = ", ".join(
+        f"{name} {int(np.sum(cause == k))}" for k, name in enumerate(("schedule", "bus", "compute"))
+    )
+    out["compute"] = compute
+    out["over"] = int(over.sum())
+    return out
+
+
+def run_modbus(cfg: Config, seconds: float, rt: bool) -> dict[str, Any]:
+    """One run (RT off or on) against a fresh soft PLC; the figures as a dict."""
+    cycles = max(1, round(seconds / cfg.loop.period_s))
+    plc = BenchPlc(str(cfg.source), rt)
+    report = None
     try:
-        from bench.modbus_floor import floor_roundtrips
-    except ImportError as exc:
-        print(f"  floor: not available ({exc})")
-        return {}
+        live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
+        service = CyclicService(live, build_driver(live), history=cycles + 16)
+        service.configure()
+        if rt:
+            report = realtime.apply(cfg.loop.realtime, force=True)
+        u0, wall0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        service.run(cycles=cycles)
+        u1, wall1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        floor = _floor(plc.host, plc.port, service, min(cycles, FLOOR_MAX))
+    finally:
+        if report is not None:
+            realtime.undo(report)
+        plc.close()
+    wall = wall1 - wall0
+    return {
+        "rt": rt, "service": service, "wall": wall, "rss": rss, "floor": floor,
+        "cpu": (u1.ru_utime + u1.ru_stime - u0.ru_utime - u0.ru_stime) / wall,
+        "minflt": u1.ru_minflt - u0.ru_minflt, "majflt": u1.ru_majflt - u0.ru_majflt,
+        "gateway_rt": report.line("gateway real-time") if report else "gateway real-time: off",
+        "plc_rt": "; ".join(plc.lines("sim-plc: real-time")) or "n/a",
+        "plc_stop": "; ".join(plc.lines("sim-plc: stopped")) or "n/a",
+        "causes": _causes(service),
+    }  # fmt: skip
+
+
+def _floor(host: str, port: int, service: CyclicService, n: int) -> np.ndarray:
+    """The floor's fc23 transaction back to back on one socket (no decoding)."""
+    from bench.modbus_floor import floor_roundtrips
+
     layout = getattr(service.driver, "layout", None)
     kwargs: dict[str, Any] = {}
     if layout is not None:
         kwargs = {"read_span": layout.read_span, "write_span": layout.write_span}
     unit = service.cfg.bus.modbus_tcp.unit_id
-    floor_roundtrips(host, port, 200, unit, **kwargs)  # warm-up
-    back_to_back = floor_roundtrips(host, port, n, unit, **kwargs)
-    return {"back to back": back_to_back, "paced 1 kHz": _paced(host, port, n // 4, service)}
-
-
-def _paced(host: str, port: int, n: int, service: CyclicService) -> np.ndarray:
-    """The floor's fc23 transaction once per loop period on one socket (the loop's rhythm)."""
-    from bench.modbus_floor import DEFAULT_READ_SPAN, DEFAULT_WRITE_SPAN, _fc23_frame
-
-    layout = getattr(service.driver, "layout", None)
-    read_span = layout.read_span if layout is not None else DEFAULT_READ_SPAN
-    write_span = layout.write_span if layout is not None else DEFAULT_WRITE_SPAN
-    frame = _fc23_frame(service.cfg.bus.modbus_tcp.unit_id, read_span, write_span)
-    reply_len = 9 + 2 * read_span.count
-    rx = bytearray(reply_len)
-    view = memoryview(rx)
-    out = np.empty(n)
-    with socket.create_connection((host, port), timeout=1.0) as sock:
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        deadline = time.perf_counter()
-        for i in range(n):
-            deadline += service.period_s
-            struct.pack_into(">H", frame, 0, i & 0xFFFF)
-            t0 = time.perf_counter()
-            sock.sendall(frame)
-            got = 0
-            while got < reply_len:
-                k = sock.recv_into(view[got:])
-                if k == 0:
-                    raise ConnectionResetError(f"{host}:{port}: connection closed")
-                got += k
-            out[i] = time.perf_counter() - t0
-            rest = deadline - time.perf_counter()
-            if rest > 0:
-                time.sleep(rest)
-    return out
-
-
-def _timed_run(service: CyclicService, cycles: int) -> tuple[float, float]:
-    """Run ``cycles``; return (wall s, CPU fraction of one core of this process)."""
-    usage0, wall0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-    service.run(cycles=cycles)
-    usage1, wall1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-    cpu = usage1.ru_utime + usage1.ru_stime - usage0.ru_utime - usage0.ru_stime
-    return wall1 - wall0, cpu / (wall1 - wall0)
-
-
-def _report(title: str, service: CyclicService, wall: float, cpu: float) -> None:
-    stats = service.stats
-    print(f"  {title}, {wall:.1f} s, busy-wait {service.busy_wait_s * 1e6:.0f} us")
-    print(f"  cycles              {stats.cycles} (written {stats.written})")
-    print(f"  overruns            {stats.overruns} ({100 * stats.overruns / stats.cycles:.3f} %),"
-          f" {stats.skipped} deadlines skipped")  # fmt: skip
-    print(f"  jitter p50/p99/p99.9  {_us(stats.jitter_ring, 50, 99, 99.9)}")
-    print(f"  cycle p50/p99       {_us(stats.cycle_ring, 50, 99)}")
-    print(f"  phases p50: read {_us(stats.read_ring, 50)}, compensate "
-          f"{_us(stats.compensate_ring, 50)}, write {_us(stats.write_ring, 50)}")  # fmt: skip
-    print(f"  round trip p50/p99  {_us(stats.roundtrip_ring, 50, 99)}")
-    print(f"  errors              {sum(stats.errors.values())} {stats.errors}")
-    print(f"  CPU                 {100 * cpu:.0f} % of one core (this process)")
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"  peak RSS            {peak:.0f} MB (this process so far)")
-
-
-def run_modbus(cfg: Config, seconds: float) -> None:
-    cycles = max(1, round(seconds / cfg.loop.period_s))
-    plc = SoftPlc(str(cfg.source), "modbus_tcp")
     try:
-        live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
-        service = CyclicService(live, build_driver(live), history=cycles + 16)
-        wall, cpu = _timed_run(service, cycles)
-        floor = _floor(plc.host, plc.port, service, min(cycles, FLOOR_MAX))
-    finally:
-        plc.close()
-    _report("gateway vs soft PLC (subprocess) over modbus_tcp on loopback", service, wall, cpu)
-    gw = service.stats.roundtrip_ring.recent()
-    for name, times in floor.items():
-        print(f"  floor {name:<13} round trip p50/p99 {_us(times, 50, 99)} (n={times.size}); "
-              f"ratio gateway/floor p50 {np.median(gw) / np.median(times):.2f}, "
-              f"p99 {np.percentile(gw, 99) / np.percentile(times, 99):.2f}")  # fmt: skip
+        floor_roundtrips(host, port, 200, unit, **kwargs)  # warm-up
+        return floor_roundtrips(host, port, n, unit, **kwargs)
+    except OSError as exc:
+        print(f"  floor: failed ({exc})")
+        return np.empty(0)
+
+
+def _fmt(values: dict[str, float]) -> str:
+    return " / ".join(f"{values[k]:.0f}" for k in STATS)
+
+
+def _rows(r: dict[str, Any]) -> list[tuple[str, str]]:
+    s = r["service"].stats
+    c = r["causes"]
+    pct = 100 * s.overruns / max(s.cycles, 1)
+    split = c.get("split", "")
+    rtt = s.roundtrip_ring.recent()
+    floor = r["floor"]
+    return [
+        ("cycles (written)", f"{s.cycles} ({s.written})"),
+        ("overruns", f"{s.overruns} ({pct:.3f} %), {s.skipped} skipped"),
+        ("  by cause", split or "n/a (phase rings not aligned: bus errors)"),
+        ("lateness min/mean/p99/p99.9/max", _fmt(_summary(s.jitter_ring.recent())) + " us"),
+        ("cycle min/mean/p99/p99.9/max", _fmt(_summary(s.cycle_ring.recent())) + " us"),
+        ("compute p50/p99/p99.9", _us(c["compute"], 50, 99, 99.9)),
+        ("  p50: decode/compensate/write", _parts(s)),
+        ("round trip p50/p99", _us(rtt, 50, 99)),
+        ("floor round trip p50/p99", _us(floor, 50, 99)),
+        ("page faults minor/major", f"{r['minflt']} / {r['majflt']}"),
+        ("CPU (this process)", f"{100 * r['cpu']:.0f} % of one core"),
+        ("peak RSS (this process)", f"{r['rss']:.0f} MB"),
+        ("errors", f"{sum(s.errors.values())}"),
+    ]
+
+
+def _parts(s: Any) -> str:
+    """Medians of the compute's parts: decode (read phase - round trip), compensate, write."""
+    read, rtt = s.read_ring.recent(), s.roundtrip_ring.recent()
+    if read.size != rtt.size or not read.size:
+        return "n/a"
+    parts = (read - rtt, s.compensate_ring.recent(), s.write_ring.recent())
+    return " / ".join(f"{np.median(p) * 1e6:.0f}" for p in parts) + " us"
+
+
+def _print_side_by_side(off: dict[str, Any], on: dict[str, Any]) -> None:
+    a, b = _rows(off), _rows(on)
+    print(f"  {'':<34}{'RT off':<40}RT on")
+    for (name, x), (_, y) in zip(a, b, strict=True):
+        print(f"  {name:<34}{x:<40}{y}")
+    for r in (off, on):
+        tag = "on " if r["rt"] else "off"
+        print(f"  RT {tag}: {r['gateway_rt']}")
+        print(f"  RT {tag}: {r['plc_rt']}")
+        print(f"  RT {tag}: {r['plc_stop']}")
 
 
 def run_canopen(cfg: Config, seconds: float) -> None:
-    """The loop paced by the soft PLC's SYNC on python-can's virtual bus, all in process.
-
-    Jitter here is the lateness of the data after its SYNC; the round trip is the read
-    call (it waits for the SYNC set); CPU includes the PLC's and the plant's threads.
-    """
+    """The loop paced by the soft PLC's SYNC on python-can's virtual bus, all in process
+    (RT off). Lateness here is the data's after its SYNC."""
     cycles = max(1, round(seconds / cfg.bus.canopen.sync_period_s))
     plc = InProcessCanopenPlc(cfg)
     try:
         service = CyclicService(plc.cfg, build_driver(plc.cfg), history=cycles + 16)
-        wall, cpu = _timed_run(service, cycles)
+        service.run(cycles=cycles)
     finally:
         plc.close()
-    _report("gateway vs soft PLC over canopen (virtual bus, in process)", service, wall, cpu)
+    s = service.stats
+    print(f"  canopen (virtual bus, in process, RT off): {s.cycles} cycles, {s.overruns} "
+          f"overruns ({100 * s.overruns / max(s.cycles, 1):.3f} %); lateness "
+          f"{_fmt(_summary(s.jitter_ring.recent()))} us; cycle "
+          f"{_fmt(_summary(s.cycle_ring.recent()))} us")  # fmt: skip
 
 
 def run() -> None:
@@ -156,7 +269,12 @@ def run() -> None:
     if "BENCH_BUSY_WAIT_S" in os.environ:  # spin before each deadline (config loop.busy_wait_s)
         loop = dataclasses.replace(cfg.loop, busy_wait_s=float(os.environ["BENCH_BUSY_WAIT_S"]))
         cfg = dataclasses.replace(cfg, loop=loop)
-    run_modbus(cfg, seconds)
-    print()
-    run_canopen(cfg, seconds)
+    print(f"  gateway vs soft PLC (subprocess) over modbus_tcp on loopback, {seconds:g} s each,"
+          f" busy-wait {cfg.loop.busy_wait_s * 1e6:.0f} us")  # fmt: skip
+    off = run_modbus(cfg, seconds, rt=False)
+    on = run_modbus(cfg, seconds, rt=True)
+    _print_side_by_side(off, on)
+    if os.environ.get("BENCH_LOOP_CANOPEN", "1") != "0":
+        print()
+        run_canopen(cfg, seconds)
     print(f"  load average        {' '.join(f'{x:.2f}' for x in os.getloadavg())}")

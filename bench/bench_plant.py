@@ -1,30 +1,143 @@
-"""Soft PLC plant: per-cycle step cost (median, p99, max) and batch recording throughput."""
+"""Soft PLC plant: per-cycle step cost, the longest GIL stall it causes, batch throughput.
+
+``python -m bench plant``:
+
+1. ``Plant.step`` cost stepped back to back, as the thread's CPU time (the time it holds
+   the GIL, not counting the OS preempting it): median, p99, p99.9, max, steps > 100 us;
+2. the stall a server thread sees: the plant stepped in real time by :class:`PlcRuntime`
+   (1 kHz, ``BENCH_PLANT_SECONDS`` s, default 5) while a probe thread in the same process
+   sleeps 50 us again and again and records how late each wake-up is -- a wake-up is late
+   by as long as something else held the GIL (or the CPU), exactly what the soft PLC's
+   Modbus server thread waits through. Once with chunks prepared in process (the old
+   way: statics of 250 samples every 250th step) and once with them prepared by the
+   worker process (:mod:`sim_plc.prepare`), side by side; all of that with real-time
+   settings off and on (SCHED_FIFO 50 for this process: the other load of the machine
+   drops out and the GIL is what is left);
+3. ``make_recording`` throughput.
+"""
 
 from __future__ import annotations
 
+import os
+import threading
 import time
+from typing import Any
 
 import numpy as np
 
 from gateway.config import load_config
 from sim_plc.image import ProcessImage
 from sim_plc.plant import Plant, make_recording
+from sim_plc.runtime import PlcRuntime
+
+PROBE_SLEEP_S = 50e-6
+
+
+def _probe(stop: threading.Event, out: list[float]) -> None:
+    """Record how late each 50 us sleep wakes up (s); bounded by ``stop``."""
+    clock = time.perf_counter
+    for _ in range(10_000_000):
+        if stop.is_set():
+            return
+        t0 = clock()
+        time.sleep(PROBE_SLEEP_S)
+        out.append(clock() - t0 - PROBE_SLEEP_S)
+
+
+def stalls(plant: Plant, seconds: float) -> tuple[np.ndarray, PlcRuntime]:
+    """Wake-up lateness (s) of a probe thread while ``plant`` runs in real time."""
+    image = ProcessImage(plant.model.cables)
+    for _ in range(200):  # compile (numba) and warm up
+        plant.step(image)
+    runtime = PlcRuntime(plant, image, plant.period_s)
+    late: list[float] = []
+    stop = threading.Event()
+    probe = threading.Thread(target=_probe, args=(stop, late), daemon=True)
+    runtime.start()
+    time.sleep(0.3)  # past the first chunks
+    probe.start()
+    time.sleep(seconds)
+    stop.set()
+    probe.join(5.0)
+    runtime.stop()
+    return np.asarray(late), runtime
+
+
+def _stall_line(name: str, late: np.ndarray, runtime: PlcRuntime) -> str:
+    p50, p99, p999 = np.percentile(late, [50, 99, 99.9]) * 1e6
+    over = int(np.sum(late > 100e-6))
+    st = runtime.stats
+    return (f"   {name:<32} probe wake-up late p50 {p50:5.0f} / p99 {p99:5.0f} / p99.9 "
+            f"{p999:5.0f} / max {late.max() * 1e6:6.0f} us, {over} stalls > 100 us in "
+            f"{late.size} wake-ups; runtime: longest step {st.max_step_s * 1e6:.0f} us, "
+            f"{st.late} late cycles of {st.cycles}")  # fmt: skip
+
+
+def _stall_run(cfg: Any, seconds: float, worker: bool, rt: bool) -> None:
+    """One stall measurement; with ``rt`` this process (runtime and probe threads) runs
+    SCHED_FIFO 50 + mlockall and the worker SCHED_FIFO 1, so the machine's other load
+    drops out and what is left is the GIL."""
+    from gateway import realtime
+    from gateway.config import RealtimeConfig
+    from sim_plc.prepare import ChunkWorker
+
+    plant = Plant(cfg)
+    chunks = None
+    if worker:
+        chunks = ChunkWorker(plant.model.cfg, plant.model.sim, plant.chunk).start()
+        plant.use_chunks(chunks)
+    report = realtime.apply(RealtimeConfig(enabled=rt, gc_off=False))
+    if rt and report.refused:
+        print(f"   ({report.line()})")
+    if chunks is not None and report.old_policy is not None:
+        chunks.lowest_realtime()
+    try:
+        late, runtime = stalls(plant, seconds)
+    finally:
+        realtime.undo(report)
+        if chunks is not None:
+            chunks.close()
+    name = f"RT {'on ' if rt else 'off'}, chunks {'in a worker' if worker else 'in process'}"
+    waits = f", waited {chunks.waits}x for a chunk" if chunks is not None else ""
+    print(_stall_line(name, late, runtime) + waits)
+
+
+def _step_cost(cfg, worker: bool) -> np.ndarray:
+    plant = Plant(cfg)
+    chunks = None
+    if worker:
+        from sim_plc.prepare import ChunkWorker
+
+        chunks = ChunkWorker(plant.model.cfg, plant.model.sim, plant.chunk).start()
+        plant.use_chunks(chunks)
+    image = ProcessImage(cfg.cables)
+    try:
+        for _ in range(200):  # compile and warm up
+            plant.step(image)
+        took = np.empty(5000)  # the step's own CPU time: how long it holds the GIL
+        for k in range(took.size):
+            t0 = time.thread_time()
+            plant.step(image)
+            took[k] = time.thread_time() - t0
+    finally:
+        if chunks is not None:
+            chunks.close()
+    return took
 
 
 def run() -> None:
     cfg = load_config()
-    plant, image = Plant(cfg), ProcessImage(cfg.cables)
-    for _ in range(200):  # compile and warm up
-        plant.step(image)
-    cycles = 5000
-    took = np.empty(cycles)
-    for k in range(cycles):
-        t0 = time.perf_counter()
-        plant.step(image)
-        took[k] = time.perf_counter() - t0
-    med, p95, p99 = np.percentile(took, [50, 95, 99]) * 1e6
-    print(f"   Plant.step (8 cables, Dahl, paper path): median {med:.0f} us, p95 {p95:.0f} us, "
-          f"p99 {p99:.0f} us, max {took.max() * 1e6:.0f} us of the 1000 us period")  # fmt: skip
+    seconds = float(os.environ.get("BENCH_PLANT_SECONDS", "5"))
+    for worker in (False, True):
+        took = _step_cost(cfg, worker)
+        med, p99, p999 = np.percentile(took, [50, 99, 99.9]) * 1e6
+        where = "worker process" if worker else "in process"
+        print(f"   Plant.step CPU (GIL held), chunks {where}: median {med:.0f} us, p99 "
+              f"{p99:.0f} us, p99.9 {p999:.0f} us, max {took.max() * 1e6:.0f} us, "
+              f"{int(np.sum(took > 100e-6))} of {took.size} steps > 100 us")  # fmt: skip
+    for rt in (False, True):
+        for worker in (False, True):
+            _stall_run(cfg, seconds, worker, rt)
     seconds = 10.0
     t0 = time.perf_counter()
     rec = make_recording(cfg, None, seconds)

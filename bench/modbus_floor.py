@@ -88,6 +88,33 @@ def driver_roundtrips(driver: Any, n: int) -> np.ndarray:
     return times
 
 
+def _thread_cpu_s(thread: Any) -> float:
+    """CPU time (s) the thread ``thread`` has used so far (Linux: its own CPU clock)."""
+    return time.clock_gettime(time.pthread_getcpuclockid(thread.ident))
+
+
+def server_cost(n: int = 5000) -> tuple[float, np.ndarray]:
+    """The soft PLC server's own CPU per request (s) over ``n`` floor round trips, and
+    the round trips: the server in this process, its thread's CPU clock read before and
+    after (so the client's and the kernel's loopback work on the client side are out)."""
+    from gateway.config import load_config
+    from sim_plc.image import ProcessImage
+    from sim_plc.modbus_server import ModbusPlcServer
+
+    cfg = load_config()
+    server = ModbusPlcServer(cfg, ProcessImage(cfg.cables), port=0)
+    server.start()
+    try:
+        thread = server._thread  # the serving thread (private: a bench reads it)
+        floor_roundtrips("127.0.0.1", server.port, 500)  # warm up
+        cpu0 = _thread_cpu_s(thread)
+        times = floor_roundtrips("127.0.0.1", server.port, n)
+        cpu = _thread_cpu_s(thread) - cpu0
+    finally:
+        server.stop()
+    return cpu / n, times
+
+
 def side_by_side(n: int = 5000, blocks: int = 5) -> dict[str, np.ndarray]:
     """Soft PLC server on a free port; floor and driver in interleaved blocks of n/blocks."""
     from drivers.modbus_tcp import ModbusTcpDriver
@@ -136,6 +163,9 @@ def main(argv: list[str]) -> int:
         n = int(argv[2]) if len(argv) > 2 else 5000
         print(_report("floor", floor_roundtrips(argv[0], int(argv[1]), n)))
         return 0
+    per_request, times = server_cost(int(argv[0]) if argv else 5000)
+    print(f"server   CPU per fc23 request {per_request * 1e6:6.1f} us (its thread's clock); "
+          + _report("", times).strip())  # fmt: skip
     res = side_by_side(int(argv[0]) if argv else 5000)
     for name, t in res.items():
         print(_report(name, t))

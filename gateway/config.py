@@ -117,6 +117,25 @@ class FrictionConfig:
 
 
 @dataclass(frozen=True)
+class RealtimeConfig:
+    """``loop.realtime``: real-time settings applied at start where the process may
+    (:mod:`gateway.realtime`); what is refused is logged, never fatal."""
+
+    enabled: bool = False
+    policy: Literal["fifo", "rr", "other"] = "fifo"  # SCHED_FIFO, SCHED_RR, SCHED_OTHER
+    priority: int = 50  # 1..99 for fifo and rr
+    cpus: tuple[int, ...] = ()  # CPU affinity of the cycle's thread; () leaves it as is
+    lock_memory: bool = True  # mlockall(MCL_CURRENT | MCL_FUTURE): no page faults
+    gc_off: bool = True  # after the start-up gc.freeze(), no garbage collection at all
+
+    def __post_init__(self) -> None:
+        if self.policy != "other":
+            require(1 <= self.priority <= 99, "priority must be in 1..99 for fifo and rr")
+        require(all(c >= 0 for c in self.cpus), "cpus must be CPU numbers >= 0")
+        require(len(set(self.cpus)) == len(self.cpus), "cpus must not repeat a CPU")
+
+
+@dataclass(frozen=True)
 class LoopConfig:
     """The cyclic service: period, channel validation and the PLC watchdog."""
 
@@ -129,6 +148,7 @@ class LoopConfig:
     fixed_point_max_iter: int = 8
     overrun_warning_interval_s: float = 10.0
     busy_wait_s: float = 0.0002  # spin this long before each deadline instead of sleeping
+    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
 
     def __post_init__(self) -> None:
         require(1e-4 <= self.period_s <= 1.0, "period_s must be in 0.0001..1")

@@ -23,7 +23,7 @@ import sys
 from typing import Any
 
 from drivers.base import Driver, Lifecycle, make_driver
-from gateway import __version__
+from gateway import __version__, realtime
 from gateway.config import (
     DEFAULT_CONFIG_PATH,
     Config,
@@ -155,6 +155,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     previous = service.install_signal_handlers()
     try:
         service.configure()
+        rt = realtime.apply(cfg.loop.realtime)  # this thread runs the cycle
+        (log.warning if rt.refused else log.info)("%s", rt.line())
         service.run(args.cycles)
     finally:
         for sig, handler in previous.items():

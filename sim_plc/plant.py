@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -370,6 +371,13 @@ class Plant:
         self.chunk = max(int(chunk), 2)
         self.analog = np.zeros(self.model.cables)  # last analog reading before the A/D (N)
         self.counts = np.zeros(self.model.cables, dtype=np.int16)
+        self.chunks: Any = None  # a source of solved chunks (sim_plc.prepare), or None
+        self.reset()
+
+    def use_chunks(self, chunks: Any) -> None:
+        """Take solved chunks from ``chunks.get(index)`` (:class:`sim_plc.prepare.ChunkWorker`,
+        another process) instead of preparing them here; restarts at t = 0."""
+        self.chunks = chunks
         self.reset()
 
     def reset(self) -> None:
@@ -379,9 +387,13 @@ class Plant:
         self.rng = np.random.default_rng(m.sim.seed)
         self.stepper = chain.ChainStepper(m.params, self.period_s, forward=False)
         self.fx = _StepEffects(m.effects, m.cables, self.period_s)
-        self._cur = m.setpoints(self._times(0))
-        self._nxt = m.prepare(self._times(1))
-        self._solved = 0
+        if self.chunks is not None:
+            self._cur, self._nxt = self.chunks.get(0), self.chunks.get(1)
+            self._solved = self.chunk  # solved by the worker
+        else:
+            self._cur = m.setpoints(self._times(0))
+            self._nxt = m.prepare(self._times(1))
+            self._solved = 0
         self._ts = np.zeros(m.cables)
         self._t3 = np.zeros(3)
         self._v3 = np.zeros((3, m.cables))
@@ -395,6 +407,10 @@ class Plant:
         return self.k * self.period_s
 
     def _advance_chunk(self) -> None:
+        if self.chunks is not None:
+            self._cur = self._nxt
+            self._nxt = self.chunks.get(self.k // self.chunk + 1)
+            return
         while self._solved < self.chunk:
             self.model.solve_tensions(self._nxt, self._solved)
             self._solved += 1

@@ -218,33 +218,88 @@ def test_short_mbap_length_gets_illegal_value(port: int) -> None:
     assert _exception(reply, 3) == ILLEGAL_VALUE
 
 
-def test_several_requests_in_one_segment_first_served_connection_survives(port: int) -> None:
-    frames = b"".join(mbap(20 + k, read_pdu(k, 2)) for k in range(3))
-    with connect(port) as sock:
-        sock.sendall(frames)
-        assert recv_frame(sock)[:2] == struct.pack(">H", 20)
-        sock.settimeout(QUIET_S)
-        for _ in range(2):  # the others may or may not come (see the xfail below)
-            try:
-                recv_frame(sock)
-            except TimeoutError:
-                break
-        sock.settimeout(2.0)
-        assert transact(sock, mbap(30, read_pdu(0, 2)))[:2] == struct.pack(">H", 30)
-
-
-@pytest.mark.xfail(
-    strict=True,
-    reason="pymodbus 3.16 server answers only the first request of a segment: "
-    "ModbusProtocol.send() clears recv_buffer (transport.py), dropping pipelined requests",
-)
 def test_several_requests_in_one_segment_all_answered(port: int) -> None:
+    """Was a strict xfail under pymodbus 3.16 (its transport cleared the receive buffer)."""
     frames = b"".join(mbap(40 + k, read_pdu(k, 2)) for k in range(3))
     with connect(port) as sock:
         sock.sendall(frames)
         sock.settimeout(0.5)
         tids = [struct.unpack(">H", recv_frame(sock)[:2])[0] for _ in range(3)]
     assert tids == [40, 41, 42]
+
+
+@pytest.mark.parametrize("n", [2, 3, 20, 50, 200])
+def test_pipelined_requests_in_one_segment_all_answered_in_order(port: int, n: int) -> None:
+    """pymodbus 3.16 answered only the first of 1-20 and none of 50 or more."""
+    frames = b"".join(mbap(40 + k, read_pdu(k % 50, 2)) for k in range(n))
+    with connect(port) as sock:
+        sock.sendall(frames)
+        replies = [recv_frame(sock) for _ in range(n)]
+        assert transact(sock, mbap(30, read_pdu(0, 2)))[:2] == struct.pack(">H", 30)
+    assert [struct.unpack_from(">H", r)[0] for r in replies] == [40 + k for k in range(n)]
+    assert all(r[7] == 3 and r[8] == 4 for r in replies)
+
+
+def test_pipelined_mix_of_good_and_bad_requests_answered_in_order(port: int) -> None:
+    pdus = [read_pdu(0, 2), read_pdu(60, 1), write_pdu(0, [1]), bytes((0x41, 0, 0)),
+            read_pdu(0, 126), rw_pdu(0, 1, 100, [7])]  # fmt: skip
+    with connect(port) as sock:
+        sock.sendall(b"".join(mbap(50 + k, p) for k, p in enumerate(pdus)))
+        replies = [recv_frame(sock) for _ in pdus]
+    assert [r[:2] for r in replies] == [struct.pack(">H", 50 + k) for k in range(len(pdus))]
+    assert [r[7] for r in replies] == [3, 0x83, 0x90, 0xC1, 0x83, 23]
+    assert [r[8] for r in replies[1:5]] == [ILLEGAL_ADDRESS, ILLEGAL_ADDRESS, ILLEGAL_FUNCTION,
+                                             ILLEGAL_VALUE]  # fmt: skip
+
+
+@pytest.mark.parametrize("cut", [1, 6, 7, 9, 11])
+def test_pipelined_frames_split_anywhere_all_answered(port: int, cut: int) -> None:
+    """Two whole frames and part of a third, then the rest: three replies, in order."""
+    frames = b"".join(mbap(60 + k, read_pdu(k, 2)) for k in range(3))
+    split = 2 * 12 + cut
+    with connect(port) as sock:
+        sock.sendall(frames[:split])
+        first = [recv_frame(sock) for _ in range(2)]
+        sock.sendall(frames[split:])
+        third = recv_frame(sock)
+    assert [r[:2] for r in (*first, third)] == [struct.pack(">H", 60 + k) for k in range(3)]
+
+
+def _closed_after(sock: socket.socket) -> bool:
+    """True when the server closes ``sock`` (EOF or reset) within the I/O timeout."""
+    try:
+        return sock.recv(1) == b""
+    except ConnectionResetError:
+        return True
+    except TimeoutError:
+        return False
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        mbap(9, read_pdu(0, 2), protocol=1),
+        mbap(9, read_pdu(0, 2), protocol=0xFFFF),
+        mbap(9, read_pdu(0, 2), length=0),
+        mbap(9, b"", length=1),
+        mbap(9, read_pdu(0, 2), length=0xFFFF),
+        mbap(9, read_pdu(0, 2), length=267),
+    ],
+    ids=["proto1", "protoffff", "len0", "len1", "lenffff", "len267"],
+)
+def test_frame_not_served_closes_connection_after_due_replies(port: int, bad: bytes) -> None:
+    """The replies to the good frames before it arrive, then EOF (not a silent socket)."""
+    good = mbap(70, read_pdu(0, 2)) + mbap(71, read_pdu(2, 2))
+    with connect(port) as sock:
+        sock.sendall(good + bad + mbap(72, read_pdu(0, 2)))
+        assert [recv_frame(sock)[:2] for _ in range(2)] == [b"\x00\x46", b"\x00\x47"]
+        assert _closed_after(sock)
+
+
+def test_frame_not_served_alone_closes_connection(port: int) -> None:
+    with connect(port) as sock:
+        sock.sendall(mbap(9, read_pdu(0, 2), protocol=1)[:6])  # the header is enough
+        assert _closed_after(sock)
 
 
 def test_many_connections_opened_and_dropped(port: int) -> None:

@@ -15,6 +15,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 from pymodbus.client import ModbusTcpClient
 
+from gateway.config import load_config
 from sim_plc.image import ProcessImage
 from sim_plc.modbus_server import ModbusPlcServer
 from tests.modbus_helpers import (
@@ -189,3 +190,27 @@ def test_mbpoll_reads_what_the_gateway_wrote(served, client) -> None:
     with img.lock:
         assert_allclose(got_t, img.corrected_n, rtol=1e-6)
         assert_array_equal(got_s, img.channel_status)
+
+
+def test_connections_beyond_the_limit_are_closed_and_counted() -> None:
+    limited = ModbusPlcServer(load_config(), filled_image(), LOCALHOST, 0, max_connections=2)
+    with limited:
+        socks = [socket.create_connection((LOCALHOST, limited.port), timeout=2)
+                 for _ in range(3)]  # fmt: skip
+        try:
+            for s in socks[:2]:  # the first two are served
+                assert raw_transaction(s, b"\x03\x00\x34\x00\x01", tid=3)[:2] == b"\x03\x02"
+            assert socks[2].recv(1) == b""  # the third: closed at once
+            assert limited.refused == 1
+            assert len(limited.connections) == 2
+        finally:
+            for s in socks:
+                s.close()
+
+
+def test_bad_header_is_counted() -> None:
+    with plc_server() as (server, _, _):
+        with socket.create_connection((LOCALHOST, server.port), timeout=2) as s:
+            s.sendall(struct.pack(">HHHB", 1, 7, 6, 1) + b"\x03\x00\x00\x00\x01")
+            assert s.recv(1) == b""
+        assert server.bad_frames == 1

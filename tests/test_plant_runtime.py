@@ -170,3 +170,81 @@ def test_sim_plc_subprocess_serves_modbus_and_stops_on_sigterm() -> None:
             _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     assert "stopped after" in err
+
+
+def test_plant_with_chunks_from_a_worker_matches_the_in_process_plant() -> None:
+    """Same samples whether chunks are prepared here or by the worker, across chunk
+    boundaries and a reset; the worker has them ready (few waits)."""
+    from numpy.testing import assert_allclose, assert_array_equal
+
+    from sim_plc.prepare import ChunkWorker
+
+    cfg = make_config()
+    ref, fed = Plant(cfg, chunk=40), Plant(cfg, chunk=40)
+    with ChunkWorker(fed.model.cfg, fed.model.sim, fed.chunk) as worker:
+        fed.use_chunks(worker)
+        for rounds in (130, 90):
+            got, want = [], []
+            for _ in range(rounds):
+                ref.step()
+                fed.step()
+                got.append(fed.analog.copy())
+                want.append(ref.analog.copy())
+                assert_array_equal(fed.counts, ref.counts)
+            assert_allclose(np.array(got), np.array(want), rtol=1e-12, atol=1e-9)
+            ref.reset()
+            fed.reset()
+        assert worker.waits <= 10  # start-up and catching up back to back, not every get
+    with pytest.raises(Exception, match="not started or closed"):
+        worker.get(0)
+
+
+def test_sim_plc_realtime_flag_reports_one_line(monkeypatch, capsys, tmp_path) -> None:
+    """--realtime applies loop.realtime (here SCHED_OTHER, which any process may) and
+    says so in one line; --chunks-in-process serves without the worker."""
+    import yaml
+
+    data = yaml.safe_load(REPLICATE_YAML.read_text())
+    data.setdefault("loop", {})["realtime"] = {"policy": "other", "priority": 0,
+                                               "lock_memory": False, "gc_off": False}  # fmt: skip
+    path = tmp_path / "rt.yaml"
+    path.write_text(yaml.safe_dump(data))
+
+    class FakeServer:
+        def stop(self) -> None:
+            pass
+
+    monkeypatch.setattr(sim_cli, "_server", lambda *a, **k: (FakeServer(), "fake on x:0"))
+    args = argparse.Namespace(config=str(path), host="127.0.0.1", port=0, bus=None,
+                              seconds=0.2, realtime=True, chunks_in_process=True)  # fmt: skip
+    assert sim_cli.run_command("sim-plc", args) == 0
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.startswith("sim-plc: real-time")]
+    assert lines == ["sim-plc: real-time: applied SCHED_OTHER; refused nothing"]
+
+
+def test_sim_plc_fifo_with_the_chunk_worker_serves_then_stops(monkeypatch, capsys, tmp_path):
+    """SCHED_FIFO where permitted (root here): the worker is put at FIFO 1 and serving
+    goes on; without the permission both are refused, named, and serving goes on too."""
+    import yaml
+
+    data = yaml.safe_load(REPLICATE_YAML.read_text())
+    data.setdefault("loop", {})["realtime"] = {"lock_memory": False, "gc_off": False}
+    path = tmp_path / "rt.yaml"
+    path.write_text(yaml.safe_dump(data))
+
+    class FakeServer:
+        def stop(self) -> None:
+            pass
+
+    monkeypatch.setattr(sim_cli, "_server", lambda *a, **k: (FakeServer(), "fake on x:0"))
+    args = argparse.Namespace(config=str(path), host="127.0.0.1", port=0, bus=None,
+                              seconds=0.3, realtime=True, chunks_in_process=False)  # fmt: skip
+    before = os.sched_getscheduler(0)
+    assert sim_cli.run_command("sim-plc", args) == 0
+    assert os.sched_getscheduler(0) == before  # undone at the end (in process)
+    err = capsys.readouterr().err
+    line = next(x for x in err.splitlines() if x.startswith("sim-plc: real-time"))
+    assert ("SCHED_FIFO priority 50, chunk worker SCHED_FIFO priority 1" in line
+            or "refused SCHED_FIFO priority 50: not permitted" in line), line  # fmt: skip
+    assert "stopped after" in err

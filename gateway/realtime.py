@@ -1,0 +1,188 @@
+"""Real-time settings of a process: scheduling policy and priority, CPU affinity, memory
+locking, garbage collection (``loop.realtime``, :class:`gateway.config.RealtimeConfig`).
+
+:func:`apply` tries each enabled setting on the calling thread (Linux applies the
+scheduling policy and the affinity per thread; threads started afterwards inherit them)
+and returns a :class:`RealtimeReport` of what was applied and what was refused and why.
+It logs nothing and raises nothing for a refusal: the caller logs ``report.line()``, one
+line. :func:`undo` puts back what a report says was applied (benchmarks compare both).
+
+* ``policy``/``priority``: ``sched_setscheduler`` (SCHED_FIFO/SCHED_RR need root,
+  CAP_SYS_NICE or an ``RLIMIT_RTPRIO`` of at least the priority: systemd's
+  ``LimitRTPRIO``, ``CPUSchedulingPolicy``);
+* ``cpus``: ``sched_setaffinity`` (only CPUs the process may use);
+* ``lock_memory``: ``mlockall(MCL_CURRENT | MCL_FUTURE)`` via libc (needs CAP_IPC_LOCK
+  or an ``RLIMIT_MEMLOCK`` large enough: ``LimitMEMLOCK=infinity``), so no page of the
+  process is paged out and no cycle takes a major page fault;
+* ``gc_off``: ``gc.collect(); gc.freeze(); gc.disable()``: what exists at start is
+  never scanned again and no collection runs in a cycle (the cycle allocates no cycles
+  of references; memory stays bounded -- ``bench loop`` shows the RSS).
+
+The operations are injectable (:class:`Ops`) so tests can refuse them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import errno
+import gc
+import os
+import resource
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from gateway.config import RealtimeConfig
+
+MCL_CURRENT, MCL_FUTURE = 1, 2
+_POLICIES = {"fifo": "SCHED_FIFO", "rr": "SCHED_RR", "other": "SCHED_OTHER"}
+
+
+def _libc() -> Any:
+    return ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+
+
+def _mlockall() -> None:
+    if _libc().mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
+
+
+def _munlockall() -> None:
+    _libc().munlockall()
+
+
+@dataclass
+class Ops:
+    """The system calls :func:`apply` makes (replaced in tests)."""
+
+    setscheduler: Callable[[int, int, Any], None] = os.sched_setscheduler
+    getscheduler: Callable[[int], int] = os.sched_getscheduler
+    setaffinity: Callable[[int, Any], None] = os.sched_setaffinity
+    getaffinity: Callable[[int], set[int]] = os.sched_getaffinity
+    mlockall: Callable[[], None] = _mlockall
+    munlockall: Callable[[], None] = _munlockall
+
+
+@dataclass
+class RealtimeReport:
+    applied: list[str] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
+    enabled: bool = True
+    # what undo() needs to put back
+    old_policy: int | None = None
+    old_cpus: set[int] | None = None
+    locked: bool = False
+    gc_was_enabled: bool | None = None
+
+    def line(self, who: str = "real-time") -> str:
+        """One log line: what was applied and what was refused and why."""
+        if not self.enabled:
+            return f"{who}: off (loop.realtime.enabled is false)"
+        applied = ", ".join(self.applied) or "nothing"
+        refused = "; ".join(self.refused) or "nothing"
+        return f"{who}: applied {applied}; refused {refused}"
+
+
+def _why(exc: OSError, needs: str) -> str:
+    if exc.errno in (errno.EPERM, errno.EACCES):
+        return f"not permitted (needs {needs})"
+    if exc.errno == errno.ENOMEM:
+        return f"over the locked-memory limit (needs {needs})"
+    return exc.strerror or str(exc)
+
+
+def _rtprio_limit() -> str:
+    try:
+        soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
+    except (AttributeError, OSError):
+        return ""
+    return "" if soft == resource.RLIM_INFINITY else f", RLIMIT_RTPRIO is {soft}"
+
+
+def _schedule(cfg: RealtimeConfig, ops: Ops, report: RealtimeReport) -> None:
+    name = _POLICIES[cfg.policy]
+    prio = 0 if cfg.policy == "other" else cfg.priority
+    try:
+        report.old_policy = ops.getscheduler(0)
+        ops.setscheduler(0, getattr(os, name), os.sched_param(prio))
+    except OSError as exc:
+        needs = f"root, CAP_SYS_NICE or LimitRTPRIO >= {prio}{_rtprio_limit()}"
+        report.refused.append(f"{name} priority {prio}: {_why(exc, needs)}")
+        report.old_policy = None
+        return
+    report.applied.append(f"{name} priority {prio}" if prio else name)
+
+
+def _affinity(cfg: RealtimeConfig, ops: Ops, report: RealtimeReport) -> None:
+    try:
+        allowed = set(ops.getaffinity(0))
+        missing = sorted(set(cfg.cpus) - allowed)
+        if missing:
+            report.refused.append(
+                f"CPUs {list(cfg.cpus)}: {missing} not available to this process "
+                f"(allowed: {sorted(allowed)})"
+            )
+            return
+        ops.setaffinity(0, set(cfg.cpus))
+    except OSError as exc:
+        report.refused.append(f"CPUs {list(cfg.cpus)}: {_why(exc, 'CAP_SYS_NICE')}")
+        return
+    report.old_cpus = allowed
+    report.applied.append(f"CPUs {list(cfg.cpus)}")
+
+
+def _lock(ops: Ops, report: RealtimeReport) -> None:
+    try:
+        ops.mlockall()
+    except (OSError, AttributeError) as exc:
+        why = _why(exc, "CAP_IPC_LOCK or LimitMEMLOCK=infinity") if isinstance(exc, OSError) else (
+            "mlockall not available")  # fmt: skip
+        report.refused.append(f"mlockall: {why}")
+        return
+    report.locked = True
+    report.applied.append("mlockall")
+
+
+def apply(cfg: RealtimeConfig, ops: Ops | None = None, force: bool = False) -> RealtimeReport:
+    """Apply ``cfg`` (if ``enabled`` or ``force``) to the calling thread and process."""
+    if not (cfg.enabled or force):
+        return RealtimeReport(enabled=False)
+    ops = ops or Ops()
+    report = RealtimeReport()
+    _schedule(cfg, ops, report)
+    if cfg.cpus:
+        _affinity(cfg, ops, report)
+    if cfg.lock_memory:
+        _lock(ops, report)
+    if cfg.gc_off:
+        report.gc_was_enabled = gc.isenabled()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        report.applied.append("gc frozen and off")
+    return report
+
+
+def undo(report: RealtimeReport, ops: Ops | None = None) -> None:
+    """Put back what ``report`` says :func:`apply` changed (best effort)."""
+    ops = ops or Ops()
+    if report.old_policy is not None:
+        prio = os.sched_get_priority_min(report.old_policy)
+        with contextlib.suppress(OSError):
+            ops.setscheduler(0, report.old_policy, os.sched_param(prio))
+        report.old_policy = None
+    if report.old_cpus is not None:
+        with contextlib.suppress(OSError):
+            ops.setaffinity(0, report.old_cpus)
+        report.old_cpus = None
+    if report.locked:
+        ops.munlockall()
+        report.locked = False
+    if report.gc_was_enabled is not None:
+        gc.unfreeze()
+        if report.gc_was_enabled:
+            gc.enable()
+        report.gc_was_enabled = None
