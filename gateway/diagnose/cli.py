@@ -12,7 +12,7 @@ from pathlib import Path
 from gateway.config import Config, config_from_mapping, load_friction
 from gateway.configtypes import read_yaml
 from gateway.diagnose import platform
-from gateway.diagnose.engine import diagnose
+from gateway.diagnose.engine import diagnose, reference_mode
 from gateway.errors import GatewayError
 from gateway.recording import Recording, read_recording
 
@@ -66,13 +66,19 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
         + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
     )
-    tp, dm = _tensions(rec, cfg, say)
-    validation = None
-    if args.validate is not None:
-        vrec = read_recording(args.validate)
-        vtp, vdm = _tensions(vrec, cfg, say)
-        validation = (vrec, vtp, vdm if dm is not None else None)
-    diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
+    if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
+        from gateway.diagnose.wrench_select import diagnose_wrench
+
+        vrec = None if args.validate is None else read_recording(args.validate)
+        diag = diagnose_wrench(rec, friction, cfg, vrec, progress=say)  # type: ignore[arg-type]
+    else:
+        tp, dm = _tensions(rec, cfg, say)
+        validation = None
+        if args.validate is not None:
+            vrec = read_recording(args.validate)
+            vtp, vdm = _tensions(vrec, cfg, say)
+            validation = (vrec, vtp, vdm if dm is not None else None)
+        diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
     try:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")

@@ -1,8 +1,8 @@
 """Selection, fit and report of the wrench reference (:mod:`.wrench`).
 
 Every candidate's per-cable parameters are identified jointly across cables through the
-varying structure matrix. The residual is weighted per wrench component by its white
-noise (:func:`wrench.noise_scale`), so forces and moments count alike.
+varying structure matrix. The residual is whitened by the noise the sensors put on the
+wrench (:class:`wrench.Prepared`): generalised least squares.
 
 1. **Sensitivities**: the Jacobian of the weighted residual with respect to every
    candidate's parameters at the nominal model; per candidate and cable its variance
@@ -61,17 +61,18 @@ class WrenchSelector:
         use = prep.warm
         self.train = np.repeat((prep.blocks % 2 == 0) & use, 6)
         self.test_s = (prep.blocks % 2 == 1) & use
-        self.r0 = (self.model.residual({}) / prep.scale).reshape(-1)
+        self.r0 = prep.whiten(self.model.residual({})).reshape(-1)
         self.cols: dict[str, list[Col]] = {}
         self.design: dict[str, np.ndarray] = {}
         self.ident: dict[str, list[dict]] = {}
         for e in candidates:
             self.ident[e], self.cols[e], mats = [], [], []
             for j, jb in enumerate(self.model.jacobian({}, e)):
-                idn = identifiability(jb, use, prep.scale)
+                jw = prep.whiten(jb)
+                idn = identifiability(jw, use)
                 self.ident[e].append(idn)
                 for i in identifiable_cables(idn):
-                    mats.append((jb[:, :, i] / prep.scale).reshape(-1))
+                    mats.append(jw[:, :, i].reshape(-1))
                     self.cols[e].append((j, i))
             if mats:
                 self.design[e] = np.column_stack(mats)
@@ -173,13 +174,12 @@ class WrenchSelector:
         """Gauss-Newton on the nonlinear residual; returns theta and the stderr per column."""
         phi, se, _ = self.fit(kept)
         theta = self.theta_of(phi)
-        scale = self.prep.scale
         for _ in range(GN_ITERATIONS if kept else 0):
-            r = (self.model.residual(theta) / scale).reshape(-1)
+            r = self.prep.whiten(self.model.residual(theta)).reshape(-1)
             cols = []
             for e in kept:
-                blocks = self.model.jacobian(theta, e)
-                cols += [(blocks[j][:, :, i] / scale).reshape(-1) for j, i in self.cols[e]]
+                blocks = [self.prep.whiten(b) for b in self.model.jacobian(theta, e)]
+                cols += [blocks[j][:, :, i].reshape(-1) for j, i in self.cols[e]]
             d = np.column_stack(cols)
             step, *_ = np.linalg.lstsq(d[self.train], -r[self.train], rcond=None)
             sizes = np.cumsum([len(self.cols[e]) for e in kept])[:-1]
