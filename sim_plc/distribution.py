@@ -108,8 +108,7 @@ def closed_form(a: np.ndarray, w: np.ndarray, lo: float, hi: float) -> np.ndarra
     if np.any(tau < lo - tol) or np.any(tau > hi + tol):
         k = int(np.argmax(np.maximum(lo - tau, tau - hi)))
         raise InfeasiblePoseError(
-            f"closed-form distribution leaves [{lo:g}, {hi:g}] N "
-            f"(cable {k + 1} at {tau[k]:.6g} N)"
+            f"closed-form distribution leaves [{lo:g}, {hi:g}] N (cable {k + 1} at {tau[k]:.6g} N)"
         )
     return tau
 

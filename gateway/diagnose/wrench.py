@@ -142,8 +142,9 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
         w0=w0,
         dw_dm=dw,
         speed=np.linalg.norm(vel, axis=1),
-        ts_smooth=uniform_filter1d(rec.tension_sensor[ok].astype(float), _window(t), axis=0,
-                                   mode="nearest"),  # fmt: skip
+        ts_smooth=uniform_filter1d(
+            rec.tension_sensor[ok].astype(float), _window(t), axis=0, mode="nearest"
+        ),
         source=rec.source,
     )
 

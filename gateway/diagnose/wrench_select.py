@@ -79,17 +79,31 @@ class WrenchSelector:
         self.candidates = [e for e in candidates if e in self.design]
 
     # ---- linear fits and held-out scores ----
+    def _gram(self) -> None:
+        """Normal equations of every candidate column on the training rows, once."""
+        names = list(self.design)
+        d = np.column_stack([self.design[e] for e in names])
+        dt = d[self.train]
+        self._gram_m = dt.T @ dt
+        self._rhs = dt.T @ self.r0[self.train]
+        self._rr = float(self.r0[self.train] @ self.r0[self.train])
+        edges = np.cumsum([0] + [self.design[e].shape[1] for e in names])
+        self._span = {e: np.arange(edges[k], edges[k + 1]) for k, e in enumerate(names)}
+
     def fit(self, effects: list[str]) -> tuple[dict[str, np.ndarray], dict, np.ndarray]:
         """Increments and standard errors per effect, and the weighted residual (N*6,)."""
         if not effects:
             return {}, {}, self.r0
-        d = np.column_stack([self.design[e] for e in effects])
-        dt, rt = d[self.train], self.r0[self.train]
-        phi, *_ = np.linalg.lstsq(dt, -rt, rcond=None)
-        resid = self.r0 + d @ phi
+        if not hasattr(self, "_gram_m"):
+            self._gram()
+        idx = np.concatenate([self._span[e] for e in effects])
+        g, b = self._gram_m[np.ix_(idx, idx)], self._rhs[idx]
+        ginv = np.linalg.pinv(g)
+        phi = -ginv @ b
+        resid = self.r0 + np.column_stack([self.design[e] for e in effects]) @ phi
         dof = max(int(self.train.sum()) - phi.size, 1)
-        s2 = float(np.sum(resid[self.train] ** 2)) / dof
-        se = np.sqrt(np.maximum(np.diag(np.linalg.pinv(dt.T @ dt)) * s2, 0.0))
+        s2 = max(self._rr + 2 * float(phi @ b) + float(phi @ g @ phi), 0.0) / dof
+        se = np.sqrt(np.maximum(np.diag(ginv) * s2, 0.0))
         sizes = np.cumsum([self.design[e].shape[1] for e in effects])[:-1]
         return (
             dict(zip(effects, np.split(phi, sizes), strict=True)),
@@ -186,7 +200,10 @@ class WrenchSelector:
             for e, inc in zip(kept, np.split(step, sizes), strict=True):
                 for (j, i), dv in zip(self.cols[e], inc, strict=True):
                     theta[e][j, i] += dv
-            if np.max(np.abs(step) / np.maximum(np.concatenate([se[e] for e in kept]), 1e-300)) < 1e-3:
+            if (
+                np.max(np.abs(step) / np.maximum(np.concatenate([se[e] for e in kept]), 1e-300))
+                < 1e-3
+            ):
                 break
         return theta, se
 
@@ -220,7 +237,9 @@ def _stderr_values(sel: WrenchSelector, effect: str, se: np.ndarray, cables: lis
 
 
 def _identifiability(sel: WrenchSelector) -> dict:
-    out = {}
+    """Per candidate: the cables the motion identifies (variance inflation <= VIF_MAX for
+    every sub-parameter), the others, the inflations and the block's condition number."""
+    out: dict[str, dict] = {}
     for e, blocks in sel.ident.items():
         if e == "mass_change":
             out[e] = {"identifiable": bool(blocks[0]["live"][0]), "platform": True}
@@ -231,8 +250,9 @@ def _identifiability(sel: WrenchSelector) -> dict:
             "identifiable_cables": [i + 1 for i in ok],
             "unidentifiable_cables": [i + 1 for i in range(vif.size) if i not in ok],
             "max_variance_inflation": [float(v) if math.isfinite(v) else -1.0 for v in vif],
-            "condition": max(float(b["condition"]) if math.isfinite(b["condition"]) else -1.0
-                             for b in blocks),  # fmt: skip
+            "condition": max(
+                float(b["condition"]) if math.isfinite(b["condition"]) else -1.0 for b in blocks
+            ),
         }
     return out
 
