@@ -12,7 +12,7 @@ from pathlib import Path
 from gateway.config import Config, config_from_mapping, load_friction
 from gateway.configtypes import read_yaml
 from gateway.diagnose import platform
-from gateway.diagnose.engine import diagnose, reference_mode
+from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
 from gateway.errors import GatewayError
 from gateway.recording import Recording, read_recording
 
@@ -69,8 +69,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
-        vrec = None if args.validate is None else read_recording(args.validate)
-        diag = diagnose_wrench(rec, friction, cfg, vrec, progress=say)  # type: ignore[arg-type]
+        wrec = None if args.validate is None else read_recording(args.validate)
+        diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
         tp, dm = _tensions(rec, cfg, say)
         validation = None
@@ -86,8 +86,12 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
     if args.report is not None:
         from gateway.diagnose.plots import write_report
+        from gateway.diagnose.wrench_plots import write_report as write_wrench_report
 
-        write_report(diag, args.report, str(args.recording))
+        if diag.report["reference"] == "wrench":
+            write_wrench_report(diag, args.report, str(args.recording))  # type: ignore[arg-type]
+        else:
+            write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"

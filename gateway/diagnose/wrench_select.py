@@ -23,6 +23,7 @@ wrench (:class:`wrench.Prepared`): generalised least squares.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -50,6 +51,17 @@ GN_ITERATIONS = 3
 NOT_CANDIDATES = ("presliding", "stribeck", "delay", "lowpass", "eccentricity")
 
 Col = tuple[int, int]  # (sub-parameter index, cable)
+SIGNATURE_POINTS = 20000
+
+
+@dataclass
+class WrenchDiagnosis(Diagnosis):
+    """A :class:`Diagnosis` of the wrench reference. ``measured`` is zero (the balance),
+    the predictions are minus the force residuals (N, 3); ``signatures``: per finding,
+    its contribution to the force residual and the residual the final model leaves
+    without it (both flattened, thinned), for :mod:`.wrench_plots`."""
+
+    signatures: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 class WrenchSelector:
@@ -265,6 +277,12 @@ def _order(model: WrenchModel, theta: dict, mask: np.ndarray) -> list[str]:
     return sorted(theta, key=lambda e: worth[e], reverse=True)
 
 
+def _missing(cables: list[int]) -> str:
+    if not cables:
+        return ""
+    return f" Not identifiable from this motion on cables {cables} (not fitted there)."
+
+
 def _evidence(effect: str, cables: list[int], values: dict, before: float, after: float) -> str:
     pct = 100.0 * (1.0 - after / before) if before > 0 else 0.0
     vals = ", ".join(
@@ -290,7 +308,7 @@ def diagnose_wrench(
     validation: Recording | None = None,
     thresholds: Thresholds | None = None,
     progress=None,
-) -> Diagnosis:
+) -> WrenchDiagnosis:
     """Diagnose ``rec`` against the platform's wrench balance (module docstring)."""
     say = progress or (lambda _msg: None)
     prep = prepare(rec, cfg, friction)
@@ -320,12 +338,13 @@ def diagnose_wrench(
         after = scores(order[: k + 1])
         cables = _fitted_cables(sel, e)
         values = _report_values(e, theta[e], cables)
+        missing = [i + 1 for i in range(data.cables) if i not in cables]
         f = {
             "effect": e,
             "cables": [c + 1 for c in cables],
             "parameters": values,
             "stderr": _stderr_values(sel, e, se[e], cables),
-            "evidence": _evidence(e, cables, values, before[1], after[1]),
+            "evidence": _evidence(e, cables, values, before[1], after[1]) + _missing(missing),
             "rmse_before_n": before[0],
             "rmse_after_n": after[0],
             "holdout_rmse_before_n": before[1],
@@ -336,10 +355,16 @@ def diagnose_wrench(
             f["validation_rmse_after_n"] = float(after[2] or 0.0)
         findings.append(f)
         before = after
-    return _build(rec, prep, sel, findings, order, r_nominal, before, vmodel)
+    diag = _build(rec, prep, sel, findings, order, r_nominal, before, vmodel)
+    step = max(1, data.t.size * 3 // SIGNATURE_POINTS)
+    for e in order:
+        without = model.residual({k: v for k, v in theta.items() if k != e})[:, :3]
+        contrib = (without - before[3][:, :3]).reshape(-1)[::step]
+        diag.signatures[e] = (contrib, without.reshape(-1)[::step])
+    return diag
 
 
-def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> Diagnosis:
+def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchDiagnosis:
     data = prep.model.data
     r_final = final[3]
     fs = np.median(np.abs(np.diff(r_final[:, :3], axis=0)), axis=0) / 0.6745 / math.sqrt(2)
@@ -367,6 +392,10 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> Diagnos
         "skipped_rows": rec.skipped_rows + (rec.samples - int(data.t.size)),
         "baseline": {"rmse_n": force_rms(r_nominal), "per_cable_rmse_n": []},
         "mismatch": [r.__dict__ for r in regions],
+        "regime_shares": {
+            k: {"energy": e, "samples": s}
+            for k, (e, s) in locate.regime_shares(norm0, regime).items()
+        },
         "findings": findings,
         "final": fin,
         "identifiability": _identifiability(sel),
@@ -379,5 +408,5 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> Diagnos
         },
     }
     zeros = np.zeros((data.t.size, 3))
-    return Diagnosis(report, data.t, zeros, -r_nominal[:, :3], -r_final[:, :3],
-                     np.repeat(regime, 3, axis=1), regions, [], order, [])  # fmt: skip
+    return WrenchDiagnosis(report, data.t, zeros, -r_nominal[:, :3], -r_final[:, :3],
+                           np.repeat(regime, 3, axis=1), regions, [], order, [])  # fmt: skip
