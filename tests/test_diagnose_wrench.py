@@ -320,3 +320,18 @@ def test_cli_wrench_mode_writes_report_and_pictures(tmp_path):
     for name in ("residual.png", "overlay.png", "signature_viscous.png", "summary.md"):
         assert (tmp_path / "rep" / name).stat().st_size > 0, name
     assert "wrench balance" in (tmp_path / "rep" / "summary.md").read_text()
+
+
+def test_long_recordings_are_fitted_on_thinned_samples(monkeypatch):
+    """Above FIT_BUDGET samples the selection and fit use evenly thinned samples (bounded
+    memory); the chain and the scores still run over every sample."""
+    from gateway.diagnose import wrench
+
+    monkeypatch.setattr(wrench, "FIT_BUDGET", 1200)
+    rec, _, cfg = recording("viscous")
+    prep = wrench.prepare(rec, cfg, cfg.friction)
+    assert 1200 >= prep.rows.size >= 1000 and prep.chol.shape[0] == prep.rows.size
+    rep = diagnose_wrench(rec, cfg.friction, cfg).report
+    assert rep["samples"] == rec.samples
+    assert [f["effect"] for f in rep["findings"]] == ["viscous"]
+    assert_parameters("viscous", rep["findings"][0])

@@ -57,6 +57,8 @@ SUBPARAMS: dict[str, tuple[str, ...]] = {
 }
 STEP = {"mu": 1e-3, "f0_n": 0.1, "c_ns_m": 1.0, "m_eff_kg": 0.1, "g": 1e-3, "c_n": 0.1,
         "k_n_s": 1e-3, "q_kg_s": 1e-3}  # fmt: skip
+FIT_BUDGET = 25_000
+"""Samples the selection and the fit use at most (memory: ~48 columns x 6 rows each)."""
 INSTRUMENT_S = 0.05
 """Moving-average window (s) of the readings the Jacobian is computed on."""
 VIF_MAX = 1000.0
@@ -224,9 +226,12 @@ class WrenchModel:
             r = r + (float(theta["mass_change"][0, 0]) * (d.t - self.t0))[:, None] * d.dw_dm
         return r
 
-    def jacobian(self, theta: dict[str, np.ndarray], effect: str) -> list[np.ndarray]:
-        """Per sub-parameter of ``effect``, d residual / d parameter: (N, 6, m) (one column
-        per cable; (N, 6, 1) for mass_change), by forward differences.
+    def jacobian(
+        self, theta: dict[str, np.ndarray], effect: str, rows: np.ndarray | None = None
+    ) -> list[np.ndarray]:
+        """Per sub-parameter of ``effect``, d residual / d parameter at the samples ``rows``
+        (default all): (n, 6, m) (one column per cable; (n, 6, 1) for mass_change), by
+        forward differences (the chain itself runs over every sample).
 
         The chains of the cables are independent, so one perturbed run of all cables at
         once gives every cable's column. It is computed on the smoothed readings
@@ -237,8 +242,9 @@ class WrenchModel:
         smoothed sensitivities are instruments uncorrelated with the noise.
         """
         d = self.data
+        rows = np.arange(d.t.size) if rows is None else rows
         if effect == "mass_change":
-            return [((d.t - self.t0)[:, None] * d.dw_dm)[:, :, None]]
+            return [((d.t[rows] - self.t0)[:, None] * d.dw_dm[rows])[:, :, None]]
         base_theta = {**theta}
         base_theta.setdefault(effect, neutral(effect, self.nom, d.cables))
         tp0 = self.platform_tension(base_theta, d.ts_smooth)
@@ -247,8 +253,8 @@ class WrenchModel:
             pert = base_theta[effect].copy()
             pert[j] += STEP[name]
             tp1 = self.platform_tension({**base_theta, effect: pert}, d.ts_smooth)
-            dtp = (tp1 - tp0) / STEP[name]
-            out.append(d.a_mat * dtp[:, None, :])
+            dtp = (tp1[rows] - tp0[rows]) / STEP[name]
+            out.append(d.a_mat[rows] * dtp[:, None, :])
         return out
 
 
@@ -298,6 +304,9 @@ def identifiable_cables(ident: dict) -> list[int]:
 class Prepared:
     """Everything the selection needs: model, whitening, blocks, warm-up mask.
 
+    Selection and fit use the samples ``rows``: every sample, or evenly thinned to
+    :data:`FIT_BUDGET` on long recordings (the chain still runs over every sample; the
+    scores are over all of them).
     The residual is whitened per sample by the noise the sensors put on the wrench: white
     noise ``e`` of equal std on the readings gives ``A e`` with covariance ``s^2 A A^T``
     (pose-dependent, correlated across components), so ``L^-1 r / s`` with
@@ -307,6 +316,7 @@ class Prepared:
     """
 
     model: WrenchModel
+    rows: np.ndarray
     chol: np.ndarray
     sigma: float
     blocks: np.ndarray
@@ -314,7 +324,7 @@ class Prepared:
     warm: np.ndarray
 
     def whiten(self, x: np.ndarray) -> np.ndarray:
-        """(N, 6) or (N, 6, k) residual or Jacobian -> whitened, same shape."""
+        """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` -> whitened."""
         if x.ndim == 2:
             return np.linalg.solve(self.chol, x[:, :, None])[:, :, 0] / self.sigma
         return np.linalg.solve(self.chol, x) / self.sigma
@@ -325,12 +335,14 @@ def prepare(rec: Recording, cfg: Config | None, friction: FrictionConfig) -> Pre
     data = wrench_data(rec, cfg)
     nom = nominal_from(friction)
     model = WrenchModel(data, nom)
-    chol = np.linalg.cholesky(np.einsum("nim,njm->nij", data.a_mat, data.a_mat))
-    unit = np.linalg.solve(chol, model.residual({})[:, :, None])[:, :, 0]
+    rows = np.arange(0, data.t.size, max(1, math.ceil(data.t.size / FIT_BUDGET)))
+    a_rows = data.a_mat[rows]
+    chol = np.linalg.cholesky(np.einsum("nim,njm->nij", a_rows, a_rows))
+    unit = np.linalg.solve(chol, model.residual({})[rows][:, :, None])[:, :, 0]
     sigma = float(math.sqrt(np.mean(noise_scale(unit) ** 2)))
     blocks, nb = time_blocks(data.t)
     warm = np.ones(data.t.size, bool)
     for i in range(data.cables):
         warm &= warmup_mask(CableData(data.t, data.v[:, i], data.ts[:, i], data.ts[:, i],
                                       float(data.t[0])), nom)  # fmt: skip
-    return Prepared(model, chol, max(sigma, 1e-12), blocks, nb, warm)
+    return Prepared(model, rows, chol, max(sigma, 1e-12), blocks, nb, warm)

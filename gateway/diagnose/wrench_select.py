@@ -70,16 +70,18 @@ class WrenchSelector:
     def __init__(self, prep: Prepared, candidates: tuple[str, ...], th: Thresholds) -> None:
         self.prep, self.th = prep, th
         self.model = prep.model
-        use = prep.warm
-        self.train = np.repeat((prep.blocks % 2 == 0) & use, 6)
-        self.test_s = (prep.blocks % 2 == 1) & use
-        self.r0 = prep.whiten(self.model.residual({})).reshape(-1)
+        self.rows = prep.rows
+        self.blocks = prep.blocks[self.rows]
+        use = prep.warm[self.rows]
+        self.train = np.repeat((self.blocks % 2 == 0) & use, 6)
+        self.test_s = (self.blocks % 2 == 1) & use
+        self.r0 = prep.whiten(self.model.residual({})[self.rows]).reshape(-1)
         self.cols: dict[str, list[Col]] = {}
         self.design: dict[str, np.ndarray] = {}
         self.ident: dict[str, list[dict]] = {}
         for e in candidates:
             self.ident[e], self.cols[e], mats = [], [], []
-            for j, jb in enumerate(self.model.jacobian({}, e)):
+            for j, jb in enumerate(self.model.jacobian({}, e, self.rows)):
                 jw = prep.whiten(jb)
                 idn = identifiability(jw, use)
                 self.ident[e].append(idn)
@@ -125,15 +127,13 @@ class WrenchSelector:
 
     def _block_sse(self, resid: np.ndarray) -> np.ndarray:
         per = np.sum(resid.reshape(-1, 6) ** 2, axis=1)
-        sse = np.bincount(self.prep.blocks[self.test_s], per[self.test_s], self.prep.n_blocks)
+        sse = np.bincount(self.blocks[self.test_s], per[self.test_s], self.prep.n_blocks)
         return sse[1::2]
 
     def z(self, ra: np.ndarray, rb: np.ndarray) -> float:
         """Held-out z of model B (residual ``rb``) over model A (``ra``)."""
         cross = np.sum((rb * (ra - rb)).reshape(-1, 6), axis=1)
-        per_block = np.bincount(
-            self.prep.blocks[self.test_s], cross[self.test_s], self.prep.n_blocks
-        )
+        per_block = np.bincount(self.blocks[self.test_s], cross[self.test_s], self.prep.n_blocks)
         return holdout_z(self._block_sse(ra), self._block_sse(rb), per_block)
 
     def accept(self, ra: np.ndarray, rb: np.ndarray, z_min: float) -> bool:
@@ -201,10 +201,10 @@ class WrenchSelector:
         phi, se, _ = self.fit(kept)
         theta = self.theta_of(phi)
         for _ in range(GN_ITERATIONS if kept else 0):
-            r = self.prep.whiten(self.model.residual(theta)).reshape(-1)
+            r = self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1)
             cols = []
             for e in kept:
-                blocks = [self.prep.whiten(b) for b in self.model.jacobian(theta, e)]
+                blocks = [self.prep.whiten(b) for b in self.model.jacobian(theta, e, self.rows)]
                 cols += [blocks[j][:, :, i].reshape(-1) for j, i in self.cols[e]]
             d = np.column_stack(cols)
             step, *_ = np.linalg.lstsq(d[self.train], -r[self.train], rcond=None)
@@ -319,7 +319,7 @@ def diagnose_wrench(
     kept = sel.run()
     say(f"wrench reference: kept {', '.join(kept) or 'nothing'}")
     theta, se = sel.refit(kept)
-    test = sel.test_s
+    test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
     vmodel = None
     if validation is not None:
