@@ -335,3 +335,32 @@ def test_long_recordings_are_fitted_on_thinned_samples(monkeypatch):
     assert rep["samples"] == rec.samples
     assert [f["effect"] for f in rep["findings"]] == ["viscous"]
     assert_parameters("viscous", rep["findings"][0])
+
+
+def sweep(seeds: tuple[int, ...] = (4, 6, 7)) -> str:
+    """The cases on other seeds (not a test: the figures for the report).
+    ``PYTHONPATH=. python -m tests.test_diagnose_wrench``."""
+    named = within = total = false = 0
+    for seed in seeds:
+        for case in CASES:
+            rec, _, cfg = recording(case, seed)
+            rep = diagnose_wrench(rec, cfg.friction, cfg).report
+            found = [f["effect"] for f in rep["findings"]]
+            if case == "clean":
+                false += len(found)
+                continue
+            total += 1
+            named += found == [case]
+            try:
+                assert_parameters(case, rep["findings"][0])
+                within += found == [case]
+            except (AssertionError, IndexError) as exc:
+                print(f"seed {seed} {case}: {found} {exc}")
+    return (
+        f"seeds {seeds}: named exactly {named}/{total}, parameters in tolerance "
+        f"{within}/{total}, false findings on {len(seeds)} clean recordings: {false}"
+    )
+
+
+if __name__ == "__main__":
+    print(sweep())
