@@ -14,7 +14,8 @@ sim_plc:
     target_n: 120.0       # qp only: the tension aimed at (default: the limits' midpoint)
 ```
 
-* ``statics``: :func:`gateway.model.statics.distribute_tensions` with the plant's
+* ``statics``: :func:`gateway.model.statics.distribute_tensions` (eq. 18, 19 aiming at the
+  limits' midpoint) with ``tau_min_n``/``tau_max_n``, by default the plant's
   ``sim_plc.tension`` limits (what the plant always did).
 * ``qp``: eq. 18, 19 with other limits and another target: among ``A tau + w = 0``,
   ``tau_min <= tau <= tau_max`` the ``tau`` closest to ``target_n`` (Euclidean), solved
