@@ -4,7 +4,8 @@
 key paths prefixed ``sim_plc`` and resolves what defaults to other sections: the truth
 friction (``sim_plc.friction`` is merged over the config's ``friction:``), the tension
 limits of the plant's tension distribution (``sim_plc.tension`` over ``tension:``) and the
-initial platform mass (``geometry.platform_mass_kg``).
+initial platform mass (``geometry.platform_mass_kg``). ``sim_plc.distribution`` chooses the
+controller's tension distribution (:mod:`sim_plc.distribution`; default: the statics).
 
 Effects (physics.md sec. 5) are switched on by naming them under ``sim_plc.effects``;
 ``enabled: false`` switches a named one off again. Their parameter names are those of the
@@ -24,6 +25,7 @@ import numpy as np
 from gateway.config import Config, FrictionConfig, TensionConfig
 from gateway.configtypes import convert, require
 from gateway.errors import ConfigError
+from sim_plc.distribution import DistributionConfig
 
 PerCable = float | tuple[float, ...]
 Vec6 = tuple[float, float, float, float, float, float]
@@ -231,6 +233,7 @@ class SimPlcRaw:
     friction: dict[str, Any] = field(default_factory=dict)
     tension: dict[str, Any] = field(default_factory=dict)
     effects: EffectsConfig = field(default_factory=EffectsConfig)
+    distribution: DistributionConfig = field(default_factory=DistributionConfig)
 
     def __post_init__(self) -> None:
         require(1e-4 <= self.period_s <= 1.0, "period_s must be in 0.0001..1")
@@ -253,6 +256,7 @@ class SimPlcConfig:
     effects: EffectsConfig
     source: str = ""
     base_dir: str = "."
+    distribution: DistributionConfig = field(default_factory=DistributionConfig)  # controller's
 
 
 def per_cable(value: PerCable | None, cables: int, default: float = 0.0) -> np.ndarray:
@@ -305,6 +309,12 @@ def load_sim_config(cfg: Config) -> SimPlcConfig:
     saturation = 1.2 * cfg.sensor.range_n if raw.saturation_n is None else raw.saturation_n
     if saturation <= 0:
         raise ConfigError(f"{src}: sim_plc.saturation_n: must be > 0")
+    dist = raw.distribution
+    lo = tension.min_n if dist.tau_min_n is None else dist.tau_min_n
+    hi = tension.max_n if dist.tau_max_n is None else dist.tau_max_n
+    if not lo < hi or (dist.target_n is not None and not lo <= dist.target_n <= hi):
+        raise ConfigError(f"{src}: sim_plc.distribution: limits {lo:g} .. {hi:g} N "
+                          "(target within them) needed")  # fmt: skip
     if raw.trajectory.kind == "file" and not raw.trajectory.file.path:
         raise ConfigError(f"{src}: sim_plc.trajectory.file.path: required for kind 'file'")
     return SimPlcConfig(
@@ -320,4 +330,5 @@ def load_sim_config(cfg: Config) -> SimPlcConfig:
         effects=raw.effects,
         source=src,
         base_dir=str(Path(src).resolve().parent) if src else ".",
+        distribution=dist,
     )

@@ -7,7 +7,8 @@ One pipeline, written once with :mod:`gateway.model` (run the other way round):
 2. wrench = gravity with the platform mass ``m(t) = m_0 - q_e t_print`` (the extruder
    takes ``q_e`` kg/s while printing; mass never below 10 % of ``m_0``) + the
    d'Alembert term ``-m a`` (``statics``); platform tensions by the tension
-   distribution (eq. 18, 19) with the plant's limits.
+   distribution (eq. 18, 19) with the plant's limits, or the controller's own
+   (``sim_plc.distribution``: :mod:`sim_plc.distribution`).
 3. the pulley chain run backwards, platform -> sensor (``chain.simulate``; Dahl by
    default; the chain-side effects ``coulomb`` mu/f0, ``presliding`` sigma, ``viscous``,
    ``stribeck`` are :class:`ChainParams`), then the path effects ``inertia`` and
@@ -42,6 +43,7 @@ from gateway.errors import InfeasiblePoseError
 from gateway.model import chain, effects, kinematics, statics
 from gateway.recording import Recording
 from sim_plc.config import SimPlcConfig, load_sim_config, per_cable
+from sim_plc.distribution import Distributor
 from sim_plc.image import ProcessImage
 from sim_plc.trajectories import Trajectory, make_trajectory
 
@@ -144,6 +146,8 @@ class PlantModel:
         self.noise_std = per_cable(self.sim.noise_std_n, self.cables)
         mc = self.sim.effects.active().get("mass_change")
         self.hidden_q = 0.0 if mc is None else mc.q_kg_s
+        lim = self.sim.tension  # the controller's distribution (sim_plc.distribution)
+        self.distribute = Distributor(self.sim.distribution, lim.min_n, lim.max_n)
 
     def _traj_time(self, t: np.ndarray) -> np.ndarray:
         dur = self.trajectory.duration_s
@@ -189,17 +193,12 @@ class PlantModel:
 
     def solve_tensions(self, sp: Setpoints, k: int) -> None:
         """Tension distribution of sample ``k`` of ``sp`` (true and recorded), in place."""
-        lim = self.sim.tension
         try:
-            sp.tension_recorded[k] = statics.distribute_tensions(
-                sp.a_mat[k], sp.wrench_recorded[k], lim.min_n, lim.max_n
-            )
+            sp.tension_recorded[k] = self.distribute(sp.a_mat[k], sp.wrench_recorded[k])
             if sp.wrench_true is sp.wrench_recorded:
                 sp.tension_true[k] = sp.tension_recorded[k]
             else:
-                sp.tension_true[k] = statics.distribute_tensions(
-                    sp.a_mat[k], sp.wrench_true[k], lim.min_n, lim.max_n
-                )
+                sp.tension_true[k] = self.distribute(sp.a_mat[k], sp.wrench_true[k])
         except InfeasiblePoseError as exc:
             pose = np.round(sp.pose[k], 4).tolist()
             raise InfeasiblePoseError(

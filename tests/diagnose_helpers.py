@@ -35,8 +35,14 @@ MODEL_YAML = """friction:
 """
 
 
+SCHEMA_PATH = Path(__file__).resolve().parent.parent / "docs" / "diagnose-report.schema.json"
+
+
 def schema() -> dict:
-    """The report's JSON schema: a verbatim copy of spec/diagnose-report.schema.json."""
+    """The report's JSON schema: the repository's docs/diagnose-report.schema.json (a copy
+    of the spec's), or the embedded copy below when docs/ has none."""
+    if SCHEMA_PATH.is_file():
+        return json.loads(SCHEMA_PATH.read_text(encoding="utf-8"))
     return json.loads(SCHEMA)
 
 

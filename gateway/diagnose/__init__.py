@@ -5,8 +5,13 @@
 
 Method
 ------
-1. **Simulate** the sensor reading of every cable from ``tension_platform_i`` (or statics
-   from pose and mass, :mod:`.platform`) and ``velocity_i`` with the nominal friction chain
+0. **Reference** (:func:`engine.reference_mode`): with ``tension_platform_i`` the residual
+   is per cable (below); without it, with pose, mass and a geometry, it is the platform's
+   wrench balance (:mod:`.wrench`, :mod:`.wrench_select`: no tension distribution assumed,
+   per-cable effects identified jointly through the moving structure matrix).
+1. **Simulate** the sensor reading of every cable from ``tension_platform_i`` (statics
+   from pose and mass, :mod:`.platform`, only for ``mass_change``) and ``velocity_i`` with
+   the nominal friction chain
    (:func:`gateway.model.chain.simulate`); residual ``r = measured - simulated``.
    A velocity column with white noise on it (a measured velocity logged in place of the
    setpoint) is put through a dead band of 4 noise standard deviations (the noise

@@ -12,7 +12,7 @@ from pathlib import Path
 from gateway.config import Config, config_from_mapping, load_friction, output_path
 from gateway.configtypes import read_yaml
 from gateway.diagnose import platform
-from gateway.diagnose.engine import diagnose
+from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
 from gateway.errors import GatewayError
 from gateway.recording import Recording, read_recording
 
@@ -67,21 +67,31 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
         + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
     )
-    tp, dm = _tensions(rec, cfg, say)
-    validation = None
-    if args.validate is not None:
-        vrec = read_recording(args.validate)
-        vtp, vdm = _tensions(vrec, cfg, say)
-        validation = (vrec, vtp, vdm if dm is not None else None)
-    diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
+    if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
+        from gateway.diagnose.wrench_select import diagnose_wrench
+
+        wrec = None if args.validate is None else read_recording(args.validate)
+        diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
+    else:
+        tp, dm = _tensions(rec, cfg, say)
+        validation = None
+        if args.validate is not None:
+            vrec = read_recording(args.validate)
+            vtp, vdm = _tensions(vrec, cfg, say)
+            validation = (vrec, vtp, vdm if dm is not None else None)
+        diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
     try:
         args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
     if args.report is not None:
         from gateway.diagnose.plots import write_report
+        from gateway.diagnose.wrench_plots import write_report as write_wrench_report
 
-        write_report(diag, args.report, str(args.recording))
+        if diag.report["reference"] == "wrench":
+            write_wrench_report(diag, args.report, str(args.recording))  # type: ignore[arg-type]
+        else:
+            write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"

@@ -282,4 +282,14 @@ def diagnose(
         forwards.append(fw)
     from gateway.diagnose.report import build_report  # local: report imports engine types
 
-    return build_report(rec, forwards, outcomes, blocks, validation, nom)
+    diag = build_report(rec, forwards, outcomes, blocks, validation, nom)
+    diag.report["reference"] = "platform_tension"
+    return diag
+
+
+# ---- reference mode (issue 10 part 2): per-cable platform tension or the wrench balance ----
+def reference_mode(rec: Recording) -> str:
+    """``platform_tension`` when the recording has ``tension_platform_i`` columns, else
+    ``wrench``: the platform's wrench balance from pose, mass and a model file with a
+    geometry (:mod:`gateway.diagnose.wrench`; no tension distribution is assumed)."""
+    return "platform_tension" if rec.tension_platform is not None else "wrench"

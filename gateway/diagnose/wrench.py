@@ -1,0 +1,348 @@
+"""The wrench reference: diagnosis without platform tensions (physics.md sec. 1, 5).
+
+A real robot has no load cell at the platform. With pose and mass columns and a geometry
+the sensor readings are carried through the chain to the platform (nominal model plus
+the candidate effects, the compensation direction: from ``T_s`` and ``v`` to ``T_p``) and
+must satisfy the platform's wrench balance
+
+    r(t) = A(pose) T_p(theta) + w(pose, m(t), acc) = 0,
+
+``w`` = gravity ``m g`` (moment of an off-centre centre of mass included) + d'Alembert
+``-m acc``, ``acc`` the second derivative of the recorded position over the recorded
+timestamps (``np.gradient`` twice, as the statics route does). Rotational inertia of the
+platform is neglected (as in :func:`gateway.model.statics.inertial_wrench`: far below
+the tension resolution at printing speeds; a config carries no inertia tensor).
+No tension distribution is assumed: the null space of ``A`` (2-D for 8 cables) is not
+observable from pose and mass, and nothing here invents it.
+
+This module holds the data (:class:`WrenchData`), the model ``T_p(theta)`` and the
+residual (:class:`WrenchModel`), the sensitivity Jacobian of the residual with respect
+to every candidate's per-cable parameters and the identifiability read from it
+(:func:`identifiability`). Selection and report: :mod:`.wrench_select`.
+
+Candidates (ids of physics.md sec. 5) and their per-cable parameters, applied in the
+inverse order of the plant (undo the sensor, then the path, then compensate the chain):
+``offset`` c, ``drift`` k, ``gain`` g (``T = (T_s - c - k t) / (1 + g)``), ``inertia``
+m_eff (``+ m_eff a``), then the chain with ``coulomb`` (mu, f0) and ``viscous`` c;
+``mass_change`` q is one platform parameter (``m(t) = m_rec + q t``). Presliding,
+Stribeck, delay, low-pass and eccentricity are not candidates in this mode yet.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+from gateway.config import Config, FrictionConfig
+from gateway.diagnose.engine import deadband, nominal_from, time_blocks, warmup_mask
+from gateway.diagnose.forward import CableData, Nominal
+from gateway.errors import ConfigError, RecordingError
+from gateway.model import chain, kinematics, statics
+from gateway.model import effects as fx
+from gateway.recording import Recording
+
+PER_CABLE = ("coulomb", "viscous", "inertia", "gain", "offset", "drift")
+WRENCH_EFFECTS = (*PER_CABLE, "mass_change")
+SUBPARAMS: dict[str, tuple[str, ...]] = {
+    "coulomb": ("mu", "f0_n"),
+    "viscous": ("c_ns_m",),
+    "inertia": ("m_eff_kg",),
+    "gain": ("g",),
+    "offset": ("c_n",),
+    "drift": ("k_n_s",),
+    "mass_change": ("q_kg_s",),
+}
+STEP = {"mu": 1e-3, "f0_n": 0.1, "c_ns_m": 1.0, "m_eff_kg": 0.1, "g": 1e-3, "c_n": 0.1,
+        "k_n_s": 1e-3, "q_kg_s": 1e-3}  # fmt: skip
+FIT_BUDGET = 25_000
+"""Samples the selection and the fit use at most (memory: ~48 columns x 6 rows each)."""
+INSTRUMENT_S = 0.05
+"""Moving-average window (s) of the readings the Jacobian is computed on."""
+VIF_MAX = 1000.0
+"""A cable's parameter of an effect is identifiable when its variance inflation
+``(J^T J)_ii ((J^T J)^-1)_ii`` among the effect's per-cable columns is at most this: its
+standard error at most ~30 times what it would be were it the only unknown. Above, the
+cables' parameters combine (nearly) into the null space of ``A`` at every recorded pose:
+e.g. an equal offset on every cable of a symmetric robot is internal pretension, which
+no wrench shows; a robot that stands still leaves every offset unidentifiable."""
+
+
+@dataclass
+class WrenchData:
+    """A recording ready for the wrench balance. ``N`` samples, ``m`` cables.
+
+    ``t`` (N,); ``v``, ``ts``, ``a`` (N, m) setpoint velocity (dead band as the engine),
+    sensor reading, cable acceleration; ``a_mat`` (N, 6, m); ``w0`` (N, 6) external wrench
+    with the recorded mass; ``dw_dm`` (N, 6) wrench per kg; ``speed`` (N,) platform speed;
+    ``ts_smooth`` (N, m) the reading's moving average over :data:`INSTRUMENT_S` (the
+    instrument the Jacobian is computed on, see :meth:`WrenchModel.jacobian`).
+    """
+
+    t: np.ndarray
+    v: np.ndarray
+    ts: np.ndarray
+    a: np.ndarray
+    a_mat: np.ndarray
+    w0: np.ndarray
+    dw_dm: np.ndarray
+    speed: np.ndarray
+    ts_smooth: np.ndarray
+    source: str = ""
+
+    @property
+    def cables(self) -> int:
+        return int(self.ts.shape[1])
+
+
+def usable(rec: Recording, cfg: Config | None) -> bool:
+    """True when ``rec`` can be diagnosed against the wrench balance."""
+    return rec.pose is not None and rec.mass is not None and cfg is not None
+
+
+def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
+    """Build :class:`WrenchData`; rows without every value are dropped (counted by caller)."""
+    if rec.pose is None or rec.mass is None:
+        raise RecordingError(
+            f"{rec.source}: no tension_platform_i columns and no pose and mass columns: "
+            "neither reference (platform tension, wrench balance) is available"
+        )
+    if cfg is None:
+        raise ConfigError(
+            f"{rec.source}: the wrench balance needs the robot's geometry: give --model a "
+            "full config file with a 'geometry:' section"
+        )
+    if cfg.cables != rec.cables:
+        raise RecordingError(
+            f"{rec.source}: {rec.cables} cables, but the geometry in {cfg.source} has {cfg.cables}"
+        )
+    ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
+    ok &= np.isfinite(rec.pose).all(1) & np.isfinite(rec.mass)
+    if ok.sum() < 10:
+        raise RecordingError(f"{rec.source}: fewer than 10 samples have every value")
+    t, pose, mass = rec.t[ok], rec.pose[ok], rec.mass[ok]
+    geo = cfg.geometry
+    a_mat = kinematics.structure_matrix_batch(
+        np.asarray(geo.frame_anchors_m), np.asarray(geo.platform_anchors_m), pose
+    )
+    vel = np.gradient(pose[:, :3], t, axis=0)
+    acc = np.gradient(vel, t, axis=0)
+    com = geo.center_of_mass_m
+    w0 = statics.gravity_wrench_batch(mass, geo.gravity_m_s2, pose, com)
+    w0 = w0 + statics.inertial_wrench(mass, acc)
+    dw = statics.gravity_wrench_batch(np.ones_like(mass), geo.gravity_m_s2, pose, com)
+    dw = dw + statics.inertial_wrench(np.ones_like(mass), acc)
+    v = np.column_stack([deadband(rec.velocity[ok, i]) for i in range(rec.cables)])
+    return WrenchData(
+        t=t,
+        v=v,
+        ts=rec.tension_sensor[ok].astype(float),
+        a=fx.acceleration(t, v),
+        a_mat=a_mat,
+        w0=w0,
+        dw_dm=dw,
+        speed=np.linalg.norm(vel, axis=1),
+        ts_smooth=uniform_filter1d(
+            rec.tension_sensor[ok].astype(float), _window(t), axis=0, mode="nearest"
+        ),
+        source=rec.source,
+    )
+
+
+def _window(t: np.ndarray) -> int:
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    return int(max(1, min(round(INSTRUMENT_S / max(dt, 1e-9)), t.size // 10 or 1)))
+
+
+def neutral(effect: str, nom: Nominal, m: int) -> np.ndarray:
+    """Parameters (k, m) of ``effect`` at the nominal model (k sub-parameters; (1, 1) for
+    ``mass_change``)."""
+    if effect == "mass_change":
+        return np.zeros((1, 1))
+    out = np.zeros((len(SUBPARAMS[effect]), m))
+    if effect == "coulomb":
+        out[0] = nom.mu_mean if nom.model != "none" else 0.0
+    return out
+
+
+class WrenchModel:
+    """``T_p(theta)`` and the wrench residual for a nominal chain on :class:`WrenchData`.
+
+    ``theta``: effect id -> (k, m) array (:func:`neutral` shape); missing effects neutral.
+    """
+
+    def __init__(self, data: WrenchData, nom: Nominal) -> None:
+        self.data, self.nom = data, nom
+        self.t0 = float(data.t[0])
+
+    def chain_params(self, theta: dict[str, np.ndarray]) -> chain.ChainParams:
+        nom, m = self.nom, self.data.cables
+        model = nom.model
+        mu = np.broadcast_to(nom.mu, (m, nom.mu.size)).copy()
+        f0 = np.zeros(m)
+        if "coulomb" in theta:
+            mu_new, f0 = theta["coulomb"][0], theta["coulomb"][1]
+            scale = nom.mu / nom.mu_mean if nom.mu_mean > 0 else np.ones_like(nom.mu)
+            mu = np.maximum(np.outer(mu_new, scale), 0.0)
+            model = "coulomb" if model == "none" else model
+        visc = nom.viscous_ns_m + (theta["viscous"][0] if "viscous" in theta else np.zeros(m))
+        return chain.ChainParams.build(
+            model=model,  # type: ignore[arg-type]
+            cables=m,
+            wrap_rad=nom.wrap_rad,
+            mu=mu,
+            sigma_n_m=nom.sigma_n_m,
+            beta=nom.beta,
+            f0_n=f0,
+            viscous_ns_m=visc,
+        )
+
+    def platform_tension(
+        self, theta: dict[str, np.ndarray], ts: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(N, m): the readings (``ts``, default the recorded ones) with the sensor and path
+        effects undone, compensated through the chain."""
+        d = self.data
+        y = d.ts if ts is None else ts
+        tt = (d.t - self.t0)[:, None]
+        if "offset" in theta:
+            y = y - theta["offset"][0]
+        if "drift" in theta:
+            y = y - theta["drift"][0] * tt
+        if "gain" in theta:
+            y = y / (1.0 + theta["gain"][0])
+        if "inertia" in theta:
+            y = y + theta["inertia"][0] * d.a
+        return chain.compensate(self.chain_params(theta), y, d.v, d.t)
+
+    def residual(self, theta: dict[str, np.ndarray], tp: np.ndarray | None = None) -> np.ndarray:
+        """Wrench residual (N, 6): ``A T_p + w`` (force N, moment N m)."""
+        d = self.data
+        tp = self.platform_tension(theta) if tp is None else tp
+        r = np.einsum("nim,nm->ni", d.a_mat, tp) + d.w0
+        if "mass_change" in theta:
+            r = r + (float(theta["mass_change"][0, 0]) * (d.t - self.t0))[:, None] * d.dw_dm
+        return r
+
+    def jacobian(
+        self, theta: dict[str, np.ndarray], effect: str, rows: np.ndarray | None = None
+    ) -> list[np.ndarray]:
+        """Per sub-parameter of ``effect``, d residual / d parameter at the samples ``rows``
+        (default all): (n, 6, m) (one column per cable; (n, 6, 1) for mass_change), by
+        forward differences (the chain itself runs over every sample).
+
+        The chains of the cables are independent, so one perturbed run of all cables at
+        once gives every cable's column. It is computed on the smoothed readings
+        (``ts_smooth``): a sensitivity proportional to the reading (gain, Coulomb) would
+        otherwise carry the same sensor noise as the residual, and with the per-cable
+        parameters nearly collinear through the null space of ``A`` that correlation biases
+        the fit (errors in variables: +30 % on a gain at 0.8 N noise in a test); the
+        smoothed sensitivities are instruments uncorrelated with the noise.
+        """
+        d = self.data
+        rows = np.arange(d.t.size) if rows is None else rows
+        if effect == "mass_change":
+            return [((d.t[rows] - self.t0)[:, None] * d.dw_dm[rows])[:, :, None]]
+        base_theta = {**theta}
+        base_theta.setdefault(effect, neutral(effect, self.nom, d.cables))
+        tp0 = self.platform_tension(base_theta, d.ts_smooth)
+        out = []
+        for j, name in enumerate(SUBPARAMS[effect]):
+            pert = base_theta[effect].copy()
+            pert[j] += STEP[name]
+            tp1 = self.platform_tension({**base_theta, effect: pert}, d.ts_smooth)
+            dtp = (tp1[rows] - tp0[rows]) / STEP[name]
+            out.append(d.a_mat[rows] * dtp[:, None, :])
+        return out
+
+
+def noise_scale(resid: np.ndarray) -> np.ndarray:
+    """Per wrench component (6,), the white-noise std of a residual (N, 6): median absolute
+    first difference / 0.6745 / sqrt 2 (robust to the slow part); the weights of the fit."""
+    s = np.median(np.abs(np.diff(resid, axis=0)), axis=0) / 0.6745 / math.sqrt(2.0)
+    floor = 1e-9 * max(float(np.max(s)), 1e-12)
+    return np.maximum(s, floor)
+
+
+def identifiability(jac: np.ndarray, rows: np.ndarray) -> dict:
+    """What one sub-parameter block (N, 6, m) of the whitened Jacobian lets the motion
+    identify, on the samples ``rows``.
+
+    Returns the per-cable variance inflation ``vif`` (m,) (inf: in the null space of the
+    stacked balance), the column norms ``norm`` (m,), ``live`` (m,) bool (the cable has any
+    sensitivity) and ``condition`` of the column-normalised block (ratio of its extreme
+    singular values; inf when a combination of cables has no effect on the wrench, i.e.
+    lies in the null space of ``A`` at every recorded pose).
+    """
+    j = jac[rows].reshape(-1, jac.shape[2])
+    norm = np.sqrt(np.sum(j**2, axis=0))
+    live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
+    vif = np.full(jac.shape[2], np.inf)
+    cond = math.inf
+    if live.any():
+        jn = j[:, live] / norm[live]
+        gram = jn.T @ jn
+        sv = np.linalg.svd(jn, compute_uv=False)
+        cond = float(sv[0] / sv[-1]) if sv[-1] > 1e-12 * sv[0] else math.inf
+        try:
+            inv = np.linalg.inv(gram)
+            vif[live] = np.where(np.diag(inv) > 0, np.diag(inv) * np.diag(gram), np.inf)
+        except np.linalg.LinAlgError:
+            pass
+    return {"vif": vif, "norm": norm, "live": live, "condition": cond}
+
+
+def identifiable_cables(ident: dict) -> list[int]:
+    """0-based cables whose parameter the motion identifies (see :data:`VIF_MAX`); the
+    others are not fitted (a value along the null space would be invented)."""
+    return [i for i in range(ident["vif"].size) if ident["live"][i] and ident["vif"][i] <= VIF_MAX]
+
+
+@dataclass
+class Prepared:
+    """Everything the selection needs: model, whitening, blocks, warm-up mask.
+
+    Selection and fit use the samples ``rows``: every sample, or evenly thinned to
+    :data:`FIT_BUDGET` on long recordings (the chain still runs over every sample; the
+    scores are over all of them).
+    The residual is whitened per sample by the noise the sensors put on the wrench: white
+    noise ``e`` of equal std on the readings gives ``A e`` with covariance ``s^2 A A^T``
+    (pose-dependent, correlated across components), so ``L^-1 r / s`` with
+    ``L L^T = A A^T`` (Cholesky) has unit white noise; ``s`` is estimated from the nominal
+    residual's sample-to-sample differences. Generalised least squares: unbiased standard
+    errors, forces and moments weighted by what the sensors can tell.
+    """
+
+    model: WrenchModel
+    rows: np.ndarray
+    chol: np.ndarray
+    sigma: float
+    blocks: np.ndarray
+    n_blocks: int
+    warm: np.ndarray
+
+    def whiten(self, x: np.ndarray) -> np.ndarray:
+        """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` -> whitened."""
+        if x.ndim == 2:
+            return np.linalg.solve(self.chol, x[:, :, None])[:, :, 0] / self.sigma
+        return np.linalg.solve(self.chol, x) / self.sigma
+
+
+def prepare(rec: Recording, cfg: Config | None, friction: FrictionConfig) -> Prepared:
+    """Data, nominal model, whitening (from the nominal residual), time blocks, warm-up."""
+    data = wrench_data(rec, cfg)
+    nom = nominal_from(friction)
+    model = WrenchModel(data, nom)
+    rows = np.arange(0, data.t.size, max(1, math.ceil(data.t.size / FIT_BUDGET)))
+    a_rows = data.a_mat[rows]
+    chol = np.linalg.cholesky(np.einsum("nim,njm->nij", a_rows, a_rows))
+    unit = np.linalg.solve(chol, model.residual({})[rows][:, :, None])[:, :, 0]
+    sigma = float(math.sqrt(np.mean(noise_scale(unit) ** 2)))
+    blocks, nb = time_blocks(data.t)
+    warm = np.ones(data.t.size, bool)
+    for i in range(data.cables):
+        warm &= warmup_mask(CableData(data.t, data.v[:, i], data.ts[:, i], data.ts[:, i],
+                                      float(data.t[0])), nom)  # fmt: skip
+    return Prepared(model, rows, chol, max(sigma, 1e-12), blocks, nb, warm)

@@ -1,0 +1,90 @@
+"""``diagnose --report DIR`` in the wrench reference: pictures of the force residual.
+
+* ``residual.png``: the force residual ``A T_p + w`` (x, y, z) of the nominal and of the
+  final model over time, the located regions (platform, ``cable 0``) shaded;
+* ``signature_<effect>.png``: per finding, the force residual the final model leaves
+  without the effect against the effect's own contribution (binned means; on the 1:1
+  line when the effect explains it);
+* ``overlay.png``: the force residual's magnitude, nominal and fitted, around the largest
+  region; ``summary.md``: :func:`gateway.diagnose.plots.summary`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gateway.diagnose.plots import plt, summary
+from gateway.diagnose.wrench_select import WrenchDiagnosis
+
+AXES = ("x", "y", "z")
+
+
+def residual_plot(diag: WrenchDiagnosis, path: Path) -> None:
+    step = max(1, diag.t.size // 20000)
+    fig, axes = plt.subplots(3, 1, figsize=(10, 6.5), sharex=True)
+    for k, ax in enumerate(axes):
+        ax.plot(diag.t[::step], -diag.nominal_pred[::step, k], lw=0.5, label="nominal")
+        ax.plot(diag.t[::step], -diag.final_pred[::step, k], lw=0.5, label="fitted")
+        for reg in diag.regions:
+            ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
+        ax.set_ylabel(f"F{AXES[k]} residual (N)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title("wrench balance A T_p + w, force part (shaded: located regions)")
+    axes[-1].set_xlabel("t (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def signature_plot(diag: WrenchDiagnosis, effect: str, path: Path) -> None:
+    x, y = diag.signatures[effect]
+    edges = np.unique(np.percentile(x, np.linspace(0, 100, 31)))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
+    counts = np.bincount(idx, minlength=edges.size)
+    ok = counts > 0
+    mx = np.bincount(idx, x, minlength=edges.size)[ok] / counts[ok]
+    my = np.bincount(idx, y, minlength=edges.size)[ok] / counts[ok]
+    fig, ax = plt.subplots(figsize=(5, 4.5))
+    ax.plot(mx, my, "o-", ms=3, label="binned means")
+    lim = float(np.max(np.abs(np.concatenate([mx, my, [1e-9]]))))
+    ax.plot([-lim, lim], [-lim, lim], "k--", lw=0.8, label="1:1")
+    ax.set_xlabel(f"{effect}: contribution to the force residual (N)")
+    ax.set_ylabel("force residual without it (N)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def overlay_plot(diag: WrenchDiagnosis, path: Path) -> None:
+    if diag.regions:
+        reg = diag.regions[0]
+        mid, half = 0.5 * (reg.start_s + reg.end_s), max(1.0, reg.end_s - reg.start_s)
+    else:
+        mid, half = float(diag.t[diag.t.size // 2]), 1.0
+    sel = (diag.t >= mid - half) & (diag.t <= mid + half)
+    fig, ax = plt.subplots(figsize=(10, 4))
+    ax.plot(diag.t[sel], np.linalg.norm(diag.nominal_pred[sel], axis=1), lw=0.8, label="nominal")
+    ax.plot(diag.t[sel], np.linalg.norm(diag.final_pred[sel], axis=1), lw=0.8, label="fitted")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("|force residual| (N)")
+    ax.set_title("before / after around the largest mismatch region")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def write_report(diag: WrenchDiagnosis, directory: Path, source: str) -> None:
+    """Pictures and ``summary.md`` into ``directory`` (created if needed)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    residual_plot(diag, directory / "residual.png")
+    overlay_plot(diag, directory / "overlay.png")
+    for f in diag.report["findings"]:
+        signature_plot(diag, f["effect"], directory / f"signature_{f['effect']}.png")
+    text = summary(diag, source).replace(
+        "Nominal model residual RMSE", "Reference: wrench balance (force part). Nominal model RMSE"
+    )
+    (directory / "summary.md").write_text(text, encoding="utf-8")
