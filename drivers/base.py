@@ -70,6 +70,7 @@ class Inputs:
     plc_heartbeat: int = 0
     read_time_s: float = 0.0  # time.monotonic() when the reply arrived
     true_tension_n: np.ndarray | None = None  # soft PLC only (registers 200-215)
+    platform_mass_kg: float = float("nan")  # when the register map has platform_mass
 
     @staticmethod
     def allocate(cables: int, with_truth: bool = False) -> Inputs:

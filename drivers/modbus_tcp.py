@@ -40,6 +40,8 @@ import struct
 import time
 from typing import Any
 
+import numpy as np
+
 from drivers.base import Driver, DriverState, Inputs, Outputs
 from drivers.registers import FieldCodec, Span, layout_map
 from gateway.config import ModbusTcpConfig
@@ -118,6 +120,8 @@ class ModbusTcpDriver(Driver):
         }
         if r.true_tensions is not None:
             expect["true_tensions"] = (r.true_tensions, self.cables)
+        if r.platform_mass is not None:
+            expect["platform_mass"] = (r.platform_mass, 1)
         for name, (f, n) in expect.items():
             if f.count != n:
                 raise ConfigError(f"bus.modbus_tcp.registers.{name}: count {f.count}, need {n}")
@@ -154,6 +158,8 @@ class ModbusTcpDriver(Driver):
         self._len = inp(r.setpoint_lengths)
         self._pose = inp(r.pose)
         self._hb = inp(r.plc_heartbeat)
+        self._mass = inp(r.platform_mass) if r.platform_mass is not None else None
+        self._mass_value = np.zeros(1)
         self._truth_in_read = inp(r.true_tensions) if self.layout.truth_in_read else None
         self._truth_alone = inp(r.true_tensions, ts) if ts is not None else None
 
@@ -392,6 +398,8 @@ class ModbusTcpDriver(Driver):
         self._len.decode(inputs.length_m)
         self._pose.decode(inputs.pose)
         inputs.plc_heartbeat = self._hb.decode_int()
+        if self._mass is not None:
+            inputs.platform_mass_kg = float(self._mass.decode(self._mass_value)[0])
         if self._truth_in_read is not None and inputs.true_tension_n is not None:
             self._truth_in_read.decode(inputs.true_tension_n)
         if self.state is DriverState.FAULT or self.state is DriverState.UNCONFIGURED:

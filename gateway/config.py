@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 from gateway.configtypes import convert, read_yaml, require
 from gateway.errors import ConfigError
+from gateway.recorder import RecordConfig  # the record: section (gateway/recorder.py)
 
 Vec3 = tuple[float, float, float]
 
@@ -183,10 +184,14 @@ class RegisterMap:
     gateway_state: RegisterField = RegisterField(125, 1, "uint16")
     wrench: RegisterField = RegisterField(126, 6, "float32")
     true_tensions: RegisterField | None = RegisterField(200, 8, "float32")  # simulation only
+    platform_mass: RegisterField | None = None  # optional: the platform mass (kg), count 1
 
     def inputs(self) -> dict[str, RegisterField]:
         names = ("raw_tensions", "setpoint_velocities", "setpoint_lengths", "pose", "plc_heartbeat")
-        return {n: getattr(self, n) for n in names}
+        found = {n: getattr(self, n) for n in names}
+        if self.platform_mass is not None:
+            found["platform_mass"] = self.platform_mass
+        return found
 
     def outputs(self) -> dict[str, RegisterField]:
         names = (
@@ -279,6 +284,7 @@ class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     bus: BusConfig = field(default_factory=BusConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
     source: str = ""
 

@@ -197,6 +197,7 @@ class CyclicService:
         self._started_at = 0.0
         self._logged = dict.fromkeys((*ERROR_KINDS, "overruns", "reconnects"), 0)
         self._next_check = -math.inf
+        self.recorder: Any = None  # recording hook: a gateway.recorder.Recorder, set by run
 
     # --- lifecycle ----------------------------------------------------------------------
     def configure(self) -> None:
@@ -355,6 +356,8 @@ class CyclicService:
         self.stats.compensate_ring.add(t2 - t1)
         self._write()
         self.stats.write_ring.add(self.clock() - t2)
+        if self.recorder is not None:  # recording hook: copies into a ring, never blocks
+            self.recorder.push(t1, self.inputs, self.outputs)
         return False
 
     def _score(self, now: float) -> None:

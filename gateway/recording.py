@@ -436,6 +436,8 @@ class RecordingWriter:
         if table.shape[0]:
             self._write(format_rows(table))
             self.rows += table.shape[0]
+            if self._fh is self._raw:  # plain CSV: the rows are on disk or the write failed
+                self._fh.flush()
 
     def close(self) -> None:
         try:

@@ -448,6 +448,7 @@ class Plant:
                 image.velocity_m_s[:] = v
                 image.length_m[:] = cur.length[i]
                 image.pose[:] = cur.pose[i]
+                image.platform_mass_kg = float(cur.mass[i])
                 image.plc_heartbeat = (image.plc_heartbeat + 1) & 0xFFFF
                 image.true_tension_n[:] = tp
                 image.time_s = t
