@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import gzip
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
+from gateway.config import DEFAULT_CONFIG_PATH
 from gateway.errors import RecordingError
 from gateway.recording import Recording, read_recording, write_recording
 
@@ -210,3 +212,52 @@ def test_writer_writes_missing_and_non_finite_as_empty_fields(tmp_path: Path) ->
     assert lines[3 + 2].endswith(",")  # metadata (2 lines), header, then rows
     back = read_recording(tmp_path / "r.csv")
     assert np.isnan(back.length[2:5, 0]).all() and back.samples == 12
+
+
+# --- hostile YAML (config for run, model file for diagnose) ---------------------------------
+def _alias_bomb(levels: int = 9) -> str:
+    lines = ["a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    for k in range(1, levels):
+        lines.append(f"a{k}: &a{k} [" + ", ".join([f"*a{k - 1}"] * 9) + "]")
+    return "\n".join(lines) + f"\nloop:\n  period_s: *a{levels - 1}\n"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (_alias_bomb(), r"line \d+, column \d+: not valid YAML: aliases expand to more than"),
+        ("loop: " + "[" * 50_000 + "]" * 50_000 + "\n", r"nested deeper than 100 levels"),
+        ("BOMB6", r"loop.period_s: expected a number, got \[\[1, 1, 1, 1, \.\.\.\], \[\["),
+    ],
+)
+def test_hostile_yaml_is_one_line_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, message: str
+) -> None:
+    from gateway.cli import main
+
+    path = tmp_path / "bomb.yaml"
+    if text == "BOMB6":  # 531441 values where a number is expected, in a full config
+        chain = ["&b0 [" + ", ".join(["1"] * 9) + "]"]
+        chain += [f"&b{k} [" + ", ".join([f"*b{k - 1}"] * 9) + "]" for k in range(1, 6)]
+        bomb = "[" + ", ".join(chain) + "]"
+        text = DEFAULT_CONFIG_PATH.read_text()
+        text = text.replace("\nloop:\n  period_s: 0.001\n", f"\nloop:\n  period_s: {bomb}\n", 1)
+        assert bomb in text
+    path.write_text(text)
+    assert main(["run", "--config", str(path), "--cycles", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and len(err) < 400
+    assert re.search(message, err), err
+    assert main(["diagnose", str(path), "--model", str(path), "--json", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and len(err) < 400
+
+
+def test_small_alias_use_is_still_accepted(tmp_path: Path) -> None:
+    from gateway.config import load_friction
+
+    path = tmp_path / "ok.yaml"
+    path.write_text(
+        "friction:\n  pulleys:\n    - &p {wrap_deg: 90.0, mu: 0.015}\n    - *p\n    - *p\n"
+    )
+    assert len(load_friction(path).pulleys) == 3
