@@ -50,7 +50,8 @@ MIN_STEP_S = 1e-6  # consecutive time stamps closer than this are refused (1 MHz
 MAX_ABS_TIME_S = 1e12  # Unix time stamps (~1.7e9 s) are fine
 MAX_ABS_VALUE = 1e9  # any other column: N, m, m/s, rad, kg
 CHUNK_ROWS = 8192
-_EMPTY_FIELD = re.compile(r"(?<=,)(?=,|$)|^(?=,)", re.MULTILINE)
+READ_BLOCK_CHARS = 1 << 22
+_TOO_LONG = f"line longer than {MAX_LINE_CHARS} characters"
 
 
 @dataclass
@@ -90,16 +91,28 @@ def _open_text(path: Path) -> IO[str]:
 
 
 def _lines(path: Path, fh: IO[str]) -> Iterator[tuple[int, str]]:
-    """(1-based line number, text) with a bounded line length."""
+    """(1-based line number, text without the newline), read in blocks of 4 MiB; a line
+    longer than ``MAX_LINE_CHARS`` is refused before more of it is read."""
     number = 0
+    carry = ""
     while True:
-        text = fh.readline(MAX_LINE_CHARS + 1)
-        if not text:
+        data = fh.read(READ_BLOCK_CHARS)
+        if not data:
+            if carry:
+                yield number + 1, carry
             return
-        number += 1
-        if len(text) > MAX_LINE_CHARS:
-            raise RecordingError(f"{path}:{number}: line longer than {MAX_LINE_CHARS} characters")
-        yield number, text
+        data = carry + data
+        cut = data.rfind("\n")
+        carry = data[cut + 1 :]
+        if len(carry) > MAX_LINE_CHARS:
+            raise RecordingError(f"{path}:{number + data.count(chr(10)) + 1}: {_TOO_LONG}")
+        lines = data[:cut].split("\n") if cut >= 0 else []
+        if lines and max(map(len, lines)) > MAX_LINE_CHARS:
+            at = next(i for i, x in enumerate(lines) if len(x) > MAX_LINE_CHARS)
+            raise RecordingError(f"{path}:{number + at + 1}: {_TOO_LONG}")
+        for text in lines:
+            number += 1
+            yield number, text
 
 
 def _split_header(
@@ -209,11 +222,23 @@ def _parse_careful(path: Path, body: list[str], line_of: list[int], names: list[
     return data
 
 
+def _fill_empty(text: str) -> str:
+    """Empty fields become ``nan`` (str.replace: C speed; a regex was 4x the parse)."""
+    if ",," in text:
+        text = text.replace(",,", ",nan,").replace(",,", ",nan,")  # twice: ',,,' runs
+    if ",\n" in text:
+        text = text.replace(",\n", ",nan\n")
+    if "\n," in text:
+        text = text.replace("\n,", "\nnan,")
+    return "nan" + text if text.startswith(",") else text
+
+
 def _parse_chunk(path: Path, body: list[str], line_of: list[int], names: list[str]) -> np.ndarray:
     """(rows, columns) float array; NaN for empty fields; errors name line and column."""
-    text = "".join(s if s.endswith("\n") else s + "\n" for s in body).replace("\r", "")
-    if "," in text:
-        text = _EMPTY_FIELD.sub("nan", text)
+    text = "\n".join(body) + "\n"
+    if "\r" in text:
+        text = text.replace("\r", "")
+    text = _fill_empty(text)
     try:
         data = np.loadtxt(io.StringIO(text), delimiter=",", dtype=float, ndmin=2)
         if data.shape == (len(body), len(names)):

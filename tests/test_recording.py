@@ -146,6 +146,7 @@ def _rows(n: int, t0: float = 0.0, dt: float = 1e-3) -> str:
         (f"{HEADER}\n" + _rows(1), r"too short: 1 samples, at least 10"),
         (f"{HEADER}\n" + _rows(2), r"too short: 2 samples"),
         ("# " + "x" * (1 << 20) + "\n", r":1: line longer than"),
+        (f"{HEADER}\n" + _rows(20) + "1" * (1 << 21) + "\n" + _rows(3), r":22: line longer than"),
     ],
 )
 def test_hostile_and_tiny_inputs_are_refused(tmp_path: Path, text: str, message: str) -> None:
@@ -182,6 +183,7 @@ def test_chunks_join_seamlessly(tmp_path: Path, monkeypatch: pytest.MonkeyPatch)
     import gateway.recording as recording
 
     monkeypatch.setattr(recording, "CHUNK_ROWS", 7)
+    monkeypatch.setattr(recording, "READ_BLOCK_CHARS", 333)  # blocks end mid-line
     rec = sample(100, 3)
     rec.tension_sensor[13, 2] = np.nan  # required: skipped
     rec.extra["status_1"] = np.arange(100.0)
