@@ -443,7 +443,7 @@ class RecordingWriter:
         self.bytes = 0
         raw: IO[bytes] = fileobj if fileobj is not None else open(self.path, "wb")  # noqa: SIM115
         self._raw = raw
-        self._fh: IO[bytes] = raw
+        self._fh: IO[bytes] | gzip.GzipFile = raw
         if self.path.suffix == ".gz":
             self._fh = gzip.GzipFile(
                 filename=self.path.name, mode="wb", fileobj=raw, compresslevel=6
