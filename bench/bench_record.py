@@ -14,16 +14,21 @@ time.
 from __future__ import annotations
 
 import os
+import queue
 import resource
+import subprocess
+import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver, start_recorder
-from gateway.demo import SoftPlc, with_port
+from gateway.demo import with_port
 from gateway.loop import CyclicService, Ring
 from gateway.recording import read_recording
 
@@ -58,12 +63,52 @@ def _report(title: str, service: CyclicService, wall: float, cpu: float) -> None
           f"cycle p50/p99 {_us(s.cycle_ring, 50, 99)}")  # fmt: skip
 
 
+class _Plc:
+    """``cdpr-gateway sim-plc --port 0`` with stderr to a file (an unread stderr pipe fills
+    up in a long run and stalls the soft PLC) and stdout drained by a thread."""
+
+    def __init__(self, config_path: str, log: IO[str]) -> None:
+        cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
+               "--port", "0"]  # fmt: skip
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, env=env)
+        assert self.proc.stdout is not None
+        out = self.proc.stdout
+        ready: queue.Queue[str] = queue.Queue()
+
+        def drain() -> None:
+            for line in out:
+                if line.startswith("sim-plc: serving"):
+                    ready.put(line.rsplit(" on ", 1)[1].strip())
+
+        threading.Thread(target=drain, daemon=True).start()
+        try:
+            address = ready.get(timeout=60)
+        except queue.Empty:
+            self.close()
+            raise RuntimeError("the soft PLC did not start") from None
+        host, _, port = address.rpartition(":")
+        self.host, self.port = host, int(port)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+
+
 def run() -> None:
     seconds = float(os.environ.get("BENCH_SECONDS", "600"))
     cfg = load_config()
     cycles = max(1, round(seconds / cfg.loop.period_s))
     print(f"  {seconds:.0f} s per run at {1 / cfg.loop.period_s:.0f} Hz, {cfg.cables} cables")
-    plc = SoftPlc(str(cfg.source), "modbus_tcp")
+    plc_log = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed in the finally below)
+    plc = _Plc(str(cfg.source), plc_log)
     try:
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
         plain = _one(live, cycles, None)
@@ -78,6 +123,7 @@ def run() -> None:
             rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     finally:
         plc.close()
+        plc_log.close()
     _report("without recording", *plain)
     _report("with recording   ", *recorded)
     rec = recorded[0].recorder
