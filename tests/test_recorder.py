@@ -230,3 +230,71 @@ def test_sigterm_leaves_a_valid_gzip(tmp_path: Path) -> None:
     back = read_recording(out)
     assert back.samples == pushed
     assert_allclose(back.tension_sensor[:, 0], np.arange(pushed), rtol=0)
+
+
+def _virtual_config(tmp_path: Path) -> Path:
+    from gateway.config import DEFAULT_CONFIG_PATH
+
+    text = DEFAULT_CONFIG_PATH.read_text().replace("driver: modbus_tcp", "driver: virtual", 1)
+    text = text.replace("\nmetrics:\n", "\nmetrics:\n  enabled: false\n", 1)
+    path = tmp_path / "virtual.yaml"
+    path.write_text(text)
+    return path
+
+
+def _rows_of(path: Path) -> tuple[list[str], np.ndarray]:
+    text = gzip.decompress(path.read_bytes()).decode()  # raises on a missing trailer
+    lines = [x for x in text.splitlines() if not x.startswith("#")]
+    header = lines[0].split(",")
+    assert all(len(x.split(",")) == len(header) for x in lines[1:])  # whole rows only
+    return header, np.array([float(x.split(",")[0]) for x in lines[1:]])
+
+
+def test_run_records_for_n_seconds(tmp_path: Path) -> None:
+    out = tmp_path / "run.csv.gz"
+    cfg = _virtual_config(tmp_path)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gateway.cli",
+            "run",
+            "--config",
+            str(cfg),
+            "--seconds",
+            "1",
+            "--record",
+            str(out),
+            "--log-level",
+            "WARNING",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0, proc.stderr
+    header, t = _rows_of(out)
+    assert header[:2] == ["t", "velocity_1"] and "tension_corrected_8" in header
+    assert "mass" not in header  # the virtual driver has no platform_mass register
+    assert t.size > 100 and np.all(np.diff(t) > 0) and t[-1] < 5.0
+    assert f"recorded {t.size} rows" in proc.stderr
+
+
+def test_run_sigterm_closes_the_recording(tmp_path: Path) -> None:
+    out = tmp_path / "term.csv.gz"
+    cfg = _virtual_config(tmp_path)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway.cli", "run", "--config", str(cfg), "--record", str(out)],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 30
+    while (not out.exists() or out.stat().st_size < 2000) and time.monotonic() < deadline:
+        time.sleep(0.1)  # the writer has written a few batches
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    _, t = _rows_of(out)
+    assert f"recorded {t.size} rows" in err and "dropped 0" in err
