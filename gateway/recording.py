@@ -46,6 +46,7 @@ MAX_LINE_CHARS = 1 << 20  # 1 MiB per line (header included)
 MAX_METADATA_LINES = 1000
 MIN_SAMPLES = 10  # fewer kept rows than this: "too short"
 DEFAULT_MAX_SAMPLES = 20_000_000  # 5.5 h at 1 kHz; read_recording(max_samples=...) to change
+MAX_VALUES = 250_000_000  # samples x columns: 16 bytes each while reading = 4 GB at most
 MIN_STEP_S = 1e-6  # consecutive time stamps closer than this are refused (1 MHz at most)
 MAX_ABS_TIME_S = 1e12  # Unix time stamps (~1.7e9 s) are fine
 MAX_ABS_VALUE = 1e9  # any other column: N, m, m/s, rad, kg
@@ -254,7 +255,7 @@ class _Reader:
     def __init__(self, path: Path, names: list[str], required: list[int], max_samples: int):
         self.path, self.names, self.required = path, names, required
         self.t_col = names.index("t")
-        self.max_samples = max_samples
+        self.max_samples = min(max_samples, MAX_VALUES // len(names))
         self.blocks: list[np.ndarray] = []
         self.kept = 0
         self.skipped = 0
@@ -277,7 +278,8 @@ class _Reader:
         if self.kept > self.max_samples:
             raise RecordingError(
                 f"{self.path}:{line_of[rows[-1]]}: more than {self.max_samples} samples "
-                "(the reader's max_samples limit)"
+                f"of {len(self.names)} columns (the reader's limits: max_samples, and "
+                f"{MAX_VALUES:.1e} values = {16 * MAX_VALUES / 1e9:.0f} GB to read)"
             )
         self.blocks.append(kept)
 

@@ -169,13 +169,18 @@ def test_huge_cable_index_is_refused_without_memory(tmp_path: Path) -> None:
     assert grown_kb < 50_000  # the old reader built 1e8-long lists here (> 3 GB)
 
 
-def test_max_samples_limit(tmp_path: Path) -> None:
+def test_max_samples_limit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import gateway.recording as recording
+
     path = tmp_path / "long.csv.gz"
     with gzip.open(path, "wt") as fh:
         fh.write(f"{HEADER}\n" + _rows(500))
     assert read_recording(path, max_samples=500).samples == 500
     with pytest.raises(RecordingError, match=r"more than 499 samples"):
         read_recording(path, max_samples=499)
+    monkeypatch.setattr(recording, "MAX_VALUES", 4 * 300)  # the memory bound: values
+    with pytest.raises(RecordingError, match=r"more than 300 samples of 4 columns"):
+        read_recording(path)
 
 
 def test_chunks_join_seamlessly(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
