@@ -299,3 +299,35 @@ def test_run_sigterm_closes_the_recording(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     _, t = _rows_of(out)
     assert f"recorded {t.size} rows" in err and "dropped 0" in err
+
+
+def test_soft_plc_serves_the_platform_mass_and_the_driver_reads_it() -> None:
+    from drivers.modbus_tcp import ModbusTcpDriver
+    from gateway.config import load_config
+    from tests.modbus_helpers import plc_server
+
+    cfg = load_config()
+    assert cfg.bus.modbus_tcp.registers.platform_mass is not None  # mapped by default.yaml
+    with plc_server(cfg=cfg) as (_, image, live):
+        image.platform_mass_kg = 37.25
+        inputs = Inputs.allocate(cfg.cables)
+        with ModbusTcpDriver(live) as drv:
+            drv.read_into(inputs)
+            assert inputs.platform_mass_kg == 37.25
+            image.platform_mass_kg = 36.5  # falling while it prints
+            drv.read_into(inputs)
+            assert inputs.platform_mass_kg == 36.5
+
+
+def test_the_plant_writes_a_falling_platform_mass() -> None:
+    from gateway.config import load_config
+    from sim_plc.image import ProcessImage
+    from sim_plc.plant import Plant
+
+    cfg = load_config()
+    plant, image = Plant(cfg), ProcessImage(cfg.cables)
+    masses = []
+    for _ in range(400):
+        plant.step(image)
+        masses.append(image.platform_mass_kg)
+    assert masses[0] > 0 and np.all(np.diff(masses) <= 0) and masses[-1] < masses[0]
