@@ -245,7 +245,7 @@ class Recorder:
         meta = dict(self.metadata)
         if path != Path(str(self.cfg.path)):
             meta["part"] = str(len(self.files))
-        self._writer = RecordingWriter(path, self.columns, meta, fileobj=raw)
+        self._writer = RecordingWriter(path, self.columns, meta, fileobj=raw, compresslevel=1)
         self._good_bytes = self._writer.bytes
         self._opened_at = self._clock()
         self.files.append(path)
