@@ -1,12 +1,13 @@
 """Recording throughput: the 1 kHz loop with and without ``--record``, side by side.
 
-``python -m bench record`` (``BENCH_SECONDS`` shortens the default 600 s per run). One
+``python -m bench record`` (``BENCH_SECONDS`` shortens the default 600 s per kind). One
 soft PLC subprocess (``cdpr-gateway sim-plc``, Modbus TCP on loopback, the default config
-with ``platform_mass`` mapped) serves both runs; the gateway runs in this process, first
-without a recorder, then with one writing ``.csv.gz`` to a temporary directory (the
-default ``record:`` settings). Printed per run: cycles, overruns, jitter p50/p99/p99.9,
-cycle p50/p99; for the recorded run: rows written, samples dropped, file size, the
-recorder's CPU share, and the file read back with ``gateway.recording.read_recording``
+with ``platform_mass`` mapped, stderr to a file) serves every run; the gateway runs in
+this process, without a recorder and with one (writing ``.csv.gz`` to a temporary
+directory, default ``record:`` settings) in alternating halves, so that a drifting load on
+a shared machine hits both kinds alike. Printed per kind: cycles, overruns, jitter
+p50/p99/p99.9, cycle p50/p99, CPU; for the recording: rows written, samples dropped, file
+size, the extra CPU, and the file read back with ``gateway.recording.read_recording``
 (samples, time to read, the reader's peak RSS growth). Figures only: nothing asserts on
 time.
 """
@@ -21,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
@@ -29,38 +31,51 @@ import numpy as np
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver, start_recorder
 from gateway.demo import with_port
-from gateway.loop import CyclicService, Ring
+from gateway.loop import CyclicService
+from gateway.recorder import Recorder
 from gateway.recording import read_recording
 
-
-def _us(ring: Ring, *qs: float) -> str:
-    data = ring.recent()
-    return " / ".join(f"{v * 1e6:.0f}" for v in np.percentile(data, qs)) + " us"
+HALVES = 2  # each kind runs in this many parts, alternating, against drifting load
 
 
-def _one(cfg: Config, cycles: int, record: str | None) -> tuple[CyclicService, float, float]:
-    """One run of ``cycles``; returns the service, wall s and CPU s of this process."""
-    service = CyclicService(cfg, build_driver(cfg), history=cycles + 16)
-    service.recorder = start_recorder(cfg, record) if record else None
-    u0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-    try:
+@dataclass
+class _Runs:
+    """The figures of the runs of one kind (without or with recording), summed."""
+
+    cycles: int = 0
+    overruns: int = 0
+    errors: int = 0
+    wall: float = 0.0
+    cpu: float = 0.0
+    jitter: list[np.ndarray] = field(default_factory=list)
+    cycle: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, cfg: Config, cycles: int, recorder: Recorder | None) -> None:
+        service = CyclicService(cfg, build_driver(cfg), history=cycles + 16)
+        service.recorder = recorder
+        u0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
         service.run(cycles=cycles)
-    finally:
-        if service.recorder is not None:
-            service.recorder.close()
-    u1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-    cpu = u1.ru_utime + u1.ru_stime - u0.ru_utime - u0.ru_stime
-    return service, w1 - w0, cpu
+        u1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        self.cpu += u1.ru_utime + u1.ru_stime - u0.ru_utime - u0.ru_stime
+        self.wall += w1 - w0
+        s = service.stats
+        self.cycles += s.cycles
+        self.overruns += s.overruns
+        self.errors += sum(s.errors.values())
+        self.jitter.append(s.jitter_ring.recent().copy())
+        self.cycle.append(s.cycle_ring.recent().copy())
 
+    def report(self, title: str) -> None:
+        def us(parts: list[np.ndarray], *qs: float) -> str:
+            data = np.concatenate(parts)
+            return " / ".join(f"{v * 1e6:.0f}" for v in np.percentile(data, qs)) + " us"
 
-def _report(title: str, service: CyclicService, wall: float, cpu: float) -> None:
-    s = service.stats
-    print(f"  {title}: {wall:.1f} s, CPU {100 * cpu / wall:.0f} % of one core")
-    print(f"    cycles {s.cycles} (written {s.written}), overruns {s.overruns} "
-          f"({100 * s.overruns / max(s.cycles, 1):.3f} %), skipped {s.skipped}, "
-          f"errors {sum(s.errors.values())}")  # fmt: skip
-    print(f"    jitter p50/p99/p99.9 {_us(s.jitter_ring, 50, 99, 99.9)}; "
-          f"cycle p50/p99 {_us(s.cycle_ring, 50, 99)}")  # fmt: skip
+        print(f"  {title}: {self.wall:.1f} s, CPU {100 * self.cpu / self.wall:.0f} % of one core")
+        share = 100 * self.overruns / max(self.cycles, 1)
+        print(f"    cycles {self.cycles}, overruns {self.overruns} ({share:.3f} %), "
+              f"errors {self.errors}")  # fmt: skip
+        print(f"    jitter p50/p99/p99.9 {us(self.jitter, 50, 99, 99.9)}; "
+              f"cycle p50/p99 {us(self.cycle, 50, 99)}")  # fmt: skip
 
 
 class _Plc:
@@ -106,15 +121,23 @@ def run() -> None:
     seconds = float(os.environ.get("BENCH_SECONDS", "600"))
     cfg = load_config()
     cycles = max(1, round(seconds / cfg.loop.period_s))
-    print(f"  {seconds:.0f} s per run at {1 / cfg.loop.period_s:.0f} Hz, {cfg.cables} cables")
+    print(f"  {seconds:.0f} s per kind at {1 / cfg.loop.period_s:.0f} Hz, {cfg.cables} cables, "
+          f"in {2 * HALVES} alternating runs (without, with, without, ...)")  # fmt: skip
+    plain, recorded = _Runs(), _Runs()
     plc_log = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed in the finally below)
     plc = _Plc(str(cfg.source), plc_log)
     try:
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
-        plain = _one(live, cycles, None)
         with tempfile.TemporaryDirectory(prefix="bench-record-") as tmp:
             out = Path(tmp) / "bench.csv.gz"
-            recorded = _one(live, cycles, str(out))
+            rec = start_recorder(live, str(out))
+            assert rec is not None
+            try:
+                for _ in range(HALVES):
+                    plain.add(live, cycles // HALVES, None)
+                    recorded.add(live, cycles // HALVES, rec)
+            finally:
+                rec.close()
             size = out.stat().st_size
             rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
             t0 = time.perf_counter()
@@ -124,17 +147,14 @@ def run() -> None:
     finally:
         plc.close()
         plc_log.close()
-    _report("without recording", *plain)
-    _report("with recording   ", *recorded)
-    rec = recorded[0].recorder
-    assert rec is not None
+    plain.report("without recording")
+    recorded.report("with recording   ")
     print(f"    recorded {rec.rows_written} rows x {len(rec.columns)} columns, dropped "
           f"{rec.dropped}, {size / 1e6:.1f} MB gzip ({size / max(rec.rows_written, 1):.0f} "
           f"B/row){', FAILED: ' + rec.failed if rec.failed else ''}")  # fmt: skip
-    extra_cpu = recorded[2] / recorded[1] - plain[2] / plain[1]
-    print(f"    recording costs {100 * extra_cpu:+.1f} % of one core")
-    o0, o1 = plain[0].stats.overruns, recorded[0].stats.overruns
-    print(f"  overruns with/without recording: {o1} / {o0}")
+    extra = recorded.cpu / recorded.wall - plain.cpu / plain.wall
+    print(f"    recording costs {100 * extra:+.1f} % of one core")
+    print(f"  overruns with/without recording: {recorded.overruns} / {plain.overruns}")
     print(f"  read back: {back.samples} samples, {back.cables} cables, mass "
           f"{'yes' if back.mass is not None else 'no'}, {took:.1f} s, peak RSS growth "
           f"{max(0, rss1 - rss0) / 1024:.0f} MB (process peak {rss1 / 1024:.0f} MB)")  # fmt: skip
