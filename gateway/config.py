@@ -209,10 +209,14 @@ class RegisterMap:
     gateway_heartbeat: RegisterField = RegisterField(124, 1, "uint16")
     gateway_state: RegisterField = RegisterField(125, 1, "uint16")
     wrench: RegisterField = RegisterField(126, 6, "float32")
+    platform_mass: RegisterField | None = None  # optional: the platform mass (kg), count 1
 
     def inputs(self) -> dict[str, RegisterField]:
         names = ("raw_tensions", "setpoint_velocities", "setpoint_lengths", "pose", "plc_heartbeat")
-        return {n: getattr(self, n) for n in names}
+        found = {n: getattr(self, n) for n in names}
+        if self.platform_mass is not None:
+            found["platform_mass"] = self.platform_mass
+        return found
 
     def outputs(self) -> dict[str, RegisterField]:
         names = (
@@ -317,6 +321,33 @@ class LimitsConfig:
         require(self.workspace_margin_m >= 0, "workspace_margin_m must be >= 0")
 
 
+RECORD_KINDS = (
+    "velocity", "tension_sensor", "length", "pose", "mass", "tension_corrected", "status",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """The ``record:`` config section; ``path`` None: no recording unless ``--record``."""
+
+    path: str | None = None
+    rotate_bytes: int | None = None  # a new file after this many bytes of CSV text
+    rotate_s: float | None = None  # a new file after this many seconds
+    columns: tuple[str, ...] = RECORD_KINDS
+    buffer_rows: int = 65536  # ring size: 65 s at 1 kHz of disk stall before drops
+    batch_s: float = 0.1  # the writer drains the ring this often
+
+    def __post_init__(self) -> None:
+        require(
+            self.rotate_bytes is None or self.rotate_bytes >= 4096, "rotate_bytes must be >= 4096"
+        )
+        require(self.rotate_s is None or self.rotate_s >= 1.0, "rotate_s must be >= 1")
+        unknown = [c for c in self.columns if c not in RECORD_KINDS]
+        require(not unknown, f"columns: unknown {unknown[:1]} (known: {', '.join(RECORD_KINDS)})")
+        require(16 <= self.buffer_rows <= 1 << 24, "buffer_rows must be in 16..16777216")
+        require(0.001 <= self.batch_s <= 10.0, "batch_s must be in 0.001..10")
+
+
 @dataclass(frozen=True)
 class Config:
     geometry: GeometryConfig
@@ -327,6 +358,7 @@ class Config:
     bus: BusConfig = field(default_factory=BusConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
     source: str = ""
 
