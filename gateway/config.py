@@ -118,7 +118,7 @@ class FrictionConfig:
         require(self.viscous_ns_m >= 0, "viscous_ns_m must be >= 0")
         require(self.pulley_radius_m > 0, "pulley_radius_m must be > 0")
         for name, params in self.effects.items():
-            sizes = {len(v) for v in params.values() if isinstance(v, tuple)}
+            sizes = {len(v) for v in params.values() if isinstance(v, tuple | list)}
             if len(sizes) > 1:
                 raise ValueError(f"effects.{name}: per-cable lists of different lengths")
             effect_values({name: params}, sizes.pop() if sizes else 1, self.pulley_radius_m)
@@ -148,7 +148,7 @@ class FrictionConfig:
         }
         if self.effects:
             out["effects"] = {
-                name: {k: (list(v) if isinstance(v, tuple) else v) for k, v in params.items()}
+                name: {k: (list(v) if isinstance(v, tuple | list) else v) for k, v in params.items()}
                 for name, params in self.effects.items()
             }
         return out

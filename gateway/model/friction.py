@@ -80,6 +80,21 @@ def coulomb_gain(
 
 
 @njit(cache=True, inline="always")
+def dahl_step_slope(f: float, f_r: float, dx: float, sigma: float) -> tuple[float, float]:
+    """The exact ``beta = 1`` Dahl step and its slope ``dF'/dF_R`` (``F_R > 0``, ``dx != 0``).
+
+    ``F' = s F_R + (F - s F_R) exp(-k)``, ``k = sigma |dx| / F_R``, ``s = sgn(dx)``.
+    The slope is what the compensation's Newton iteration needs (``F_R`` depends on the
+    tension being solved for).
+    """
+    s = 1.0 if dx > 0.0 else -1.0
+    k = sigma * abs(dx) / f_r
+    e = math.exp(-k)
+    rest = f - s * f_r
+    return s * f_r + rest * e, s * (1.0 - e) + rest * e * k / f_r
+
+
+@njit(cache=True, inline="always")
 def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> float:
     """One exact step of the Dahl model (eq. 14) over cable travel ``dx`` (m).
 
@@ -96,9 +111,9 @@ def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> flo
     s = 1.0 if dx > 0.0 else -1.0
     if f_r <= FR_FLOOR_N:
         return 0.0
-    k = sigma * abs(dx) / f_r
     if beta == 1.0:
-        return s * f_r + (f - s * f_r) * math.exp(-k)
+        return dahl_step_slope(f, f_r, dx, sigma)[0]
+    k = sigma * abs(dx) / f_r
     z = 1.0 - s * f / f_r
     a = abs(z)
     if a == 0.0:
