@@ -148,7 +148,9 @@ class FrictionConfig:
         }
         if self.effects:
             out["effects"] = {
-                name: {k: (list(v) if isinstance(v, tuple | list) else v) for k, v in params.items()}
+                name: {
+                    k: (list(v) if isinstance(v, tuple | list) else v) for k, v in params.items()
+                }
                 for name, params in self.effects.items()
             }
         return out

@@ -387,6 +387,8 @@ class ChainStepper:
         self._in[0] = tension
         self._vel[0] = velocity
         self._dt[0] = self.period_s if dt < 0.0 else dt
-        self.iterations = self._kernel(self._p, self._in, self._vel, self._dt, self.state, self._out)
+        self.iterations = self._kernel(
+            self._p, self._in, self._vel, self._dt, self.state, self._out
+        )
         out[:] = self._out[0]
         return self.iterations

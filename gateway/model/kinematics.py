@@ -167,7 +167,9 @@ def cable_velocities_batch(
 
 def cable_velocities_from_structure(a_mats: ArrayLike, twists: ArrayLike) -> FloatArray:
     """``dL/dt = -A^T @ twist`` from structure matrices (N, 6, m) already computed."""
-    return -np.einsum("nim,ni->nm", np.asarray(a_mats, dtype=float), np.asarray(twists, dtype=float))
+    return -np.einsum(
+        "nim,ni->nm", np.asarray(a_mats, dtype=float), np.asarray(twists, dtype=float)
+    )
 
 
 def cable_velocities(
