@@ -44,6 +44,7 @@ from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.config import Config
 from gateway.model import effects as fx
 from gateway.model.chain import ChainStepper
+from gateway.model.fastcall import entry_point
 from gateway.model.statics import wrench_into
 
 FLAG_NAN = 1
@@ -175,10 +176,28 @@ class Compensator:
         self.friction_n = np.full(m, np.nan)  # corrected - used: the whole correction
         self.wrench = np.full(6, np.nan)
         self._velocity_prev = np.zeros(m)
+        self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
+        self._length_in = np.zeros(m)
+        self._pose_in = np.zeros(6)
         self._stepped_at = math.nan
         self._last_read_time = math.nan
         self._fresh_at = -math.inf
         self.flag_events = 0  # channels that went from good to flagged (errors{invalid_value})
+        # compiled entries on the own buffers (no per-call type dispatch; fastcall.py)
+        self._validate = entry_point(
+            _validate, self.limits, self.channels, self.raw_n, self._velocity_in, 0.0, False
+        )
+        self._online = entry_point(
+            fx.online_inputs_into, self.online, self.used_n, self.velocity_m_s,
+            self._velocity_prev, 0.0, self._length_in, self.model_in_n,
+        )  # fmt: skip
+        self._finish = entry_point(
+            _finish, self.corrected_n, self.used_n, self.status, self.friction_n
+        )
+        self._wrench = entry_point(
+            wrench_into, self.frame_anchors, self.platform_anchors, self._pose_in,
+            self.corrected_n, self.wrench,
+        )  # fmt: skip
 
     @property
     def stuck_after_s(self) -> float:
@@ -197,26 +216,29 @@ class Compensator:
         if inputs.read_time_s != self._last_read_time:
             self._last_read_time = inputs.read_time_s
             self._fresh_at = now_s
-        stale = now_s - self._fresh_at > self.stale_after_s
+        now = float(now_s)
+        stale = bool(now - self._fresh_at > self.stale_after_s)
         self.raw_n[:] = inputs.tension_raw_n
-        self.flag_events += _validate(
-            self.limits, self.channels, inputs.tension_raw_n, inputs.velocity_m_s, now_s, stale
+        self._velocity_in[:] = inputs.velocity_m_s
+        self._length_in[:] = inputs.length_m
+        self._pose_in[:] = inputs.pose
+        self.flag_events += self._validate(
+            self.limits, self.channels, self.raw_n, self._velocity_in, now, stale
         )
-        dt = now_s - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
+        dt = now - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
         dt = dt if dt > 0.0 else 0.0
-        self._stepped_at = now_s
-        fx.online_inputs_into(
+        self._stepped_at = now
+        self._online(
             self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
-            inputs.length_m, self.model_in_n,
+            self._length_in, self.model_in_n,
         )  # fmt: skip
         self._velocity_prev[:] = self.velocity_m_s
         self.stepper.step(self.model_in_n, self.velocity_m_s, self.corrected_n, dt)
-        any_invalid = _finish(self.corrected_n, self.used_n, self.status, self.friction_n)
-        if any_invalid:
+        if self._finish(self.corrected_n, self.used_n, self.status, self.friction_n):
             self.wrench[:] = np.nan
         else:
-            wrench_into(
-                self.frame_anchors, self.platform_anchors, inputs.pose, self.corrected_n,
+            self._wrench(
+                self.frame_anchors, self.platform_anchors, self._pose_in, self.corrected_n,
                 self.wrench,
             )  # fmt: skip
         out.tension_corrected_n[:] = self.corrected_n

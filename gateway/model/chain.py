@@ -41,6 +41,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numba import njit
 
+from gateway.model.fastcall import entry_point
 from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step, dahl_step_slope
 
 MODEL_CODES = {"none": 0, "coulomb": 1, "dahl": 2}
@@ -372,8 +373,11 @@ class ChainStepper:
         self._vel = np.zeros((1, m))
         self._out = np.zeros((1, m))
         self._dt = np.array([self.period_s])
-        self._kernel = compensate_kernel if forward else simulate_kernel
         self._p = kernel_params(params, tol_n, max_iter)
+        self._kernel = entry_point(
+            compensate_kernel if forward else simulate_kernel,
+            self._p, self._in, self._vel, self._dt, self.state, self._out,
+        )  # fmt: skip
 
     def reset(self) -> None:
         """Relax every pulley (e.g. after a long outage when the real state is unknown)."""
@@ -386,7 +390,7 @@ class ChainStepper:
         return the Newton passes (0 when simulating)."""
         self._in[0] = tension
         self._vel[0] = velocity
-        self._dt[0] = self.period_s if dt < 0.0 else dt
+        self._dt[0] = self.period_s if dt < 0.0 else dt  # own buffers: types fixed
         self.iterations = self._kernel(
             self._p, self._in, self._vel, self._dt, self.state, self._out
         )
