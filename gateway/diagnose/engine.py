@@ -139,8 +139,8 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     n = d.t.size
     if nom.model == "none" or nom.mu.size == 0 or n < 2:
         return np.ones(n, bool)
-    lam_pos, lam_neg = coulomb_coefficients(chain_params(nom, {}))
-    lam = float(max(np.max(lam_pos), np.max(lam_neg)))
+    lam_pos, lam_neg = coulomb_coefficients(chain_params(nom, {}))  # the model's lambda
+    lam = float(np.max(0.5 * (lam_pos + lam_neg)))  # mean of the two directions
     f_r = lam * float(np.percentile(np.abs(d.tp), 99))
     travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(d.x)))))
     first = int(np.searchsorted(travel, WARMUP_LENGTHS * f_r / nom.sigma_n_m))
