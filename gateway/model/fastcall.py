@@ -20,4 +20,4 @@ def entry_point(dispatcher: Any, *args: Any) -> Callable[..., Any]:
     """The compiled entry of ``dispatcher`` for the types of ``args`` (see module doc)."""
     sig = tuple(numba.typeof(a) for a in args)
     dispatcher.compile(sig)
-    return dispatcher.overloads[sig].entry_point  # type: ignore[no-any-return]
+    return dispatcher.overloads[sig].entry_point
