@@ -300,3 +300,43 @@ def test_friction_config_effects_round_trip(tmp_path) -> None:
         "drift": {"k_n_s": 0.0},
     }
     assert not math.isnan(back.sigma_n_m)
+
+
+@pytest.mark.parametrize("with_inertia", [False, True])
+def test_gateway_with_the_plants_hidden_effects_recovers_the_platform_tension(
+    with_inertia: bool,
+) -> None:
+    """The same effects hidden in the soft PLC's plant and written into the gateway's
+    ``friction.effects`` cancel: plant and gateway read every parameter the same way."""
+    from sim_plc.plant import PlantModel, sensor_batch
+    from tests.plant_helpers import cyclic_config
+
+    hidden = {
+        "coulomb": {"mu": [0.02, 0.015, 0.01, 0.015, 0.025, 0.015, 0.015, 0.02], "f0_n": 1.0},
+        "viscous": {"c_ns_m": 4.0},
+        "stribeck": {"k": 0.4, "v_s_m_s": 0.01},
+        "inertia": {"m_eff_kg": 3.0},
+        "gain": {"g": [0.01, -0.02, 0.0, 0.0, 0.005, 0.0, 0.0, 0.0]},
+        "offset": {"c_n": 1.5},
+        "eccentricity": {"a_n": 0.8, "r_m": 0.04, "phi_rad": 0.3},
+    }
+    if not with_inertia:
+        del hidden["inertia"]
+    cfg = cyclic_config(hidden, friction={"model": "dahl"})
+    model = PlantModel(cfg)
+    t = np.arange(3000) * 1e-3
+    sp = model.setpoints(t)
+    reading = sensor_batch(model, sp, np.zeros_like(sp.velocity))  # analog, noise off
+    gw = dataclasses.replace(cfg.friction, effects=hidden)
+    values = gw.effect_values(8)
+    params = fx.chain_params(gw, values, 8)
+    online = fx.online_effects(values, 8, gw.pulley_radius_m)
+    back = fx.compensate_online(params, online, t, reading, sp.velocity, sp.length)
+    raw_err = np.max(np.abs(reading - sp.tension_true)[1:])
+    err = np.max(np.abs(back - sp.tension_true)[1:])
+    assert raw_err > 5.0  # the effects are large
+    if not with_inertia:
+        assert err < 1e-8
+    else:  # the gateway's backward difference against the truth's central difference
+        gap = 3.0 * np.abs(fx.acceleration(t, sp.velocity) - fx.causal_acceleration(t, sp.velocity))
+        assert 1e-4 < err <= 1.1 * np.max(gap[1:])
