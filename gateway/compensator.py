@@ -1,4 +1,4 @@
-"""Per-cycle compensation: validate -> substitute -> Dahl step -> corrected tensions, wrench.
+"""Per-cycle compensation: validate -> substitute -> fitted effects -> chain -> tensions, wrench.
 
 One :class:`Compensator` holds every buffer and state the cycle needs, allocated at
 construction; :meth:`Compensator.step` allocates nothing (numba kernels and in-place
@@ -26,10 +26,20 @@ a made-up number as if it were good, and a PLC that ignores the status word sees
 plausible value. The Dahl model keeps stepping on invalid channels with the last good value
 (or 0 N if none) so its state stays finite and follows the setpoint motion.
 
-Then the Dahl chain (``ChainStepper``, sensor -> platform) with the setpoint velocities
-gives the corrected platform tensions ``T_p``; the friction estimate is ``T_p - T_s`` (the
-sensor value fed to the model); the platform wrench is ``w = -A(pose) T_p`` (forward
-statics, physics.md sec. 1) at the pose setpoint.
+Then the fitted effects of the config's ``friction.effects`` that a causal per-cycle model
+can undo are removed (:func:`gateway.model.effects.online_inputs_into`: offset and gain,
+inertia from the backward difference of the setpoint velocity over the time since the last
+step, eccentricity from the setpoint length), and the chain (``ChainStepper``, sensor ->
+platform; nominal friction plus the fitted Coulomb ``mu``/``f0``, pre-sliding, viscous and
+Stribeck via :func:`gateway.model.effects.chain_params`) with the setpoint velocities gives
+the corrected platform tensions ``T_p``. Delay, low-pass and drift are not compensated
+(docs/physics.md says why). :attr:`Compensator.friction_n` is ``T_p`` minus the sensor value
+fed to the model (the whole correction); the platform wrench is ``w = -A(pose) T_p``
+(forward statics, docs/physics.md sec. 1) at the pose setpoint.
+
+The kernels take structured state (:class:`Limits`, :class:`ChannelState`,
+``OnlineEffects``, ``KernelParams``) and are called through their compiled entry points
+(:mod:`gateway.model.fastcall`) on the compensator's own buffers.
 """
 
 from __future__ import annotations
