@@ -257,83 +257,6 @@ def make_recording(
     )
 
 
-class _StepEffects:
-    """Per-sample forms of ``effects.apply_path_effects`` and ``apply_sensor_effects``.
-
-    They reproduce the batch functions sample by sample (same formulas: ``np.gradient``'s
-    second-order differences with one sample of look-ahead, eccentricity on the cable
-    length, the first-order-hold low-pass, linear interpolation for the delay). Not causal
-    (the truth may look ahead one sample); the gateway's causal forms are
-    :func:`gateway.model.effects.online_inputs_into`.
-    """
-
-    def __init__(self, eff: effects.PathSensorEffects, cables: int, period_s: float):
-        def arr(x: object) -> np.ndarray:
-            return np.broadcast_to(np.asarray(x, dtype=float), (cables,)).copy()
-
-        self.m_eff, self.ecc_a = arr(eff.inertia_kg), arr(eff.eccentricity_a_n)
-        self.ecc_r, self.ecc_phi = arr(eff.eccentricity_r_m), arr(eff.eccentricity_phi_rad)
-        self.gain, self.offset = arr(eff.gain), arr(eff.offset_n)
-        self.drift, self.tau = arr(eff.drift_n_s), arr(eff.lowpass_tau_s)
-        self.delay = arr(eff.delay_s)
-        self.has_inertia, self.has_ecc = bool(np.any(self.m_eff)), bool(np.any(self.ecc_a))
-        self.has_lowpass, self.has_delay = bool(np.any(self.tau > 0)), bool(np.any(self.delay))
-        size = math.ceil(float(self.delay.max(initial=0.0)) / period_s) + 3
-        self.hist_t, self.hist_y = np.zeros(size), np.zeros((size, cables))
-        self.t0 = 0.0
-        self.lp_in, self.lp_out = np.zeros(cables), np.zeros(cables)
-
-    def path(
-        self, k: int, t3: np.ndarray, v3: np.ndarray, length: np.ndarray, ts: np.ndarray
-    ) -> np.ndarray:
-        """``t3`` (3,), ``v3`` (3, m): previous, current, next sample; ``length``, ``ts``
-        (m,): the current cable length (eccentricity's ``x``) and sensor tension."""
-        if self.has_inertia:
-            if k == 0:
-                acc = (v3[2] - v3[1]) / (t3[2] - t3[1])
-            else:
-                dx1, dx2 = t3[1] - t3[0], t3[2] - t3[1]
-                a = -(dx2) / (dx1 * (dx1 + dx2))
-                b = (dx2 - dx1) / (dx1 * dx2)
-                c = dx1 / (dx2 * (dx1 + dx2))
-                acc = a * v3[0] + b * v3[1] + c * v3[2]
-            ts = ts - self.m_eff * acc
-        if self.has_ecc:
-            ts = ts + self.ecc_a * np.sin(length / self.ecc_r + self.ecc_phi)
-        return ts
-
-    def sensor(self, k: int, t: float, ts: np.ndarray) -> np.ndarray:
-        if k == 0:
-            self.t0 = t
-        out = (1.0 + self.gain) * ts
-        out = out + self.offset + self.drift * (t - self.t0)
-        if self.has_lowpass:
-            y = out
-            if k == 0:
-                self.lp_out = y.copy()
-            else:
-                dt = t - self.hist_t[-1]
-                on = self.tau > 0.0
-                tau = np.where(on, self.tau, 1.0)
-                a = 1.0 - np.exp(-dt / tau)
-                slope = (y - self.lp_in) / dt
-                filt = y - tau * slope + (self.lp_out - self.lp_in + tau * slope) * (1 - a)
-                self.lp_out = np.where(on, filt, y)
-            self.lp_in = y
-            out = self.lp_out
-        if k == 0:
-            self.hist_t[:] = t - np.arange(self.hist_t.size)[::-1] * 1.0
-            self.hist_y[:] = out
-        else:
-            self.hist_t[:-1], self.hist_y[:-1] = self.hist_t[1:], self.hist_y[1:]
-            self.hist_t[-1], self.hist_y[-1] = t, out
-        if self.has_delay:
-            out = np.array(
-                [np.interp(t - d, self.hist_t, self.hist_y[:, i]) for i, d in enumerate(self.delay)]
-            )
-        return out
-
-
 class Plant:
     """Per-cycle plant: ``step()`` advances one period and writes the PLC inputs.
 
@@ -357,7 +280,7 @@ class Plant:
         self.k = 0
         self.rng = np.random.default_rng(m.sim.seed)
         self.stepper = chain.ChainStepper(m.params, self.period_s, forward=False)
-        self.fx = _StepEffects(m.effects, m.cables, self.period_s)
+        self.fx = effects.ForwardStepper(m.effects, m.cables, self.period_s)
         self._cur = m.setpoints(self._times(0))
         self._nxt = m.prepare(self._times(1))
         self._solved = 0

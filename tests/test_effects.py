@@ -340,3 +340,27 @@ def test_gateway_with_the_plants_hidden_effects_recovers_the_platform_tension(
     else:  # the gateway's backward difference against the truth's central difference
         gap = 3.0 * np.abs(fx.acceleration(t, sp.velocity) - fx.causal_acceleration(t, sp.velocity))
         assert 1e-4 < err <= 1.1 * np.max(gap[1:])
+
+
+def test_forward_per_sample_form_equals_the_batch_form() -> None:
+    """The plant's per-sample path and sensor effects against the batch forms (uniform
+    samples; the per-sample inertia looks one sample ahead like ``np.gradient``)."""
+    m, n, dt = 3, 800, 1e-3
+    t = np.arange(n) * dt
+    v = 0.05 * np.sin(3.0 * t[:, None] + np.arange(m))
+    length = 2.0 + np.cumsum(v, axis=0) * dt
+    ts = 200.0 + 30.0 * np.sin(5.0 * t[:, None] + np.arange(m))
+    eff = fx.PathSensorEffects(
+        inertia_kg=np.array([2.0, 0.0, 1.0]), eccentricity_a_n=0.4, eccentricity_r_m=0.03,
+        eccentricity_phi_rad=0.2, gain=np.array([0.01, 0.0, -0.02]), offset_n=0.5,
+        drift_n_s=0.3, lowpass_tau_s=np.array([0.004, 0.0, 0.01]),
+        delay_s=np.array([0.0025, 0.004, 0.0]),
+    )  # fmt: skip
+    batch = fx.apply_sensor_effects(t, fx.apply_path_effects(t, v, ts, eff, length), eff)
+    step = fx.ForwardStepper(eff, m, dt)
+    t3, v3 = np.zeros(3), np.zeros((3, m))
+    for k in range(n - 1):
+        t3[:2], v3[:2] = t3[1:], v3[1:]
+        t3[1:], v3[1], v3[2] = (t[k], t[k + 1]), v[k], v[k + 1]
+        got = step.sensor(k, t[k], step.path(k, t3, v3, length[k], ts[k]))
+        assert_allclose(got, batch[k], rtol=0, atol=1e-9, err_msg=f"sample {k}")

@@ -20,6 +20,7 @@ import numpy as np
 
 from gateway.model.chain import ChainParams, ModelName, compensate
 from gateway.model.effects.forms import (
+    ForwardStepper,
     OnlineEffects,
     PathSensorEffects,
     acceleration,
@@ -53,6 +54,7 @@ __all__ = [
     "REGISTRY",
     "Effect",
     "Effects",
+    "ForwardStepper",
     "OnlineEffects",
     "Param",
     "PathSensorEffects",

@@ -55,24 +55,24 @@ def delay(t: np.ndarray, y: np.ndarray, d_s: float | np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def lowpass_step_into(y_prev, y, out_prev, dt, tau, out):
+    """One step of ``1 / (tau s + 1)`` for every column: exact for an input that moves
+    linearly from ``y_prev`` to ``y`` over ``dt`` (first-order hold). ``tau <= 0`` or
+    ``dt <= 0``: the input passes. Arrays (m,); ``out`` may be ``out_prev``."""
+    for i in range(y.size):
+        if tau[i] > 0.0 and dt > 0.0:
+            keep = math.exp(-dt / tau[i])
+            slope = (y[i] - y_prev[i]) / dt
+            out[i] = y[i] - tau[i] * slope + (out_prev[i] - y_prev[i] + tau[i] * slope) * keep
+        else:
+            out[i] = y[i]
+
+
+@njit(cache=True)
 def _lowpass_kernel(t, y, tau, out):
-    n, m = y.shape
-    for i in range(m):
-        out[0, i] = y[0, i]
-    for k in range(1, n):
-        dt = t[k] - t[k - 1]
-        for i in range(m):
-            a = 1.0 - math.exp(-dt / tau[i]) if tau[i] > 0.0 else 1.0
-            # exact for an input that moves linearly between samples (first-order hold)
-            if tau[i] > 0.0 and dt > 0.0:
-                slope = (y[k, i] - y[k - 1, i]) / dt
-                out[k, i] = (
-                    y[k, i]
-                    - tau[i] * slope
-                    + (out[k - 1, i] - y[k - 1, i] + tau[i] * slope) * (1 - a)
-                )
-            else:
-                out[k, i] = y[k, i]
+    out[0] = y[0]
+    for k in range(1, y.shape[0]):
+        lowpass_step_into(y[k - 1], y[k], out[k - 1], t[k] - t[k - 1], tau, out[k])
 
 
 def lowpass(t: np.ndarray, y: np.ndarray, tau_s: float | np.ndarray) -> np.ndarray:
@@ -136,6 +136,78 @@ def apply_sensor_effects(
     if np.any(np.asarray(eff.delay_s) != 0):
         out = delay(t, out, eff.delay_s)
     return out
+
+
+class ForwardStepper:
+    """Per-sample forms of :func:`apply_path_effects` and :func:`apply_sensor_effects`
+    (the soft PLC's plant runs them cycle by cycle).
+
+    They reproduce the batch functions sample by sample (same formulas: ``np.gradient``'s
+    second-order differences with one sample of look-ahead, eccentricity on the cable
+    length, the first-order-hold low-pass, linear interpolation for the delay). Not causal
+    (the truth may look ahead one sample); the gateway's causal forms are
+    :func:`online_inputs_into`.
+    """
+
+    def __init__(self, eff: PathSensorEffects, cables: int, period_s: float):
+        def arr(x: object) -> np.ndarray:
+            return np.broadcast_to(np.asarray(x, dtype=float), (cables,)).copy()
+
+        self.m_eff, self.ecc_a = arr(eff.inertia_kg), arr(eff.eccentricity_a_n)
+        self.ecc_r, self.ecc_phi = arr(eff.eccentricity_r_m), arr(eff.eccentricity_phi_rad)
+        self.gain, self.offset = arr(eff.gain), arr(eff.offset_n)
+        self.drift, self.tau = arr(eff.drift_n_s), arr(eff.lowpass_tau_s)
+        self.delay = arr(eff.delay_s)
+        self.has_inertia, self.has_ecc = bool(np.any(self.m_eff)), bool(np.any(self.ecc_a))
+        self.has_lowpass, self.has_delay = bool(np.any(self.tau > 0)), bool(np.any(self.delay))
+        size = math.ceil(float(self.delay.max(initial=0.0)) / period_s) + 3
+        self.hist_t, self.hist_y = np.zeros(size), np.zeros((size, cables))
+        self.t0 = 0.0
+        self.lp_in, self.lp_out = np.zeros(cables), np.zeros(cables)
+
+    def path(
+        self, k: int, t3: np.ndarray, v3: np.ndarray, length: np.ndarray, ts: np.ndarray
+    ) -> np.ndarray:
+        """``t3`` (3,), ``v3`` (3, m): previous, current, next sample; ``length``, ``ts``
+        (m,): the current cable length (eccentricity's ``x``) and sensor tension."""
+        if self.has_inertia:
+            if k == 0:
+                acc = (v3[2] - v3[1]) / (t3[2] - t3[1])
+            else:
+                dx1, dx2 = t3[1] - t3[0], t3[2] - t3[1]
+                a = -(dx2) / (dx1 * (dx1 + dx2))
+                b = (dx2 - dx1) / (dx1 * dx2)
+                c = dx1 / (dx2 * (dx1 + dx2))
+                acc = a * v3[0] + b * v3[1] + c * v3[2]
+            ts = ts - self.m_eff * acc
+        if self.has_ecc:
+            ts = ts + self.ecc_a * np.sin(length / self.ecc_r + self.ecc_phi)
+        return ts
+
+    def sensor(self, k: int, t: float, ts: np.ndarray) -> np.ndarray:
+        if k == 0:
+            self.t0 = t
+        out = (1.0 + self.gain) * ts
+        out = out + self.offset + self.drift * (t - self.t0)
+        if self.has_lowpass:
+            if k == 0:
+                self.lp_out[:] = out
+            else:
+                dt = t - self.hist_t[-1]
+                lowpass_step_into(self.lp_in, out, self.lp_out, dt, self.tau, self.lp_out)
+            self.lp_in[:] = out
+            out = self.lp_out.copy()
+        if k == 0:
+            self.hist_t[:] = t - np.arange(self.hist_t.size)[::-1] * 1.0
+            self.hist_y[:] = out
+        else:
+            self.hist_t[:-1], self.hist_y[:-1] = self.hist_t[1:], self.hist_y[1:]
+            self.hist_t[-1], self.hist_y[-1] = t, out
+        if self.has_delay:
+            out = np.array(
+                [np.interp(t - d, self.hist_t, self.hist_y[:, i]) for i, d in enumerate(self.delay)]
+            )
+        return out
 
 
 class OnlineEffects(NamedTuple):
