@@ -195,7 +195,8 @@ def effect_values(
         vals = {}
         for prm in eff.params:
             default = pulley_radius_m if prm.name == "r_m" else prm.default
-            v = _values(params.get(prm.name, default), size, f"{key}.{prm.name}")
+            given = params.get(prm.name)  # absent or null: the default
+            v = _values(default if given is None else given, size, f"{key}.{prm.name}")
             if prm.name != "mu" and not np.all(np.isfinite(v)):
                 raise ValueError(f"{key}.{prm.name}: values must be finite")
             reason = prm.check(v)
