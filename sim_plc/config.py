@@ -134,7 +134,9 @@ class EffectsConfig:
 def _effects(raw: dict[str, Any], cables: int, radius: float, src: str) -> EffectsConfig:
     declared, on = {}, {}
     for name, params in raw.items():
-        params = dict(params or {}) if isinstance(params, dict) else params
+        if params is None:  # named without parameters: off, as before
+            params = {"enabled": False}
+        params = dict(params) if isinstance(params, dict) else params
         if not isinstance(params, dict):
             raise ConfigError(f"{src}: sim_plc.effects.{name}: expected a mapping")
         enabled = params.pop("enabled", True)
