@@ -147,8 +147,9 @@ REGISTRY: dict[str, Effect] = {
 }
 EFFECT_NAMES: tuple[str, ...] = tuple(REGISTRY)
 CHAIN_EFFECTS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.stage == "chain")
-ONLINE_EFFECTS = ("coulomb", "presliding", "viscous", "stribeck", "inertia", "gain", "offset",
-                  "eccentricity")  # fmt: skip
+ONLINE_EFFECTS: tuple[str, ...] = tuple(
+    n for n, e in REGISTRY.items() if e.online.startswith("yes")
+)
 """Effects the gateway's per-cycle compensation applies."""
 
 
