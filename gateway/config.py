@@ -19,6 +19,8 @@ from typing import Any, Literal
 
 from gateway.configtypes import convert, read_yaml, require
 from gateway.errors import ConfigError
+from gateway.model.effects.registry import Effects, effect_values
+from gateway.model.effects.registry import to_mapping as effects_to_mapping
 from gateway.resources import data_file, resolve_beside
 
 Vec3 = tuple[float, float, float]
@@ -86,9 +88,20 @@ class PulleyConfig:
         require(0 <= self.mu < 1, "mu must be in 0..1")
 
 
+EffectParams = dict[str, float | tuple[float, ...]]
+
+
 @dataclass(frozen=True)
 class FrictionConfig:
-    """The pulley friction model (recording.md, 'The nominal model file')."""
+    """The pulley friction model (recording.md, 'The nominal model file').
+
+    ``effects``: optional fitted effects (what ``diagnose --write-model`` writes), by the
+    ids and parameter names of the effects registry (:mod:`gateway.model.effects`), each
+    parameter a scalar for every cable or a list with one value per cable, e.g.
+    ``effects: {viscous: {c_ns_m: 0.4}, offset: {c_n: [0.3, -0.2, ...]}}``. Unknown effects
+    or parameters are errors naming the key; list lengths are checked against the cable
+    count where the geometry is known (:class:`Config`, :meth:`effect_values`).
+    """
 
     model: Literal["none", "coulomb", "dahl"] = "dahl"
     pulleys: tuple[PulleyConfig, ...] = (
@@ -100,12 +113,18 @@ class FrictionConfig:
     beta: float = 1.0
     viscous_ns_m: float = 0.0
     pulley_radius_m: float = 0.05
+    effects: dict[str, EffectParams] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         require(self.sigma_n_m > 0, "sigma_n_m must be > 0")
         require(self.beta > 0, "beta must be > 0")
         require(self.viscous_ns_m >= 0, "viscous_ns_m must be >= 0")
         require(self.pulley_radius_m > 0, "pulley_radius_m must be > 0")
+        for name, params in self.effects.items():
+            sizes = {len(v) for v in params.values() if isinstance(v, tuple | list)}
+            if len(sizes) > 1:
+                raise ValueError(f"effects.{name}: per-cable lists of different lengths")
+            effect_values({name: params}, sizes.pop() if sizes else 1, self.pulley_radius_m)
 
     @property
     def wrap_rad(self) -> tuple[float, ...]:
@@ -114,6 +133,38 @@ class FrictionConfig:
     @property
     def mu(self) -> tuple[float, ...]:
         return tuple(p.mu for p in self.pulleys)
+
+    def effect_values(self, cables: int) -> Effects:
+        """The fitted effects as per-cable arrays (ValueError naming the key if a list
+        does not have ``cables`` values)."""
+        return effect_values(self.effects, cables, self.pulley_radius_m, "friction.effects")
+
+    def to_mapping(self) -> dict[str, Any]:
+        """The ``friction:`` mapping as YAML would hold it (``load_friction`` reads it back)."""
+        out: dict[str, Any] = {
+            "model": self.model,
+            "pulleys": [{"wrap_deg": p.wrap_deg, "mu": p.mu} for p in self.pulleys],
+            "sigma_n_m": self.sigma_n_m,
+            "beta": self.beta,
+            "viscous_ns_m": self.viscous_ns_m,
+            "pulley_radius_m": self.pulley_radius_m,
+        }
+        if self.effects:
+            out["effects"] = {
+                name: {
+                    k: (list(v) if isinstance(v, tuple | list) else v) for k, v in params.items()
+                }
+                for name, params in self.effects.items()
+            }
+        return out
+
+    @staticmethod
+    def effects_mapping(values: Effects) -> dict[str, EffectParams]:
+        """Per-cable arrays -> the ``effects`` field's form (scalar where cables agree)."""
+        return {
+            name: {k: (tuple(v) if isinstance(v, list) else v) for k, v in params.items()}
+            for name, params in effects_to_mapping(values).items()
+        }
 
 
 @dataclass(frozen=True)
@@ -361,6 +412,13 @@ class Config:
     record: RecordConfig = field(default_factory=RecordConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+
+    def __post_init__(self) -> None:
+        fr = self.friction
+        try:
+            effect_values(fr.effects, self.cables, fr.pulley_radius_m, "effects")
+        except ValueError as exc:
+            raise ValueError(f"friction: {exc}") from None
 
     @property
     def cables(self) -> int:
