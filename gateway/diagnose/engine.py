@@ -26,11 +26,20 @@ Progress = Callable[[str], None]
 
 
 def nominal_from(friction: FrictionConfig) -> Nominal:
-    """The per-cable nominal chain of a friction config."""
+    """The per-cable nominal chain of a friction config.
+
+    A model without pulleys (a single-axis rig: ``friction: {model: none, pulleys: []}``)
+    gets one virtual pulley without wrap or friction (``lambda = 0``), so that the candidate
+    ``coulomb`` has a place for its load-independent ``f0`` (its ``mu`` is then not fitted).
+    """
+    wrap = np.asarray(friction.wrap_rad, dtype=float)
+    mu = np.asarray(friction.mu, dtype=float)
+    if wrap.size == 0:
+        wrap, mu = np.zeros(1), np.zeros(1)
     return Nominal(
         model=friction.model,
-        wrap_rad=np.asarray(friction.wrap_rad, dtype=float),
-        mu=np.asarray(friction.mu, dtype=float),
+        wrap_rad=wrap,
+        mu=mu,
         sigma_n_m=friction.sigma_n_m,
         beta=friction.beta,
         viscous_ns_m=friction.viscous_ns_m,

@@ -90,9 +90,12 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
 
     if effect == "coulomb":
         mu0 = nom.mu_mean if nom.model != "none" else 0.0
+        # no wrap anywhere (a rig without pulleys): only f0 acts, mu is held at 0
+        mu_hi = 0.5 if np.any(nom.wrap_rad > 0) else 1e-6
+        lin_idx = (0, 1) if mu_hi > 1e-3 else (1,)
         # f0 >= 0: seals, brushes and preload only ever add friction (nominal f0 is 0)
         return Spec(
-            a([mu0, 0.0]), a([0.0, 0.0]), a([0.5, INF]), (0, 1), a([1e-3, 0.1]), (a([mu0, 0.0]),)
+            a([mu0, 0.0]), a([0.0, 0.0]), a([mu_hi, INF]), lin_idx, a([1e-3, 0.1]), (a([mu0, 0.0]),)
         )
     if effect == "presliding":
         s0 = math.log10(nom.sigma_n_m) if nom.model == "dahl" else 7.0

@@ -149,6 +149,7 @@ def build_report(
         "baseline": {
             "rmse_n": _rmse(resid0),
             "per_cable_rmse_n": [_rmse(resid0[:, i]) for i in range(rec.cables)],
+            "holdout_rmse_n": _rmse(resid0, test),
         },
         "mismatch": [r.__dict__ for r in regions],
         "regime_shares": {
