@@ -176,8 +176,6 @@ def _motion(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> tuple[np.nd
 def _effects(fo: Foreign, t, v, x, ts) -> np.ndarray:
     e = fo.effects
     a = np.gradient(v, t)
-    if "viscous" in e:
-        ts = ts - e["viscous"]["c_ns_m"] * v
     if "inertia" in e:
         ts = ts - e["inertia"]["m_eff_kg"] * a
     if "eccentricity" in e:
@@ -261,7 +259,10 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
     for i in range(1, fo.cables + 1):
         v, tp, x = _motion(fo, fine, rng)
         st = fo.effects.get("stribeck", {"k": 0.0, "v_s_m_s": 0.01})
-        ts = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
+        # viscous bearing friction at the platform end of the path (docs/physics.md: the
+        # last pulley's tension is T_p - c v), then the pulleys towards the sensor
+        tn = tp - fo.effects.get("viscous", {}).get("c_ns_m", 0.0) * v
+        ts = _chain(tn, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
         ts = _effects(fo, fine, v, x, ts)
         sens = np.interp(ts_out, fine, ts) + _noise(fo, ts_out, rng)
         if fo.noise in ("quant", "mixed"):
