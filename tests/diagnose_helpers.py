@@ -310,7 +310,9 @@ def run_foreign(fo: Foreign, nominal: str | None = None, pulleys=None, validate:
 
     fr = FrictionConfig(
         model=nominal or fo.model,  # type: ignore[arg-type]
-        pulleys=tuple(PulleyConfig(w, mu) for w, mu in (fo.pulleys if pulleys is None else pulleys)),
+        pulleys=tuple(
+            PulleyConfig(w, mu) for w, mu in (fo.pulleys if pulleys is None else pulleys)
+        ),
         sigma_n_m=fo.sigma_n_m,
     )
     validation = None

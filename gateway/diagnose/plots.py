@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from gateway.diagnose.engine import Diagnosis
+from gateway.diagnose.report import Diagnosis
 
 MAX_POINTS = 20000
 
@@ -129,6 +129,16 @@ def summary(diag: Diagnosis, source: str) -> str:
             "the recording holds a mismatch that none of the candidate effects explains (see "
             "where the residual lives, below), or noise that is not white."
         )
+    clip = rep.get("clipped", {})
+    for i, (count, levels) in enumerate(
+        zip(clip.get("per_cable", []), clip.get("levels_n", []), strict=False), 1
+    ):
+        if count:
+            lines.append(
+                f"Cable {i}: {count} readings ({count / rep['samples']:.1%}) sit at the sensor's "
+                f"saturation level ({', '.join(f'{x:.4g} N' for x in levels)}): clipped, "
+                "excluded from the fit and from every RMSE."
+            )
     lines.append("")
     if not rep["findings"]:
         lines += [
