@@ -63,7 +63,7 @@ CASES = (
     ),
     Case(
         "offset_drift_cancel",
-        Foreign(seconds=30.0, effects={"offset": {"c_n": 0.45}, "drift": {"k_n_s": -0.03}}),
+        Foreign(model="coulomb", effects={"offset": {"c_n": 0.45}, "drift": {"k_n_s": -0.03}}),
         {"offset": {"c_n": (0.45, 0.2, 0.05)}, "drift": {"k_n_s": (-0.03, 0.2, 0.0)}},
         note="3: offset and drift cancel in the mean",
     ),

@@ -179,7 +179,9 @@ def _run_chain(
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            dx = dx_in[k, i] if dx_in.shape[0] else v * dt[k]
+            # Dahl steps its state over the travel since the previous sample; Coulomb acts
+            # with the sign of the velocity at the sample
+            dx = dx_in[k, i] if dx_in.shape[0] and model == 2 else v * dt[k]
             if model == 0:
                 out[k, i] = t_in[k, i] + visc[i] * v if forward else t_in[k, i] - visc[i] * v
                 continue
