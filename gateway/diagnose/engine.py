@@ -25,8 +25,8 @@ from gateway.diagnose.prepare import (  # noqa: F401 - re-exported
     time_blocks,
     velocity_noise,
 )
-from gateway.diagnose.report import Diagnosis, build_report
-from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds
+from gateway.diagnose.report import Diagnosis, build_report, validation_forwards
+from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds, drop_unvalidated
 from gateway.errors import RecordingError
 from gateway.recording import Recording
 
@@ -156,6 +156,8 @@ def diagnose(
     for i, (mask, levels) in enumerate(clips):
         if levels:
             say(f"cable {i + 1}: {int(mask.sum())} clipped readings excluded")
+    vsel = validation_forwards(validation, nom, rec.cables)
+    vblocks = None if vsel is None else time_blocks(vsel[0][0].data.t)
     outcomes, forwards = [], []
     for i, d in enumerate(datas):
         fw = Forward(d, nom)
@@ -174,10 +176,18 @@ def diagnose(
                 sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th, usable=usable & warm[idx]
             ).run()
             outcome = refit_full(fw, outcome, (blocks % 2 == 0) & warm)
+        if vsel is not None and vblocks is not None:
+            vfw, vvalid = vsel
+            outcome, dropped = drop_unvalidated(
+                fw, vfw[i], vvalid[:, i], *vblocks, outcome, (blocks % 2 == 0) & warm, th
+            )
+            if dropped:
+                say(f"cable {i + 1}: {', '.join(dropped)} did not lower the validation error")
+            vfw[i].clear_cache()
         say(f"cable {i + 1}/{rec.cables}: kept {', '.join(outcome.kept) or 'nothing'}")
         fw.clear_cache()
         outcomes.append(outcome)
         forwards.append(fw)
     clipped = {"per_cable": [int((~valid[:, i]).sum()) for i in range(rec.cables)],
                "levels_n": [c[1] for c in clips]}  # fmt: skip
-    return build_report(rec, forwards, outcomes, blocks, validation, nom, valid, clipped)
+    return build_report(rec, forwards, outcomes, blocks, vsel, nom, valid, clipped)

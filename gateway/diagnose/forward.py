@@ -203,8 +203,7 @@ class Forward:
         tp = d.tp
         if "mass_change" in eff and d.dtp_dm is not None:
             tp = tp + float(eff["mass_change"][0]) * (d.t - d.t0) * d.dtp_dm
-        dx = np.diff(d.x, prepend=d.x[:1])[:, None]  # exact travel per sample (uneven t)
-        out = simulate(chain_params(self.nom, eff), tp[:, None], d.v[:, None], d.t, dx=dx)[:, 0]
+        out = simulate(chain_params(self.nom, eff), tp[:, None], d.v[:, None], d.t)[:, 0]
         self.simulations += 1
         if len(self._cache) >= self._cache_size:
             self._cache.pop(next(iter(self._cache)))

@@ -41,7 +41,14 @@ def residual_plot(diag: Diagnosis, path: Path) -> None:
                 ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
         ax.set_ylabel(f"cable {i + 1}\nresidual (N)")
     axes[0, 0].legend(loc="upper right", fontsize=8)
-    axes[0, 0].set_title("measured - simulated sensor reading (shaded: located regions)")
+    axes[0, 0].set_title(
+        "measured - simulated sensor reading "
+        + (
+            "(shaded: located regions)"
+            if diag.regions
+            else "(no concentrated region: the residual is spread evenly)"
+        )
+    )
     axes[-1, 0].set_xlabel("t (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -172,7 +179,15 @@ def summary(diag: Diagnosis, source: str) -> str:
     ]
     for name, s in rep["regime_shares"].items():
         lines.append(f"| {name} | {s['energy']:.1%} | {s['samples']:.1%} |")
-    lines += ["", "Largest regions (shaded in the residual plot):", ""]
+    if rep["mismatch"]:
+        lines += ["", "Largest regions (shaded in the residual plot):", ""]
+    else:
+        lines += [
+            "",
+            "No region concentrates the residual (no stretch holds more than twice the mean "
+            "residual energy): the mismatch is spread over the whole recording, as a "
+            "constant, slowly varying or speed-proportional one is; nothing is shaded.",
+        ]
     for r in rep["mismatch"][:8]:
         lines.append(
             f"- cable {r['cable']}, {r['start_s']:.2f}-{r['end_s']:.2f} s, "

@@ -70,7 +70,7 @@ def _order(forwards, outcomes, measured, valid) -> list[str]:
     return sorted(effects, key=lambda e: worth[e], reverse=True)
 
 
-def _validation_forwards(validation, nom: Nominal, cables: int):
+def validation_forwards(validation, nom: Nominal, cables: int):
     """The validation recording's forwards and its valid (unclipped) samples, or None."""
     if validation is None:
         return None
@@ -124,8 +124,9 @@ def build_report(
     valid: np.ndarray | None = None,
     clipped: dict | None = None,
 ) -> Diagnosis:
-    """The report dict and the arrays behind it; ``valid`` (N, m): samples scored (False:
-    a clipped reading), ``clipped``: their counts and levels per cable."""
+    """The report dict and the arrays behind it; ``validation``: the validation recording's
+    forwards and valid samples (:func:`validation_forwards`) or None; ``valid`` (N, m):
+    samples scored (False: a clipped reading), ``clipped``: their counts and levels."""
     measured = np.column_stack([fw.data.ts for fw in forwards])
     valid = np.ones(measured.shape, bool) if valid is None else valid
     test = (blocks % 2 == 1)[:, None] & valid
@@ -133,7 +134,7 @@ def build_report(
     resid0 = np.where(valid, measured - nominal_pred, 0.0)
     regime = np.column_stack([locate.regimes(fw.data.v, fw.data.a) for fw in forwards])
     regions = locate.regions(rec.t, resid0, regime)
-    vfw, vvalid = _validation_forwards(validation, nom, rec.cables) or (None, None)
+    vfw, vvalid = validation or (None, None)
     vmeas = None if vfw is None else np.column_stack([fw.data.ts for fw in vfw])
     order = _order(forwards, outcomes, measured, valid)
 

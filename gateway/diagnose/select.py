@@ -394,3 +394,57 @@ class CableSelector:
             if rows:
                 result[effect] = rows
         return result
+
+
+def drop_unvalidated(
+    fw: Forward,
+    vfw: Forward,
+    vvalid: np.ndarray,
+    vblocks: np.ndarray,
+    n_vblocks: int,
+    outcome: CableOutcome,
+    train: np.ndarray,
+    th: Thresholds,
+) -> tuple[CableOutcome, list[str]]:
+    """Drop the kept effects that do not lower the error on the validation recording.
+
+    ``vfw``: the same cable of a second recording of the machine (never fitted).
+    Every kept effect, with the parameters fitted here, must lower the validation SSE
+    against the model without it by ``rel_min`` and by ``z_holdout`` standard errors
+    (:func:`holdout_z` over the validation's time blocks); the weakest failing one is
+    dropped, the rest refitted on ``train``, until all pass. Returns the outcome and the
+    dropped effects."""
+    dropped: list[str] = []
+    ts = vfw.data.ts
+    while outcome.kept:
+        full = vfw.predict(outcome.theta)
+        r_full = np.where(vvalid, ts - full, 0.0)
+        sse_full = np.bincount(vblocks, weights=r_full**2, minlength=n_vblocks)
+        worst, worst_z = None, math.inf
+        for effect in outcome.kept:
+            rest = {k: v for k, v in outcome.theta.items() if k != effect}
+            red = vfw.predict(rest)
+            r_red = np.where(vvalid, ts - red, 0.0)
+            sse_red = np.bincount(vblocks, weights=r_red**2, minlength=n_vblocks)
+            cross = np.bincount(
+                vblocks, weights=np.where(vvalid, r_full * (full - red), 0.0), minlength=n_vblocks
+            )
+            z = holdout_z(sse_red, sse_full, cross)
+            gain = float(sse_red.sum() - sse_full.sum())
+            ok = z >= th.z_holdout and gain >= th.rel_min * float(sse_red.sum())
+            if not ok and z < worst_z:
+                worst, worst_z = effect, z
+        if worst is None:
+            break
+        dropped.append(worst)
+        keep = [e for e in outcome.kept if e != worst]
+        theta = {e: outcome.theta[e] for e in keep}
+        specs = {e: outcome.specs[e] for e in keep}
+        stderr = {e: outcome.stderr[e] for e in keep}
+        if theta:
+            stride = max(1, int(train.sum()) // 150_000)
+            fit = joint_fit(fw, theta, specs, train, max_nfev=30, stride=stride)
+            theta, stderr = fit.theta, fit.stderr
+        rivals = {e: r for e, r in outcome.rivals.items() if e in keep}
+        outcome = CableOutcome(keep, theta, stderr, specs, rivals, outcome.tried)
+    return outcome, dropped

@@ -162,13 +162,12 @@ def _pulley(t_b, lam, f0p, strib, f_old, dx, sigma, beta, model):
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
 def _run_chain(
-    forward, t_in, vel, dt, dx_in, lam_pos, lam_neg, f0, sk, svs, visc, sigma, beta, model, f_state,
+    forward, t_in, vel, dt, lam_pos, lam_neg, f0, sk, svs, visc, sigma, beta, model, f_state,
     tol, max_iter, out,
 ):  # fmt: skip
     """Kernel: ``forward`` sensor->platform (compensate) else platform->sensor (simulate).
 
-    ``t_in``, ``vel``, ``out``: (N, m); ``dt``: (N,); ``dx_in``: (N, m) cable travel per
-    sample (m), or (0, m) for ``vel * dt``; ``lam_pos``, ``lam_neg``: (m, n)
+    ``t_in``, ``vel``, ``out``: (N, m); ``dt``: (N,); ``lam_pos``, ``lam_neg``: (m, n)
     Coulomb coefficients for v > 0 and v < 0; ``f_state``: (m, n) in/out.
     Returns the largest number of Newton passes any pulley needed (0 when simulating:
     that direction is explicit).
@@ -179,9 +178,7 @@ def _run_chain(
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            # Dahl steps its state over the travel since the previous sample; Coulomb acts
-            # with the sign of the velocity at the sample
-            dx = dx_in[k, i] if dx_in.shape[0] and model == 2 else v * dt[k]
+            dx = v * dt[k]
             if model == 0:
                 out[k, i] = t_in[k, i] + visc[i] * v if forward else t_in[k, i] - visc[i] * v
                 continue
@@ -261,7 +258,6 @@ def _run_batch(
     state: np.ndarray | None,
     tol_n: float,
     max_iter: int,
-    dx: np.ndarray | None = None,
 ) -> np.ndarray:
     t_in = np.ascontiguousarray(tension, dtype=float)
     vel = np.ascontiguousarray(velocity, dtype=float)
@@ -274,9 +270,7 @@ def _run_batch(
     out = np.empty_like(t_in)
     lam_pos, lam_neg = coulomb_coefficients(params)
     _run_chain(
-        forward, t_in, vel, _time_steps(t, t_in.shape[0]),
-        np.zeros((0, t_in.shape[1])) if dx is None else np.ascontiguousarray(dx, dtype=float),
-        lam_pos, lam_neg,
+        forward, t_in, vel, _time_steps(t, t_in.shape[0]), lam_pos, lam_neg,
         params.f0_n, params.stribeck_k, params.stribeck_v_m_s, params.viscous_ns_m,
         params.sigma_n_m, params.beta, MODEL_CODES[params.model], f_state, tol_n, max_iter, out,
     )  # fmt: skip
@@ -291,19 +285,13 @@ def simulate(
     state: np.ndarray | None = None,
     tol_n: float = 1e-10,
     max_iter: int = 20,
-    dx: np.ndarray | None = None,
 ) -> np.ndarray:
     """Sensor reading (N, m) from platform tension and cable velocity, both (N, m).
 
     ``t``: sample times (N,) in s, or a constant period. ``state`` (m, n): friction
-    state carried in and updated in place (relaxed if None). ``dx`` (N, m): the cable
-    travel since the previous sample (m; e.g. the trapezoid of the velocity over the actual
-    time stamps), which steps the friction state instead of ``velocity * dt`` (exact on
-    uneven sampling); the velocity still drives viscous and Stribeck terms.
+    state carried in and updated in place (relaxed if None).
     """
-    if dx is not None and np.shape(dx) != np.shape(tension_platform):
-        raise ValueError(f"dx: expected shape {np.shape(tension_platform)}, got {np.shape(dx)}")
-    return _run_batch(params, False, tension_platform, velocity, t, state, tol_n, max_iter, dx)
+    return _run_batch(params, False, tension_platform, velocity, t, state, tol_n, max_iter)
 
 
 def compensate(
@@ -342,7 +330,6 @@ class ChainStepper:
         self._vel = np.zeros((1, m))
         self._out = np.zeros((1, m))
         self._dt = np.array([float(period_s)])
-        self._no_dx = np.zeros((0, m))
         self._lam_pos, self._lam_neg = coulomb_coefficients(params)
         self._model = MODEL_CODES[params.model]
         self._tol = float(tol_n)
@@ -358,7 +345,7 @@ class ChainStepper:
         self._vel[0] = velocity
         p = self.params
         self.iterations = _run_chain(
-            self.forward, self._in, self._vel, self._dt, self._no_dx, self._lam_pos, self._lam_neg, p.f0_n,
+            self.forward, self._in, self._vel, self._dt, self._lam_pos, self._lam_neg, p.f0_n,
             p.stribeck_k,
             p.stribeck_v_m_s, p.viscous_ns_m, p.sigma_n_m, p.beta, self._model, self.state,
             self._tol, self._max_iter, self._out,
