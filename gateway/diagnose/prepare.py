@@ -12,6 +12,7 @@ from gateway.config import FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.errors import RecordingError
+from gateway.model import effects as fx
 from gateway.recording import Recording
 
 
@@ -62,25 +63,26 @@ def deadband(v: np.ndarray) -> np.ndarray:
     """
     noise = velocity_noise(v)
     if v.size == 0 or noise <= 1e-4 * float(np.percentile(np.abs(v), 95)):
-        return v.copy()  # a clean setpoint (numerical roughness only)
+        return v  # a clean setpoint (numerical roughness only); never written to
     return np.where(np.abs(v) < VELOCITY_DEADBAND_SIGMAS * noise, 0.0, v)
 
 
 def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None) -> list[CableData]:
     """One :class:`CableData` per cable; ``tp``, ``dtp_dm``: (N, m); velocity through
-    :func:`deadband`."""
+    :func:`deadband`.
+
+    Memory: the tensions and a clean velocity are views of the recording's columns (not
+    copies); displacement and acceleration cost 16 bytes per sample and cable (float32
+    would halve that but moves the finite-difference fits of eccentricity and inertia)."""
     t0 = float(rec.t[0])
-    return [
-        CableData(
-            rec.t,
-            deadband(rec.velocity[:, i]),
-            tp[:, i].copy(),
-            rec.tension_sensor[:, i].copy(),
-            t0,
-            None if dtp_dm is None else dtp_dm[:, i].copy(),
-        )
-        for i in range(rec.cables)
-    ]
+    out = []
+    for i in range(rec.cables):
+        v = deadband(rec.velocity[:, i])
+        x = fx.displacement(rec.t, v)
+        a = fx.acceleration(rec.t, v) if rec.t.size > 1 else np.zeros_like(v)
+        dm = None if dtp_dm is None else dtp_dm[:, i]
+        out.append(CableData(rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm, x, a))
+    return out
 
 
 def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None):

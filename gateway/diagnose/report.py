@@ -49,7 +49,13 @@ def _rmse(res: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 
 def _preds(forwards: list[Forward], thetas: list[dict]) -> np.ndarray:
-    return np.column_stack([fw.predict(th) for fw, th in zip(forwards, thetas, strict=True)])
+    """Predictions (N, m), filled cable by cable; each cable's chain cache is freed after
+    use (a few (N,) arrays per cable would otherwise stay alive for the whole report)."""
+    out = np.empty((forwards[0].data.t.size, len(forwards)))
+    for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
+        out[:, i] = fw.predict(th)
+        fw.clear_cache()
+    return out
 
 
 def _subset(outcomes: list[CableOutcome], effects: list[str]) -> list[dict]:
@@ -57,16 +63,33 @@ def _subset(outcomes: list[CableOutcome], effects: list[str]) -> list[dict]:
     return [{e: o.theta[e] for e in effects if e in o.theta} for o in outcomes]
 
 
-def _order(forwards, outcomes, measured, valid) -> list[str]:
+def _sse(forwards: list[Forward], thetas: list[dict], masks: list[np.ndarray]):
+    """Per mask (N, m) bool: sum of squared residuals and sample count over every cable,
+    computed cable by cable (no (N, m) temporaries)."""
+    sse, count = np.zeros(len(masks)), np.zeros(len(masks))
+    for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
+        r = fw.data.ts - fw.predict(th)
+        fw.clear_cache()
+        for j, mask in enumerate(masks):
+            rr = r[mask[:, i]]
+            sse[j] += float(rr @ rr)
+            count[j] += rr.size
+    return sse, count
+
+
+def _rmses(forwards, thetas, masks) -> list[float]:
+    sse, count = _sse(forwards, thetas, masks)
+    return [math.sqrt(s / c) if c else 0.0 for s, c in zip(sse, count, strict=True)]
+
+
+def _order(forwards, outcomes, valid) -> list[str]:
     """Effects ordered by the residual energy they explain in the final model (drop-one)."""
     effects = sorted({e for o in outcomes for e in o.kept})
-    full = _preds(forwards, _subset(outcomes, effects))
-    base = float(np.sum((measured - full)[valid] ** 2))
+    base = _sse(forwards, _subset(outcomes, effects), [valid])[0][0]
     worth = {}
     for e in effects:
         others = [x for x in effects if x != e]
-        resid = measured - _preds(forwards, _subset(outcomes, others))
-        worth[e] = float(np.sum(resid[valid] ** 2)) - base
+        worth[e] = _sse(forwards, _subset(outcomes, others), [valid])[0][0] - base
     return sorted(effects, key=lambda e: worth[e], reverse=True)
 
 
@@ -105,7 +128,9 @@ def noise_estimate(resid: np.ndarray) -> float:
     robust to the slow part of the residual and to outliers; RMS over the cables."""
     if resid.shape[0] < 3:
         return 0.0
-    per = np.median(np.abs(np.diff(resid, axis=0)), axis=0) / 0.6745 / math.sqrt(2.0)
+    per = np.array([np.median(np.abs(np.diff(resid[:, i]))) for i in range(resid.shape[1])]) / (
+        0.6745 * math.sqrt(2.0)
+    )
     return float(math.sqrt(np.mean(per**2)))
 
 
@@ -127,24 +152,23 @@ def build_report(
     """The report dict and the arrays behind it; ``validation``: the validation recording's
     forwards and valid samples (:func:`validation_forwards`) or None; ``valid`` (N, m):
     samples scored (False: a clipped reading), ``clipped``: their counts and levels."""
-    measured = np.column_stack([fw.data.ts for fw in forwards])
+    measured = rec.tension_sensor
     valid = np.ones(measured.shape, bool) if valid is None else valid
     test = (blocks % 2 == 1)[:, None] & valid
     nominal_pred = _preds(forwards, [{} for _ in forwards])
-    resid0 = np.where(valid, measured - nominal_pred, 0.0)
+    resid0 = measured - nominal_pred
+    resid0[~valid] = 0.0
+    nominal_pred = nominal_pred.astype(np.float32)  # kept for the plots only
     regime = np.column_stack([locate.regimes(fw.data.v, fw.data.a) for fw in forwards])
     regions = locate.regions(rec.t, resid0, regime)
     vfw, vvalid = validation or (None, None)
-    vmeas = None if vfw is None else np.column_stack([fw.data.ts for fw in vfw])
-    order = _order(forwards, outcomes, measured, valid)
+    order = _order(forwards, outcomes, valid)
 
-    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray]:
-        pred = _preds(forwards, _subset(outcomes, effects))
-        r = measured - pred
-        v = None
-        if vfw is not None:
-            v = _rmse(vmeas - _preds(vfw, _subset(outcomes, effects)), vvalid)
-        return _rmse(r, valid), _rmse(r, test), v, pred
+    def scores(effects: list[str]) -> tuple[float, float, float | None]:
+        thetas = _subset(outcomes, effects)
+        rms, hold = _rmses(forwards, thetas, [valid, test])
+        v = None if vfw is None else _rmses(vfw, thetas, [vvalid])[0]
+        return rms, hold, v
 
     before = scores([])
     findings = []
@@ -162,7 +186,12 @@ def build_report(
         ev = evidence(effect, outcomes, regime, before[1], after[1])
         findings.append(_finding(effect, outcomes, pairs, ev))
         before = after
-    noise = noise_estimate(np.where(valid, measured - before[3], 0.0))
+    final_pred = _preds(forwards, _subset(outcomes, order))
+    final_resid = measured - final_pred
+    final_resid[~valid] = 0.0
+    noise = noise_estimate(final_resid)
+    del final_resid
+    final_pred = final_pred.astype(np.float32)
     final = {
         "rmse_n": before[0],
         "holdout_rmse_n": before[1],
@@ -170,7 +199,7 @@ def build_report(
         "unexplained_n": math.sqrt(max(before[1] ** 2 - noise**2, 0.0)),
     }
     if vfw is not None:
-        final["validation_rmse_before_n"] = _rmse(vmeas - _preds(vfw, [{} for _ in vfw]), vvalid)
+        final["validation_rmse_before_n"] = _rmses(vfw, [{} for _ in vfw], [vvalid])[0]
         final["validation_rmse_after_n"] = float(before[2] or 0.0)
     report = {
         "cables": rec.cables,
@@ -191,5 +220,14 @@ def build_report(
         "clipped": clipped or {"per_cable": [0] * rec.cables, "levels_n": [[]] * rec.cables},
     }
     return Diagnosis(
-        report, rec.t, measured, nominal_pred, before[3], regime, regions, outcomes, order, forwards
+        report,
+        rec.t,
+        measured,
+        nominal_pred,
+        final_pred,
+        regime,
+        regions,
+        outcomes,
+        order,
+        forwards,
     )
