@@ -97,9 +97,9 @@ CASES = (
     ),
     Case(
         "clipped_quarter",
-        Foreign(cables=2, clip_n=520.0, clip_cables=(2,), effects={"viscous": {"c_ns_m": 300.0}}),
+        Foreign(cables=2, clip_n=480.0, clip_cables=(2,), effects={"viscous": {"c_ns_m": 300.0}}),
         {"viscous": {"c_ns_m": (300.0, 0.05, 0.0)}},
-        note="7: cable 2 clipped at 520 N",
+        note="7: cable 2 clipped at 480 N",
     ),
     Case(
         "dahl_f0",
