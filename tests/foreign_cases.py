@@ -96,7 +96,7 @@ CASES = (
         note="5: the same without --validate",
     ),
     Case(
-        "clipped_quarter",
+        "clipped_cable2",
         Foreign(cables=2, clip_n=480.0, clip_cables=(2,), effects={"viscous": {"c_ns_m": 300.0}}),
         {"viscous": {"c_ns_m": (300.0, 0.05, 0.0)}},
         note="7: cable 2 clipped at 480 N",
@@ -173,6 +173,15 @@ def table(scores: list[Score]) -> str:
         "parameter within tolerance (`param err` <= 1), held-out and validation RMSE down.",
         "",
         f"**Passed: {passed}/{len(scores)}.**",
+        "",
+        "Notes. Class 4: on this generator, stepping the friction state with `v dt` of the "
+        "sample and with the exact (trapezoid) travel differ by < 0.5 % of the residual RMS "
+        "at 200 Hz +-0.8 ms (the error is second order, `a dt^2 / 2`), so the class's failure "
+        "does not reproduce here; the cases stay as regression cases. Class 6 is covered by "
+        "the physical bounds (tests in `tests/test_diagnose_issue11.py`). `dahl_f0`: `f0` "
+        "comes out 2.68 N for 3.0 N (-10.5 %, tolerance 10 %) while `mu` is 1 % high: with "
+        "the load varying by only +-40 %, `mu T` and `f0` are nearly collinear and the small "
+        "difference between the generator's pulley law and the model's moves `f0`.",
         "",
         "| case | class | truth | found | pass | param err | held-out before -> after "
         "| validation before -> after | clipped | s |",

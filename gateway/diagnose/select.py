@@ -41,6 +41,9 @@ from gateway.diagnose.forward import Forward
 ROUNDS = 3
 PAIR_POOL = 4
 """Singles (best held-out SSE first) whose pairs are screened when no single passes."""
+PAIR_ABOVE_NOISE = 1.1
+"""Pairs are screened only while the held-out RMSE exceeds the noise by this factor (a
+residual at the noise holds nothing for a pair to explain)."""
 SUBSET_EXTRA = 3
 """Effects besides the kept ones on the best-subset search's short list."""
 FAR_ABOVE_NOISE = 3.0
@@ -226,15 +229,18 @@ class CableSelector:
         )
 
     def _far_above_noise(self, model: Model) -> bool:
-        """The held-out RMSE is more than ``FAR_ABOVE_NOISE`` times the white noise of the
-        training residual (median absolute first difference): something is unexplained."""
+        return self._above_noise(model, FAR_ABOVE_NOISE)
+
+    def _above_noise(self, model: Model, factor: float) -> bool:
+        """The held-out RMSE is more than ``factor`` times the white noise of the training
+        residual (median absolute first difference): something is unexplained."""
         r = (self.fw.data.ts - model.pred)[self.train]
         if r.size < 10:
             return False
         noise = float(np.median(np.abs(np.diff(r)))) / 0.6745 / math.sqrt(2.0)
         test = (self.fw.data.ts - model.pred)[self.test]
         rms = float(np.sqrt(np.mean(test**2))) if test.size else 0.0
-        return rms > FAR_ABOVE_NOISE * max(noise, 1e-12)
+        return rms > factor * max(noise, 1e-12)
 
     def _forward(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
         """Add the best candidate while one passes the (lenient) forward test; where no
@@ -248,7 +254,11 @@ class CableSelector:
                 ranked.append((float(self._test_sse(fit.pred).sum()), effect, spec, fit))
             ranked.sort(key=lambda row: row[0])
             added = self._add_single(model, ranked)
-            if added is None and len(model.kept) + 2 <= self.th.max_effects:
+            if (
+                added is None
+                and len(model.kept) + 2 <= self.th.max_effects
+                and self._above_noise(model, PAIR_ABOVE_NOISE)
+            ):
                 added = self._add_pair(model, ranked)
             if added is None:
                 break
