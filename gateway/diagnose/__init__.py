@@ -24,7 +24,8 @@ Method
    rounds of forward steps (best held-out candidate on top of those kept, lenient test;
    where no single candidate passes, the best pair of the four most promising ones, so
    that effects which cancel alone, e.g. an offset and a drift of opposite sign, are
-   found; only while the held-out RMSE exceeds 1.1 times the noise), swaps (replace a kept effect by a better one) and a strict backward check; while
+   found; only while the held-out RMSE exceeds 1.1 times the noise), swaps (replace a
+   kept effect by a better one) and a strict backward check; while
    the held-out RMSE stays above 3 times the white noise of the residual, a best-subset
    search over a short list (the kept effects and the three best others, subsets of up to
    two more effects, each fitted jointly) can undo an early greedy choice. In the check
