@@ -189,3 +189,29 @@ def test_summary_explains_when_no_region_concentrates_the_residual():
     ]
     text = summary(SimpleNamespace(report=rep), "x.csv")  # type: ignore[arg-type]
     assert "Largest regions" in text and "cable 1, 1.00-2.00 s, reversal" in text
+
+
+def test_subset_search_undoes_a_stand_in():
+    """Started from the greedy dead end of the issue (inertia and a Coulomb level that
+    holds the viscous force at the typical speed), the best-subset search reaches the
+    joint optimum of the four terms."""
+    from gateway.diagnose.engine import cable_candidates, candidates_for
+    from gateway.diagnose.select import CableSelector
+
+    fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
+                 vmax=0.13, seconds=16.0, rate_hz=250.0, effects=RIG_AXIS)  # fmt: skip
+    rec = recording_of(generate(fo))
+    nom = nominal_from(FrictionConfig(model="none", pulleys=()))
+    d = cable_data(rec, rec.tension_platform, None)[0]
+    fw = Forward(d, nom)
+    blocks, nb = time_blocks(rec.t)
+    sel = CableSelector(fw, blocks, nb, cable_candidates(candidates_for(False), d, nom),
+                        Thresholds())  # fmt: skip
+    specs = {e: spec_for(e, d, nom, d.ts, sel.train) for e in ("inertia", "coulomb")}
+    stand_in = sel._fit({"inertia": np.array([95.0]), "coulomb": np.array([0.0, 36.0])}, specs)
+    assert sel._far_above_noise(stand_in)
+    out, _ = sel._look_further(stand_in, ["inertia", "coulomb"])
+    assert set(out.kept) == {"inertia", "viscous", "coulomb", "offset"}
+    assert out.kept["viscous"][0] == pytest.approx(200.0, rel=0.05)
+    assert out.kept["coulomb"][1] == pytest.approx(20.0, rel=0.05)
+    assert not sel._far_above_noise(out)

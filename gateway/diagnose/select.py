@@ -207,8 +207,7 @@ class CableSelector:
             if set(model.kept) == before:
                 break  # nothing new: the swaps and the check of the last round stand
             model = self._backward(self._swap(model))
-        if self._far_above_noise(model):
-            model = self._backward(self._subsets(model))
+        model, order = self._look_further(model, order)
         order = [e for e in order if e in model.kept] + [e for e in model.kept if e not in order]
         out = CableOutcome(order, model.kept, model.stderr, model.specs)
         out.rivals = self._rivals(model.kept, model.specs, model.pred)
@@ -297,6 +296,21 @@ class CableSelector:
                 if best is None or sse < best[0]:
                     best = (sse, joint, [ea, eb])
         return None if best is None else (best[1], best[2])
+
+    def _look_further(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
+        """While the held-out residual stays far above the noise (at most ``ROUNDS``
+        times): best subset of a short list, then forward steps on top of it and the strict
+        check; stops when that changes nothing."""
+        for _ in range(ROUNDS):
+            if not self._far_above_noise(model):
+                break
+            before = set(model.kept)
+            model = self._subsets(model)
+            model, order = self._forward(model, order)
+            model = self._backward(model)
+            if set(model.kept) == before:
+                break
+        return model, order
 
     def _subsets(self, model: Model) -> Model:
         """Best subset, by held-out SSE, of a short list: the kept effects and the
