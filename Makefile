@@ -50,6 +50,7 @@ format: $(STAMP)
 
 suite-table: $(STAMP)
 	$(BIN)/python -m sim_plc.scenarios --table docs/diagnose-suite.md
+	$(BIN)/python -m tests.foreign_cases --table docs/diagnose-suite.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
