@@ -259,7 +259,7 @@ def run() -> None:
             {"this tree": ROOT} if base is None else {f"base {base_rev}": base, "this tree": ROOT}
         )
         runs: dict[str, list[dict[str, list[float]]]] = {name: [] for name in trees}
-        for name, tree in trees.items():  # numba compiles (and caches) before the timed rounds
+        for tree in trees.values():  # numba compiles (and caches) before the timed rounds
             _run_in(tree, 100)
         for _ in range(rounds):
             for name, tree in trees.items():

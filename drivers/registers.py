@@ -308,7 +308,7 @@ def _decode_group(buf, plan, bits, outs):  # type: ignore[no-untyped-def]
             out[i] = _decode_one(
                 buf, start + step * i, kind, swap, s7, scale, npc, lo, hi, bits, as_f32
             )
-        k += 1
+        k += 1  # noqa: SIM113 (literal_unroll has no enumerate)
 
 
 @njit(cache=True)
@@ -328,7 +328,7 @@ def _encode_group(buf, plan, bits, values):  # type: ignore[no-untyped-def]
         for i in range(n):
             x = _get(value, i)
             _encode_one(buf, start + step * i, x, kind, swap, s7, scale, npc, row, bits, as_f32)
-        k += 1
+        k += 1  # noqa: SIM113 (literal_unroll has no enumerate)
 
 
 class FieldGroup:

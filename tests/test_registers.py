@@ -294,7 +294,7 @@ def _group_layout(specs: list[tuple]) -> tuple[list[RegisterField], list[bool], 
                 word_order=order,
                 scale=scale,
                 format="s7_analog" if s7 else "plain",
-            )  # fmt: skip
+            )
         )
         raws.append(raw)
         address = fields[-1].end + 1  # a gap register between fields
@@ -335,7 +335,7 @@ def test_group_encode_equals_the_codecs(specs: list[tuple], data: st.DataObject)
         np.array(
             data.draw(st.lists(st.integers(0, 65535), min_size=counts[1], max_size=counts[1])),
             dtype=np.uint16,
-        ),  # fmt: skip
+        ),
         data.draw(st.integers(-(2**33), 2**33)),
         data.draw(st.integers(0, 70000)),
     )
@@ -361,7 +361,7 @@ def test_group_encode_float_scalars_and_int_arrays(specs: list[tuple], data: st.
                 st.lists(st.integers(-(2**40), 2**40), min_size=counts[1], max_size=counts[1])
             ),
             dtype=np.int64,
-        ),  # fmt: skip
+        ),
         data.draw(_floats(counts[2])),
         data.draw(_floats(counts[3])),
     )
