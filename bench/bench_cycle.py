@@ -209,8 +209,22 @@ def _phases(service: Any, driver: Any, cycles: int, np: Any, outputs_cls: Any) -
 
 
 def _worker() -> None:
+    """One measurement in this process; under ``loop.realtime`` settings unless
+    ``BENCH_CYCLE_RT=0`` (SCHED_FIFO 50, memory locked: what the gateway runs with)."""
     cycles = int(sys.argv[2])
-    print(json.dumps(measure(cycles)))
+    report = None
+    if os.environ.get("BENCH_CYCLE_RT", "1") != "0":
+        from gateway import realtime
+        from gateway.config import RealtimeConfig
+
+        report = realtime.apply(RealtimeConfig(enabled=True), force=True)
+    try:
+        res: dict[str, Any] = dict(measure(cycles))
+    finally:
+        if report is not None:
+            realtime.undo(report)
+    res["rt"] = report.line("rt") if report is not None else "rt: off"
+    print(json.dumps(res))
 
 
 def _tree_of(rev: str, tmp: str) -> Path | None:
@@ -228,7 +242,7 @@ def _tree_of(rev: str, tmp: str) -> Path | None:
     return dest
 
 
-def _run_in(tree: Path, cycles: int) -> dict[str, list[float]]:
+def _run_in(tree: Path, cycles: int) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"}
     env.pop("NUMBA_CACHE_DIR", None)
     script = ROOT / "bench" / "bench_cycle.py"
@@ -241,7 +255,7 @@ def _run_in(tree: Path, cycles: int) -> dict[str, list[float]]:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _median(runs: list[dict[str, list[float]]]) -> dict[str, list[float]]:
+def _median(runs: list[dict[str, Any]]) -> dict[str, list[float]]:
     import numpy as np
 
     return {p: [float(np.median([r[p][k] for r in runs])) for k in range(3)] for p in PHASES}
@@ -258,7 +272,7 @@ def run() -> None:
         trees = (
             {"this tree": ROOT} if base is None else {f"base {base_rev}": base, "this tree": ROOT}
         )
-        runs: dict[str, list[dict[str, list[float]]]] = {name: [] for name in trees}
+        runs: dict[str, list[dict[str, Any]]] = {name: [] for name in trees}
         for tree in trees.values():  # numba compiles (and caches) before the timed rounds
             _run_in(tree, 100)
         for _ in range(rounds):
@@ -274,6 +288,7 @@ def run() -> None:
             a, b = med[names[0]][p], med[names[1]][p]
             cells += f"{b[0] / a[0]:.2f} / {b[1] / a[1]:.2f}"
         print(f"  {p:<14}{cells}")
+    print(f"  {runs[names[-1]][-1]['rt']}")
     print(f"  (medians over {rounds} alternating rounds; load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())})")  # fmt: skip
 
