@@ -227,43 +227,27 @@ def _get_impl(value, i):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def _word(buf, p):  # type: ignore[no-untyped-def]
-    return (np.int64(buf[p]) << 8) | np.int64(buf[p + 1])
-
-
-@njit(cache=True, inline="always")
-def _put_word(buf, p, w):  # type: ignore[no-untyped-def]
-    buf[p] = (w >> 8) & 0xFF
-    buf[p + 1] = w & 0xFF
-
-
-@njit(cache=True, inline="always")
-def _decode_one(buf, p, kind, swap, s7, scale, npc, lo, hi, bits, as_f32):  # type: ignore[no-untyped-def]
-    """The value at byte ``p``, as FieldCodec.decode computes it (``scale`` is 1.0 for
-    raw values; ``s7`` is False for raw S7 counts)."""
-    if kind <= 1:
-        c = _word(buf, p)
-        if kind == 0 and c >= 32768:
-            c -= 65536
-        if s7:  # the S7 window: counts * N/count, else NaN
-            return c * npc if lo <= c <= hi else np.nan
-        return float(c) if scale == 1.0 else c * scale
-    w0, w1 = _word(buf, p), _word(buf, p + 2)
-    u = (w1 << 16) | w0 if swap else (w0 << 16) | w1
-    if kind == 2 and u >= 2**31:
+def _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32):  # type: ignore[no-untyped-def]
+    """The value of the bits ``u`` (one 16-bit word, or two assembled high word first),
+    as FieldCodec.decode computes it (``scale`` 1.0 / ``s7`` False for raw values)."""
+    if kind == 4:
+        bits[0] = u
+        f = as_f32[0]
+        # numpy multiplies a float32 field by a Python float scale in float32 (NEP 50)
+        return float(f) if scale == 1.0 else float(f * np.float32(scale))
+    if kind == 0 and u >= 32768:
+        u -= 65536
+    elif kind == 2 and u >= 2**31:
         u -= 2**32
-    if kind <= 3:
-        return float(u) if scale == 1.0 else u * scale
-    bits[0] = u
-    f = as_f32[0]
-    # numpy multiplies a float32 field by a Python float scale in float32 (NEP 50)
-    return float(f) if scale == 1.0 else float(f * np.float32(scale))
+    if s7:  # the S7 window: counts * N/count, else NaN
+        return u * npc if lo <= u <= hi else np.nan
+    return float(u) if scale == 1.0 else u * scale
 
 
 @njit(cache=True, inline="always")
-def _encode_one(buf, p, x, kind, swap, s7, scale, npc, row, bits, as_f32):  # type: ignore[no-untyped-def]
-    """Store ``x`` at byte ``p`` as FieldCodec.encode does (``scale`` 1.0 / ``s7`` False
-    for raw values); ``row``: (S7 min counts, S7 max counts, type min, type max)."""
+def _encode_one(x, kind, s7, scale, npc, row, bits, as_f32):  # type: ignore[no-untyped-def]
+    """The bits FieldCodec.encode stores for ``x`` (``scale`` 1.0 / ``s7`` False for raw
+    values); ``row``: (S7 min counts, S7 max counts, type min, type max)."""
     f = x
     if s7:  # the S7 codec's encoding
         f = np.rint(x / npc)
@@ -275,21 +259,12 @@ def _encode_one(buf, p, x, kind, swap, s7, scale, npc, row, bits, as_f32):  # ty
         f = x / scale
     if kind == 4:
         as_f32[0] = np.float32(f)
-        u = np.int64(bits[0])
-    else:
-        f = np.rint(f)
-        if np.isnan(f):
-            f = 0.0
-        f = min(max(f, row[2]), row[3])
-        u = np.int64(f) & (0xFFFF if kind <= 1 else 0xFFFFFFFF)
-    if kind <= 1:
-        _put_word(buf, p, u)
-        return
-    hi, lo = (u >> 16) & 0xFFFF, u & 0xFFFF
-    if swap:
-        hi, lo = lo, hi
-    _put_word(buf, p, hi)
-    _put_word(buf, p + 2, lo)
+        return np.int64(bits[0])
+    f = np.rint(f)
+    if np.isnan(f):
+        f = 0.0
+    f = min(max(f, row[2]), row[3])
+    return np.int64(f) & (0xFFFF if kind <= 1 else 0xFFFFFFFF)
 
 
 @njit(cache=True)
@@ -305,9 +280,12 @@ def _decode_group(buf, plan, bits, outs):  # type: ignore[no-untyped-def]
         scale = 1.0 if raw else plan[k, _SCALE]
         npc, lo, hi = plan[k, _NPC], plan[k, _MIN], plan[k, _MAX]
         for i in range(n):
-            out[i] = _decode_one(
-                buf, start + step * i, kind, swap, s7, scale, npc, lo, hi, bits, as_f32
-            )
+            p = start + step * i
+            u = (np.int64(buf[p]) << 8) | np.int64(buf[p + 1])
+            if kind >= 2:
+                w = (np.int64(buf[p + 2]) << 8) | np.int64(buf[p + 3])
+                u = (w << 16) | u if swap else (u << 16) | w
+            out[i] = _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32)
         k += 1  # noqa: SIM113 (literal_unroll has no enumerate)
 
 
@@ -326,9 +304,17 @@ def _encode_group(buf, plan, bits, values):  # type: ignore[no-untyped-def]
         row = (plan[k, _MIN], plan[k, _MAX], plan[k, _LO], plan[k, _HI])
         npc = plan[k, _NPC]
         for i in range(n):
-            x = _get(value, i)
-            _encode_one(buf, start + step * i, x, kind, swap, s7, scale, npc, row, bits, as_f32)
-        k += 1  # noqa: SIM113 (literal_unroll has no enumerate)
+            u = _encode_one(_get(value, i), kind, s7, scale, npc, row, bits, as_f32)
+            p = start + step * i
+            if kind <= 1:
+                buf[p], buf[p + 1] = (u >> 8) & 0xFF, u & 0xFF
+                continue
+            hi, lo = (u >> 16) & 0xFFFF, u & 0xFFFF
+            if swap:
+                hi, lo = lo, hi
+            buf[p], buf[p + 1] = (hi >> 8) & 0xFF, hi & 0xFF
+            buf[p + 2], buf[p + 3] = (lo >> 8) & 0xFF, lo & 0xFF
+        k += 1
 
 
 class FieldGroup:
