@@ -202,32 +202,32 @@ _INT_LIMITS = {0: (-32768.0, 32767.0), 1: (0.0, 65535.0), 2: (-(2.0**31), 2.0**3
                3: (0.0, 2.0**32 - 1), 4: (0.0, 0.0)}  # fmt: skip
 
 
-def _size(value):  # type: ignore[no-untyped-def]  # (the overload needs the same signature)
+def _size(value):  # untyped: the overload must have the same signature
     """Element count of an array; -1 for a scalar (broadcast to the field)."""
     raise NotImplementedError  # compiled only (see the overload)
 
 
-def _get(value, i):  # type: ignore[no-untyped-def]
+def _get(value, i):
     """Element ``i`` of an array, or the scalar itself, as float64."""
     raise NotImplementedError  # compiled only (see the overload)
 
 
 @overload(_size)
-def _size_impl(value):  # type: ignore[no-untyped-def]
+def _size_impl(value):
     if isinstance(value, types.Array):
         return lambda value: value.size
     return lambda value: -1
 
 
 @overload(_get)
-def _get_impl(value, i):  # type: ignore[no-untyped-def]
+def _get_impl(value, i):
     if isinstance(value, types.Array):
         return lambda value, i: float(value[i])
     return lambda value, i: float(value)
 
 
 @njit(cache=True, inline="always")
-def _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32):  # type: ignore[no-untyped-def]
+def _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32):
     """The value of the bits ``u`` (one 16-bit word, or two assembled high word first),
     as FieldCodec.decode computes it (``scale`` 1.0 / ``s7`` False for raw values)."""
     if kind == 4:
@@ -245,7 +245,7 @@ def _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32):  # type: ignore[
 
 
 @njit(cache=True, inline="always")
-def _encode_one(x, kind, s7, scale, npc, row, bits, as_f32):  # type: ignore[no-untyped-def]
+def _encode_one(x, kind, s7, scale, npc, row, bits, as_f32):
     """The bits FieldCodec.encode stores for ``x`` (``scale`` 1.0 / ``s7`` False for raw
     values); ``row``: (S7 min counts, S7 max counts, type min, type max)."""
     f = x
@@ -268,7 +268,7 @@ def _encode_one(x, kind, s7, scale, npc, row, bits, as_f32):  # type: ignore[no-
 
 
 @njit(cache=True)
-def _decode_group(buf, plan, bits, outs):  # type: ignore[no-untyped-def]
+def _decode_group(buf, plan, bits, outs):
     as_f32 = bits.view(np.float32)  # float32 bit patterns are assembled in ``bits``
     k = 0
     for out in literal_unroll(outs):
@@ -290,7 +290,7 @@ def _decode_group(buf, plan, bits, outs):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _encode_group(buf, plan, bits, values):  # type: ignore[no-untyped-def]
+def _encode_group(buf, plan, bits, values):
     as_f32 = bits.view(np.float32)
     k = 0
     for value in literal_unroll(values):
