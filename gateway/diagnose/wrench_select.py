@@ -30,6 +30,7 @@ import numpy as np
 from gateway.config import Config, FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.engine import Diagnosis
+from gateway.diagnose.report import rmse_pairs
 from gateway.diagnose.select import Thresholds, holdout_z
 from gateway.diagnose.wrench import (
     PER_CABLE,
@@ -345,14 +346,8 @@ def diagnose_wrench(
             "parameters": values,
             "stderr": _stderr_values(sel, e, se[e], cables),
             "evidence": _evidence(e, cables, values, before[1], after[1]) + _missing(missing),
-            "rmse_before_n": before[0],
-            "rmse_after_n": after[0],
-            "holdout_rmse_before_n": before[1],
-            "holdout_rmse_after_n": after[1],
+            **rmse_pairs(before, after, vmodel is not None),
         }
-        if vmodel is not None:
-            f["validation_rmse_before_n"] = float(before[2] or 0.0)
-            f["validation_rmse_after_n"] = float(after[2] or 0.0)
         findings.append(f)
         before = after
     diag = _build(rec, prep, sel, findings, order, r_nominal, before, vmodel)
