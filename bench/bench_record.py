@@ -27,13 +27,14 @@ from pathlib import Path
 from typing import IO
 
 import numpy as np
-from gateway.demo import with_port
 
+from bench import stop_process
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver, start_recorder
 from gateway.loop import CyclicService
 from gateway.recorder import Recorder
 from gateway.recording import read_recording
+from sim_plc.demo import with_port
 
 HALVES = 2  # each kind runs in this many parts, alternating, against drifting load
 
@@ -108,13 +109,7 @@ class _Plc:
         self.host, self.port = host, int(port)
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
+        stop_process(self.proc, timeout_s=10)
 
 
 def run() -> None:
