@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -212,11 +212,25 @@ def summary(diag: Diagnosis, source: str) -> str:
     return "\n".join(lines)
 
 
+def write_files(
+    diag: Any,
+    directory: Path,
+    text: str,
+    residual: Callable[[Any, Path], None],
+    overlay: Callable[[Any, Path], None],
+    signature: Callable[[Any, str, Path], None],
+) -> None:
+    """``residual.png``, ``overlay.png``, a ``signature_<effect>.png`` per finding (drawn by
+    the given plot functions) and ``text`` as ``summary.md`` into ``directory`` (created)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    residual(diag, directory / "residual.png")
+    overlay(diag, directory / "overlay.png")
+    for f in diag.report["findings"]:
+        signature(diag, f["effect"], directory / f"signature_{f['effect']}.png")
+    (directory / "summary.md").write_text(text, encoding="utf-8")
+
+
 def write_report(diag: Diagnosis, directory: Path, source: str) -> None:
     """Write the pictures and ``summary.md`` into ``directory`` (created if needed)."""
-    directory.mkdir(parents=True, exist_ok=True)
-    residual_plot(diag, directory / "residual.png")
-    overlay_plot(diag, directory / "overlay.png")
-    for f in diag.report["findings"]:
-        signature_plot(diag, f["effect"], directory / f"signature_{f['effect']}.png")
-    (directory / "summary.md").write_text(summary(diag, source), encoding="utf-8")
+    text = summary(diag, source)
+    write_files(diag, directory, text, residual_plot, overlay_plot, signature_plot)

@@ -15,7 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.diagnose.plots import around_largest_region, binned_means, plt, save, summary, thin
+from gateway.diagnose.plots import (
+    around_largest_region,
+    binned_means,
+    plt,
+    save,
+    summary,
+    thin,
+    write_files,
+)
 from gateway.diagnose.wrench_select import WrenchDiagnosis
 
 AXES = ("x", "y", "z")
@@ -63,12 +71,7 @@ def overlay_plot(diag: WrenchDiagnosis, path: Path) -> None:
 
 def write_report(diag: WrenchDiagnosis, directory: Path, source: str) -> None:
     """Pictures and ``summary.md`` into ``directory`` (created if needed)."""
-    directory.mkdir(parents=True, exist_ok=True)
-    residual_plot(diag, directory / "residual.png")
-    overlay_plot(diag, directory / "overlay.png")
-    for f in diag.report["findings"]:
-        signature_plot(diag, f["effect"], directory / f"signature_{f['effect']}.png")
     text = summary(diag, source).replace(
         "Nominal model residual RMSE", "Reference: wrench balance (force part). Nominal model RMSE"
     )
-    (directory / "summary.md").write_text(text, encoding="utf-8")
+    write_files(diag, directory, text, residual_plot, overlay_plot, signature_plot)
