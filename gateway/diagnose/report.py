@@ -218,11 +218,7 @@ def build_report(
             "per_cable_rmse_n": [_rmse(resid0[valid[:, i], i]) for i in range(rec.cables)],
             "holdout_rmse_n": _rmse(resid0, test),
         },
-        "mismatch": [r.__dict__ for r in regions],
-        "regime_shares": {
-            k: {"energy": e, "samples": s}
-            for k, (e, s) in locate.regime_shares(resid0, regime).items()
-        },
+        **locate.report_fields(regions, resid0, regime),
         "findings": findings,
         "final": final,
         "clipped": clipped or {"per_cable": [0] * rec.cables, "levels_n": [[]] * rec.cables},

@@ -386,11 +386,7 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
         "samples": int(data.t.size),
         "skipped_rows": rec.skipped_rows + (rec.samples - int(data.t.size)),
         "baseline": {"rmse_n": force_rms(r_nominal), "per_cable_rmse_n": []},
-        "mismatch": [r.__dict__ for r in regions],
-        "regime_shares": {
-            k: {"energy": e, "samples": s}
-            for k, (e, s) in locate.regime_shares(norm0, regime).items()
-        },
+        **locate.report_fields(regions, norm0, regime),
         "findings": findings,
         "final": fin,
         "identifiability": _identifiability(sel),
