@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from bench import stop_process
+
 ROOT = Path(__file__).resolve().parent.parent
 FD_LIMIT = 1024  # systemd's default soft limit for a service
 
@@ -185,12 +187,7 @@ def run() -> None:
             print(f"   after: threads, fds = {_proc_figures(gw.pid)}")
         finally:
             for proc in (gw, plc):
-                proc.terminate()
-                try:
-                    proc.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait(timeout=10)
+                stop_process(proc)
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from bench import stop_process
 from gateway import realtime
 from gateway.config import Config, load_config
 from gateway.daemon import build_driver
@@ -119,13 +120,7 @@ class BenchPlc:
         return [line.strip() for line in self.err if line.startswith(prefix)]
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
+        stop_process(self.proc)
         self._err_thread.join(5.0)
         for pipe in (self.proc.stdout, self.proc.stderr):
             if pipe is not None:

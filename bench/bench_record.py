@@ -32,6 +32,7 @@ from typing import IO
 
 import numpy as np
 
+from bench import stop_process
 from gateway import realtime
 from gateway.config import Config, RealtimeConfig, load_config
 from gateway.daemon import build_driver, start_recorder
@@ -113,13 +114,7 @@ class _Plc:
         self.host, self.port = host, int(port)
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
+        stop_process(self.proc, timeout_s=10)
 
 
 def run() -> None:

@@ -21,6 +21,11 @@ from gateway.configtypes import convert, read_yaml, require
 from gateway.errors import ConfigError
 from gateway.model.effects.registry import Effects, effect_values
 from gateway.model.effects.registry import to_mapping as effects_to_mapping
+from gateway.registermap import (  # noqa: F401 - re-exported: gateway.config is their old home
+    RegisterField,
+    RegisterMap,
+    RegisterType,
+)
 from gateway.resources import data_file, resolve_beside
 
 Vec3 = tuple[float, float, float]
@@ -210,74 +215,6 @@ class LoopConfig:
         require(self.overrun_warning_interval_s > 0, "overrun_warning_interval_s must be > 0")
         require(0 <= self.busy_wait_s < self.period_s, "busy_wait_s must be in 0..period_s")
         require(self.fixed_point_max_iter >= 1, "fixed_point_max_iter must be >= 1")
-
-
-RegisterType = Literal["int16", "uint16", "int32", "uint32", "float32"]
-
-
-@dataclass(frozen=True)
-class RegisterField:
-    """A block of ``count`` values of one type starting at holding register ``address``.
-
-    ``word_order`` applies to 32-bit types; ``format: s7_analog`` maps 0..adc_full_scale
-    to 0..sensor range; otherwise value = raw * scale.
-    """
-
-    address: int
-    count: int = 1
-    type: RegisterType = "uint16"
-    word_order: Literal["high_first", "low_first"] = "high_first"
-    scale: float = 1.0
-    format: Literal["plain", "s7_analog"] = "plain"
-
-    def __post_init__(self) -> None:
-        require(0 <= self.address <= 65535, "address must be in 0..65535")
-        require(self.count >= 1, "count must be >= 1")
-        require(self.scale != 0, "scale must not be 0")
-
-    @property
-    def words(self) -> int:
-        per = 2 if self.type in ("int32", "uint32", "float32") else 1
-        return self.count * per
-
-    @property
-    def end(self) -> int:
-        """One past the last register of the block."""
-        return self.address + self.words
-
-
-@dataclass(frozen=True)
-class RegisterMap:
-    """Holding-register map (0-based). Inputs are read from the PLC, outputs written."""
-
-    raw_tensions: RegisterField = RegisterField(0, 8, "int16", format="s7_analog")
-    setpoint_velocities: RegisterField = RegisterField(8, 8, "float32")
-    setpoint_lengths: RegisterField = RegisterField(24, 8, "float32")
-    pose: RegisterField = RegisterField(40, 6, "float32")
-    plc_heartbeat: RegisterField = RegisterField(52, 1, "uint16")
-    corrected_tensions: RegisterField = RegisterField(100, 8, "float32")
-    channel_status: RegisterField = RegisterField(116, 8, "uint16")
-    gateway_heartbeat: RegisterField = RegisterField(124, 1, "uint16")
-    gateway_state: RegisterField = RegisterField(125, 1, "uint16")
-    wrench: RegisterField = RegisterField(126, 6, "float32")
-    platform_mass: RegisterField | None = None  # optional: the platform mass (kg), count 1
-
-    def inputs(self) -> dict[str, RegisterField]:
-        names = ("raw_tensions", "setpoint_velocities", "setpoint_lengths", "pose", "plc_heartbeat")
-        found = {n: getattr(self, n) for n in names}
-        if self.platform_mass is not None:
-            found["platform_mass"] = self.platform_mass
-        return found
-
-    def outputs(self) -> dict[str, RegisterField]:
-        names = (
-            "corrected_tensions",
-            "channel_status",
-            "gateway_heartbeat",
-            "gateway_state",
-            "wrench",
-        )
-        return {n: getattr(self, n) for n in names}
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.optimize import nnls
 
 from gateway.configtypes import require
 from gateway.errors import InfeasiblePoseError
@@ -61,40 +60,17 @@ class DistributionConfig:
                 require(lo <= self.target_n <= hi, "target_n must lie within the limits")
 
 
-def _split(a: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``-A^+ w`` (m,) and an orthonormal null-space basis (m, m - 6); rank 6 required."""
-    u, s, vt = np.linalg.svd(a)
-    if a.shape[1] < 6 or not s[-1] > statics.RANK_RTOL * s[0]:
-        raise InfeasiblePoseError("structure matrix is rank-deficient: singular pose")
-    return -(vt[:6].T @ ((u.T @ w) / s[:6])), vt[6:].T
-
-
-def _least_distance(basis: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """``min |x|`` s.t. ``lower <= N x <= upper`` (Lawson & Hanson LDP by one NNLS)."""
-    g = np.concatenate([basis, -basis])
-    h = np.concatenate([lower, -upper])
-    scale = float(np.max(np.abs(h))) or 1.0
-    e = np.vstack([g.T, h[None, :] / scale])
-    f = np.zeros(e.shape[0])
-    f[-1] = 1.0
-    u, _ = nnls(e, f)
-    res = e @ u - f
-    if not res[-1] < -1e-12:
-        raise InfeasiblePoseError("no tension distribution within the limits")
-    return -res[:-1] / res[-1] * scale
-
-
 def qp(a: np.ndarray, w: np.ndarray, lo: float, hi: float, target: float) -> np.ndarray:
     """``tau`` (m,) closest to ``target`` with ``A tau + w = 0`` and ``lo <= tau <= hi``."""
     m = a.shape[1]
-    part, basis = _split(a, w)
+    part, basis = statics.null_space_split(a, w)
     t_star = part + basis @ (basis.T @ np.full(m, target))
     tol = TOL_REL * max(1.0, abs(lo), abs(hi), float(np.max(np.abs(w))))
     if np.all(t_star >= lo - tol) and np.all(t_star <= hi + tol):
         return np.clip(t_star, lo, hi)
     if basis.shape[1] == 0:
         raise InfeasiblePoseError("no tension distribution within the limits")
-    tau = t_star + basis @ _least_distance(basis, lo - t_star, hi - t_star)
+    tau = t_star + basis @ statics.least_distance(basis, lo - t_star, hi - t_star)
     if np.any(tau < lo - 1e-6 * max(1.0, hi)) or np.any(tau > hi + 1e-6 * max(1.0, hi)):
         raise InfeasiblePoseError("no tension distribution within the limits")
     return np.clip(tau, lo, hi)
@@ -103,7 +79,7 @@ def qp(a: np.ndarray, w: np.ndarray, lo: float, hi: float, target: float) -> np.
 def closed_form(a: np.ndarray, w: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Pott's closed-form distribution ``tau_m - A^+ (w + A tau_m)`` within ``[lo, hi]``."""
     tau_m = np.full(a.shape[1], 0.5 * (lo + hi))
-    part, _ = _split(a, w + a @ tau_m)
+    part, _ = statics.null_space_split(a, w + a @ tau_m)
     tau = tau_m + part
     tol = TOL_REL * max(1.0, abs(lo), abs(hi))
     if np.any(tau < lo - tol) or np.any(tau > hi + tol):

@@ -97,3 +97,13 @@ def regime_shares(resid: np.ndarray, regime: np.ndarray) -> dict[str, tuple[floa
         sel = regime == k
         out[name] = (float(energy[sel].sum()) / total, float(sel.mean()))
     return out
+
+
+def report_fields(regions: list[Region], resid: np.ndarray, regime: np.ndarray) -> dict:
+    """The report's ``mismatch`` (the regions) and ``regime_shares`` entries."""
+    return {
+        "mismatch": [r.__dict__ for r in regions],
+        "regime_shares": {
+            k: {"energy": e, "samples": s} for k, (e, s) in regime_shares(resid, regime).items()
+        },
+    }

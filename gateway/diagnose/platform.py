@@ -26,7 +26,9 @@ def _wrenches(cfg: Config, rec: Recording, idx: np.ndarray, mass: np.ndarray) ->
     return statics.external_wrench_batch(mass, rec.pose[idx], acc, cfg.geometry)  # type: ignore[index]
 
 
-def _check(cfg: Config | None, rec: Recording, why: str) -> Config:
+def require_geometry(cfg: Config | None, rec: Recording, why: str) -> Config:
+    """``cfg`` when it has a geometry for ``rec``'s cables; ConfigError/RecordingError naming
+    ``why`` (what needs it) otherwise."""
     if cfg is None:
         raise ConfigError(
             f"{rec.source}: {why} needs the robot's geometry: give --model a full config "
@@ -51,7 +53,7 @@ def _solve(cfg: Config, rec: Recording, idx: np.ndarray, mass: np.ndarray) -> np
 
 def platform_tensions(rec: Recording, cfg: Config | None) -> np.ndarray:
     """(N, m) platform tensions from the recorded pose and mass, every sample."""
-    cfg = _check(cfg, rec, "a recording without tension_platform_i columns")
+    cfg = require_geometry(cfg, rec, "a recording without tension_platform_i columns")
     idx = np.arange(rec.samples)
     try:
         return _solve(cfg, rec, idx, rec.mass)  # type: ignore[arg-type]

@@ -11,7 +11,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -24,15 +26,45 @@ from gateway.diagnose.report import Diagnosis
 MAX_POINTS = 20000
 
 
-def _thin(n: int) -> slice:
+def thin(n: int) -> slice:
     return slice(None, None, max(1, n // MAX_POINTS))
+
+
+def save(fig: Any, path: Path) -> None:
+    """Lay out, write at 90 dpi and close ``fig``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def binned_means(x: np.ndarray, y: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Means of ``x`` and ``y`` over ``bins`` equal-count bins of ``x`` (empty bins dropped)."""
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+    which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
+    count = np.bincount(which, minlength=edges.size)
+    keep = count > 0
+    mx = np.bincount(which, x, minlength=edges.size)[keep] / count[keep]
+    my = np.bincount(which, y, minlength=edges.size)[keep] / count[keep]
+    return mx, my
+
+
+def around_largest_region(t: np.ndarray, regions: Sequence[Any]) -> tuple[int, np.ndarray]:
+    """The cable index (0-based, 0 when there is no region) and the sample mask of the
+    window around the largest located region (or 1 s either side of the middle)."""
+    if regions:
+        reg = regions[0]
+        i, mid = max(reg.cable - 1, 0), 0.5 * (reg.start_s + reg.end_s)
+        half = max(1.0, reg.end_s - reg.start_s)
+    else:
+        i, mid, half = 0, float(t[t.size // 2]), 1.0
+    return i, (t >= mid - half) & (t <= mid + half)
 
 
 def residual_plot(diag: Diagnosis, path: Path) -> None:
     """Residual over time per cable, regions shaded."""
     m = diag.measured.shape[1]
     fig, axes = plt.subplots(m, 1, figsize=(10, 1.8 * m + 1), sharex=True, squeeze=False)
-    sl = _thin(diag.t.size)
+    sl = thin(diag.t.size)
     for i, ax in enumerate(axes[:, 0]):
         ax.plot(diag.t[sl], (diag.measured - diag.nominal_pred)[sl, i], lw=0.5, label="nominal")
         ax.plot(diag.t[sl], (diag.measured - diag.final_pred)[sl, i], lw=0.5, label="fitted")
@@ -50,9 +82,7 @@ def residual_plot(diag: Diagnosis, path: Path) -> None:
         )
     )
     axes[-1, 0].set_xlabel("t (s)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path)
 
 
 def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
@@ -66,14 +96,9 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
         xs.append(diag.final_pred[:, i] - without)
         ys.append(diag.measured[:, i] - without)
     x, y = np.concatenate(xs), np.concatenate(ys)
-    edges = np.unique(np.quantile(x, np.linspace(0, 1, 41)))
-    which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
-    count = np.bincount(which, minlength=edges.size)
-    keep = count > 0
-    mx = np.bincount(which, x, minlength=edges.size)[keep] / count[keep]
-    my = np.bincount(which, y, minlength=edges.size)[keep] / count[keep]
+    mx, my = binned_means(x, y, 40)
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
-    sl = _thin(x.size)
+    sl = thin(x.size)
     ax.plot(x[sl], y[sl], ".", ms=1, alpha=0.2, color="grey")
     ax.plot(mx, my, "o-", color="tab:blue", label="binned mean")
     lim = [float(x.min()), float(x.max())]
@@ -82,20 +107,12 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
     ax.set_ylabel(f"residual without {effect} (N)")
     ax.set_title(f"signature of {effect}")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path)
 
 
 def overlay_plot(diag: Diagnosis, path: Path) -> None:
     """Measured, nominal and fitted reading around the largest located region."""
-    if diag.regions:
-        reg = diag.regions[0]
-        i, mid = reg.cable - 1, 0.5 * (reg.start_s + reg.end_s)
-        half = max(1.0, reg.end_s - reg.start_s)
-    else:
-        i, mid, half = 0, float(diag.t[diag.t.size // 2]), 1.0
-    sel = (diag.t >= mid - half) & (diag.t <= mid + half)
+    i, sel = around_largest_region(diag.t, diag.regions)
     fig, ax = plt.subplots(figsize=(10, 4))
     ax.plot(diag.t[sel], diag.measured[sel, i], lw=0.8, label="measured", color="grey")
     ax.plot(diag.t[sel], diag.nominal_pred[sel, i], lw=1.0, label="nominal model")
@@ -104,9 +121,7 @@ def overlay_plot(diag: Diagnosis, path: Path) -> None:
     ax.set_ylabel(f"cable {i + 1} sensor reading (N)")
     ax.set_title("before / after around the largest mismatch region")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path)
 
 
 def _fmt(values: list[float]) -> str:
@@ -197,11 +212,25 @@ def summary(diag: Diagnosis, source: str) -> str:
     return "\n".join(lines)
 
 
+def write_files(
+    diag: Any,
+    directory: Path,
+    text: str,
+    residual: Callable[[Any, Path], None],
+    overlay: Callable[[Any, Path], None],
+    signature: Callable[[Any, str, Path], None],
+) -> None:
+    """``residual.png``, ``overlay.png``, a ``signature_<effect>.png`` per finding (drawn by
+    the given plot functions) and ``text`` as ``summary.md`` into ``directory`` (created)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    residual(diag, directory / "residual.png")
+    overlay(diag, directory / "overlay.png")
+    for f in diag.report["findings"]:
+        signature(diag, f["effect"], directory / f"signature_{f['effect']}.png")
+    (directory / "summary.md").write_text(text, encoding="utf-8")
+
+
 def write_report(diag: Diagnosis, directory: Path, source: str) -> None:
     """Write the pictures and ``summary.md`` into ``directory`` (created if needed)."""
-    directory.mkdir(parents=True, exist_ok=True)
-    residual_plot(diag, directory / "residual.png")
-    overlay_plot(diag, directory / "overlay.png")
-    for f in diag.report["findings"]:
-        signature_plot(diag, f["effect"], directory / f"signature_{f['effect']}.png")
-    (directory / "summary.md").write_text(summary(diag, source), encoding="utf-8")
+    text = summary(diag, source)
+    write_files(diag, directory, text, residual_plot, overlay_plot, signature_plot)

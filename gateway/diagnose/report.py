@@ -15,6 +15,7 @@ bound) is written as -1.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -123,6 +124,21 @@ def _finding(effect, outcomes, rmse_pairs, ev) -> dict:
     return out
 
 
+def rmse_pairs(before: Sequence, after: Sequence, validation: bool) -> dict[str, float]:
+    """A finding's RMSE fields from the (fit, held-out, validation) scores before and after
+    it is added; the validation pair only when there is a validation recording."""
+    pairs = {
+        "rmse_before_n": before[0],
+        "rmse_after_n": after[0],
+        "holdout_rmse_before_n": before[1],
+        "holdout_rmse_after_n": after[1],
+    }
+    if validation:
+        pairs["validation_rmse_before_n"] = float(before[2] or 0.0)
+        pairs["validation_rmse_after_n"] = float(after[2] or 0.0)
+    return pairs
+
+
 def noise_estimate(resid: np.ndarray) -> float:
     """White-noise std (N) of a residual (N, m): median absolute first difference / sqrt 2,
     robust to the slow part of the residual and to outliers; RMS over the cables."""
@@ -174,15 +190,7 @@ def build_report(
     findings = []
     for k, effect in enumerate(order):
         after = scores(order[: k + 1])
-        pairs = {
-            "rmse_before_n": before[0],
-            "rmse_after_n": after[0],
-            "holdout_rmse_before_n": before[1],
-            "holdout_rmse_after_n": after[1],
-        }
-        if vfw is not None:
-            pairs["validation_rmse_before_n"] = float(before[2] or 0.0)
-            pairs["validation_rmse_after_n"] = float(after[2] or 0.0)
+        pairs = rmse_pairs(before, after, vfw is not None)
         ev = evidence(effect, outcomes, regime, before[1], after[1])
         findings.append(_finding(effect, outcomes, pairs, ev))
         before = after
@@ -210,11 +218,7 @@ def build_report(
             "per_cable_rmse_n": [_rmse(resid0[valid[:, i], i]) for i in range(rec.cables)],
             "holdout_rmse_n": _rmse(resid0, test),
         },
-        "mismatch": [r.__dict__ for r in regions],
-        "regime_shares": {
-            k: {"energy": e, "samples": s}
-            for k, (e, s) in locate.regime_shares(resid0, regime).items()
-        },
+        **locate.report_fields(regions, resid0, regime),
         "findings": findings,
         "final": final,
         "clipped": clipped or {"per_cable": [0] * rec.cables, "levels_n": [[]] * rec.cables},

@@ -39,7 +39,8 @@ from scipy.ndimage import uniform_filter1d
 from gateway.config import Config, FrictionConfig
 from gateway.diagnose.engine import deadband, nominal_from, time_blocks, warmup_mask
 from gateway.diagnose.forward import CableData, Nominal
-from gateway.errors import ConfigError, RecordingError
+from gateway.diagnose.platform import require_geometry
+from gateway.errors import RecordingError
 from gateway.model import chain, kinematics, statics
 from gateway.model import effects as fx
 from gateway.recording import Recording
@@ -109,15 +110,7 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
             f"{rec.source}: no tension_platform_i columns and no pose and mass columns: "
             "neither reference (platform tension, wrench balance) is available"
         )
-    if cfg is None:
-        raise ConfigError(
-            f"{rec.source}: the wrench balance needs the robot's geometry: give --model a "
-            "full config file with a 'geometry:' section"
-        )
-    if cfg.cables != rec.cables:
-        raise RecordingError(
-            f"{rec.source}: {rec.cables} cables, but the geometry in {cfg.source} has {cfg.cables}"
-        )
+    cfg = require_geometry(cfg, rec, "the wrench balance")
     ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
     ok &= np.isfinite(rec.pose).all(1) & np.isfinite(rec.mass)
     if ok.sum() < 10:

@@ -15,37 +15,38 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.diagnose.plots import plt, summary
+from gateway.diagnose.plots import (
+    around_largest_region,
+    binned_means,
+    plt,
+    save,
+    summary,
+    thin,
+    write_files,
+)
 from gateway.diagnose.wrench_select import WrenchDiagnosis
 
 AXES = ("x", "y", "z")
 
 
 def residual_plot(diag: WrenchDiagnosis, path: Path) -> None:
-    step = max(1, diag.t.size // 20000)
+    sl = thin(diag.t.size)
     fig, axes = plt.subplots(3, 1, figsize=(10, 6.5), sharex=True)
     for k, ax in enumerate(axes):
-        ax.plot(diag.t[::step], -diag.nominal_pred[::step, k], lw=0.5, label="nominal")
-        ax.plot(diag.t[::step], -diag.final_pred[::step, k], lw=0.5, label="fitted")
+        ax.plot(diag.t[sl], -diag.nominal_pred[sl, k], lw=0.5, label="nominal")
+        ax.plot(diag.t[sl], -diag.final_pred[sl, k], lw=0.5, label="fitted")
         for reg in diag.regions:
             ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
         ax.set_ylabel(f"F{AXES[k]} residual (N)")
     axes[0].legend(loc="upper right", fontsize=8)
     axes[0].set_title("wrench balance A T_p + w, force part (shaded: located regions)")
     axes[-1].set_xlabel("t (s)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path)
 
 
 def signature_plot(diag: WrenchDiagnosis, effect: str, path: Path) -> None:
     x, y = diag.signatures[effect]
-    edges = np.unique(np.percentile(x, np.linspace(0, 100, 31)))
-    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(edges.size - 2, 0))
-    counts = np.bincount(idx, minlength=edges.size)
-    ok = counts > 0
-    mx = np.bincount(idx, x, minlength=edges.size)[ok] / counts[ok]
-    my = np.bincount(idx, y, minlength=edges.size)[ok] / counts[ok]
+    mx, my = binned_means(x, y, 30)
     fig, ax = plt.subplots(figsize=(5, 4.5))
     ax.plot(mx, my, "o-", ms=3, label="binned means")
     lim = float(np.max(np.abs(np.concatenate([mx, my, [1e-9]]))))
@@ -53,18 +54,11 @@ def signature_plot(diag: WrenchDiagnosis, effect: str, path: Path) -> None:
     ax.set_xlabel(f"{effect}: contribution to the force residual (N)")
     ax.set_ylabel("force residual without it (N)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path)
 
 
 def overlay_plot(diag: WrenchDiagnosis, path: Path) -> None:
-    if diag.regions:
-        reg = diag.regions[0]
-        mid, half = 0.5 * (reg.start_s + reg.end_s), max(1.0, reg.end_s - reg.start_s)
-    else:
-        mid, half = float(diag.t[diag.t.size // 2]), 1.0
-    sel = (diag.t >= mid - half) & (diag.t <= mid + half)
+    _, sel = around_largest_region(diag.t, diag.regions)
     fig, ax = plt.subplots(figsize=(10, 4))
     ax.plot(diag.t[sel], np.linalg.norm(diag.nominal_pred[sel], axis=1), lw=0.8, label="nominal")
     ax.plot(diag.t[sel], np.linalg.norm(diag.final_pred[sel], axis=1), lw=0.8, label="fitted")
@@ -72,19 +66,12 @@ def overlay_plot(diag: WrenchDiagnosis, path: Path) -> None:
     ax.set_ylabel("|force residual| (N)")
     ax.set_title("before / after around the largest mismatch region")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path)
 
 
 def write_report(diag: WrenchDiagnosis, directory: Path, source: str) -> None:
     """Pictures and ``summary.md`` into ``directory`` (created if needed)."""
-    directory.mkdir(parents=True, exist_ok=True)
-    residual_plot(diag, directory / "residual.png")
-    overlay_plot(diag, directory / "overlay.png")
-    for f in diag.report["findings"]:
-        signature_plot(diag, f["effect"], directory / f"signature_{f['effect']}.png")
     text = summary(diag, source).replace(
         "Nominal model residual RMSE", "Reference: wrench balance (force part). Nominal model RMSE"
     )
-    (directory / "summary.md").write_text(text, encoding="utf-8")
+    write_files(diag, directory, text, residual_plot, overlay_plot, signature_plot)

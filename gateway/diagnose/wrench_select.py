@@ -30,6 +30,7 @@ import numpy as np
 from gateway.config import Config, FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.engine import Diagnosis
+from gateway.diagnose.report import rmse_pairs
 from gateway.diagnose.select import Thresholds, holdout_z
 from gateway.diagnose.wrench import (
     PER_CABLE,
@@ -345,14 +346,8 @@ def diagnose_wrench(
             "parameters": values,
             "stderr": _stderr_values(sel, e, se[e], cables),
             "evidence": _evidence(e, cables, values, before[1], after[1]) + _missing(missing),
-            "rmse_before_n": before[0],
-            "rmse_after_n": after[0],
-            "holdout_rmse_before_n": before[1],
-            "holdout_rmse_after_n": after[1],
+            **rmse_pairs(before, after, vmodel is not None),
         }
-        if vmodel is not None:
-            f["validation_rmse_before_n"] = float(before[2] or 0.0)
-            f["validation_rmse_after_n"] = float(after[2] or 0.0)
         findings.append(f)
         before = after
     diag = _build(rec, prep, sel, findings, order, r_nominal, before, vmodel)
@@ -391,11 +386,7 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
         "samples": int(data.t.size),
         "skipped_rows": rec.skipped_rows + (rec.samples - int(data.t.size)),
         "baseline": {"rmse_n": force_rms(r_nominal), "per_cable_rmse_n": []},
-        "mismatch": [r.__dict__ for r in regions],
-        "regime_shares": {
-            k: {"energy": e, "samples": s}
-            for k, (e, s) in locate.regime_shares(norm0, regime).items()
-        },
+        **locate.report_fields(regions, norm0, regime),
         "findings": findings,
         "final": fin,
         "identifiability": _identifiability(sel),

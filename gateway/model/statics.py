@@ -184,7 +184,7 @@ def _check_args(
     return a, wr, lo, hi
 
 
-def _null_space_split(a: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
+def null_space_split(a: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Minimum-norm ``-A^+ w`` (m,) and an orthonormal null-space basis of A (m, m - 6)."""
     m = a.shape[1]
     if m < 6:
@@ -199,7 +199,7 @@ def _null_space_split(a: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatAr
     return tau_part, vt[6:].T
 
 
-def _least_distance(null_basis: FloatArray, lower: FloatArray, upper: FloatArray) -> FloatArray:
+def least_distance(null_basis: FloatArray, lower: FloatArray, upper: FloatArray) -> FloatArray:
     """``min |x|`` s.t. ``lower <= N x <= upper`` by Lawson-Hanson LDP via NNLS.
 
     ``N`` (m, r), bounds (m,). Raises InfeasiblePoseError when the constraints are
@@ -208,7 +208,7 @@ def _least_distance(null_basis: FloatArray, lower: FloatArray, upper: FloatArray
     """
     g_mat = np.concatenate([null_basis, -null_basis])
     h = np.concatenate([lower, -upper])
-    scale = float(np.max(np.abs(h)))
+    scale = float(np.max(np.abs(h))) or 1.0
     e_mat = np.vstack([g_mat.T, h[None, :] / scale])
     f = np.zeros(e_mat.shape[0])
     f[-1] = 1.0
@@ -259,7 +259,7 @@ def distribute_tensions(
     a, wr, lo, hi = _check_args(a_mat, w, tau_min, tau_max)
     scale = max(1.0, float(np.max(np.abs(lo))), float(np.max(np.abs(hi))))
     tol = TOL_REL * max(scale, float(np.max(np.abs(wr))))
-    tau_part, null_basis = _null_space_split(a, wr)
+    tau_part, null_basis = null_space_split(a, wr)
     t_star = tau_part + null_basis @ (null_basis.T @ (0.5 * (lo + hi)))
     lower, upper = lo - t_star, hi - t_star
     if np.all(lower <= tol) and np.all(upper >= -tol):
@@ -267,7 +267,7 @@ def distribute_tensions(
     if null_basis.shape[1] == 0:
         raise _infeasible(t_star, lo, hi)
     try:
-        x = _least_distance(null_basis, lower, upper)
+        x = least_distance(null_basis, lower, upper)
     except InfeasiblePoseError:
         raise _infeasible(t_star, lo, hi) from None
     x, at_lower, at_upper = _polish(null_basis, x, lower, upper, tol)
