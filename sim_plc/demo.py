@@ -29,6 +29,8 @@ scores what the gateway computed (an observer of the loop, :class:`TruthScorer`)
 from __future__ import annotations
 
 import argparse
+import collections
+import contextlib
 import dataclasses
 import math
 import os
@@ -46,18 +48,24 @@ import numpy as np
 
 from drivers.base import Inputs
 from drivers.s7 import S7Analog
+from gateway import realtime
 from gateway.compensator import Compensator
-from gateway.config import DEFAULT_CONFIG_PATH, Config, load_config
+from gateway.config import DEFAULT_CONFIG_PATH, Config, RealtimeConfig, load_config
 from gateway.daemon import build_driver
 from gateway.errors import GatewayError
 from gateway.loop import CyclicService
 from gateway.model.chain import ChainParams, ChainStepper
+from gateway.realtime import RealtimeReport
 from sim_plc.image import ProcessImage
 from sim_plc.modbus_server import TRUTH_ADDRESS
 
 STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first start
 SCORE_AFTER_S = 0.5  # scoring skips the model's warm-up
-TRUTH_EVERY_CYCLES = 10  # the side channel costs a transaction: sample it this seldom
+TRUTH_EVERY_CYCLES = 10  # the in-cycle scorer (TruthScorer) samples the truth this seldom
+TRUTH_INTERVAL_S = 0.01  # the off-cycle matcher (TruthMatcher) reads the truth this often
+RING_SIZE = 1024  # cycles the demo's observer keeps for matching (~1 s at 1 kHz)
+MATCH_WINDOW_S = 0.25  # a ring slot older than this is an old lap of the 16-bit heartbeat
+WAIT_FOR_CYCLE_S = 0.005  # how long a truth sample waits for the gateway to read its step
 TruthSource = Callable[[np.ndarray], "int | None"]  # fills truth, returns its heartbeat
 
 
@@ -121,6 +129,121 @@ class TruthScorer:
             self._countdown = 1  # the plant stepped in between: try again next cycle
             return
         self.score.add(self.truth, comp.raw_n, comp.corrected_n, comp.status)
+
+
+class CycleRing:
+    """A loop observer that only copies: each cycle's PLC heartbeat, raw and corrected
+    tensions and channel status go into slot ``heartbeat % size`` of preallocated arrays
+    (after ``SCORE_AFTER_S``). It allocates nothing, logs nothing and does no I/O, so the
+    scoring costs the cycle a few copies; :class:`TruthMatcher` reads the ring off the cycle.
+
+    A slot's ``stamp`` is -1 while it is written (a reader that sees the same heartbeat
+    before and after its copy has a whole sample); ``when`` is the cycle's time.
+    """
+
+    def __init__(self, cables: int, size: int = RING_SIZE) -> None:
+        if size & (size - 1) or not 0 < size <= 0x10000:
+            raise ValueError("ring size must be a power of two <= 65536")
+        self.mask = size - 1
+        self.stamp = np.full(size, -1, dtype=np.int64)
+        self.when = np.full(size, -math.inf)
+        self.raw = np.zeros((size, cables))
+        self.corrected = np.zeros((size, cables))
+        self.status = np.zeros((size, cables), dtype=np.uint16)
+        self._rows = [(self.raw[i], self.corrected[i], self.status[i]) for i in range(size)]
+        self.latest = -1  # slot of the last cycle copied
+        self.copied = 0  # cycles copied
+        self._started = math.nan
+
+    def __call__(self, inputs: Inputs, comp: Compensator, now: float) -> None:
+        if self._started != self._started:
+            self._started = now
+        if now - self._started < SCORE_AFTER_S:
+            return
+        hb = inputs.plc_heartbeat
+        slot = hb & self.mask
+        raw, corrected, status = self._rows[slot]
+        self.stamp[slot] = -1
+        np.copyto(raw, comp.raw_n)
+        np.copyto(corrected, comp.corrected_n)
+        np.copyto(status, comp.status)
+        self.when[slot] = now
+        self.stamp[slot] = hb
+        self.latest = slot
+        self.copied += 1
+
+    def take(self, heartbeat: int | None, near: float, into: tuple[np.ndarray, ...]) -> bool:
+        """Copy the cycle that read ``heartbeat`` (None: the latest cycle) into ``into``
+        (raw, corrected, status) if the ring holds it from within ``MATCH_WINDOW_S`` of
+        ``near`` (not an old lap of the 16-bit heartbeat); False if it does not."""
+        slot = self.latest if heartbeat is None else heartbeat & self.mask
+        if slot < 0:
+            return False
+        stamp = int(self.stamp[slot])
+        if stamp < 0 or (heartbeat is not None and stamp != heartbeat):
+            return False
+        if abs(float(self.when[slot]) - near) > MATCH_WINDOW_S:
+            return False
+        for dst, src in zip(into, self._rows[slot], strict=True):
+            np.copyto(dst, src)
+        return int(self.stamp[slot]) == stamp  # not rewritten while copied
+
+
+class TruthMatcher:
+    """Scores the gateway against the plant's truth off the cycle, on its own thread.
+
+    Every ``interval_s`` it asks ``source`` for the truth (the side channel: one Modbus
+    transaction on its own connection) and looks up, in the :class:`CycleRing`, the cycle
+    that read the same plant step (PLC heartbeat); a step the gateway has not read yet is
+    looked up again for up to ``WAIT_FOR_CYCLE_S``. Counts: ``read`` truth samples
+    received, ``matched`` scored, ``unmatched`` (no cycle read that plant step: the gateway
+    skipped it or read it twice-removed), ``failed`` (the side channel failed).
+    The thread is started by the caller before the loop's thread takes real-time priority,
+    so it runs at normal priority and never competes with the cycle.
+    """
+
+    def __init__(self, ring: CycleRing, source: TruthSource, cables: int,
+                 interval_s: float = TRUTH_INTERVAL_S) -> None:  # fmt: skip
+        self.ring, self.source, self.interval_s = ring, source, interval_s
+        self.score = TruthScore(cables)
+        self.truth = np.zeros(cables)
+        self._sample = (np.zeros(cables), np.zeros(cables), np.zeros(cables, dtype=np.uint16))
+        self.read = self.matched = self.unmatched = self.failed = 0
+        self.by_heartbeat = True  # False once the source gave no heartbeat
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="demo-truth", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=10)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            if self.ring.copied == 0:
+                continue  # the gateway is not scoring yet (warm-up)
+            self.poll()
+
+    def poll(self) -> None:
+        """One truth sample: read it, find the gateway's cycle of that plant step, score."""
+        try:
+            heartbeat = self.source(self.truth)
+        except OSError:
+            self.failed += 1
+            return
+        self.read += 1
+        self.by_heartbeat = heartbeat is not None
+        give_up = time.monotonic() + WAIT_FOR_CYCLE_S
+        while not self.ring.take(heartbeat, time.monotonic(), self._sample):
+            if time.monotonic() >= give_up or self._stop.wait(0.001):
+                self.unmatched += 1
+                return
+        raw, corrected, status = self._sample
+        self.score.add(self.truth, raw, corrected, status)
+        self.matched += 1
 
 
 class TruthChannel:
@@ -189,6 +312,9 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
                         help="plant in process, virtual driver, no sockets")  # fmt: skip
     parser.add_argument("--stand-in", action="store_true",
                         help="with --offline: sinusoidal stand-in, not the plant")  # fmt: skip
+    parser.add_argument("--no-realtime", action="store_true",
+                        help="do not apply loop.realtime (SCHED_FIFO, mlockall, GC off) to "
+                        "the gateway's thread and the soft PLC")  # fmt: skip
 
 
 class StandInPlant:
@@ -231,20 +357,39 @@ class StandInPlant:
 
 
 class SoftPlc:
-    """The soft PLC as a subprocess; ``host``/``port`` parsed from its listening line."""
+    """The soft PLC as a subprocess; ``host``/``port`` parsed from its listening line.
 
-    def __init__(self, config_path: str, bus: str, port: int = 0) -> None:
+    With ``realtime`` it is started with ``--realtime`` (it applies ``loop.realtime`` where
+    it may); its stderr is drained on a thread (the last lines kept for errors) and its
+    ``sim-plc: real-time: ...`` line is kept in :attr:`realtime_line`.
+    """
+
+    def __init__(self, config_path: str, bus: str, port: int = 0, realtime: bool = False) -> None:
         cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
                "--port", str(port)]  # fmt: skip
         if bus != "modbus_tcp":
             cmd += ["--bus", bus]
+        if realtime:
+            cmd.append("--realtime")
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         root = str(Path(__file__).resolve().parent.parent)  # the project root
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         self.proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
         )
+        self.realtime_line = ""
+        self._stderr: collections.deque[str] = collections.deque(maxlen=20)
+        self._drain = threading.Thread(target=self._drain_stderr, daemon=True)
+        self._drain.start()
         self.host, self.port = self._wait_listening(bus)
+
+    def _drain_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        with contextlib.suppress(ValueError, OSError):  # closed by close()
+            for line in self.proc.stderr:
+                if line.startswith("sim-plc: real-time"):
+                    self.realtime_line = line.strip()
+                self._stderr.append(line)
 
     def _wait_listening(self, bus: str) -> tuple[str, int]:
         found: dict[str, Any] = {}
@@ -263,7 +408,9 @@ class SoftPlc:
         if "address" not in found:
             if self.proc.poll() is None:
                 self.proc.kill()
-            err = self.proc.communicate(timeout=10)[1] or ""
+            self.proc.wait(timeout=10)
+            self._drain.join(timeout=10)
+            err = "".join(self._stderr)
             self.close()
             raise GatewayError(f"soft PLC ({bus}) did not start: {err.strip()[-400:]}")
         host, _, port = found["address"].rpartition(":")
@@ -277,6 +424,7 @@ class SoftPlc:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(timeout=10)
+        self._drain.join(timeout=10)
         for pipe in (self.proc.stdout, self.proc.stderr):
             if pipe is not None:
                 pipe.close()
@@ -329,9 +477,29 @@ def with_port(cfg: Config, bus: str, host: str, port: int) -> Config:
     return dataclasses.replace(cfg, bus=bus_cfg)
 
 
-def run_timed(service: CyclicService, seconds: float, label: str, err: TextIO) -> None:
-    """Run ``service`` in a thread for ``seconds``; one progress line per second."""
-    worker = threading.Thread(target=service.run, name="gateway-loop", daemon=True)
+def run_timed(service: CyclicService, seconds: float, label: str, err: TextIO,
+              rt: RealtimeConfig | None = None) -> RealtimeReport | None:  # fmt: skip
+    """Run ``service`` in a thread for ``seconds``; one progress line per second.
+
+    With ``rt`` the loop's thread applies it first (``force``: as ``loop.realtime`` would
+    in the daemon, whatever ``enabled`` says), says on ``err`` what was applied and what
+    was refused, and undoes it when the loop ends; the report is returned.
+    """
+    reports: list[RealtimeReport] = []
+
+    def body() -> None:
+        report = None
+        if rt is not None:  # on this thread: the policy is per thread, the others keep theirs
+            report = realtime.apply(rt, force=True)
+            reports.append(report)
+            print(report.line(f"{label}: gateway real-time"), file=err, flush=True)
+        try:
+            service.run()
+        finally:
+            if report is not None:
+                realtime.undo(report)
+
+    worker = threading.Thread(target=body, name="gateway-loop", daemon=True)
     worker.start()
     start = time.monotonic()
     try:
@@ -350,27 +518,72 @@ def run_timed(service: CyclicService, seconds: float, label: str, err: TextIO) -
     finally:
         service.stop()
         worker.join(timeout=30)
+    return reports[0] if reports else None
 
 
 def _us(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x * 1e6:.0f} us"
 
 
-def table(service: CyclicService, title: str, score: TruthScore | None = None) -> str:
-    """The closing table: loop figures, then per-cable RMSE raw vs corrected."""
+@dataclasses.dataclass
+class DemoRun:
+    """What the closing table reports: the loop, the truth samples, the real-time lines."""
+
+    service: CyclicService
+    score: TruthScore | None = None
+    truth: str = ""  # how the truth samples were counted (one line)
+    realtime: list[str] = dataclasses.field(default_factory=list)
+    noise_n: float | None = None  # the plant's sensor noise (N): the best RMSE possible
+
+
+def noise_floor(cfg: Config) -> float:
+    """The soft PLC plant's sensor noise (``sim_plc.noise_std_n``), mean over cables."""
+    from sim_plc.config import load_sim_config
+
+    noise = np.asarray(load_sim_config(cfg).noise_std_n, dtype=float)
+    return float(np.broadcast_to(noise, (cfg.cables,)).mean())
+
+
+def truth_line(matcher: TruthMatcher, source: str) -> str:
+    """How the truth samples were counted, one line."""
+    if matcher.by_heartbeat:
+        how = "matched by the PLC heartbeat to the cycle that read that plant step"
+    else:
+        how = "paired with the latest cycle (no heartbeat to match)"
+    return (
+        f"{matcher.read} read {source}, {matcher.matched} {how} and scored, "
+        f"{matcher.unmatched} unmatched (no cycle read that step), {matcher.failed} failed reads"
+    )
+
+
+def table(run: DemoRun, title: str) -> str:
+    """The closing table: loop figures and what they count, then per-cable RMSE."""
+    service, score = run.service, run.score
     s = service.stats
     pct = 100.0 * s.overruns / max(s.cycles, 1)
+    failed = sum(s.errors[k] for k in ("connect", "io", "timeout", "write"))
     rows = [
         title,
-        f"  cycles               {s.cycles}",
-        f"  written              {s.written}",
-        f"  overruns             {s.overruns} ({pct:.3f} %), {s.skipped} cycles skipped",
+        *(f"  {line}" for line in run.realtime),
+        f"  cycles               {s.cycles}  (loop passes, one per deadline met or late: "
+        "read -> compensate -> write, or a connection step)",
+        f"  written              {s.written}  (frames sent: one per cycle with a good read, "
+        "plus the STOPPED frame at exit)",
+        f"  failed               {failed}  (cycles without a good read or write: "
+        + ", ".join(f"{k} {s.errors[k]}" for k in ("connect", "io", "timeout", "write"))
+        + ")",
+        f"  overruns             {s.overruns} ({pct:.3f} % of cycles)  (cycles that ended "
+        "after the next deadline)",
+        f"  cycles skipped       {s.skipped}  (deadlines dropped after those overruns, phase "
+        "kept: no cycle ran for them)",
         f"  reconnects           {service.reconnects}",
         f"  jitter p50 / p99     {_us(s.jitter_ring.percentile(50))} / "
         f"{_us(s.jitter_ring.percentile(99))}",
         f"  round trip p50 / p99 {_us(s.roundtrip_ring.percentile(50))} / "
         f"{_us(s.roundtrip_ring.percentile(99))}",
     ]
+    if run.truth:
+        rows.append(f"  truth samples        {run.truth}")
     if score is not None and score.samples.any():
         raw, corrected = score.rmse()
         rows += ["", "  cable  RMSE raw N  RMSE corrected N  samples"]
@@ -379,15 +592,19 @@ def table(service: CyclicService, title: str, score: TruthScore | None = None) -
                 f"  {i + 1:>5}  {raw[i]:10.3f}  {corrected[i]:16.3f}  {score.samples[i]:7d}"
             )
         rows.append(f"  {'mean':>5}  {raw.mean():10.3f}  {corrected.mean():16.3f}")
+        if run.noise_n is not None:
+            ratio = corrected.mean() / run.noise_n if run.noise_n > 0 else math.nan
+            rows.append(
+                f"  noise floor {run.noise_n:.3f} N (sim_plc.noise_std_n, mean over cables): "
+                f"corrected RMSE {ratio:.2f}x the floor"
+            )
     else:
         rows.append("  (no true tensions received: no RMSE)")
     return "\n".join(rows)
 
 
-Demo = tuple[CyclicService, "TruthScorer | None"]
-
-
-def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> Demo:
+def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> DemoRun:
+    """In process, one thread: the truth is read in the cycle (same plant step, exact)."""
     from drivers.virtual import VirtualDriver
 
     image = ProcessImage(cfg.cables)
@@ -410,44 +627,67 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> Demo:
     scorer = TruthScorer(cfg.cables, truth)
     service.add_observer(scorer)
     run_timed(service, seconds, "demo (offline)", sys.stderr)
-    return service, scorer
+    n = int(scorer.score.samples.max()) if scorer.score.samples.size else 0
+    noise = None if stand_in else noise_floor(cfg)
+    how = f"{n} read in the cycle from the plant it steps (same step, exact)"
+    return DemoRun(service, scorer.score, how, noise_n=noise)
 
 
-def run_canopen_in_process(cfg: Config, seconds: float) -> Demo:
+def _off_cycle(service: CyclicService, cables: int, source: TruthSource) -> TruthMatcher:
+    ring = CycleRing(cables)
+    service.add_observer(ring)
+    matcher = TruthMatcher(ring, source, cables)
+    matcher.start()  # before the loop's thread takes real-time priority: normal priority
+    return matcher
+
+
+def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> DemoRun:
     plc = InProcessCanopenPlc(cfg)
+    matcher = None
     try:
         print(f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
               file=sys.stderr)  # fmt: skip
         service = CyclicService(plc.cfg, build_driver(plc.cfg))
-        scorer = TruthScorer(cfg.cables, plc.truth)
-        service.add_observer(scorer)
-        run_timed(service, seconds, "demo", sys.stderr)
+        matcher = _off_cycle(service, cfg.cables, plc.truth)
+        report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
+        if matcher is not None:
+            matcher.stop()
         plc.close()
-    return service, scorer
+    lines = [report.line("real-time gateway")] if report is not None else []
+    how = "from the process image (the analog PDOs follow SYNC, not the plant step)"
+    return DemoRun(service, matcher.score, truth_line(matcher, how), lines, noise_floor(cfg))
 
 
-def run_online(cfg: Config, config_path: str, bus: str, seconds: float) -> Demo:
+def run_online(cfg: Config, config_path: str, bus: str, seconds: float,
+               rt: bool = True) -> DemoRun:  # fmt: skip
     if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
-        return run_canopen_in_process(cfg, seconds)
-    plc = SoftPlc(config_path, bus)
-    channel = None
+        return run_canopen_in_process(cfg, seconds, rt)
+    plc = SoftPlc(config_path, bus, realtime=rt)
+    channel = matcher = None
     try:
         print(f"demo: soft PLC serving {bus} on {plc.host}:{plc.port}", file=sys.stderr)
         live = with_port(cfg, bus, plc.host, plc.port)
         service = CyclicService(live, build_driver(live))
-        scorer = None
         if bus == "modbus_tcp":
             mb = live.bus.modbus_tcp
             channel = TruthChannel(mb.host, mb.port, mb.unit_id, cfg.cables)
-            scorer = TruthScorer(cfg.cables, channel, TRUTH_EVERY_CYCLES)
-            service.add_observer(scorer)
-        run_timed(service, seconds, "demo", sys.stderr)
+            matcher = _off_cycle(service, cfg.cables, channel)
+        report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
+        if matcher is not None:
+            matcher.stop()
         if channel is not None:
             channel.close()
         plc.close()
-    return service, scorer
+    lines = [report.line("real-time gateway")] if report is not None else []
+    soft = plc.realtime_line.removeprefix("sim-plc: real-time: ")
+    if rt:
+        lines.append(f"real-time soft PLC: {soft or 'no report'}")
+    if matcher is None:
+        return DemoRun(service, None, "", lines)
+    how = f"from the side channel (register {TRUTH_ADDRESS}, own connection, off the cycle)"
+    return DemoRun(service, matcher.score, truth_line(matcher, how), lines, noise_floor(cfg))
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
@@ -456,14 +696,14 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     bus = args.bus or cfg.bus.driver
     if args.offline or bus == "virtual":
-        service, scorer = run_offline(cfg, args.seconds, args.stand_in)
+        run = run_offline(cfg, args.seconds, args.stand_in)
         plant = "stand-in plant" if args.stand_in else "plant"
         title = f"demo: {plant} in process, virtual driver, {args.seconds:g} s"
     else:
-        service, scorer = run_online(cfg, args.config, bus, args.seconds)
+        run = run_online(cfg, args.config, bus, args.seconds, not args.no_realtime)
         where = "on loopback"
         if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
             where = "(virtual CAN, in process)"
         title = f"demo: soft PLC over {bus} {where}, {args.seconds:g} s"
-    print(table(service, title, scorer.score if scorer is not None else None))
+    print(table(run, title))
     return 0
