@@ -163,9 +163,11 @@ class TruthMatcher:
     that read the same plant step (PLC heartbeat); a step the gateway has not read yet is
     looked up again for up to ``WAIT_FOR_CYCLE_S``. Counts: ``read`` truth samples
     received, ``matched`` scored, ``unmatched`` (no cycle read that plant step: the gateway
-    skipped it or read it twice-removed), ``failed`` (the side channel failed).
-    The thread is started by the caller before the loop's thread takes real-time priority,
-    so it runs at normal priority and never competes with the cycle.
+    never read that step: an overrun, or two plant steps between two of its reads),
+    ``failed`` (the side channel failed). The caller starts the thread before the loop's
+    thread takes real-time priority, so it runs at normal priority and the cycle preempts it;
+    it still shares the GIL (held for a few numpy operations at a time) and the soft PLC's
+    server (one request per ``interval_s``) with the cycle.
     """
 
     def __init__(self, ring: CycleRing, source: TruthSource, cables: int,
