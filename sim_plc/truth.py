@@ -162,8 +162,8 @@ class TruthMatcher:
     transaction on its own connection) and looks up, in the :class:`CycleRing`, the cycle
     that read the same plant step (PLC heartbeat); a step the gateway has not read yet is
     looked up again for up to ``WAIT_FOR_CYCLE_S``. Counts: ``read`` truth samples
-    received, ``matched`` scored, ``unmatched`` (no cycle read that plant step: the gateway
-    never read that step: an overrun, or two plant steps between two of its reads),
+    received, ``matched`` scored, ``unmatched`` (the gateway never read that plant step:
+    an overrun, or two plant steps between two of its reads),
     ``failed`` (the side channel failed). The caller starts the thread before the loop's
     thread takes real-time priority, so it runs at normal priority and the cycle preempts it;
     it still shares the GIL (held for a few numpy operations at a time) and the soft PLC's
