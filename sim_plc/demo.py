@@ -77,6 +77,7 @@ __all__ = [
     "run_command", "table", "with_port",
 ]  # fmt: skip
 
+NO_REALTIME = "real-time: off (--no-realtime): loop.realtime not applied"
 STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first start
 
 
@@ -431,7 +432,7 @@ def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> Demo
         if matcher is not None:
             matcher.stop()
         plc.close()
-    lines = [report.line("real-time gateway")] if report is not None else []
+    lines = [report.line("real-time gateway") if report is not None else NO_REALTIME]
     how = "from the process image (the analog PDOs follow SYNC, not the plant step)"
     return DemoRun(service, matcher.score, truth_line(matcher, how), lines, noise_floor(cfg))
 
@@ -457,7 +458,7 @@ def run_online(cfg: Config, config_path: str, bus: str, seconds: float,
         if channel is not None:
             channel.close()
         plc.close()
-    lines = [report.line("real-time gateway")] if report is not None else []
+    lines = [report.line("real-time gateway") if report is not None else NO_REALTIME]
     soft = plc.realtime_line.removeprefix("sim-plc: real-time: ")
     if rt:
         lines.append(f"real-time soft PLC: {soft or 'no report'}")
