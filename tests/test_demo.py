@@ -230,4 +230,3 @@ def test_demo_against_the_soft_plc_explains_its_counts(capsys):
     assert mean, out
     assert float(mean.group(2)) < 0.5 * float(mean.group(1))
     assert re.search(r"corrected RMSE [\d.]+x the floor", out)
-
