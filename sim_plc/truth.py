@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import math
+import os
 import socket
 import struct
 import threading
@@ -155,6 +156,15 @@ class CycleRing:
         return int(self.stamp[slot]) == stamp  # not rewritten while copied
 
 
+def lowest_realtime() -> bool:
+    """SCHED_FIFO priority 1 for the calling thread where permitted; False if refused."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
 class TruthMatcher:
     """Scores the gateway against the plant's truth off the cycle, on its own thread.
 
@@ -164,10 +174,10 @@ class TruthMatcher:
     looked up again for up to ``WAIT_FOR_CYCLE_S``. Counts: ``read`` truth samples
     received, ``matched`` scored, ``unmatched`` (the gateway never read that plant step:
     an overrun, or two plant steps between two of its reads),
-    ``failed`` (the side channel failed). The caller starts the thread before the loop's
-    thread takes real-time priority, so it runs at normal priority and the cycle preempts it;
-    it still shares the GIL (held for a few numpy operations at a time) and the soft PLC's
-    server (one request per ``interval_s``) with the cycle.
+    ``failed`` (the side channel failed). The thread shares the GIL (held for a few
+    numpy operations at a time) and the soft PLC's server (one request per ``interval_s``)
+    with the cycle; :meth:`set_realtime` keeps it from being preempted while it holds the
+    GIL (the loop would wait behind it).
     """
 
     def __init__(self, ring: CycleRing, source: TruthSource, cables: int,
@@ -178,8 +188,16 @@ class TruthMatcher:
         self._sample = (np.zeros(cables), np.zeros(cables), np.zeros(cables, dtype=np.uint16))
         self.read = self.matched = self.unmatched = self.failed = 0
         self.by_heartbeat = True  # False once the source gave no heartbeat
+        self.priority: int | None = None  # set_realtime(): SCHED_FIFO 1 for this thread
+        self.priority_applied = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="demo-truth", daemon=True)
+
+    def set_realtime(self) -> None:
+        """Run the thread at SCHED_FIFO priority 1 (below the loop's): a thread that takes
+        the GIL must not be preempted by every normal process while it holds it, or the
+        loop waits for the GIL behind it (priority inversion)."""
+        self.priority = 1
 
     def start(self) -> None:
         self._thread.start()
@@ -190,6 +208,8 @@ class TruthMatcher:
             self._thread.join(timeout=10)
 
     def _run(self) -> None:
+        if self.priority is not None:
+            self.priority_applied = lowest_realtime()
         while not self._stop.wait(self.interval_s):
             if self.ring.copied == 0:
                 continue  # the gateway is not scoring yet (warm-up)

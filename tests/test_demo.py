@@ -221,6 +221,7 @@ def test_demo_against_the_soft_plc_explains_its_counts(capsys):
     out = capsys.readouterr().out
     assert re.search(r"real-time gateway: (applied|off)", out), out
     assert re.search(r"real-time soft PLC: applied", out), out  # started with --realtime
+    assert re.search(r"real-time truth reader: SCHED_FIFO priority 1 (applied|refused)", out)
     for row in ("cycles", "written", "failed", "overruns", "cycles skipped"):
         assert re.search(rf"^  {row}\s+\d+", out, re.MULTILINE), (row, out)
     truth = re.search(r"truth samples\s+(\d+) read .* (\d+) matched by the PLC heartbeat", out)
