@@ -210,7 +210,9 @@ class TruthMatcher:
     def _run(self) -> None:
         if self.priority is not None:
             self.priority_applied = lowest_realtime()
-        while not self._stop.wait(self.interval_s):
+        rng = np.random.default_rng()
+        # a random gap (0.5..1.5 intervals): samples not phase-locked to the plant's steps
+        while not self._stop.wait(self.interval_s * (0.5 + rng.random())):
             if self.ring.copied == 0:
                 continue  # the gateway is not scoring yet (warm-up)
             self.poll()
