@@ -63,6 +63,10 @@ FLAG_STUCK = 4
 FLAG_STALE = 8
 RANGE_MARGIN = 0.05  # readings down to -5 % of the range are noise around zero, not faults
 MOVING_M_S = 1e-6  # |setpoint velocity| above this counts as moving for the stuck check
+# The chain's time step is the time since the previous step (overruns: the skipped cycles'
+# cable travel counts), bounded to this many periods: after an outage the setpoint motion
+# in between is unknown, so its travel is not extrapolated from the first velocity after it.
+MAX_STEP_PERIODS = 10
 GOOD = int(ChannelStatus.GOOD)
 SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
 INVALID = int(ChannelStatus.INVALID)
@@ -173,6 +177,7 @@ class Compensator:
             lp.substitute_max_s,
         )  # fmt: skip
         self.stale_after_s = lp.stale_after_s
+        self.max_step_s = MAX_STEP_PERIODS * lp.period_s
         self.frame_anchors = np.array(cfg.geometry.frame_anchors_m, dtype=float)
         self.platform_anchors = np.array(cfg.geometry.platform_anchors_m, dtype=float)
         self.channels = ChannelState.allocate(m)
@@ -221,7 +226,9 @@ class Compensator:
         """One cycle on a successful read; fills ``out`` tensions, status and wrench.
 
         The model's time step is the time since the previous step (0 on the first), so
-        the acceleration (inertia) and the cable travel (Dahl) follow the actual cycle.
+        the acceleration (inertia) and the cable travel (Dahl, ``v dt``) follow the actual
+        samples: a cycle skipped after an overrun loses no travel. The chain's step is
+        bounded to ``MAX_STEP_PERIODS`` periods (after an outage).
         """
         if inputs.read_time_s != self._last_read_time:
             self._last_read_time = inputs.read_time_s
@@ -243,7 +250,9 @@ class Compensator:
             self._length_in, self.model_in_n,
         )  # fmt: skip
         self._velocity_prev[:] = self.velocity_m_s
-        self.stepper.step(self.model_in_n, self.velocity_m_s, self.corrected_n, dt)
+        self.stepper.step(
+            self.model_in_n, self.velocity_m_s, self.corrected_n, min(dt, self.max_step_s)
+        )
         if self._finish(self.corrected_n, self.used_n, self.status, self.friction_n):
             self.wrench[:] = np.nan
         else:

@@ -8,13 +8,20 @@ import signal
 import subprocess
 import sys
 import threading
+import time
+import tracemalloc
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import yaml
+from numpy.testing import assert_allclose
 
+from drivers.base import Inputs
 from gateway.cli import main
 from gateway.config import DEFAULT_CONFIG_PATH
+from sim_plc.truth import SCORE_AFTER_S, CycleRing, TruthMatcher
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -112,3 +119,115 @@ def test_demo_offline_with_the_plant(capsys):
     assert mean, out
     assert float(mean.group(2)) < 0.5 * float(mean.group(1))
     assert "plant in process" in out
+    assert re.search(r"truth samples\s+\d+ read in the cycle", out), out
+    assert re.search(r"noise floor 0\.500 N .* corrected RMSE [\d.]+x the floor", out), out
+
+
+# --- the demo's scoring off the cycle (issue 12) ------------------------------------------
+def fake_cycle(cables: int, hb: int, value: float) -> tuple[Inputs, SimpleNamespace]:
+    inputs = Inputs.allocate(cables)
+    inputs.plc_heartbeat = hb
+    comp = SimpleNamespace(
+        raw_n=np.full(cables, value + 10.0),
+        corrected_n=np.full(cables, value),
+        status=np.zeros(cables, dtype=np.uint16),
+    )
+    return inputs, comp
+
+
+def filled_ring(cables: int, hbs: range, t0: float = 100.0) -> CycleRing:
+    """A ring past its warm-up holding cycles that read ``hbs`` (corrected = hb N)."""
+    ring = CycleRing(cables, size=64)
+    inputs, comp = fake_cycle(cables, 0, 0.0)
+    ring(inputs, comp, t0 - SCORE_AFTER_S - 1.0)  # starts the warm-up clock
+    for hb in hbs:
+        inputs.plc_heartbeat = hb
+        comp.corrected_n[:] = hb
+        comp.raw_n[:] = hb + 10.0
+        ring(inputs, comp, time.monotonic())
+    return ring
+
+
+def test_cycle_ring_observer_allocates_nothing():
+    cables = 8
+    ring = CycleRing(cables, size=256)
+    inputs, comp = fake_cycle(cables, 0, 1.0)
+    now = 0.0
+    for _ in range(600):  # warm-up passes, every slot written once
+        now += 0.001
+        inputs.plc_heartbeat = (inputs.plc_heartbeat + 1) & 0xFFFF
+        ring(inputs, comp, now)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(2000):
+            now += 0.001
+            inputs.plc_heartbeat = (inputs.plc_heartbeat + 1) & 0xFFFF
+            ring(inputs, comp, now)
+        grown = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert ring.copied == 2600 - 500  # the first SCORE_AFTER_S (500 cycles) not copied
+    assert grown < 512, grown
+
+
+def test_truth_is_matched_to_the_cycle_of_the_same_plant_step():
+    cables = 4
+    ring = filled_ring(cables, range(1000, 1040))
+    truth_hb = {"hb": 1017}
+
+    def source(truth: np.ndarray) -> int:
+        truth[:] = truth_hb["hb"]  # the true tension equals that cycle's corrected value
+        return truth_hb["hb"]
+
+    matcher = TruthMatcher(ring, source, cables)
+    for hb in (1017, 1020, 1039):
+        truth_hb["hb"] = hb
+        matcher.poll()
+    raw, corrected = matcher.score.rmse()
+    assert (matcher.read, matcher.matched, matcher.unmatched) == (3, 3, 0)
+    assert_allclose(corrected, 0.0, atol=1e-12)  # the very cycle, not a neighbour
+    assert_allclose(raw, 10.0, atol=1e-12)
+    truth_hb["hb"] = 2000  # a plant step no cycle read (waits WAIT_FOR_CYCLE_S, then gives up)
+    matcher.poll()
+    assert (matcher.matched, matcher.unmatched) == (3, 1)
+
+
+def test_an_old_lap_of_the_heartbeat_is_not_matched():
+    cables = 2
+    ring = filled_ring(cables, range(5, 9))
+    ring.when[:] -= 100.0  # the slots are 100 s old: heartbeat 7 now is another plant step
+    matcher = TruthMatcher(ring, lambda truth: 7, cables)
+    matcher.poll()
+    assert (matcher.matched, matcher.unmatched) == (0, 1)
+    assert matcher.score.samples.sum() == 0
+
+
+def test_failed_side_channel_reads_are_counted_not_scored():
+    ring = filled_ring(2, range(3))
+
+    def broken(truth: np.ndarray) -> int:
+        raise OSError("side channel closed")
+
+    matcher = TruthMatcher(ring, broken, 2)
+    matcher.poll()
+    assert (matcher.read, matcher.failed, matcher.matched) == (0, 1, 0)
+
+
+@pytest.mark.slow
+@pytest.mark.loopback
+def test_demo_against_the_soft_plc_explains_its_counts(capsys):
+    assert main(["demo", "--seconds", "2"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"real-time gateway: (applied|off)", out), out
+    assert re.search(r"real-time soft PLC: applied", out), out  # started with --realtime
+    assert re.search(r"real-time truth reader: SCHED_FIFO priority 1 (applied|refused)", out)
+    for row in ("cycles", "written", "failed", "overruns", "cycles skipped"):
+        assert re.search(rf"^  {row}\s+\d+", out, re.MULTILINE), (row, out)
+    truth = re.search(r"truth samples\s+(\d+) read .* (\d+) matched by the PLC heartbeat", out)
+    assert truth, out
+    assert 0 < int(truth.group(2)) <= int(truth.group(1))
+    mean = re.search(r"mean\s+([\d.]+)\s+([\d.]+)", out)
+    assert mean, out
+    assert float(mean.group(2)) < 0.5 * float(mean.group(1))
+    assert re.search(r"corrected RMSE [\d.]+x the floor", out)
