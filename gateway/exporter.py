@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
+from gateway import realtime
 from gateway.config import MetricsConfig
 from gateway.errors import ConfigError
 
@@ -133,18 +134,6 @@ def _response(status: str, body: bytes, headers: list[tuple[str, str]], head: bo
              "Connection: " + ("keep-alive" if keep_alive else "close")]  # fmt: skip
     lines += [f"{k}: {v}" for k, v in headers]
     return ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + (b"" if head else body)
-
-
-def _yield_to_the_cycle() -> None:
-    """Run this thread below the cycle: back to SCHED_OTHER if the process was started
-    real-time (the unit's CPUSchedulingPolicy=fifo), and nice 10. Linux applies both per
-    thread; lowering needs no privilege. Elsewhere a no-op."""
-    with contextlib.suppress(AttributeError, OSError):
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    with contextlib.suppress(AttributeError, OSError):
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), 10))
 
 
 class MetricsServer:
@@ -242,7 +231,7 @@ class MetricsServer:
     # ---- the selector loop ---------------------------------------------------------------
 
     def _serve(self) -> None:
-        _yield_to_the_cycle()
+        realtime.below_the_cycle()
         while not self._stop:
             now = time.monotonic()
             wait = TICK_S

@@ -30,6 +30,7 @@ import errno
 import gc
 import os
 import resource
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -186,3 +187,16 @@ def undo(report: RealtimeReport, ops: Ops | None = None) -> None:
         if report.gc_was_enabled:
             gc.enable()
         report.gc_was_enabled = None
+
+
+def below_the_cycle() -> None:
+    """Run the calling thread below the cycle (the exporter, the recorder's writer): back
+    to SCHED_OTHER if it was started real-time (threads inherit the policy of the thread
+    that starts them; the unit's CPUSchedulingPolicy=fifo), and nice 10. Linux applies both
+    per thread; lowering needs no privilege. Elsewhere a no-op."""
+    with contextlib.suppress(AttributeError, OSError):
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(AttributeError, OSError):
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), 10))

@@ -38,6 +38,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from gateway import realtime
 from gateway.config import RecordConfig
 from gateway.recording import POSE_COLUMNS, RecordingWriter
 
@@ -164,6 +165,7 @@ class Recorder:
 
     # --- the writer thread ---------------------------------------------------------------
     def _run(self) -> None:
+        realtime.below_the_cycle()  # never compete with a real-time cycle for the CPU
         try:
             while True:
                 stopping = self._stop.wait(self.cfg.batch_s)

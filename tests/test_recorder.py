@@ -336,3 +336,38 @@ def test_the_plant_writes_a_falling_platform_mass() -> None:
         plant.step(image)
         masses.append(image.platform_mass_kg)
     assert masses[0] > 0 and np.all(np.diff(masses) <= 0) and masses[-1] < masses[0]
+
+
+def test_the_writer_thread_runs_below_a_real_time_cycle(tmp_path: Path) -> None:
+    """Threads inherit the policy of the thread that starts them: a recorder started by a
+    SCHED_FIFO cycle thread must still write at SCHED_OTHER, never competing with it."""
+    import os
+
+    def fifo_then_start(out: list[int]) -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except (AttributeError, OSError):
+            out.append(-1)  # not permitted here: nothing to check
+            return
+        rec = Recorder(RecordConfig(path=str(tmp_path / "rt.csv"), batch_s=0.01), M)
+        rec.start()
+        try:
+            assert rec._thread is not None
+            deadline = time.monotonic() + 5.0
+            tid = rec._thread.native_id
+            while time.monotonic() < deadline:  # the writer lowers itself when it starts
+                if tid is not None and os.sched_getscheduler(tid) == os.SCHED_OTHER:
+                    break
+                time.sleep(0.01)
+            assert tid is not None
+            out.append(os.sched_getscheduler(tid))
+        finally:
+            rec.close()
+
+    result: list[int] = []
+    starter = threading.Thread(target=fifo_then_start, args=(result,))
+    starter.start()
+    starter.join(10.0)
+    if result == [-1]:
+        pytest.skip("SCHED_FIFO is not permitted for this process")
+    assert result == [os.SCHED_OTHER]
