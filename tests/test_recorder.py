@@ -290,17 +290,22 @@ def test_run_sigterm_closes_the_recording(tmp_path: Path) -> None:
         stderr=subprocess.PIPE,
         text=True,
     )
-    assert proc.stderr is not None
-    seen: list[str] = []
-    for _ in range(20):  # banner lines, "recording to ...", then "connected to the PLC ..."
-        seen.append(proc.stderr.readline())
-        if "connected to the PLC" in seen[-1]:
-            break
-    assert "connected to the PLC" in seen[-1], seen
-    assert any("recording to" in line for line in seen), seen
-    time.sleep(1.0)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=30)
+    try:
+        assert proc.stderr is not None
+        seen: list[str] = []
+        for _ in range(20):  # banner lines, "recording to ...", then "connected to the PLC ..."
+            seen.append(proc.stderr.readline())
+            if "connected to the PLC" in seen[-1]:
+                break
+        assert "connected to the PLC" in seen[-1], seen
+        assert any("recording to" in line for line in seen), seen
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:  # a failed assertion must not leave a gateway running for ever
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     _, t = _rows_of(out)
     assert f"recorded {t.size} rows" in err and "dropped 0" in err
