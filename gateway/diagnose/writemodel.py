@@ -69,8 +69,10 @@ def fitted_effects(report: dict[str, Any], cables: int, rec: Recording | None = 
         if name == "eccentricity" and rec is not None and rec.length is not None:
             ph, r, l0 = values["phi_rad"], values["r_m"], rec.length[0]
             values["phi_rad"] = np.array(
-                [fx.eccentricity_phase_at_length(float(ph[i]), float(r[i]), float(l0[i]))
-                 for i in range(cables)]  # fmt: skip
+                [
+                    fx.eccentricity_phase_at_length(float(ph[i]), float(r[i]), float(l0[i]))
+                    for i in range(cables)
+                ]
             )
         out[name] = values
     return out
