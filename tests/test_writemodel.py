@@ -42,14 +42,16 @@ def _report(findings: list[dict]) -> dict:
     return {"cables": M, "findings": findings}
 
 
+# fmt: off
 REPORT = _report(
     [
         {"effect": "viscous", "cables": list(range(1, 9)), "parameters": {"c_ns_m": [12.5] * 8}},
         {"effect": "offset", "cables": [1, 4], "parameters": {"c_n": [1.5, -1.2]}},
         {"effect": "coulomb", "cables": [2], "parameters": {"mu": [0.02], "f0_n": [0.8]}},
-        {"effect": "mass_change", "cables": list(range(1, 9)), "parameters": {"q_kg_s": [0.01] * 8}},
+        {"effect": "mass_change", "cables": [*range(1, 9)], "parameters": {"q_kg_s": [0.01] * M}},
     ]
 )
+# fmt: on
 
 
 def _friction_file(tmp_path: Path) -> Path:
@@ -133,10 +135,12 @@ def test_model_effects_take_the_recording_back_to_the_nominal_chain():
         "coulomb": {"f0_n": 1.0},
     }
     rec, cfg = _plant(hidden, 0.0, 4.0)
-    friction = replace(cfg.friction, effects=FrictionConfig.effects_mapping(fx.effect_values(hidden, M)))
+    fitted = FrictionConfig.effects_mapping(fx.effect_values(hidden, M))
+    friction = replace(cfg.friction, effects=fitted)
     out, nominal = relative_to_model(rec, friction)
     assert nominal.effects == {}
-    expect = chain.simulate(fx.chain_params(nominal, {}, M), rec.tension_platform, rec.velocity, rec.t)
+    tp = rec.tension_platform
+    expect = chain.simulate(fx.chain_params(nominal, {}, M), tp, rec.velocity, rec.t)
     skip = 250  # the first second: the fitted chain's state settles from rest
     err = out.tension_sensor[skip:] - expect[skip:]
     # inertia: the gateway's backward difference against the truth's central one, and the
