@@ -4,8 +4,9 @@ fitted effects take part when it is read back as ``diagnose --model``.
 **Writing** (:func:`write_model`): the nominal model plus every effect of the report's
 findings, in the ``friction.effects`` form of docs/physics.md sec. 5 (the registry's
 report names; a scalar where every cable has the same value, else one value per cable).
-A cable a finding does not name gets the effect's neutral value (``coulomb.mu``: NaN,
-"keep the nominal"). When ``--model`` was a full config the file is that config with its
+A cable a finding does not name gets the effect's neutral value (``coulomb.mu``: the
+nominal pulleys' mean ``mu``, exact when the pulleys share one ``mu``; left out when no
+cable has a fitted ``mu``). When ``--model`` was a full config the file is that config with its
 ``friction:`` replaced, else it holds the ``friction:`` mapping alone. Effects the model
 already carried are composed with the new findings (:func:`compose`): the diagnosis ran
 relative to them (below), so a finding is a correction on top.
@@ -88,7 +89,7 @@ def compose(old: fx.Effects, new: fx.Effects, nominal_mu: float) -> fx.Effects:
         if name not in out:
             out[name] = {p: v.copy() for p, v in params.items()}
         elif name in ADDITIVE:
-            scale = 1.0 + out["gain"]["g"] if name == "offset" and "gain" in out else 1.0
+            scale = 1.0 + old["gain"]["g"] if name == "offset" and "gain" in old else 1.0
             for p, v in params.items():
                 out[name][p] = out[name][p] + scale * v
         elif name == "gain":
@@ -113,6 +114,9 @@ def fitted_friction(
         raise ConfigError(str(exc)) from None
     nominal_mu = float(np.mean(friction.mu)) if friction.pulleys else 0.0
     total = compose(old, fitted_effects(report, cables, rec), nominal_mu)
+    mu = total.get("coulomb", {}).get("mu")
+    if mu is not None and np.any(np.isnan(mu)) and not np.all(np.isnan(mu)):
+        mu[np.isnan(mu)] = nominal_mu  # a file holds no NaN: the nominal pulleys' mean mu
     return dataclasses.replace(friction, effects=FrictionConfig.effects_mapping(total))
 
 
