@@ -7,7 +7,7 @@ SECONDS ?= 20
 
 .PHONY: demo test bench soak lint imports wheel-check format typecheck clean suite-table
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[dev]'

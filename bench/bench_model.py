@@ -1,12 +1,22 @@
-"""Physics core: one compensation step (8 cables x 3 pulleys, Dahl) and batch throughput."""
+"""Physics core: one compensation step (8 cables x 3 pulleys, Dahl) and batch throughput.
+
+``model.compensate_step``: the chain alone (``ChainStepper.step``).
+``model.compensator_step``: the gateway's whole per-cycle step (``Compensator.step``:
+validation, the fitted effects' inverse, the chain, the wrench), nominal model and with
+every online effect fitted, side by side; plus the heap it leaves behind (tracemalloc).
+"""
 
 from __future__ import annotations
 
 import time
+import tracemalloc
+from dataclasses import replace
 
 import numpy as np
 
-from gateway.config import load_config
+from drivers.base import Inputs, Outputs
+from gateway.compensator import Compensator
+from gateway.config import Config, load_config
 from gateway.model.chain import ChainParams, ChainStepper, compensate, simulate
 
 
@@ -57,8 +67,68 @@ def _batch_figures(params: ChainParams) -> None:
         )
 
 
+ALL_ONLINE = {
+    "coulomb": {"f0_n": 0.5, "mu": 0.02},
+    "presliding": {"sigma_n_m": 400.0},
+    "viscous": {"c_ns_m": 3.0},
+    "stribeck": {"k": 0.3, "v_s_m_s": 0.005},
+    "inertia": {"m_eff_kg": 1.5},
+    "gain": {"g": 0.004},
+    "offset": {"c_n": [-0.7, 0.1, 0.2, 0.3, 0.0, 0.0, 0.1, 0.2]},
+    "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7},
+}
+
+
+def _compensator_median(cfg: Config, cycles: int, trace: bool) -> tuple[float, float, int]:
+    """Median and p99 of ``Compensator.step`` (us) and, with ``trace``, the heap retained
+    over the second half of the run (tracemalloc slows every step: not timed then)."""
+    m = cfg.cables
+    t, v, tp = _signals(cycles, m)
+    comp = Compensator(cfg)
+    inp, out = Inputs.allocate(m), Outputs.allocate(m)
+    inp.pose[:] = cfg.geometry.home_pose
+    inp.length_m[:] = 2.0
+    times = np.empty(cycles)
+    before = 0
+    for k in range(cycles):
+        inp.tension_raw_n[:] = tp[k]
+        inp.velocity_m_s[:] = v[k]
+        inp.length_m += v[k] * 1e-3
+        inp.read_time_s = t[k]
+        if trace and k == cycles // 2:
+            tracemalloc.start()
+            before, _ = tracemalloc.get_traced_memory()
+        t0 = time.perf_counter_ns()
+        comp.step(inp, t[k], out)
+        times[k] = time.perf_counter_ns() - t0
+    leaked = 0
+    if trace:
+        after, _ = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        leaked = after - before
+    steady = times[100:]
+    return float(np.median(steady)) / 1e3, float(np.percentile(steady, 99)) / 1e3, leaked
+
+
+def _compensator_figures(cfg: Config) -> None:
+    cycles = 20000
+    fitted = replace(cfg, friction=replace(cfg.friction, effects=ALL_ONLINE))
+    rows = [("nominal", cfg), ("all online effects", fitted)]
+    res = []
+    for name, c in rows:
+        med, p99, _ = _compensator_median(c, cycles, trace=False)
+        res.append((name, med, p99, _compensator_median(c, 4000, trace=True)[2]))
+    for name, med, p99, leaked in res:
+        print(
+            f"model.compensator_step {name:<19} median {med:.2f} us  p99 {p99:.2f} us  "
+            f"(n={cycles}; heap retained over 2000 cycles: {leaked} B)"
+        )
+    print(f"model.compensator_step ratio fitted/nominal: {res[1][1] / res[0][1]:.2f}")
+
+
 def run() -> None:
     cfg = load_config()
     params = ChainParams.from_friction(cfg.friction, cfg.cables)
     _step_figures(params)
+    _compensator_figures(cfg)
     _batch_figures(params)

@@ -99,6 +99,7 @@ class Inputs:
     pose: np.ndarray  # (6,) x, y, z m; rx, ry, rz rad
     plc_heartbeat: int = 0
     read_time_s: float = 0.0  # time.monotonic() when the reply arrived
+    platform_mass_kg: float = float("nan")  # when the register map has platform_mass
 
     @staticmethod
     def allocate(cables: int) -> Inputs:

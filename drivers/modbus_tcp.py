@@ -45,6 +45,8 @@ import struct
 import time
 from typing import Any
 
+import numpy as np
+
 from drivers.base import Backoff, Driver, Inputs, Outputs
 from drivers.registers import FieldCodec, Span, layout_map
 from gateway.config import ModbusTcpConfig
@@ -122,6 +124,8 @@ class ModbusTcpDriver(Driver):
             "channel_status": (r.channel_status, self.cables),
             "wrench": (r.wrench, 6),
         }
+        if r.platform_mass is not None:
+            expect["platform_mass"] = (r.platform_mass, 1)
         for name, (f, n) in expect.items():
             if f.count != n:
                 raise ConfigError(f"bus.modbus_tcp.registers.{name}: count {f.count}, need {n}")
@@ -154,6 +158,8 @@ class ModbusTcpDriver(Driver):
         self._len = inp(r.setpoint_lengths)
         self._pose = inp(r.pose)
         self._hb = inp(r.plc_heartbeat)
+        self._mass = inp(r.platform_mass) if r.platform_mass is not None else None
+        self._mass_value = np.zeros(1)
 
         def outp(f: Any) -> FieldCodec:
             return FieldCodec(f, self._wdata, ws.start, 0, sensor)
@@ -393,6 +399,8 @@ class ModbusTcpDriver(Driver):
         self._len.decode(inputs.length_m)
         self._pose.decode(inputs.pose)
         inputs.plc_heartbeat = self._hb.decode_int()
+        if self._mass is not None:
+            inputs.platform_mass_kg = float(self._mass.decode(self._mass_value)[0])
 
     def _encode(self, outputs: Outputs) -> None:
         tension, status, heartbeat, state, wrench = self._out

@@ -1,4 +1,4 @@
-"""Per-cycle compensation: validate -> substitute -> Dahl step -> corrected tensions, wrench.
+"""Per-cycle compensation: validate -> substitute -> fitted effects -> chain -> tensions, wrench.
 
 One :class:`Compensator` holds every buffer and state the cycle needs, allocated at
 construction; :meth:`Compensator.step` allocates nothing (numba kernels and in-place
@@ -26,22 +26,36 @@ a made-up number as if it were good, and a PLC that ignores the status word sees
 plausible value. The Dahl model keeps stepping on invalid channels with the last good value
 (or 0 N if none) so its state stays finite and follows the setpoint motion.
 
-Then the Dahl chain (``ChainStepper``, sensor -> platform) with the setpoint velocities
-gives the corrected platform tensions ``T_p``; the friction estimate is ``T_p - T_s`` (the
-sensor value fed to the model); the platform wrench is ``w = -A(pose) T_p`` (forward
-statics, physics.md sec. 1) at the pose setpoint.
+Then the fitted effects of the config's ``friction.effects`` that a causal per-cycle model
+can undo are removed (:func:`gateway.model.effects.online_inputs_into`: offset and gain,
+inertia from the backward difference of the setpoint velocity over the time since the last
+step, eccentricity from the setpoint length), and the chain (``ChainStepper``, sensor ->
+platform; nominal friction plus the fitted Coulomb ``mu``/``f0``, pre-sliding, viscous and
+Stribeck via :func:`gateway.model.effects.chain_params`) with the setpoint velocities gives
+the corrected platform tensions ``T_p``. Delay, low-pass and drift are not compensated
+(docs/physics.md says why). :attr:`Compensator.friction_n` is ``T_p`` minus the sensor value
+fed to the model (the whole correction); the platform wrench is ``w = -A(pose) T_p``
+(forward statics, docs/physics.md sec. 1) at the pose setpoint.
+
+The kernels take structured state (:class:`Limits`, :class:`ChannelState`,
+``OnlineEffects``, ``KernelParams``) and are called through their compiled entry points
+(:mod:`gateway.model.fastcall`) on the compensator's own buffers.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.config import Config
-from gateway.model.chain import ChainParams, ChainStepper
+from gateway.model import effects as fx
+from gateway.model.chain import ChainStepper
+from gateway.model.fastcall import entry_point
+from gateway.model.statics import wrench_into
 
 FLAG_NAN = 1
 FLAG_RANGE = 2
@@ -49,13 +63,43 @@ FLAG_STUCK = 4
 FLAG_STALE = 8
 RANGE_MARGIN = 0.05  # readings down to -5 % of the range are noise around zero, not faults
 MOVING_M_S = 1e-6  # |setpoint velocity| above this counts as moving for the stuck check
+GOOD = int(ChannelStatus.GOOD)
+SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
+INVALID = int(ChannelStatus.INVALID)
+
+
+class Limits(NamedTuple):
+    """Validation limits: range (N) and the stuck / substitution times (s)."""
+
+    lo: float
+    hi: float
+    stuck_after_s: float
+    substitute_max_s: float
+
+
+class ChannelState(NamedTuple):
+    """Per-channel (m,) validation state and the model inputs it selects."""
+
+    last_value: np.ndarray  # last reading, as read
+    changed_at: np.ndarray  # when it last changed (or the cable was at rest)
+    last_good: np.ndarray  # last good reading (NaN: none yet)
+    good_at: np.ndarray  # when it was read
+    flags: np.ndarray  # FLAG_* bits of this cycle
+    status: np.ndarray  # ChannelStatus
+    used: np.ndarray  # sensor value fed to the model
+    vel_used: np.ndarray  # setpoint velocity fed to the model
+
+    @staticmethod
+    def allocate(cables: int) -> ChannelState:
+        return ChannelState(
+            np.full(cables, np.nan), np.zeros(cables), np.full(cables, np.nan),
+            np.full(cables, -np.inf), np.zeros(cables, dtype=np.uint8),
+            np.full(cables, INVALID, dtype=np.uint16), np.zeros(cables), np.zeros(cables),
+        )  # fmt: skip
 
 
 @njit(cache=True)
-def _validate(
-    raw, vel, now, lo, hi, stuck_after, substitute_max, stale, last_value, changed_at,
-    last_good, good_at, flags, status, used, vel_used,
-):  # fmt: skip
+def _validate(lim, st, raw, vel, now, stale):
     """Flag, substitute and pick the model inputs; return the channels newly flagged."""
     newly = 0
     for i in range(raw.size):
@@ -64,25 +108,25 @@ def _validate(
         f = FLAG_STALE if stale else 0
         if not math.isfinite(x) or not math.isfinite(v):
             f |= FLAG_NAN
-        elif x < lo or x > hi:
+        elif x < lim.lo or x > lim.hi:
             f |= FLAG_RANGE
-        vel_used[i] = v if math.isfinite(v) else 0.0
-        if x != last_value[i] or abs(vel_used[i]) < MOVING_M_S:
-            changed_at[i] = now
-        last_value[i] = x
-        if now - changed_at[i] >= stuck_after:
+        st.vel_used[i] = v if math.isfinite(v) else 0.0
+        if x != st.last_value[i] or abs(st.vel_used[i]) < MOVING_M_S:
+            st.changed_at[i] = now
+        st.last_value[i] = x
+        if now - st.changed_at[i] >= lim.stuck_after_s:
             f |= FLAG_STUCK
-        if f != 0 and flags[i] == 0:
+        if f != 0 and st.flags[i] == 0:
             newly += 1
-        flags[i] = f
+        st.flags[i] = f
         if f == 0:
-            last_good[i] = x
-            good_at[i] = now
-            status[i] = 0
-            used[i] = x
+            st.last_good[i] = x
+            st.good_at[i] = now
+            st.status[i] = GOOD
+            st.used[i] = x
             continue
-        status[i] = 1 if now - good_at[i] <= substitute_max else 2
-        used[i] = last_good[i] if math.isfinite(last_good[i]) else 0.0
+        st.status[i] = SUBSTITUTED if now - st.good_at[i] <= lim.substitute_max_s else INVALID
+        st.used[i] = st.last_good[i] if math.isfinite(st.last_good[i]) else 0.0
     return newly
 
 
@@ -94,7 +138,7 @@ def _mark_stale(now, substitute_max, good_at, flags, status):
         if flags[i] == 0:
             newly += 1
         flags[i] |= FLAG_STALE
-        status[i] = 1 if now - good_at[i] <= substitute_max else 2
+        status[i] = SUBSTITUTED if now - good_at[i] <= substitute_max else INVALID
     return newly
 
 
@@ -103,102 +147,108 @@ def _finish(corrected, used, status, friction):
     """Invalid channels -> NaN; friction = corrected - sensor value; any invalid?"""
     bad = False
     for i in range(corrected.size):
-        if status[i] == 2:
+        if status[i] == INVALID:
             corrected[i] = np.nan
             bad = True
         friction[i] = corrected[i] - used[i]
     return bad
 
 
-@njit(cache=True)
-def wrench_into(frame_anchors, platform_anchors, pose, tension, out):
-    """Forward statics ``w = -A(pose) @ tension`` into ``out`` (6,), allocation-free.
-
-    ``frame_anchors``, ``platform_anchors``: (m, 3) m; ``pose``: (6,) x, y, z m and
-    rx, ry, rz rad with ``R = Rz Ry Rx``; ``tension``: (m,) N. Column i of ``A`` is
-    ``[u_i; (R b_i) x u_i]`` with ``u_i`` the unit vector platform -> frame anchor.
-    """
-    ca, sa = math.cos(pose[3]), math.sin(pose[3])
-    cb, sb = math.cos(pose[4]), math.sin(pose[4])
-    cg, sg = math.cos(pose[5]), math.sin(pose[5])
-    r00, r01, r02 = cg * cb, cg * sb * sa - sg * ca, cg * sb * ca + sg * sa
-    r10, r11, r12 = sg * cb, sg * sb * sa + cg * ca, sg * sb * ca - cg * sa
-    r20, r21, r22 = -sb, cb * sa, cb * ca
-    for k in range(6):
-        out[k] = 0.0
-    for i in range(tension.size):
-        bx, by, bz = platform_anchors[i, 0], platform_anchors[i, 1], platform_anchors[i, 2]
-        px = r00 * bx + r01 * by + r02 * bz
-        py = r10 * bx + r11 * by + r12 * bz
-        pz = r20 * bx + r21 * by + r22 * bz
-        lx = frame_anchors[i, 0] - pose[0] - px
-        ly = frame_anchors[i, 1] - pose[1] - py
-        lz = frame_anchors[i, 2] - pose[2] - pz
-        norm = math.sqrt(lx * lx + ly * ly + lz * lz)
-        ux, uy, uz = lx / norm, ly / norm, lz / norm
-        t = tension[i]
-        out[0] -= ux * t
-        out[1] -= uy * t
-        out[2] -= uz * t
-        out[3] -= (py * uz - pz * uy) * t
-        out[4] -= (pz * ux - px * uz) * t
-        out[5] -= (px * uy - py * ux) * t
-
-
 class Compensator:
-    """Validation, substitution, Dahl compensation and wrench for ``m`` cables."""
+    """Validation, substitution, compensation of the fitted effects and wrench, m cables."""
 
     def __init__(self, cfg: Config) -> None:
         m = cfg.cables
         lp = cfg.loop
+        fr = cfg.friction
         self.cables = m
-        self.params = ChainParams.from_friction(cfg.friction, m)
+        values = fr.effect_values(m)
+        self.params = fx.chain_params(fr, values, m)
+        self.online = fx.online_effects(values, m, fr.pulley_radius_m)
         self.stepper = ChainStepper(
             self.params, lp.period_s, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter
         )
-        self.range_lo = -RANGE_MARGIN * cfg.sensor.range_n
-        self.range_hi = float(cfg.sensor.range_n)
-        self.stuck_after_s = lp.stuck_after_s
-        self.substitute_max_s = lp.substitute_max_s
+        self.limits = Limits(
+            -RANGE_MARGIN * cfg.sensor.range_n, float(cfg.sensor.range_n), lp.stuck_after_s,
+            lp.substitute_max_s,
+        )  # fmt: skip
         self.stale_after_s = lp.stale_after_s
         self.frame_anchors = np.array(cfg.geometry.frame_anchors_m, dtype=float)
         self.platform_anchors = np.array(cfg.geometry.platform_anchors_m, dtype=float)
+        self.channels = ChannelState.allocate(m)
         self.raw_n = np.full(m, np.nan)  # last reading (N), as read
-        self.used_n = np.zeros(m)  # sensor value fed to the model
-        self.velocity_m_s = np.zeros(m)  # setpoint velocity fed to the model
+        self.used_n = self.channels.used  # sensor value fed to the model
+        self.velocity_m_s = self.channels.vel_used  # setpoint velocity fed to the model
+        self.flags = self.channels.flags
+        self.status = self.channels.status
+        self.model_in_n = np.zeros(m)  # sensor side of the chain: gain, offset, path removed
         self.corrected_n = np.full(m, np.nan)
-        self.friction_n = np.full(m, np.nan)
+        self.friction_n = np.full(m, np.nan)  # corrected - used: the whole correction
         self.wrench = np.full(6, np.nan)
-        self.flags = np.zeros(m, dtype=np.uint8)
-        self.status = np.full(m, int(ChannelStatus.INVALID), dtype=np.uint16)
-        self._last_value = np.full(m, np.nan)
-        self._changed_at = np.zeros(m)
-        self._last_good = np.full(m, np.nan)
-        self._good_at = np.full(m, -np.inf)
+        self._velocity_prev = np.zeros(m)
+        self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
+        self._length_in = np.zeros(m)
+        self._pose_in = np.zeros(6)
+        self._stepped_at = math.nan
         self._last_read_time = math.nan
         self._fresh_at = -math.inf
         self.flag_events = 0  # channels that went from good to flagged (errors{invalid_value})
+        # compiled entries on the own buffers (no per-call type dispatch; fastcall.py)
+        self._validate = entry_point(
+            _validate, self.limits, self.channels, self.raw_n, self._velocity_in, 0.0, False
+        )
+        self._online = entry_point(
+            fx.online_inputs_into, self.online, self.used_n, self.velocity_m_s,
+            self._velocity_prev, 0.0, self._length_in, self.model_in_n,
+        )  # fmt: skip
+        self._finish = entry_point(
+            _finish, self.corrected_n, self.used_n, self.status, self.friction_n
+        )
+        self._wrench = entry_point(
+            wrench_into, self.frame_anchors, self.platform_anchors, self._pose_in,
+            self.corrected_n, self.wrench,
+        )  # fmt: skip
+
+    @property
+    def stuck_after_s(self) -> float:
+        return self.limits.stuck_after_s
+
+    @property
+    def substitute_max_s(self) -> float:
+        return self.limits.substitute_max_s
 
     def step(self, inputs: Inputs, now_s: float, out: Outputs) -> None:
-        """One cycle on a successful read; fills ``out`` tensions, status and wrench."""
+        """One cycle on a successful read; fills ``out`` tensions, status and wrench.
+
+        The model's time step is the time since the previous step (0 on the first), so
+        the acceleration (inertia) and the cable travel (Dahl) follow the actual cycle.
+        """
         if inputs.read_time_s != self._last_read_time:
             self._last_read_time = inputs.read_time_s
             self._fresh_at = now_s
-        stale = now_s - self._fresh_at > self.stale_after_s
+        now = float(now_s)
+        stale = bool(now - self._fresh_at > self.stale_after_s)
         self.raw_n[:] = inputs.tension_raw_n
-        self.flag_events += _validate(
-            inputs.tension_raw_n, inputs.velocity_m_s, now_s, self.range_lo, self.range_hi,
-            self.stuck_after_s, self.substitute_max_s, stale, self._last_value,
-            self._changed_at, self._last_good, self._good_at, self.flags, self.status,
-            self.used_n, self.velocity_m_s,
+        self._velocity_in[:] = inputs.velocity_m_s
+        self._length_in[:] = inputs.length_m
+        self._pose_in[:] = inputs.pose
+        self.flag_events += self._validate(
+            self.limits, self.channels, self.raw_n, self._velocity_in, now, stale
+        )
+        dt = now - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
+        dt = dt if dt > 0.0 else 0.0
+        self._stepped_at = now
+        self._online(
+            self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
+            self._length_in, self.model_in_n,
         )  # fmt: skip
-        self.stepper.step(self.used_n, self.velocity_m_s, self.corrected_n)
-        any_invalid = _finish(self.corrected_n, self.used_n, self.status, self.friction_n)
-        if any_invalid:
+        self._velocity_prev[:] = self.velocity_m_s
+        self.stepper.step(self.model_in_n, self.velocity_m_s, self.corrected_n, dt)
+        if self._finish(self.corrected_n, self.used_n, self.status, self.friction_n):
             self.wrench[:] = np.nan
         else:
-            wrench_into(
-                self.frame_anchors, self.platform_anchors, inputs.pose, self.corrected_n,
+            self._wrench(
+                self.frame_anchors, self.platform_anchors, self._pose_in, self.corrected_n,
                 self.wrench,
             )  # fmt: skip
         out.tension_corrected_n[:] = self.corrected_n
@@ -208,13 +258,13 @@ class Compensator:
     def mark_unread(self, now_s: float) -> None:
         """A cycle whose read failed: flag every channel stale; the model is not stepped."""
         self.flag_events += _mark_stale(
-            now_s, self.substitute_max_s, self._good_at, self.flags, self.status
+            now_s, self.limits.substitute_max_s, self.channels.good_at, self.flags, self.status
         )
 
     def invalidate_outputs(self, out: Outputs) -> None:
         """Fill ``out`` with 'no value': NaN tensions and wrench, every channel invalid."""
         out.tension_corrected_n[:] = np.nan
-        out.channel_status[:] = int(ChannelStatus.INVALID)
+        out.channel_status[:] = INVALID
         out.wrench[:] = np.nan
 
 

@@ -19,6 +19,8 @@ from typing import Any, Literal
 
 from gateway.configtypes import convert, read_yaml, require
 from gateway.errors import ConfigError
+from gateway.model.effects.registry import Effects, effect_values
+from gateway.model.effects.registry import to_mapping as effects_to_mapping
 from gateway.resources import data_file, resolve_beside
 
 Vec3 = tuple[float, float, float]
@@ -86,9 +88,20 @@ class PulleyConfig:
         require(0 <= self.mu < 1, "mu must be in 0..1")
 
 
+EffectParams = dict[str, float | tuple[float, ...]]
+
+
 @dataclass(frozen=True)
 class FrictionConfig:
-    """The pulley friction model (recording.md, 'The nominal model file')."""
+    """The pulley friction model (recording.md, 'The nominal model file').
+
+    ``effects``: optional fitted effects (what ``diagnose --write-model`` writes), by the
+    ids and parameter names of the effects registry (:mod:`gateway.model.effects`), each
+    parameter a scalar for every cable or a list with one value per cable, e.g.
+    ``effects: {viscous: {c_ns_m: 0.4}, offset: {c_n: [0.3, -0.2, ...]}}``. Unknown effects
+    or parameters are errors naming the key; list lengths are checked against the cable
+    count where the geometry is known (:class:`Config`, :meth:`effect_values`).
+    """
 
     model: Literal["none", "coulomb", "dahl"] = "dahl"
     pulleys: tuple[PulleyConfig, ...] = (
@@ -100,12 +113,18 @@ class FrictionConfig:
     beta: float = 1.0
     viscous_ns_m: float = 0.0
     pulley_radius_m: float = 0.05
+    effects: dict[str, EffectParams] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         require(self.sigma_n_m > 0, "sigma_n_m must be > 0")
         require(self.beta > 0, "beta must be > 0")
         require(self.viscous_ns_m >= 0, "viscous_ns_m must be >= 0")
         require(self.pulley_radius_m > 0, "pulley_radius_m must be > 0")
+        for name, params in self.effects.items():
+            sizes = {len(v) for v in params.values() if isinstance(v, tuple | list)}
+            if len(sizes) > 1:
+                raise ValueError(f"effects.{name}: per-cable lists of different lengths")
+            effect_values({name: params}, sizes.pop() if sizes else 1, self.pulley_radius_m)
 
     @property
     def wrap_rad(self) -> tuple[float, ...]:
@@ -114,6 +133,38 @@ class FrictionConfig:
     @property
     def mu(self) -> tuple[float, ...]:
         return tuple(p.mu for p in self.pulleys)
+
+    def effect_values(self, cables: int) -> Effects:
+        """The fitted effects as per-cable arrays (ValueError naming the key if a list
+        does not have ``cables`` values)."""
+        return effect_values(self.effects, cables, self.pulley_radius_m, "friction.effects")
+
+    def to_mapping(self) -> dict[str, Any]:
+        """The ``friction:`` mapping as YAML would hold it (``load_friction`` reads it back)."""
+        out: dict[str, Any] = {
+            "model": self.model,
+            "pulleys": [{"wrap_deg": p.wrap_deg, "mu": p.mu} for p in self.pulleys],
+            "sigma_n_m": self.sigma_n_m,
+            "beta": self.beta,
+            "viscous_ns_m": self.viscous_ns_m,
+            "pulley_radius_m": self.pulley_radius_m,
+        }
+        if self.effects:
+            out["effects"] = {
+                name: {
+                    k: (list(v) if isinstance(v, tuple | list) else v) for k, v in params.items()
+                }
+                for name, params in self.effects.items()
+            }
+        return out
+
+    @staticmethod
+    def effects_mapping(values: Effects) -> dict[str, EffectParams]:
+        """Per-cable arrays -> the ``effects`` field's form (scalar where cables agree)."""
+        return {
+            name: {k: (tuple(v) if isinstance(v, list) else v) for k, v in params.items()}
+            for name, params in effects_to_mapping(values).items()
+        }
 
 
 @dataclass(frozen=True)
@@ -209,10 +260,14 @@ class RegisterMap:
     gateway_heartbeat: RegisterField = RegisterField(124, 1, "uint16")
     gateway_state: RegisterField = RegisterField(125, 1, "uint16")
     wrench: RegisterField = RegisterField(126, 6, "float32")
+    platform_mass: RegisterField | None = None  # optional: the platform mass (kg), count 1
 
     def inputs(self) -> dict[str, RegisterField]:
         names = ("raw_tensions", "setpoint_velocities", "setpoint_lengths", "pose", "plc_heartbeat")
-        return {n: getattr(self, n) for n in names}
+        found = {n: getattr(self, n) for n in names}
+        if self.platform_mass is not None:
+            found["platform_mass"] = self.platform_mass
+        return found
 
     def outputs(self) -> dict[str, RegisterField]:
         names = (
@@ -317,6 +372,33 @@ class LimitsConfig:
         require(self.workspace_margin_m >= 0, "workspace_margin_m must be >= 0")
 
 
+RECORD_KINDS = (
+    "velocity", "tension_sensor", "length", "pose", "mass", "tension_corrected", "status",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """The ``record:`` config section; ``path`` None: no recording unless ``--record``."""
+
+    path: str | None = None
+    rotate_bytes: int | None = None  # a new file after this many bytes of CSV text
+    rotate_s: float | None = None  # a new file after this many seconds
+    columns: tuple[str, ...] = RECORD_KINDS
+    buffer_rows: int = 65536  # ring size: 65 s at 1 kHz of disk stall before drops
+    batch_s: float = 0.1  # the writer drains the ring this often
+
+    def __post_init__(self) -> None:
+        require(
+            self.rotate_bytes is None or self.rotate_bytes >= 4096, "rotate_bytes must be >= 4096"
+        )
+        require(self.rotate_s is None or self.rotate_s >= 1.0, "rotate_s must be >= 1")
+        unknown = [c for c in self.columns if c not in RECORD_KINDS]
+        require(not unknown, f"columns: unknown {unknown[:1]} (known: {', '.join(RECORD_KINDS)})")
+        require(16 <= self.buffer_rows <= 1 << 24, "buffer_rows must be in 16..16777216")
+        require(0.001 <= self.batch_s <= 10.0, "batch_s must be in 0.001..10")
+
+
 @dataclass(frozen=True)
 class Config:
     geometry: GeometryConfig
@@ -327,8 +409,16 @@ class Config:
     bus: BusConfig = field(default_factory=BusConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+
+    def __post_init__(self) -> None:
+        fr = self.friction
+        try:
+            effect_values(fr.effects, self.cables, fr.pulley_radius_m, "effects")
+        except ValueError as exc:
+            raise ValueError(f"friction: {exc}") from None
 
     @property
     def cables(self) -> int:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import reprlib
 import types
 import typing
 from collections.abc import Mapping
@@ -23,6 +24,58 @@ import yaml
 from gateway.errors import ConfigError
 
 T = TypeVar("T")
+
+MAX_YAML_DEPTH = 100  # nesting levels of a YAML document
+MAX_YAML_NODES = 1_000_000  # nodes of a document with every alias expanded
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxstring, _REPR.maxother = 2, 60, 60
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 4
+
+
+def _short(value: Any) -> str:
+    """A bounded repr for error messages (an alias bomb must not be printed in full)."""
+    return _REPR.repr(value)
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """``SafeLoader`` that refuses deep nesting and alias expansion beyond the limits.
+
+    Every composed node records its expanded size (aliases counted at the size of what
+    they name), so a billion-laughs document is refused while it is composed, before
+    anything walks it; the nesting depth is checked before the composer recurses.
+    """
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._sizes: dict[int, int] = {}
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        mark = self.peek_event().start_mark
+        if self.check_event(yaml.AliasEvent):
+            return super().compose_node(parent, index)  # its size is already known
+        self._depth += 1
+        if self._depth > MAX_YAML_DEPTH:
+            raise yaml.composer.ComposerError(
+                None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", mark
+            )
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+        size = 1
+        if isinstance(node, yaml.SequenceNode):
+            size += sum(self._sizes.get(id(c), 1) for c in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            size += sum(
+                self._sizes.get(id(k), 1) + self._sizes.get(id(v), 1) for k, v in node.value
+            )
+        if size > MAX_YAML_NODES:
+            raise yaml.composer.ComposerError(
+                None, None, f"aliases expand to more than {MAX_YAML_NODES} nodes", mark
+            )
+        self._sizes[id(node)] = size
+        return node
 
 
 def _fail(source: str, key: str, message: str) -> ConfigError:
@@ -59,7 +112,7 @@ def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:
         allowed = get_args(tp)
         if value not in allowed:
             choices = ", ".join(repr(a) for a in allowed)
-            raise _fail(source, key, f"{value!r} is not one of {choices}")
+            raise _fail(source, key, f"{_short(value)} is not one of {choices}")
         return value
     if dataclasses.is_dataclass(tp):
         return convert(tp, value, key, source)  # type: ignore[arg-type]
@@ -84,21 +137,21 @@ def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:
         return {str(k): _convert_value(vt, v, _join(key, str(k)), source) for k, v in value.items()}
     if tp is bool:
         if not isinstance(value, bool):
-            raise _fail(source, key, f"expected true or false, got {value!r}")
+            raise _fail(source, key, f"expected true or false, got {_short(value)}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise _fail(source, key, f"expected an integer, got {value!r}")
+            raise _fail(source, key, f"expected an integer, got {_short(value)}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise _fail(source, key, f"expected a number, got {value!r}")
+            raise _fail(source, key, f"expected a number, got {_short(value)}")
         if not math.isfinite(value):
-            raise _fail(source, key, f"expected a finite number, got {value!r}")
+            raise _fail(source, key, f"expected a finite number, got {_short(value)}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
-            raise _fail(source, key, f"expected a string, got {value!r}")
+            raise _fail(source, key, f"expected a string, got {_short(value)}")
         return value
     raise _fail(source, key, f"unsupported field type {tp!r}")  # pragma: no cover
 
@@ -140,7 +193,7 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_BoundedLoader)  # a SafeLoader with limits
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}:" if mark is not None else ""

@@ -1,4 +1,5 @@
-"""``cdpr-gateway run --config FILE [--cycles N] [--log-level LEVEL]``: the gateway daemon.
+"""``cdpr-gateway run --config FILE [--cycles N] [--seconds N] [--record OUT.csv.gz]
+[--log-level LEVEL]``: the gateway daemon.
 
 Loads and validates the config, builds the driver named in ``bus.driver``, serves the
 Prometheus metrics on ``metrics.host:metrics.port`` and runs the cyclic service until a
@@ -17,9 +18,11 @@ active, disconnected/fault with the cause, recovered). Foreign libraries' logger
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import signal
 import sys
+import threading
 from typing import Any
 
 from drivers.base import Driver, Lifecycle, make_driver
@@ -34,6 +37,7 @@ from gateway.config import (
 from gateway.errors import ConfigError, DriverInitError
 from gateway.loop import CyclicService, describe_bus
 from gateway.metrics import MetricsServer, make_registry
+from gateway.recorder import Recorder
 from gateway.sdnotify import Notifier
 
 log = logging.getLogger("cdpr_gateway")
@@ -71,6 +75,11 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
     parser.add_argument("--cycles", type=int, default=None, help="stop after N cycles")
     add_log_level(parser)
+    parser.add_argument("--seconds", type=float, default=None, help="stop after N seconds")
+    parser.add_argument(
+        "--record", default=None, help="record what the gateway sees (CSV, .csv.gz); "
+        "overrides record.path",
+    )  # fmt: skip
 
 
 def build_driver(cfg: Config, name: str | None = None, **kwargs: Any) -> Driver:
@@ -134,10 +143,43 @@ def summary(service: CyclicService) -> str:
     )
 
 
+def start_recorder(cfg: Config, override: str | None) -> Recorder | None:
+    """The recorder of ``record:`` (``--record`` overrides the path), started; or None."""
+    rc = cfg.record if override is None else dataclasses.replace(cfg.record, path=override)
+    if rc.path is None:
+        return None
+    regs = cfg.bus.modbus_tcp.registers
+    with_mass = cfg.bus.driver == "modbus_tcp" and regs.platform_mass is not None
+    meta = {
+        "source": "cdpr-gateway run --record",
+        "version": __version__,
+        "config": cfg.source,
+        "bus": describe_bus(cfg),
+        "friction": f"{cfg.friction.model}, {len(cfg.friction.pulleys)} pulleys",
+        "period_s": repr(cfg.loop.period_s),
+    }
+    recorder = Recorder(rc, cfg.cables, with_mass=with_mass, metadata=meta)
+    try:
+        recorder.start()
+    except OSError as exc:
+        key = "--record" if override is not None else f"{cfg.source}: record.path"
+        raise ConfigError(f"{key}: cannot write {rc.path}: {exc.strerror or exc}") from exc
+    log.info("recording to %s (%d columns)", rc.path, len(recorder.columns))
+    return recorder
+
+
+def summary_record(recorder: Recorder) -> str:
+    files = ", ".join(str(p) for p in recorder.files)
+    failed = f", FAILED: {recorder.failed}" if recorder.failed else ""
+    return f"recorded {recorder.rows_written} rows to {files} (dropped {recorder.dropped}{failed})"
+
+
 def run_command(command: str, args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     if args.cycles is not None and args.cycles < 1:
         raise ConfigError("--cycles: must be >= 1")
+    if args.seconds is not None and not args.seconds > 0:
+        raise ConfigError("--seconds: must be > 0")
     cfg = load_config(args.config)
     for line in banner(cfg):
         log.info("%s", line)
@@ -153,7 +195,13 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if exposed:
             log.warning("%s", exposed)
     previous = service.install_signal_handlers()
+    timer = None
     try:
+        service.recorder = start_recorder(cfg, args.record)
+        if args.seconds is not None:
+            timer = threading.Timer(args.seconds, service.stop)
+            timer.daemon = True
+            timer.start()
         service.configure()
         rt = realtime.apply(cfg.loop.realtime)  # this thread runs the cycle
         (log.warning if rt.refused else log.info)("%s", rt.line())
@@ -161,10 +209,16 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        if timer is not None:
+            timer.cancel()
         if server is not None:
             server.close()
         if notifier is not None:
             notifier.close()
+        if service.recorder is not None:
+            service.recorder.close()
     assert service.state is Lifecycle.STOPPED
     print(f"stopped: {summary(service)}", file=sys.stderr, flush=True)
+    if service.recorder is not None:
+        print(summary_record(service.recorder), file=sys.stderr, flush=True)
     return 0

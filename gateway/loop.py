@@ -138,6 +138,7 @@ class CyclicService:
         self._pending: Outputs | None = None  # written with the next read (function 23)
         self._configured = False
         self._reporter = _Reporter(self)
+        self.recorder: Any = None  # recording hook: a gateway.recorder.Recorder, set by run
 
     @property
     def paced(self) -> bool:
@@ -237,6 +238,8 @@ class CyclicService:
         stats.compensate_ring.add(t2 - t1)
         self._write()
         stats.write_ring.add(self.clock() - t2)
+        if self.recorder is not None:  # recording hook: copies into a ring, never blocks
+            self.recorder.push(t1, self.inputs, self.outputs)
         return False
 
     def _watch_heartbeat(self, now: float) -> None:

@@ -10,6 +10,7 @@ name                                      type       labels           source
 cdpr_gateway_cycle_seconds                histogram                   read + compensate + write
 cdpr_gateway_jitter_seconds               histogram                   start - deadline
 cdpr_gateway_overruns_total               counter                     cycles past the deadline
+cdpr_gateway_record_dropped_total         counter                     samples not recorded
 cdpr_gateway_bus_roundtrip_seconds        histogram  bus              one transaction
 cdpr_gateway_errors_total                 counter    kind             see ``ERROR_KINDS``
 cdpr_gateway_reconnects_total             counter    bus
@@ -81,6 +82,12 @@ class GatewayCollector(Collector):
         )
         yield CounterMetricFamily(
             f"{PREFIX}_overruns_total", "Cycles that missed their deadline.", stats.overruns
+        )
+        recorder = getattr(svc, "recorder", None)  # gateway.recorder: samples not recorded
+        yield CounterMetricFamily(
+            f"{PREFIX}_record_dropped_total",
+            "Samples the recorder dropped (its buffer was full or the disk failed).",
+            recorder.dropped if recorder is not None else 0,
         )
         yield _histogram(
             "bus_roundtrip_seconds", "One fieldbus transaction.", stats.roundtrip, {"bus": bus}

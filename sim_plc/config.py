@@ -9,7 +9,8 @@ controller's tension distribution (:mod:`sim_plc.distribution`; default: the sta
 
 Effects (physics.md sec. 5) are switched on by naming them under ``sim_plc.effects``;
 ``enabled: false`` switches a named one off again. Their parameter names are those of the
-diagnosis report (spec/recording.md). Each parameter is a scalar for every cable or a
+diagnosis report (docs/recording-format.md) and the effects registry
+(:mod:`gateway.model.effects`). Each parameter is a scalar for every cable or a
 list with one value per cable.
 """
 
@@ -25,6 +26,7 @@ import numpy as np
 from gateway.config import Config, FrictionConfig, TensionConfig
 from gateway.configtypes import convert, require
 from gateway.errors import ConfigError
+from gateway.model.effects import Effects, effect_values
 from sim_plc.distribution import DistributionConfig
 
 PerCable = float | tuple[float, ...]
@@ -115,108 +117,46 @@ class TrajectoryConfig:
 
 
 @dataclass(frozen=True)
-class CoulombEffect:
-    """Truth bearing ``mu`` (per cable, every pulley; None: the friction's) and ``f0_n``."""
-
-    mu: PerCable | None = None
-    f0_n: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class PreslidingEffect:
-    sigma_n_m: PerCable = 500.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class ViscousEffect:
-    c_ns_m: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class StribeckEffect:
-    k: PerCable = 0.0
-    v_s_m_s: PerCable = 0.01
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class InertiaEffect:
-    m_eff_kg: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class DelayEffect:
-    d_s: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class LowpassEffect:
-    tau_s: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class GainEffect:
-    g: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class OffsetEffect:
-    c_n: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class DriftEffect:
-    k_n_s: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class EccentricityEffect:
-    a_n: PerCable = 0.0
-    r_m: PerCable | None = None  # None: friction.pulley_radius_m
-    phi_rad: PerCable = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
-class MassChangeEffect:
-    """Hidden mass change ``q t`` (kg/s): in the truth, not in the recorded mass."""
-
-    q_kg_s: float = 0.0
-    enabled: bool = True
-
-
-@dataclass(frozen=True)
 class EffectsConfig:
-    coulomb: CoulombEffect | None = None
-    presliding: PreslidingEffect | None = None
-    viscous: ViscousEffect | None = None
-    stribeck: StribeckEffect | None = None
-    inertia: InertiaEffect | None = None
-    delay: DelayEffect | None = None
-    lowpass: LowpassEffect | None = None
-    gain: GainEffect | None = None
-    offset: OffsetEffect | None = None
-    drift: DriftEffect | None = None
-    eccentricity: EccentricityEffect | None = None
-    mass_change: MassChangeEffect | None = None
+    """``sim_plc.effects`` validated by the effects registry (:mod:`gateway.model.effects`).
 
-    def active(self) -> dict[str, Any]:
-        """Effects that are on, by id (physics.md sec. 5), in declaration order."""
-        out = {}
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if value is not None and value.enabled:
-                out[f.name] = value
-        return out
+    ``declared``: as written (``enabled`` removed), by effect id; ``values``: the effects
+    that are on, as per-cable arrays (``eccentricity.r_m`` defaults to the friction's
+    ``pulley_radius_m``).
+    """
+
+    declared: dict[str, dict[str, Any]] = field(default_factory=dict)
+    values: Effects = field(default_factory=dict)
+
+    def active(self) -> dict[str, dict[str, Any]]:
+        """Effects that are on, by id (physics.md sec. 5), as written."""
+        return {name: self.declared[name] for name in self.values}
+
+
+def _effects(raw: dict[str, Any], cables: int, radius: float, src: str) -> EffectsConfig:
+    declared, on = {}, {}
+    for name, params in raw.items():
+        if params is None:  # named without parameters: off, as before
+            params = {"enabled": False}
+        params = dict(params) if isinstance(params, dict) else params
+        if not isinstance(params, dict):
+            raise ConfigError(f"{src}: sim_plc.effects.{name}: expected a mapping")
+        enabled = params.pop("enabled", True)
+        if not isinstance(enabled, bool):
+            raise ConfigError(f"{src}: sim_plc.effects.{name}.enabled: expected true or false")
+        declared[name] = params
+        if enabled:
+            on[name] = params
+    try:
+        effect_values(declared, cables, radius, "sim_plc.effects")
+        values = effect_values(on, cables, radius, "sim_plc.effects")
+    except ValueError as exc:
+        raise ConfigError(f"{src}: {exc}") from None
+    for name, params in values.items():  # the truth keeps physical signs
+        for p in ("mu", "c_ns_m", "m_eff_kg"):
+            if p in params and np.any(params[p] < 0):
+                raise ConfigError(f"{src}: sim_plc.effects.{name}.{p}: must be >= 0")
+    return EffectsConfig(declared, values)
 
 
 @dataclass(frozen=True)
@@ -232,7 +172,7 @@ class SimPlcRaw:
     saturation_n: float | None = None
     friction: dict[str, Any] = field(default_factory=dict)
     tension: dict[str, Any] = field(default_factory=dict)
-    effects: EffectsConfig = field(default_factory=EffectsConfig)
+    effects: dict[str, Any] = field(default_factory=dict)
     distribution: DistributionConfig = field(default_factory=DistributionConfig)
 
     def __post_init__(self) -> None:
@@ -268,25 +208,13 @@ def per_cable(value: PerCable | None, cables: int, default: float = 0.0) -> np.n
     return np.full(cables, float(value))
 
 
-def _check_per_cable(effects: EffectsConfig, noise: PerCable, cables: int, src: str) -> None:
-    items: list[tuple[str, Any]] = [("sim_plc.noise_std_n", noise)]
-    for name, eff in effects.active().items():
-        for f in dataclasses.fields(eff):
-            items.append((f"sim_plc.effects.{name}.{f.name}", getattr(eff, f.name)))
-    positive = ("sigma_n_m", "v_s_m_s", "r_m")
-    non_negative = ("noise_std_n", "f0_n", "c_ns_m", "d_s", "tau_s", "m_eff_kg", "mu")
-    for key, value in items:
-        if isinstance(value, tuple) and len(value) != cables:
-            raise ConfigError(f"{src}: {key}: expected one value per cable ({cables}), "
-                              f"got {len(value)}")  # fmt: skip
-        if isinstance(value, bool) or not isinstance(value, (int, float, tuple)):
-            continue
-        arr = np.atleast_1d(np.asarray(value, dtype=float))
-        leaf = key.rsplit(".", 1)[-1]
-        if leaf in positive and np.any(arr <= 0):
-            raise ConfigError(f"{src}: {key}: must be > 0")
-        if leaf in non_negative and np.any(arr < 0):
-            raise ConfigError(f"{src}: {key}: must be >= 0")
+def _check_noise(noise: PerCable, cables: int, src: str) -> None:
+    arr = np.atleast_1d(np.asarray(noise, dtype=float))
+    if isinstance(noise, tuple) and len(noise) != cables:
+        raise ConfigError(f"{src}: sim_plc.noise_std_n: expected one value per cable "
+                          f"({cables}), got {len(noise)}")  # fmt: skip
+    if np.any(arr < 0):
+        raise ConfigError(f"{src}: sim_plc.noise_std_n: must be >= 0")
 
 
 def load_sim_config(cfg: Config) -> SimPlcConfig:
@@ -295,14 +223,15 @@ def load_sim_config(cfg: Config) -> SimPlcConfig:
     raw = convert(SimPlcRaw, cfg.sim_plc, "sim_plc", src)
     friction = convert(
         FrictionConfig,
-        {**dataclasses.asdict(cfg.friction), **raw.friction},
+        {**dataclasses.asdict(cfg.friction), "effects": {}, **raw.friction},
         "sim_plc.friction",
         src,
     )
     tension = convert(
         TensionConfig, {**dataclasses.asdict(cfg.tension), **raw.tension}, "sim_plc.tension", src
     )
-    _check_per_cable(raw.effects, raw.noise_std_n, cfg.cables, src)
+    _check_noise(raw.noise_std_n, cfg.cables, src)
+    effects = _effects(raw.effects, cfg.cables, friction.pulley_radius_m, src)
     mass = cfg.geometry.platform_mass_kg if raw.initial_mass_kg is None else raw.initial_mass_kg
     if mass <= 0:
         raise ConfigError(f"{src}: sim_plc.initial_mass_kg: must be > 0")
@@ -327,7 +256,7 @@ def load_sim_config(cfg: Config) -> SimPlcConfig:
         saturation_n=float(saturation),
         friction=friction,
         tension=tension,
-        effects=raw.effects,
+        effects=effects,
         source=src,
         base_dir=str(Path(src).resolve().parent) if src else ".",
         distribution=dist,

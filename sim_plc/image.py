@@ -24,6 +24,7 @@ class ProcessImage:
     plc_heartbeat: int = 0  # uint16, +1 every PLC cycle
     true_tension_n: np.ndarray = field(init=False)  # (m,) platform tension (simulation only)
     time_s: float = 0.0  # plant time of the last step
+    platform_mass_kg: float = 0.0  # current platform mass (falls while printing)
     # written by the gateway
     corrected_n: np.ndarray = field(init=False)  # (m,)
     channel_status: np.ndarray = field(init=False)  # (m,) uint16

@@ -167,6 +167,8 @@ class ImageRegisters:
             (codec(r.pose), "pose", False),
             (codec(r.plc_heartbeat), "plc_heartbeat", True),
         ]
+        if r.platform_mass is not None:
+            self._in.append((codec(r.platform_mass), "platform_mass_kg", False))
         self._out = [
             (codec(r.corrected_tensions), "corrected_n"),
             (codec(r.channel_status), "channel_status"),

@@ -80,52 +80,14 @@ class Setpoints:
 
 
 def chain_params(sim: SimPlcConfig, cables: int) -> chain.ChainParams:
-    """Truth friction of every cable with the chain-side effects applied."""
-    fr, eff = sim.friction, sim.effects.active()
-    model = fr.model
-    mu = np.broadcast_to(np.asarray(fr.mu, dtype=float), (cables, len(fr.pulleys))).copy()
-    sigma = per_cable(fr.sigma_n_m, cables)
-    f0 = np.zeros(cables)
-    viscous = per_cable(fr.viscous_ns_m, cables)
-    k, v_s = np.zeros(cables), np.full(cables, 0.01)
-    if "coulomb" in eff:
-        if eff["coulomb"].mu is not None:
-            mu[:] = per_cable(eff["coulomb"].mu, cables)[:, None]
-        f0 = per_cable(eff["coulomb"].f0_n, cables)
-    if "presliding" in eff:
-        model, sigma = "dahl", per_cable(eff["presliding"].sigma_n_m, cables)
-    if "viscous" in eff:
-        viscous = per_cable(eff["viscous"].c_ns_m, cables)
-    if "stribeck" in eff:
-        k, v_s = per_cable(eff["stribeck"].k, cables), per_cable(eff["stribeck"].v_s_m_s, cables)
-    if model == "none" and ("coulomb" in eff or "stribeck" in eff):
-        model = "coulomb"
-    return chain.ChainParams.build(
-        model, cables, np.asarray(fr.wrap_rad), mu, sigma, fr.beta, f0, k, v_s, viscous
-    )
+    """Truth friction of every cable with the chain-side effects applied (the registry's
+    :func:`gateway.model.effects.chain_params`)."""
+    return effects.chain_params(sim.friction, sim.effects.values, cables)
 
 
 def path_sensor_effects(sim: SimPlcConfig, cables: int) -> effects.PathSensorEffects:
     """Per-cable (m,) parameters of the effects outside the chain (0 when off)."""
-    eff = sim.effects.active()
-
-    def get(name: str, attr: str, default: float = 0.0) -> np.ndarray:
-        if name not in eff:
-            return np.full(cables, default)
-        return per_cable(getattr(eff[name], attr), cables, default)
-
-    radius = sim.friction.pulley_radius_m
-    return effects.PathSensorEffects(
-        inertia_kg=get("inertia", "m_eff_kg"),
-        eccentricity_a_n=get("eccentricity", "a_n"),
-        eccentricity_r_m=get("eccentricity", "r_m", radius),
-        eccentricity_phi_rad=get("eccentricity", "phi_rad"),
-        gain=get("gain", "g"),
-        offset_n=get("offset", "c_n"),
-        drift_n_s=get("drift", "k_n_s"),
-        lowpass_tau_s=get("lowpass", "tau_s"),
-        delay_s=get("delay", "d_s"),
-    )
+    return effects.path_sensor(sim.effects.values, cables, sim.friction.pulley_radius_m)
 
 
 class PlantModel:
@@ -144,8 +106,8 @@ class PlantModel:
         self.params = chain_params(self.sim, self.cables)
         self.effects = path_sensor_effects(self.sim, self.cables)
         self.noise_std = per_cable(self.sim.noise_std_n, self.cables)
-        mc = self.sim.effects.active().get("mass_change")
-        self.hidden_q = 0.0 if mc is None else mc.q_kg_s
+        mc = self.sim.effects.values.get("mass_change")
+        self.hidden_q = 0.0 if mc is None else float(mc["q_kg_s"][0])
         lim = self.sim.tension  # the controller's distribution (sim_plc.distribution)
         self.distribute = Distributor(self.sim.distribution, lim.min_n, lim.max_n)
 
@@ -181,7 +143,7 @@ class PlantModel:
         omega = kinematics.angular_velocity_from_euler_rates(s.pose[:, 3:], s.velocity[:, 3:])
         twist = np.concatenate([s.velocity[:, :3], omega], axis=1)
         a_mat = kinematics.structure_matrix_batch(self.a, self.b, s.pose)
-        vel = -np.einsum("nim,ni->nm", a_mat, twist)  # = kinematics.cable_velocities_batch
+        vel = kinematics.cable_velocities_from_structure(a_mat, twist)
         length = kinematics.cable_lengths_batch(self.a, self.b, s.pose)
         acc = s.acceleration[:, :3]
         w_rec = self.wrench(mass, s.pose, acc)
@@ -208,9 +170,7 @@ class PlantModel:
 
     def wrench(self, mass: np.ndarray, pose: np.ndarray, acc: np.ndarray) -> np.ndarray:
         """External wrench (N, 6): gravity + d'Alembert ``-m a``."""
-        geo = self.cfg.geometry
-        w = statics.gravity_wrench_batch(mass, geo.gravity_m_s2, pose, geo.center_of_mass_m)
-        return w + statics.inertial_wrench(mass, acc)
+        return statics.external_wrench_batch(mass, pose, acc, self.cfg.geometry)
 
     def adc(self, analog_n: np.ndarray) -> np.ndarray:
         sensor = self.cfg.sensor
@@ -224,7 +184,7 @@ class PlantModel:
 def sensor_batch(model: PlantModel, sp: Setpoints, noise: np.ndarray) -> np.ndarray:
     """Analog sensor output (N, m) before the A/D: chain, path/sensor effects, noise."""
     ts = chain.simulate(model.params, sp.tension_true, sp.velocity, sp.t)
-    ts = effects.apply_path_effects(sp.t, sp.velocity, ts, model.effects)
+    ts = effects.apply_path_effects(sp.t, sp.velocity, ts, model.effects, sp.length)
     ts = effects.apply_sensor_effects(sp.t, ts, model.effects)
     return ts + noise * model.noise_std
 
@@ -232,8 +192,7 @@ def sensor_batch(model: PlantModel, sp: Setpoints, noise: np.ndarray) -> np.ndar
 def _metadata(model: PlantModel, seconds: float) -> dict[str, str]:
     active = model.sim.effects.active()
     desc = []
-    for name, eff in active.items():
-        params = {k: v for k, v in vars(eff).items() if k != "enabled"}
+    for name, params in active.items():
         desc.append(f"{name}{params}")
     return {
         "source": "sim_plc",
@@ -253,6 +212,29 @@ def _metadata(model: PlantModel, seconds: float) -> dict[str, str]:
     }
 
 
+RECORD_CHUNK = 20_000  # samples of setpoints prepared at once by make_recording
+
+
+def _recording_setpoints(model: PlantModel, t: np.ndarray, progress: Progress | None) -> Setpoints:
+    """``model.setpoints(t)`` prepared ``RECORD_CHUNK`` samples at a time (every quantity
+    is per sample), keeping only what a recording needs: the structure matrices and the
+    wrenches of one chunk at a time, never of the whole run (10 min: 1 GB -> < 400 MB)."""
+    n, m = t.size, model.cables
+    keep = ("pose", "length", "velocity", "mass", "tension_true", "tension_recorded")
+    out = {"pose": np.empty((n, 6)), "mass": np.empty(n)}
+    out.update({k: np.empty((n, m)) for k in keep if k not in out})
+    for start in range(0, n, RECORD_CHUNK):
+        part = model.prepare(t[start : start + RECORD_CHUNK])
+        for k in range(part.t.size):
+            model.solve_tensions(part, k)
+        for name in keep:
+            out[name][start : start + part.t.size] = getattr(part, name)
+        if progress is not None:
+            progress((start + part.t.size) / n)
+    none6 = np.empty((0, 6))
+    return Setpoints(t, a_mat=np.empty((0, 6, m)), wrench_true=none6, wrench_recorded=none6, **out)
+
+
 def make_recording(
     cfg: Config, sim: SimPlcConfig | None, seconds: float, progress: Progress | None = None
 ) -> Recording:
@@ -266,7 +248,7 @@ def make_recording(
     model = PlantModel(cfg, sim)
     n = max(round(seconds / model.sim.period_s), 2)
     t = np.arange(n) * model.sim.period_s
-    sp = model.setpoints(t, progress)
+    sp = _recording_setpoints(model, t, progress)
     noise = np.random.default_rng(model.sim.seed).standard_normal((n, model.cables))
     reading = model.reading(model.adc(sensor_batch(model, sp, noise)))
     return Recording(
@@ -279,80 +261,6 @@ def make_recording(
         mass=sp.mass,
         metadata=_metadata(model, seconds),
     )
-
-
-class _StepEffects:
-    """Per-sample forms of ``effects.apply_path_effects`` and ``apply_sensor_effects``.
-
-    They reproduce the batch functions sample by sample (same formulas: ``np.gradient``'s
-    second-order differences with one sample of look-ahead, trapezoidal displacement,
-    the first-order-hold low-pass, linear interpolation for the delay).
-    """
-
-    def __init__(self, eff: effects.PathSensorEffects, cables: int, period_s: float):
-        def arr(x: object) -> np.ndarray:
-            return np.broadcast_to(np.asarray(x, dtype=float), (cables,)).copy()
-
-        self.m_eff, self.ecc_a = arr(eff.inertia_kg), arr(eff.eccentricity_a_n)
-        self.ecc_r, self.ecc_phi = arr(eff.eccentricity_r_m), arr(eff.eccentricity_phi_rad)
-        self.gain, self.offset = arr(eff.gain), arr(eff.offset_n)
-        self.drift, self.tau = arr(eff.drift_n_s), arr(eff.lowpass_tau_s)
-        self.delay = arr(eff.delay_s)
-        self.has_inertia, self.has_ecc = bool(np.any(self.m_eff)), bool(np.any(self.ecc_a))
-        self.has_lowpass, self.has_delay = bool(np.any(self.tau > 0)), bool(np.any(self.delay))
-        size = math.ceil(float(self.delay.max(initial=0.0)) / period_s) + 3
-        self.hist_t, self.hist_y = np.zeros(size), np.zeros((size, cables))
-        self.x, self.t0 = np.zeros(cables), 0.0
-        self.lp_in, self.lp_out = np.zeros(cables), np.zeros(cables)
-
-    def path(self, k: int, t3: np.ndarray, v3: np.ndarray, ts: np.ndarray) -> np.ndarray:
-        """``t3`` (3,), ``v3`` (3, m): previous, current, next sample; ``ts`` (m,)."""
-        if self.has_inertia:
-            if k == 0:
-                acc = (v3[2] - v3[1]) / (t3[2] - t3[1])
-            else:
-                dx1, dx2 = t3[1] - t3[0], t3[2] - t3[1]
-                a = -(dx2) / (dx1 * (dx1 + dx2))
-                b = (dx2 - dx1) / (dx1 * dx2)
-                c = dx1 / (dx2 * (dx1 + dx2))
-                acc = a * v3[0] + b * v3[1] + c * v3[2]
-            ts = ts - self.m_eff * acc
-        if self.has_ecc:
-            if k > 0:
-                self.x = self.x + 0.5 * (v3[1] + v3[0]) * (t3[1] - t3[0])
-            ts = ts + self.ecc_a * np.sin(self.x / self.ecc_r + self.ecc_phi)
-        return ts
-
-    def sensor(self, k: int, t: float, ts: np.ndarray) -> np.ndarray:
-        if k == 0:
-            self.t0 = t
-        out = (1.0 + self.gain) * ts
-        out = out + self.offset + self.drift * (t - self.t0)
-        if self.has_lowpass:
-            y = out
-            if k == 0:
-                self.lp_out = y.copy()
-            else:
-                dt = t - self.hist_t[-1]
-                on = self.tau > 0.0
-                tau = np.where(on, self.tau, 1.0)
-                a = 1.0 - np.exp(-dt / tau)
-                slope = (y - self.lp_in) / dt
-                filt = y - tau * slope + (self.lp_out - self.lp_in + tau * slope) * (1 - a)
-                self.lp_out = np.where(on, filt, y)
-            self.lp_in = y
-            out = self.lp_out
-        if k == 0:
-            self.hist_t[:] = t - np.arange(self.hist_t.size)[::-1] * 1.0
-            self.hist_y[:] = out
-        else:
-            self.hist_t[:-1], self.hist_y[:-1] = self.hist_t[1:], self.hist_y[1:]
-            self.hist_t[-1], self.hist_y[-1] = t, out
-        if self.has_delay:
-            out = np.array(
-                [np.interp(t - d, self.hist_t, self.hist_y[:, i]) for i, d in enumerate(self.delay)]
-            )
-        return out
 
 
 class Plant:
@@ -385,7 +293,7 @@ class Plant:
         self.k = 0
         self.rng = np.random.default_rng(m.sim.seed)
         self.stepper = chain.ChainStepper(m.params, self.period_s, forward=False)
-        self.fx = _StepEffects(m.effects, m.cables, self.period_s)
+        self.fx = effects.ForwardStepper(m.effects, m.cables, self.period_s)
         if self.chunks is not None:
             self._cur, self._nxt = self.chunks.get(0), self.chunks.get(1)
             self._solved = self.chunk  # solved by the worker
@@ -436,7 +344,7 @@ class Plant:
                                       state=self.stepper.state)[0]  # fmt: skip
         else:
             self.stepper.step(tp, v, self._ts)
-        ts = self.fx.path(self.k, self._t3, self._v3, self._ts)
+        ts = self.fx.path(self.k, self._t3, self._v3, cur.length[i], self._ts)
         ts = self.fx.sensor(self.k, t, ts)
         self.analog = ts + self.rng.standard_normal(m.cables) * m.noise_std
         self.counts = m.adc(self.analog)
@@ -446,6 +354,7 @@ class Plant:
                 image.velocity_m_s[:] = v
                 image.length_m[:] = cur.length[i]
                 image.pose[:] = cur.pose[i]
+                image.platform_mass_kg = float(cur.mass[i])
                 image.plc_heartbeat = (image.plc_heartbeat + 1) & 0xFFFF
                 image.true_tension_n[:] = tp
                 image.time_s = t

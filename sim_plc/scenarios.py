@@ -108,53 +108,19 @@ def load_steps(t: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
     return out - out.mean(axis=0)
 
 
-def _arr(value: float | tuple[float, ...]) -> float | np.ndarray:
-    return np.asarray(value, dtype=float) if isinstance(value, tuple | list) else float(value)
-
-
-def _effects(sc: Scenario) -> dict[str, dict[str, float | np.ndarray]]:
-    """Truth parameters with per-cable tuples turned into arrays."""
-    return {e: {k: _arr(v) for k, v in p.items()} for e, p in sc.effects.items()}
+def _effects(sc: Scenario, m: int) -> fx.Effects:
+    """Truth parameters as per-cable arrays (the effects registry's validation)."""
+    return fx.effect_values(sc.effects, m, sc.nominal().pulley_radius_m, f"scenario {sc.name}")
 
 
 def _truth_chain(sc: Scenario, m: int) -> ChainParams:
-    nom = sc.nominal()
-    e = _effects(sc)
-    mu = np.asarray(nom.mu)
-    model = nom.model
-    sigma = nom.sigma_n_m
-    if "coulomb" in e:
-        scale = np.asarray(e["coulomb"].get("mu", float(np.mean(mu)))) / float(np.mean(mu))
-        mu = np.multiply.outer(np.broadcast_to(scale, (m,)), mu)
-    if "presliding" in e:
-        model, sigma = "dahl", e["presliding"]["sigma_n_m"]  # type: ignore[assignment]
-    return ChainParams.build(
-        model=model,
-        cables=m,
-        wrap_rad=np.asarray(nom.wrap_rad),
-        mu=mu,
-        sigma_n_m=sigma,
-        f0_n=e.get("coulomb", {}).get("f0_n", 0.0),
-        stribeck_k=e.get("stribeck", {}).get("k", 0.0),
-        stribeck_v_m_s=e.get("stribeck", {}).get("v_s_m_s", 0.01),
-        viscous_ns_m=nom.viscous_ns_m + e.get("viscous", {}).get("c_ns_m", 0.0),
-    )
+    """The truth chain: the nominal plus the scenario's friction-side effects (``coulomb.mu``
+    absolute, the same for every pulley of a cable, as everywhere)."""
+    return fx.chain_params(sc.nominal(), _effects(sc, m), m)
 
 
-def _path_sensor(sc: Scenario) -> fx.PathSensorEffects:
-    e = _effects(sc)
-    ecc = e.get("eccentricity", {})
-    return fx.PathSensorEffects(
-        inertia_kg=e.get("inertia", {}).get("m_eff_kg", 0.0),
-        eccentricity_a_n=ecc.get("a_n", 0.0),
-        eccentricity_r_m=ecc.get("r_m", 0.05),
-        eccentricity_phi_rad=ecc.get("phi_rad", 0.0),
-        gain=e.get("gain", {}).get("g", 0.0),
-        offset_n=e.get("offset", {}).get("c_n", 0.0),
-        drift_n_s=e.get("drift", {}).get("k_n_s", 0.0),
-        lowpass_tau_s=e.get("lowpass", {}).get("tau_s", 0.0),
-        delay_s=e.get("delay", {}).get("d_s", 0.0),
-    )
+def _path_sensor(sc: Scenario, m: int) -> fx.PathSensorEffects:
+    return fx.path_sensor(_effects(sc, m), m, sc.nominal().pulley_radius_m)
 
 
 def plant_config(sc: Scenario) -> Config:
@@ -190,7 +156,7 @@ def make_recording(sc: Scenario) -> Recording:
     t, v, tp = motion(sc)
     m = v.shape[1]
     ts = simulate(_truth_chain(sc, m), tp, v, t)
-    eff = _path_sensor(sc)
+    eff = _path_sensor(sc, m)
     ts = fx.apply_sensor_effects(t, fx.apply_path_effects(t, v, ts, eff), eff)
     rng = np.random.default_rng(sc.seed + 1000)
     ts = ts + rng.normal(0.0, sc.noise_n, ts.shape)

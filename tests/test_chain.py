@@ -17,7 +17,7 @@ from gateway.model.chain import (
     coulomb_coefficients,
     simulate,
 )
-from gateway.model.friction import coulomb_gain
+from tests.model_reference import coulomb_gain
 
 WRAPS = np.radians([90.0, 60.0, 30.0])
 

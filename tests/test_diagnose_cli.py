@@ -95,7 +95,7 @@ def test_cli_needs_geometry_without_platform_tensions(tmp_path, capsys):
     csv = tmp_path / "pose.csv"
     csv.write_text(
         "t,velocity_1,tension_sensor_1,x,y,z,rx,ry,rz,mass\n"
-        "0.0,0.1,100,0,0,1.5,0,0,0,50\n0.001,0.1,100,0,0,1.5,0,0,0,50\n"
+        + "".join(f"{k}e-3,0.1,100,0,0,1.5,0,0,0,50\n" for k in range(12))  # >= 10 samples
     )
     _, model = write_scenario(tmp_path, replace(SHORT, seconds=1.0))
     rc = main(["diagnose", str(csv), "--model", str(model), "--json", str(tmp_path / "r.json")])

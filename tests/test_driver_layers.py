@@ -10,7 +10,13 @@ import pytest
 
 import drivers
 
-ALLOWED_PROJECT_IMPORTS = ("drivers", "gateway.model", "gateway.errors", "gateway.config")
+ALLOWED_PROJECT_IMPORTS = (
+    "drivers",
+    "gateway.model",
+    "gateway.errors",
+    "gateway.config",
+    "gateway.resources",
+)
 PROJECT_PACKAGES = ("drivers", "gateway", "sim_plc", "tests", "bench")
 DRIVER_FILES = sorted(Path(drivers.__file__).parent.glob("*.py"))
 

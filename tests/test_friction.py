@@ -10,14 +10,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
-from gateway.model.friction import (
+from gateway.model.friction import coulomb_ratio_exact, dahl_step
+from tests.model_reference import (
     capstan_ratio,
     coulomb_gain,
     coulomb_lambda,
-    coulomb_ratio_exact,
     coulomb_ratio_small_angle,
     dahl_from_rest,
-    dahl_step,
     normal_force,
 )
 

@@ -20,6 +20,7 @@ DESIGN_TABLE = {
     "cdpr_gateway_cycle_seconds": ("histogram", set()),
     "cdpr_gateway_jitter_seconds": ("histogram", set()),
     "cdpr_gateway_overruns": ("counter", set()),
+    "cdpr_gateway_record_dropped": ("counter", set()),  # gateway.recorder
     "cdpr_gateway_bus_roundtrip_seconds": ("histogram", {"bus"}),
     "cdpr_gateway_errors": ("counter", {"kind"}),
     "cdpr_gateway_reconnects": ("counter", {"bus"}),

@@ -241,3 +241,31 @@ def test_batch_matches_single_and_names_the_infeasible_index() -> None:
     wrenches[1, 2] = -1e5
     with pytest.raises(InfeasiblePoseError, match="pose index 1"):
         statics.distribute_tensions_batch(a_mats, wrenches, LO, HI)
+
+
+def test_per_cycle_wrench_equals_the_batch_forward_statics() -> None:
+    """``wrench_into`` (the cycle's allocation-free form) against ``-A tau`` in batch."""
+    rng = np.random.default_rng(3)
+    poses = np.column_stack(
+        [rng.uniform(-0.3, 0.3, (20, 2)), np.full(20, 1.5), rng.uniform(-0.2, 0.2, (20, 3))]
+    )
+    taus = rng.uniform(20, 500, (20, 8))
+    a_mats = kin.structure_matrix_batch(FRAME, CROSSED, poses)
+    expected = statics.wrench_from_tensions_batch(a_mats, taus)
+    out = np.zeros(6)
+    a, b = np.ascontiguousarray(FRAME, dtype=float), np.ascontiguousarray(CROSSED, dtype=float)
+    for k in range(20):
+        statics.wrench_into(a, b, poses[k], taus[k], out)
+        assert_allclose(out, expected[k], rtol=1e-12, atol=1e-9)
+
+
+def test_external_wrench_is_gravity_plus_dalembert() -> None:
+    class Geo:
+        gravity_m_s2 = 9.81
+        center_of_mass_m = (0.0, 0.0, 0.0)
+
+    poses = np.zeros((2, 6))
+    acc = np.array([[0.0, 0.0, 0.0], [1.0, -2.0, 0.5]])
+    w = statics.external_wrench_batch(np.array([10.0, 10.0]), poses, acc, Geo())
+    assert_allclose(w[0], [0, 0, -98.1, 0, 0, 0], atol=1e-12)
+    assert_allclose(w[1], [-10.0, 20.0, -98.1 - 5.0, 0, 0, 0], atol=1e-12)

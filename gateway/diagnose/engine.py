@@ -17,9 +17,10 @@ import numpy as np
 from gateway.config import FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.fit import joint_fit
-from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal
+from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds
 from gateway.errors import RecordingError
+from gateway.model.chain import coulomb_coefficients
 from gateway.recording import Recording
 
 Progress = Callable[[str], None]
@@ -138,7 +139,8 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     n = d.t.size
     if nom.model == "none" or nom.mu.size == 0 or n < 2:
         return np.ones(n, bool)
-    lam = float(np.max(nom.mu * 2.0 * np.sin(0.5 * nom.wrap_rad)))
+    lam_pos, lam_neg = coulomb_coefficients(chain_params(nom, {}))  # the model's lambda
+    lam = float(np.max(0.5 * (lam_pos + lam_neg)))  # mean of the two directions
     f_r = lam * float(np.percentile(np.abs(d.tp), 99))
     travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(d.x)))))
     first = int(np.searchsorted(travel, WARMUP_LENGTHS * f_r / nom.sigma_n_m))

@@ -10,7 +10,7 @@ Every candidate is a set of parameters acting on the nominal chain: the friction
 ``mass_change`` changes the platform tension through the statics (``dTp_dm`` below).
 
 Internal parameter vectors (what the fit varies) and reported parameters
-(recording.md) differ only where a transform helps the fit: ``presliding`` and
+(docs/recording-format.md) differ only where a transform helps the fit: ``presliding`` and
 ``stribeck`` fit ``log10`` of sigma and v_s; ``eccentricity`` fits
 ``(A cos phi, A sin phi, 1/r)`` so that amplitude and phase are linear.
 Everything is one cable: arrays (N,), parameters scalars.
@@ -26,21 +26,9 @@ import numpy as np
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate
 
-CHAIN_EFFECTS = ("coulomb", "presliding", "viscous", "stribeck", "mass_change")
-ALL_EFFECTS = (
-    "coulomb",
-    "presliding",
-    "viscous",
-    "stribeck",
-    "inertia",
-    "delay",
-    "lowpass",
-    "gain",
-    "offset",
-    "drift",
-    "eccentricity",
-    "mass_change",
-)
+CHAIN_EFFECTS = (*fx.CHAIN_EFFECTS, "mass_change")
+"""Effects that change the chain simulation (the cache key of :class:`Forward`)."""
+ALL_EFFECTS = fx.EFFECT_NAMES
 
 
 @dataclass
@@ -115,15 +103,7 @@ def to_report(effect: str, theta: np.ndarray) -> dict[str, float]:
     if effect == "eccentricity":
         amp = math.hypot(p[0], p[1])
         return {"a_n": amp, "r_m": 1.0 / p[2], "phi_rad": math.atan2(p[1], p[0])}
-    name = {
-        "inertia": "m_eff_kg",
-        "delay": "d_s",
-        "lowpass": "tau_s",
-        "gain": "g",
-        "offset": "c_n",
-        "drift": "k_n_s",
-        "mass_change": "q_kg_s",
-    }[effect]
+    (name,) = fx.REGISTRY[effect].param_names
     return {name: p[0]}
 
 
@@ -147,32 +127,21 @@ def report_stderr(effect: str, theta: np.ndarray, se: np.ndarray) -> dict[str, f
 
 
 def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
-    """One cable's ChainParams with the friction-side effects in ``eff`` applied."""
-    model, mu, sigma = nom.model, nom.mu, nom.sigma_n_m
-    f0, visc, sk, svs = 0.0, nom.viscous_ns_m, 0.0, 0.01
+    """One cable's ChainParams with the friction-side effects in ``eff`` (internal
+    parameter vectors) applied by the registry's :func:`gateway.model.effects.chain_params`:
+    ``coulomb`` mu is absolute, the same for every pulley (negative fits clamp to 0)."""
+    values: fx.Effects = {}
     if "coulomb" in eff:
-        mu_new = float(eff["coulomb"][0])
-        mu = nom.mu * (mu_new / nom.mu_mean) if nom.mu_mean > 0 else np.full_like(nom.mu, mu_new)
-        f0 = float(eff["coulomb"][1])
-        model = "coulomb" if model == "none" else model
+        mu, f0 = float(eff["coulomb"][0]), float(eff["coulomb"][1])
+        values["coulomb"] = {"mu": np.array([max(mu, 0.0)]), "f0_n": np.array([f0])}
     if "presliding" in eff:
-        model, sigma = "dahl", 10 ** float(eff["presliding"][0])
+        values["presliding"] = {"sigma_n_m": np.array([10 ** float(eff["presliding"][0])])}
     if "viscous" in eff:
-        visc = visc + float(eff["viscous"][0])
+        values["viscous"] = {"c_ns_m": np.array([float(eff["viscous"][0])])}
     if "stribeck" in eff:
-        sk, svs = float(eff["stribeck"][0]), 10 ** float(eff["stribeck"][1])
-    return ChainParams.build(
-        model=model,  # type: ignore[arg-type]
-        cables=1,
-        wrap_rad=nom.wrap_rad,
-        mu=np.maximum(mu, 0.0)[None, :],
-        sigma_n_m=sigma,
-        beta=nom.beta,
-        f0_n=f0,
-        stribeck_k=sk,
-        stribeck_v_m_s=svs,
-        viscous_ns_m=visc,
-    )
+        k, v_s = float(eff["stribeck"][0]), 10 ** float(eff["stribeck"][1])
+        values["stribeck"] = {"k": np.array([k]), "v_s_m_s": np.array([v_s])}
+    return fx.chain_params(nom, values, 1)
 
 
 class Forward:

@@ -22,10 +22,8 @@ SENSITIVITY_POINTS = 2000
 
 
 def _wrenches(cfg: Config, rec: Recording, idx: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    geo = cfg.geometry
     acc = np.gradient(np.gradient(rec.pose[:, :3], rec.t, axis=0), rec.t, axis=0)[idx]  # type: ignore[index]
-    w = statics.gravity_wrench_batch(mass, geo.gravity_m_s2, rec.pose[idx], geo.center_of_mass_m)  # type: ignore[index]
-    return w + statics.inertial_wrench(mass, acc)
+    return statics.external_wrench_batch(mass, rec.pose[idx], acc, cfg.geometry)  # type: ignore[index]
 
 
 def _check(cfg: Config | None, rec: Recording, why: str) -> Config:

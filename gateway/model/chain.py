@@ -27,19 +27,22 @@ F_old``) converges to 1e-9 N in one or two passes at 1 kHz (tests check it), sto
   -> platform tension ``T_p`` (what the gateway does each cycle).
 * :func:`simulate`: platform tension and velocity -> the sensor reading ``T_s`` (the plant).
 
-Both run the same compiled kernel; ``compensate(simulate(T))`` returns ``T``.
+Two compiled kernels (:func:`compensate_kernel`, :func:`simulate_kernel`) share the pulley
+step and read their parameters from one :class:`KernelParams`; ``compensate(simulate(T))``
+returns ``T``.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numba import njit
 
-from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step
+from gateway.model.fastcall import entry_point
+from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step, dahl_step_slope
 
 MODEL_CODES = {"none": 0, "coulomb": 1, "dahl": 2}
 ModelName = Literal["none", "coulomb", "dahl"]
@@ -107,7 +110,9 @@ class ChainParams:
 
     @staticmethod
     def from_friction(friction: object, cables: int) -> ChainParams:
-        """From a :class:`gateway.config.FrictionConfig` (same for every cable)."""
+        """The nominal chain of a :class:`gateway.config.FrictionConfig` (same for every
+        cable), without its fitted ``effects``: for those use
+        :func:`gateway.model.effects.chain_params`."""
         return ChainParams.build(
             model=friction.model,  # type: ignore[attr-defined]
             cables=cables,
@@ -138,83 +143,123 @@ Newton's next correction is at most this times step^2, so a pass whose correctio
 step^2 * bound <= tol leaves an error below tol: no confirming pass is needed."""
 
 
+class KernelParams(NamedTuple):
+    """What the compiled kernels read, as one numba-compatible structure.
+
+    ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0;
+    ``f0``, ``strib_k``, ``strib_v``, ``viscous``, ``sigma`` (m,); ``beta``; ``model``
+    (:data:`MODEL_CODES`); Newton's ``tol`` (N^2 on the squared step) and ``max_iter``.
+    """
+
+    lam_pos: np.ndarray
+    lam_neg: np.ndarray
+    f0: np.ndarray
+    strib_k: np.ndarray
+    strib_v: np.ndarray
+    viscous: np.ndarray
+    sigma: np.ndarray
+    beta: float
+    model: int
+    tol: float
+    max_iter: int
+
+
+def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20) -> KernelParams:
+    """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
+    lam_pos, lam_neg = coulomb_coefficients(params)
+    return KernelParams(
+        lam_pos, lam_neg, params.f0_n, params.stribeck_k, params.stribeck_v_m_s,
+        params.viscous_ns_m, params.sigma_n_m, float(params.beta), MODEL_CODES[params.model],
+        float(tol_n), int(max_iter),
+    )  # fmt: skip
+
+
 @njit(cache=True, inline="always")
 def _pulley(t_b, lam, f0p, strib, f_old, dx, sigma, beta, model):
     """Friction force of one pulley whose platform-side tension is ``t_b``, and dF/dt_b."""
     if dx == 0.0:
         return (0.0 if model == 1 else f_old), 0.0
     s = 1.0 if dx > 0.0 else -1.0
-    a = abs(t_b)
-    fr = (lam * a + f0p) * strib
+    fr = (lam * abs(t_b) + f0p) * strib
     dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
     if model == 1:
         return s * fr, s * dfr
     if fr <= FR_FLOOR_N:
         return 0.0, 0.0
     if beta == 1.0:
-        k = sigma * abs(dx) / fr
-        e = math.exp(-k)
-        f_new = s * fr + (f_old - s * fr) * e
-        return f_new, (s * (1.0 - e) + (f_old - s * fr) * e * k / fr) * dfr
+        f_new, slope = dahl_step_slope(f_old, fr, dx, sigma)
+        return f_new, slope * dfr
     f_new = dahl_step(f_old, fr, dx, sigma, beta)
     return f_new, s * (1.0 - math.exp(-sigma * abs(dx) / fr)) * dfr  # quasi-Newton slope
 
 
-@njit(cache=True, fastmath={"contract", "arcp", "afn"})
-def _run_chain(
-    forward, t_in, vel, dt, lam_pos, lam_neg, f0, sk, svs, visc, sigma, beta, model, f_state,
-    tol, max_iter, out,
-):  # fmt: skip
-    """Kernel: ``forward`` sensor->platform (compensate) else platform->sensor (simulate).
+@njit(cache=True, inline="always")
+def _stribeck(p, i, v):
+    if p.strib_k[i] == 0.0:
+        return 1.0
+    return 1.0 + p.strib_k[i] * math.exp(-((v / p.strib_v[i]) ** 2))
 
-    ``t_in``, ``vel``, ``out``: (N, m); ``dt``: (N,); ``lam_pos``, ``lam_neg``: (m, n)
-    Coulomb coefficients for v > 0 and v < 0; ``f_state``: (m, n) in/out.
-    Returns the largest number of Newton passes any pulley needed (0 when simulating:
-    that direction is explicit).
-    """
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def compensate_kernel(p, t_in, vel, dt, f_state, out):
+    """Sensor -> platform for (N, m) ``t_in``, ``vel``, ``out``; ``dt`` (N,); ``f_state``
+    (m, n) in/out. Each pulley's implicit equation by Newton, seeded with the previous
+    cycle's force. Returns the largest number of Newton passes any pulley needed."""
     n_samples, m = t_in.shape
-    n = lam_pos.shape[1]
+    n = p.lam_pos.shape[1]
     worst = 0
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
             dx = v * dt[k]
-            if model == 0:
-                out[k, i] = t_in[k, i] + visc[i] * v if forward else t_in[k, i] - visc[i] * v
-                continue
-            strib = 1.0
-            if sk[i] != 0.0:
-                strib = 1.0 + sk[i] * math.exp(-((v / svs[i]) ** 2))
-            f0p = f0[i] / n
-            if forward:
-                t_a = t_in[k, i]
+            t_a = t_in[k, i]
+            if p.model != 0:
+                strib = _stribeck(p, i, v)
+                f0p = p.f0[i] / n
                 for j in range(n):
-                    lam = lam_pos[i, j] if dx > 0.0 else lam_neg[i, j]
+                    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
                     f_old = f_state[i, j]
                     t_b = t_a + f_old
                     it = 0
-                    while it < max_iter:
+                    while it < p.max_iter:
                         it += 1
-                        f_new, d_b = _pulley(t_b, lam, f0p, strib, f_old, dx, sigma[i], beta, model)
+                        f_new, d_b = _pulley(
+                            t_b, lam, f0p, strib, f_old, dx, p.sigma[i], p.beta, p.model
+                        )
                         step = (t_b - t_a - f_new) / (1.0 - d_b)
                         t_b -= step
-                        if step * step * _NEWTON_CURVATURE <= tol:
+                        if step * step * _NEWTON_CURVATURE <= p.tol:
                             break
                     f_state[i, j] = t_b - t_a
                     worst = max(worst, it)
                     t_a = t_b
-                out[k, i] = t_a + visc[i] * v
-            else:
-                t_b = t_in[k, i] - visc[i] * v
+            out[k, i] = t_a + p.viscous[i] * v
+    return worst
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def simulate_kernel(p, t_in, vel, dt, f_state, out):
+    """Platform -> sensor, same arguments as :func:`compensate_kernel`; explicit (each
+    pulley's Coulomb level follows from its known platform-side tension)."""
+    n_samples, m = t_in.shape
+    n = p.lam_pos.shape[1]
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            dx = v * dt[k]
+            t_b = t_in[k, i] - p.viscous[i] * v
+            if p.model != 0:
+                strib = _stribeck(p, i, v)
+                f0p = p.f0[i] / n
                 for j in range(n - 1, -1, -1):
-                    lam = lam_pos[i, j] if dx > 0.0 else lam_neg[i, j]
+                    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
                     f_new, _ = _pulley(
-                        t_b, lam, f0p, strib, f_state[i, j], dx, sigma[i], beta, model
+                        t_b, lam, f0p, strib, f_state[i, j], dx, p.sigma[i], p.beta, p.model
                     )
                     f_state[i, j] = f_new
                     t_b -= f_new
-                out[k, i] = t_b
-    return worst
+            out[k, i] = t_b
+    return 0
 
 
 def coulomb_coefficients(params: ChainParams) -> tuple[np.ndarray, np.ndarray]:
@@ -268,12 +313,9 @@ def _run_batch(
         )
     f_state = new_state(params) if state is None else state
     out = np.empty_like(t_in)
-    lam_pos, lam_neg = coulomb_coefficients(params)
-    _run_chain(
-        forward, t_in, vel, _time_steps(t, t_in.shape[0]), lam_pos, lam_neg,
-        params.f0_n, params.stribeck_k, params.stribeck_v_m_s, params.viscous_ns_m,
-        params.sigma_n_m, params.beta, MODEL_CODES[params.model], f_state, tol_n, max_iter, out,
-    )  # fmt: skip
+    kernel = compensate_kernel if forward else simulate_kernel
+    p = kernel_params(params, tol_n, max_iter)
+    kernel(p, t_in, vel, _time_steps(t, t_in.shape[0]), f_state, out)
     return out
 
 
@@ -324,31 +366,33 @@ class ChainStepper:
         m = params.cables
         self.params = params
         self.forward = forward
+        self.period_s = float(period_s)
         self.state = new_state(params)
         self.iterations = 0
         self._in = np.zeros((1, m))
         self._vel = np.zeros((1, m))
         self._out = np.zeros((1, m))
-        self._dt = np.array([float(period_s)])
-        self._lam_pos, self._lam_neg = coulomb_coefficients(params)
-        self._model = MODEL_CODES[params.model]
-        self._tol = float(tol_n)
-        self._max_iter = int(max_iter)
+        self._dt = np.array([self.period_s])
+        self._p = kernel_params(params, tol_n, max_iter)
+        self._kernel = entry_point(
+            compensate_kernel if forward else simulate_kernel,
+            self._p, self._in, self._vel, self._dt, self.state, self._out,
+        )  # fmt: skip
 
     def reset(self) -> None:
         """Relax every pulley (e.g. after a long outage when the real state is unknown)."""
         self.state[:] = 0.0
 
-    def step(self, tension: np.ndarray, velocity: np.ndarray, out: np.ndarray) -> int:
-        """Advance one period; write the result (m,) into ``out``; return Newton passes."""
+    def step(
+        self, tension: np.ndarray, velocity: np.ndarray, out: np.ndarray, dt: float = -1.0
+    ) -> int:
+        """Advance by ``dt`` (s; negative: the period); write the result (m,) into ``out``;
+        return the Newton passes (0 when simulating)."""
         self._in[0] = tension
         self._vel[0] = velocity
-        p = self.params
-        self.iterations = _run_chain(
-            self.forward, self._in, self._vel, self._dt, self._lam_pos, self._lam_neg, p.f0_n,
-            p.stribeck_k,
-            p.stribeck_v_m_s, p.viscous_ns_m, p.sigma_n_m, p.beta, self._model, self.state,
-            self._tol, self._max_iter, self._out,
-        )  # fmt: skip
+        self._dt[0] = self.period_s if dt < 0.0 else dt  # own buffers: types fixed
+        self.iterations = self._kernel(
+            self._p, self._in, self._vel, self._dt, self.state, self._out
+        )
         out[:] = self._out[0]
         return self.iterations

@@ -19,29 +19,6 @@ FR_FLOOR_N = 1e-9
 """Coulomb levels below this are treated as zero friction (no division by ~0)."""
 
 
-def capstan_ratio(mu_p: float, wrap_rad: float, direction: float) -> float:
-    """Euler-Eytelwein (eq. 7): ``T_j / T_{j-1} = exp(sgn(v) mu_p alpha)``."""
-    return math.exp(float(np.sign(direction)) * mu_p * wrap_rad)
-
-
-def normal_force(
-    t_prev: np.ndarray | float, t_next: np.ndarray | float, wrap_rad: np.ndarray | float
-) -> np.ndarray:
-    """Bearing normal force (eq. 10), N: resultant of the two cable tensions at a pulley.
-
-    Broadcasts: tensions and wrap angles (rad) may be scalars or arrays.
-    """
-    t_prev = np.asarray(t_prev, dtype=float)
-    t_next = np.asarray(t_next, dtype=float)
-    sq = t_prev**2 - 2.0 * t_prev * t_next * np.cos(wrap_rad) + t_next**2
-    return np.sqrt(np.maximum(sq, 0.0))
-
-
-def coulomb_lambda(n: float, mu: float, wrap_rad: float) -> float:
-    """``lambda_j(n_j) = mu sqrt(n^2 - 2 n cos(alpha) + 1)`` with ``n = T_{j-1}/T_j``."""
-    return mu * math.sqrt(max(n * n - 2.0 * n * math.cos(wrap_rad) + 1.0, 0.0))
-
-
 def coulomb_ratio_exact(mu: float, wrap_rad: float, direction: float) -> float:
     """Exact ``n_j = T_{j-1} / T_j`` of a Coulomb bearing pulley (eq. 11, 12 with eq. 8).
 
@@ -59,24 +36,19 @@ def coulomb_ratio_exact(mu: float, wrap_rad: float, direction: float) -> float:
     return low if s > 0 else 1.0 / low
 
 
-def coulomb_ratio_small_angle(mu: float, wrap_rad: float, direction: float) -> float:
-    """The ``n_j ~ 1`` shortcut: ``lambda ~ 2 mu sin(a/2)``, ``n = 1 - s 2 mu sin(a/2)``."""
-    s = float(np.sign(direction))
-    return 1.0 - s * 2.0 * mu * math.sin(wrap_rad / 2.0)
+@njit(cache=True, inline="always")
+def dahl_step_slope(f: float, f_r: float, dx: float, sigma: float) -> tuple[float, float]:
+    """The exact ``beta = 1`` Dahl step and its slope ``dF'/dF_R`` (``F_R > 0``, ``dx != 0``).
 
-
-def coulomb_gain(
-    mu: np.ndarray, wrap_rad: np.ndarray, direction: float, exact: bool = True
-) -> float:
-    """Platform over sensor tension ``T_p / T_s = prod_j 1 / n_j`` for one direction.
-
-    ``mu``, ``wrap_rad``: (n,) per pulley. Returns a float.
+    ``F' = s F_R + (F - s F_R) exp(-k)``, ``k = sigma |dx| / F_R``, ``s = sgn(dx)``.
+    The slope is what the compensation's Newton iteration needs (``F_R`` depends on the
+    tension being solved for).
     """
-    ratio = coulomb_ratio_exact if exact else coulomb_ratio_small_angle
-    gain = 1.0
-    for m_j, a_j in zip(np.atleast_1d(mu), np.atleast_1d(wrap_rad), strict=True):
-        gain /= ratio(float(m_j), float(a_j), direction)
-    return gain
+    s = 1.0 if dx > 0.0 else -1.0
+    k = sigma * abs(dx) / f_r
+    e = math.exp(-k)
+    rest = f - s * f_r
+    return s * f_r + rest * e, s * (1.0 - e) + rest * e * k / f_r
 
 
 @njit(cache=True, inline="always")
@@ -96,9 +68,9 @@ def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> flo
     s = 1.0 if dx > 0.0 else -1.0
     if f_r <= FR_FLOOR_N:
         return 0.0
-    k = sigma * abs(dx) / f_r
     if beta == 1.0:
-        return s * f_r + (f - s * f_r) * math.exp(-k)
+        return dahl_step_slope(f, f_r, dx, sigma)[0]
+    k = sigma * abs(dx) / f_r
     z = 1.0 - s * f / f_r
     a = abs(z)
     if a == 0.0:
@@ -110,14 +82,3 @@ def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> flo
         a_new = (a ** (1.0 - beta) + (beta - 1.0) * k) ** (1.0 / (1.0 - beta))
     z_new = a_new if z > 0.0 else -a_new
     return s * f_r * (1.0 - z_new)
-
-
-def dahl_from_rest(x: np.ndarray, f_r: float, sigma: float) -> np.ndarray:
-    """Eq. 15: ``F(x) = sgn(x) F_R (1 - exp(-sigma |x| / F_R))`` from F = 0 at x = 0."""
-    x = np.asarray(x, dtype=float)
-    return np.sign(x) * f_r * (1.0 - np.exp(-sigma * np.abs(x) / f_r))
-
-
-def viscous_force(c_ns_m: float, velocity_m_s: np.ndarray | float) -> np.ndarray:
-    """Viscous bearing friction (eq. 9, with the sign): ``F = c v`` (N)."""
-    return c_ns_m * np.asarray(velocity_m_s, dtype=float)

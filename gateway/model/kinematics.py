@@ -162,7 +162,14 @@ def cable_velocities_batch(
     if tw.ndim != 2 or tw.shape[1] != 6:
         raise ValueError(f"twists must have shape (N, 6); got {tw.shape}")
     a_mat = structure_matrix_batch(frame_anchors, platform_anchors, poses)
-    return -np.einsum("nim,ni->nm", a_mat, tw)
+    return cable_velocities_from_structure(a_mat, tw)
+
+
+def cable_velocities_from_structure(a_mats: ArrayLike, twists: ArrayLike) -> FloatArray:
+    """``dL/dt = -A^T @ twist`` from structure matrices (N, 6, m) already computed."""
+    return -np.einsum(
+        "nim,ni->nm", np.asarray(a_mats, dtype=float), np.asarray(twists, dtype=float)
+    )
 
 
 def cable_velocities(

@@ -29,7 +29,11 @@ returned. A rank-deficient ``A`` (``m < 6`` or a singular pose) raises it as wel
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import nnls
 
@@ -102,6 +106,55 @@ def inertial_wrench(mass_kg: ArrayLike, accel_m_s2: ArrayLike) -> FloatArray:
     mass = np.asarray(mass_kg, dtype=float)
     force = -(mass[..., None] if mass.ndim else mass) * acc
     return np.concatenate([force, np.zeros_like(force)], axis=-1)
+
+
+def external_wrench_batch(
+    mass_kg: ArrayLike, poses: ArrayLike, accel_m_s2: ArrayLike, geometry: Any
+) -> FloatArray:
+    """External wrench (N, 6) on the platform: gravity plus d'Alembert ``-m a``.
+
+    ``geometry``: has ``gravity_m_s2`` and ``center_of_mass_m`` (a ``GeometryConfig``);
+    ``mass_kg`` scalar or (N,), ``poses`` (N, 6), ``accel_m_s2`` (N, 3). The one external
+    wrench of the plant and of the diagnosis.
+    """
+    w = gravity_wrench_batch(mass_kg, geometry.gravity_m_s2, poses, geometry.center_of_mass_m)
+    return w + inertial_wrench(mass_kg, accel_m_s2)
+
+
+@njit(cache=True)
+def wrench_into(frame_anchors, platform_anchors, pose, tension, out):
+    """Per-cycle forward statics ``w = -A(pose) @ tension`` into ``out`` (6,), no allocation.
+
+    ``frame_anchors``, ``platform_anchors``: (m, 3) m; ``pose``: (6,) x, y, z m and
+    rx, ry, rz rad with ``R = Rz Ry Rx``; ``tension``: (m,) N. Column i of ``A`` is
+    ``[u_i; (R b_i) x u_i]`` (eq. 4) with ``u_i`` the unit vector platform -> frame anchor.
+    Tested against :func:`wrench_from_tensions` with :func:`kinematics.structure_matrix`.
+    """
+    ca, sa = math.cos(pose[3]), math.sin(pose[3])
+    cb, sb = math.cos(pose[4]), math.sin(pose[4])
+    cg, sg = math.cos(pose[5]), math.sin(pose[5])
+    r00, r01, r02 = cg * cb, cg * sb * sa - sg * ca, cg * sb * ca + sg * sa
+    r10, r11, r12 = sg * cb, sg * sb * sa + cg * ca, sg * sb * ca - cg * sa
+    r20, r21, r22 = -sb, cb * sa, cb * ca
+    for k in range(6):
+        out[k] = 0.0
+    for i in range(tension.size):
+        bx, by, bz = platform_anchors[i, 0], platform_anchors[i, 1], platform_anchors[i, 2]
+        px = r00 * bx + r01 * by + r02 * bz
+        py = r10 * bx + r11 * by + r12 * bz
+        pz = r20 * bx + r21 * by + r22 * bz
+        lx = frame_anchors[i, 0] - pose[0] - px
+        ly = frame_anchors[i, 1] - pose[1] - py
+        lz = frame_anchors[i, 2] - pose[2] - pz
+        norm = math.sqrt(lx * lx + ly * ly + lz * lz)
+        ux, uy, uz = lx / norm, ly / norm, lz / norm
+        t = tension[i]
+        out[0] -= ux * t
+        out[1] -= uy * t
+        out[2] -= uz * t
+        out[3] -= (py * uz - pz * uy) * t
+        out[4] -= (pz * ux - px * uz) * t
+        out[5] -= (px * uy - py * ux) * t
 
 
 def wrench_from_tensions(a_mat: ArrayLike, tau: ArrayLike) -> FloatArray:
