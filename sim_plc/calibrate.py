@@ -12,7 +12,8 @@ while the gateway runs):
 2. **before**: the plant with its effects, the gateway with the nominal model, N s,
    recording what it saw (``DIR/before.csv.gz``, as ``run --record`` does).
 3. **diagnose** the recording as a real robot would need it: the wrench reference (any
-   ``tension_platform_i`` columns dropped; the gateway's own columns only), report
+   ``tension_platform_i`` columns dropped; the gateway's own columns only; rows the
+   gateway flagged or that repeat a PLC sample left out, :func:`gateway_rows`), report
    ``DIR/diagnosis.json``, fitted model ``DIR/fitted.yaml`` (:mod:`gateway.diagnose.writemodel`).
 4. **after**: the plant with its effects, the gateway with ``DIR/fitted.yaml``, N s
    (``DIR/after.csv.gz``).
@@ -47,7 +48,7 @@ from gateway.diagnose.engine import reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
 from gateway.loop import CyclicService
-from gateway.recording import read_recording
+from gateway.recording import Recording, read_recording
 from sim_plc import demo
 
 BUS = "modbus_tcp"  # the truth side channel is a Modbus register block
@@ -157,14 +158,45 @@ def run_scored(plant: Path | str, cfg: Config, seconds: float, label: str,
     )
 
 
+def gateway_rows(rec: Recording) -> Recording:
+    """The rows of a gateway recording that carry a new, good PLC sample: every
+    ``status_i`` 0 (the gateway's own verdict; substituted and invalid rows repeat an old
+    reading) and readings that changed since the previous row (a cycle that read the same
+    PLC sample again adds nothing but a jittered time stamp)."""
+    keep = np.ones(rec.samples, bool)
+    for i in range(1, rec.cables + 1):
+        status = rec.extra.get(f"status_{i}")
+        if status is not None:
+            keep &= status == 0
+    keep[1:] &= np.any(np.diff(rec.tension_sensor, axis=0) != 0, axis=1)
+    if keep.sum() < 10:
+        raise GatewayError(f"{rec.source}: fewer than 10 rows with new, good readings")
+
+    def rows(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[keep]
+
+    return dataclasses.replace(
+        rec,
+        t=rec.t[keep],
+        velocity=rec.velocity[keep],
+        tension_sensor=rec.tension_sensor[keep],
+        tension_platform=None,  # what a real robot has: no platform tensions
+        length=rows(rec.length),
+        pose=rows(rec.pose),
+        mass=rows(rec.mass),
+        extra={k: v[keep] for k, v in rec.extra.items()},
+        skipped_rows=rec.skipped_rows + int(rec.samples - keep.sum()),
+    )
+
+
 def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path, say) -> dict:
     """Diagnose ``recording`` against the wrench balance (no platform tensions), write the
     report and the fitted model; returns the report."""
     from gateway.diagnose.wrench_select import diagnose_wrench
 
     cfg = load_config(model)
-    rec = read_recording(recording)
-    rec = dataclasses.replace(rec, tension_platform=None)  # what a real robot has
+    rec = gateway_rows(read_recording(recording))
+    say(f"{recording}: {rec.samples} rows with new, good readings ({rec.skipped_rows} left out)")
     if reference_mode(rec) != "wrench":
         raise GatewayError(f"{recording}: no pose and mass columns: no wrench reference")
     model_friction = load_friction(model)

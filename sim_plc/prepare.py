@@ -7,7 +7,7 @@ step: the Modbus server thread, which needs the same GIL, stalled that long (iss
 
 :class:`ChunkWorker` computes them in a separate process (``spawn``: no threads or locks
 of the parent are inherited), only the arrays a step reads (``t``, ``pose``, ``length``,
-``velocity``, ``tension_true``: ~60 kB per 250 samples). They live in shared memory
+``velocity``, ``mass``, ``tension_true``: ~60 kB per 250 samples). They live in shared memory
 (``RawArray``, ``ahead + 3`` slots): the worker writes chunk ``i`` into slot
 ``i % slots`` and sends only a note ``(i, error length)``: nothing is copied or
 unpickled in the serving process; requests and notes are fixed-size records on a socket,
@@ -56,12 +56,12 @@ def _background() -> None:
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
 
 
-FIELDS = ("t", "pose", "length", "velocity", "tension_true")  # what Plant.step reads
+FIELDS = ("t", "pose", "length", "velocity", "mass", "tension_true")  # what Plant.step reads
 
 
 def _slot_views(raw: Any, slots: int, chunk: int, cables: int) -> list[dict[str, np.ndarray]]:
     """Numpy views of each slot of the shared buffer: one array per field of FIELDS."""
-    shapes = {"t": (chunk,), "pose": (chunk, 6), "length": (chunk, cables),
+    shapes = {"t": (chunk,), "pose": (chunk, 6), "length": (chunk, cables), "mass": (chunk,),
               "velocity": (chunk, cables), "tension_true": (chunk, cables)}  # fmt: skip
     flat = np.frombuffer(raw, dtype=np.float64)
     views, off = [], 0
@@ -76,7 +76,7 @@ def _slot_views(raw: Any, slots: int, chunk: int, cables: int) -> list[dict[str,
 
 
 def slot_doubles(chunk: int, cables: int) -> int:
-    return chunk * (1 + 6 + 3 * cables)
+    return chunk * (1 + 6 + 1 + 3 * cables)
 
 
 def _read_exact(fd: int, n: int) -> bytes | None:
@@ -239,7 +239,7 @@ class ChunkWorker:
             raise pickle.loads(error)
         v, empty = self._views[index % self.slots], np.empty(0)
         return self._setpoints(
-            v["t"], v["pose"], v["length"], v["velocity"], empty, empty, empty, empty,
+            v["t"], v["pose"], v["length"], v["velocity"], empty, v["mass"], empty, empty,
             v["tension_true"], empty,
         )  # fmt: skip
 

@@ -127,8 +127,7 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
     a_mat = kinematics.structure_matrix_batch(
         np.asarray(geo.frame_anchors_m), np.asarray(geo.platform_anchors_m), pose
     )
-    vel = np.gradient(pose[:, :3], t, axis=0)
-    acc = np.gradient(vel, t, axis=0)
+    vel, acc = _smooth_derivatives(t, pose[:, :3])
     com = geo.center_of_mass_m
     w0 = statics.gravity_wrench_batch(mass, geo.gravity_m_s2, pose, com)
     w0 = w0 + statics.inertial_wrench(mass, acc)
@@ -149,6 +148,20 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
         ),
         source=rec.source,
     )
+
+
+def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and second time derivative of ``x`` (N, k) over a moving average of
+    :data:`INSTRUMENT_S` of ``x`` and of ``t``. A recording made by the gateway stamps each
+    row with its read time (jitter of a cycle) and repeats a PLC sample it read twice;
+    plain differences of such rows turn that jitter into accelerations of tens of m/s^2.
+    The average removes it; on a setpoint trajectory (< a few Hz) it changes nothing."""
+    n = _window(t)
+    ts = uniform_filter1d(t, n, mode="nearest") if n > 1 else t
+    if n > 1 and np.any(np.diff(ts) <= 0):
+        ts = t  # not strictly increasing after averaging (too few samples): plain
+    vel = np.gradient(uniform_filter1d(x, n, axis=0, mode="nearest"), ts, axis=0)
+    return vel, np.gradient(uniform_filter1d(vel, n, axis=0, mode="nearest"), ts, axis=0)
 
 
 def _window(t: np.ndarray) -> int:
