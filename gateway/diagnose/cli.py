@@ -77,7 +77,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if args.write_model is not None:
         output_path(args.write_model, "--write-model")
     model_friction, cfg = load_model(args.model)
-    rec, friction = relative_to_model(read_recording(args.recording), model_friction)  # type: ignore[arg-type]
+    rec, nominal = relative_to_model(read_recording(args.recording), model_friction)  # type: ignore[arg-type]
+    friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
         + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
@@ -109,7 +110,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     if args.write_model is not None:
-        write_model(args.write_model, args.model, model_friction, diag.report, rec)
+        write_model(args.write_model, args.model, model_friction, diag.report, rec)  # type: ignore[arg-type]
         say(f"fitted model in {args.write_model}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"

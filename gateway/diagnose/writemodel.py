@@ -170,7 +170,8 @@ def relative_to_model(rec: Recording, friction: FrictionConfig) -> tuple[Recordi
     ps = fx.path_sensor(eff, m, friction.pulley_radius_m)
     y = np.asarray(rec.tension_sensor, dtype=float)
     if "delay" in eff:  # the reading lags by d: advance it
-        y = np.stack([np.interp(t + ps.delay_s[i], t, y[:, i]) for i in range(m)], axis=1)
+        d = np.broadcast_to(np.asarray(ps.delay_s, dtype=float), (m,))
+        y = np.stack([np.interp(t + d[i], t, y[:, i]) for i in range(m)], axis=1)
     if "lowpass" in eff:  # offline inverse of 1 / (tau s + 1)
         y = y + ps.lowpass_tau_s * np.gradient(y, t, axis=0)
     tt = (t - t[0])[:, None]
