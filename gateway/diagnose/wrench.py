@@ -151,17 +151,31 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
 
 
 def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """First and second time derivative of ``x`` (N, k) over a moving average of
-    :data:`INSTRUMENT_S` of ``x`` and of ``t``. A recording made by the gateway stamps each
-    row with its read time (jitter of a cycle) and repeats a PLC sample it read twice;
-    plain differences of such rows turn that jitter into accelerations of tens of m/s^2.
-    The average removes it; on a setpoint trajectory (< a few Hz) it changes nothing."""
-    n = _window(t)
-    ts = uniform_filter1d(t, n, mode="nearest") if n > 1 else t
-    if n > 1 and np.any(np.diff(ts) <= 0):
-        ts = t  # not strictly increasing after averaging (too few samples): plain
-    vel = np.gradient(uniform_filter1d(x, n, axis=0, mode="nearest"), ts, axis=0)
-    return vel, np.gradient(uniform_filter1d(vel, n, axis=0, mode="nearest"), ts, axis=0)
+    """First and second time derivative of ``x`` (N, k). On evenly spaced rows plain
+    differences; otherwise over a moving average of :data:`INSTRUMENT_S` of ``x`` and of
+    ``t`` (odd reflection at the ends keeps a ramp a ramp). A recording made by the gateway
+    stamps each row with its read time (jitter of a cycle): plain differences of such rows
+    turn that jitter into accelerations of tens of m/s^2. On a setpoint trajectory (< a
+    few Hz) the average changes nothing else."""
+    steps = np.diff(t)
+    n = _window(t) | 1
+    if steps.size < 2 or np.std(steps) <= 1e-6 * np.median(steps) or t.size <= n + 2:
+        vel = np.gradient(x, t, axis=0)
+        return vel, np.gradient(vel, t, axis=0)
+    ts = _box(t, n)
+    if np.any(np.diff(ts) <= 0):
+        ts = t
+    vel = np.gradient(_box(x, n), ts, axis=0)
+    return vel, np.gradient(_box(vel, n), ts, axis=0)
+
+
+def _box(x: np.ndarray, n: int) -> np.ndarray:
+    """Moving average over ``n`` (odd) rows, the ends extended by odd reflection."""
+    h = n // 2
+    lo = 2.0 * x[:1] - x[h:0:-1]
+    hi = 2.0 * x[-1:] - x[-2 : -h - 2 : -1]
+    padded = np.concatenate([lo, x, hi])
+    return uniform_filter1d(padded, n, axis=0, mode="nearest")[h : h + x.shape[0]]
 
 
 def _window(t: np.ndarray) -> int:
