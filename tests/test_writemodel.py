@@ -207,3 +207,17 @@ def test_model_with_unknown_effect_is_refused(tmp_path, capsys, text):
     argv = ["diagnose", str(rec), "--model", str(model), "--json", str(tmp_path / "r.json")]
     assert main(argv) == 2
     assert "viscos" in capsys.readouterr().err
+
+
+def test_inadmissible_fitted_values_are_clamped_and_named(tmp_path):
+    """A negative f0 (mu and f0 trade off on a cable of nearly constant tension) cannot be
+    written: it becomes 0 and the file's header says so."""
+    report = _report(
+        [{"effect": "coulomb", "cables": [1, 2], "parameters": {"mu": [0.015, 0.017],
+                                                                "f0_n": [1.2, -0.24]}}]
+    )  # fmt: skip
+    out = tmp_path / "fitted.yaml"
+    write_model(out, DEFAULT_CONFIG_PATH, load_friction(DEFAULT_CONFIG_PATH), report)
+    f0 = load_config(out).friction.effect_values(M)["coulomb"]["f0_n"]
+    assert_allclose(f0, [1.2, 0, 0, 0, 0, 0, 0, 0], rtol=0, atol=0)
+    assert "# clamped: coulomb.f0_n on cable 2: fitted -0.24" in out.read_text()

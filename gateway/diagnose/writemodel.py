@@ -105,9 +105,14 @@ def compose(old: fx.Effects, new: fx.Effects, nominal_mu: float) -> fx.Effects:
 
 
 def fitted_friction(
-    friction: FrictionConfig, report: dict[str, Any], cables: int, rec: Recording | None = None
+    friction: FrictionConfig,
+    report: dict[str, Any],
+    cables: int,
+    rec: Recording | None = None,
+    notes: list[str] | None = None,
 ) -> FrictionConfig:
-    """``friction`` with the report's findings composed onto its effects."""
+    """``friction`` with the report's findings composed onto its effects (values outside
+    the admissible range clamped, named in ``notes``)."""
     try:
         old = friction.effect_values(cables)
     except ValueError as exc:
@@ -117,7 +122,30 @@ def fitted_friction(
     mu = total.get("coulomb", {}).get("mu")
     if mu is not None and np.any(np.isnan(mu)) and not np.all(np.isnan(mu)):
         mu[np.isnan(mu)] = nominal_mu  # a file holds no NaN: the nominal pulleys' mean mu
+    clamp_to_admissible(total, notes)
     return dataclasses.replace(friction, effects=FrictionConfig.effects_mapping(total))
+
+
+def clamp_to_admissible(eff: fx.Effects, notes: list[str] | None = None) -> None:
+    """Fitted values outside what the model file admits (``coulomb.f0_n`` < 0, a gain
+    <= -1, ...: a fit on a cable whose parameters trade off) are set to the nearest
+    admissible value, in place; each is named in ``notes``."""
+    for name, values in eff.items():
+        for prm in fx.REGISTRY[name].params:
+            v = values[prm.name]
+            low = prm.low + (1e-9 if prm.low_open else 0.0)
+            bad = np.isfinite(v) & (v < low)
+            if prm.low_open:
+                bad |= np.isfinite(v) & (v <= prm.low)
+            if np.any(bad):
+                cables = ", ".join(str(i + 1) for i in np.flatnonzero(bad))
+                if notes is not None:
+                    notes.append(
+                        f"{name}.{prm.name} on cable {cables}: fitted "
+                        f"{', '.join(f'{x:.4g}' for x in v[bad])}, written as {low:g} "
+                        "(the smallest admissible)"
+                    )
+                v[bad] = low
 
 
 def write_model(
@@ -127,8 +155,10 @@ def write_model(
     report: dict[str, Any],
     rec: Recording | None = None,
 ) -> FrictionConfig:
-    """Write the fitted model file ``path`` (module docstring); returns its friction."""
-    fitted = fitted_friction(friction, report, int(report["cables"]), rec)
+    """Write the fitted model file ``path`` (module docstring); returns its friction.
+    Clamped values (:func:`clamp_to_admissible`) are named in the file's header."""
+    notes: list[str] = []
+    fitted = fitted_friction(friction, report, int(report["cables"]), rec, notes)
     data = read_yaml(model_path)
     mapping = _plain(fitted.to_mapping())
     out = {**data, "friction": mapping} if "geometry" in data else {"friction": mapping}
@@ -136,7 +166,7 @@ def write_model(
         f"# fitted model: {model_path} plus the findings of a diagnosis of "
         f"{rec.source if rec is not None else 'a recording'} (cdpr-gateway diagnose "
         "--write-model)\n"
-    )
+    ) + "".join(f"# clamped: {n}\n" for n in notes)
     try:
         path.write_text(header + yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
     except OSError as exc:
