@@ -1,6 +1,9 @@
 """Recording throughput: the 1 kHz loop with and without ``--record``, side by side.
 
-``python -m bench record`` (``BENCH_SECONDS`` shortens the default 600 s per kind). One
+``python -m bench record`` (``BENCH_SECONDS`` shortens the default 600 s per kind;
+``BENCH_RT=1`` runs the gateway's thread and the soft PLC under the real-time settings of
+``loop.realtime``, where the process may, so that a loaded machine's scheduling does not
+drown the comparison). One
 soft PLC subprocess (``cdpr-gateway sim-plc``, Modbus TCP on loopback, the default config
 with ``platform_mass`` mapped, stderr to a file) serves every run; the gateway runs in
 this process, without a recorder and with one (writing ``.csv.gz`` to a temporary
@@ -14,6 +17,7 @@ time.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import queue
 import resource
@@ -27,13 +31,14 @@ from pathlib import Path
 from typing import IO
 
 import numpy as np
-from gateway.demo import with_port
 
-from gateway.config import Config, load_config
+from gateway import realtime
+from gateway.config import Config, RealtimeConfig, load_config
 from gateway.daemon import build_driver, start_recorder
 from gateway.loop import CyclicService
 from gateway.recorder import Recorder
 from gateway.recording import read_recording
+from sim_plc.demo import with_port
 
 HALVES = 2  # each kind runs in this many parts, alternating, against drifting load
 
@@ -82,9 +87,9 @@ class _Plc:
     """``cdpr-gateway sim-plc --port 0`` with stderr to a file (an unread stderr pipe fills
     up in a long run and stalls the soft PLC) and stdout drained by a thread."""
 
-    def __init__(self, config_path: str, log: IO[str]) -> None:
+    def __init__(self, config_path: str, log: IO[str], rt: bool = False) -> None:
         cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
-               "--port", "0"]  # fmt: skip
+               "--port", "0", *(["--realtime"] if rt else [])]  # fmt: skip
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
@@ -119,13 +124,19 @@ class _Plc:
 
 def run() -> None:
     seconds = float(os.environ.get("BENCH_SECONDS", "600"))
+    rt = os.environ.get("BENCH_RT", "0") == "1"
     cfg = load_config()
+    if rt:
+        cfg = dataclasses.replace(
+            cfg, loop=dataclasses.replace(cfg.loop, realtime=RealtimeConfig(enabled=True))
+        )
+        print(f"  {realtime.apply(cfg.loop.realtime).line()}")
     cycles = max(1, round(seconds / cfg.loop.period_s))
     print(f"  {seconds:.0f} s per kind at {1 / cfg.loop.period_s:.0f} Hz, {cfg.cables} cables, "
           f"in {2 * HALVES} alternating runs (without, with, without, ...)")  # fmt: skip
     plain, recorded = _Runs(), _Runs()
     plc_log = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed in the finally below)
-    plc = _Plc(str(cfg.source), plc_log)
+    plc = _Plc(str(cfg.source), plc_log, rt)
     try:
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
         with tempfile.TemporaryDirectory(prefix="bench-record-") as tmp:

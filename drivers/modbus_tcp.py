@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Backoff, Driver, Inputs, Outputs
-from drivers.registers import FieldCodec, Span, layout_map
+from drivers.registers import FieldCodec, FieldGroup, Span, layout_map
 from gateway.config import ModbusTcpConfig
 from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError
 
@@ -173,6 +173,14 @@ class ModbusTcpDriver(Driver):
         )
         self._wdata_at23 = MBAP + 10
         self._wdata_at16 = MBAP + 6
+        # the cycle decodes and encodes every field in one compiled call (compiled now)
+        self._in_group = FieldGroup(
+            (self._raw, self._vel, self._len, self._pose, self._hb), raw=(False,) * 4 + (True,)
+        )
+        self._hb_value = np.zeros(1)
+        self._out_group = FieldGroup(self._out)
+        self._decode(Inputs.allocate(self.cables))
+        self._encode(Outputs.allocate(self.cables))
 
     def _frame(self, fc: int, fields: bytes, nbytes: int) -> bytearray:
         pdu = bytes((fc,)) + fields
@@ -394,21 +402,19 @@ class ModbusTcpDriver(Driver):
         self._exchange(None, inputs)
 
     def _decode(self, inputs: Inputs) -> None:
-        self._raw.decode(inputs.tension_raw_n)
-        self._vel.decode(inputs.velocity_m_s)
-        self._len.decode(inputs.length_m)
-        self._pose.decode(inputs.pose)
-        inputs.plc_heartbeat = self._hb.decode_int()
+        hb = self._hb_value
+        i = inputs
+        self._in_group.decode((i.tension_raw_n, i.velocity_m_s, i.length_m, i.pose, hb))
+        inputs.plc_heartbeat = int(hb[0])
         if self._mass is not None:
             inputs.platform_mass_kg = float(self._mass.decode(self._mass_value)[0])
 
     def _encode(self, outputs: Outputs) -> None:
-        tension, status, heartbeat, state, wrench = self._out
-        tension.encode(outputs.tension_corrected_n)
-        status.encode(outputs.channel_status)
-        heartbeat.encode(outputs.gateway_heartbeat & 0xFFFF)
-        state.encode(outputs.gateway_state)
-        wrench.encode(outputs.wrench)
+        o = outputs
+        self._out_group.encode(
+            (o.tension_corrected_n, o.channel_status, int(o.gateway_heartbeat) & 0xFFFF,
+             int(o.gateway_state), o.wrench)
+        )  # fmt: skip
 
     def _write(self, outputs: Outputs) -> None:
         self._encode(outputs)

@@ -12,6 +12,11 @@ simply big-endian; ``low_first`` swaps the two words). Plain fields decode as
 ``value = raw * scale`` and encode as ``raw = round(value / scale)`` (integers clipped to
 the type's range, NaN -> 0).
 
+:class:`FieldGroup` binds several codecs of one buffer (a driver's whole reply or request
+frame) and decodes or encodes all of them in ONE compiled call, with exactly the results
+of the codecs one by one (tests check bit for bit): a cycle's decode is one call instead
+of a dozen small numpy calls (each costs ~0.5-1 us on 8-element arrays).
+
 ``format: s7_analog`` (Siemens S7 analog values, int16): decoded and encoded by the one S7
 codec, :class:`drivers.s7.S7Analog` (see there for the reading: 0..``adc_full_scale``
 counts is 0..``range_n`` newtons, over- and underrange included; the overflow/underflow
@@ -25,10 +30,14 @@ transfers: the inputs and the outputs.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import combinations
+from typing import Any
 
 import numpy as np
+from numba import literal_unroll, njit, types
+from numba.extending import overload
 
 from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW, S7Analog
 from gateway.config import RegisterField, RegisterMap, SensorConfig
@@ -82,6 +91,8 @@ class FieldCodec:
                 f"(base {base_address}, {len(buffer)} bytes)"
             )
         self.swap = field.words == 2 * field.count and field.word_order == "low_first"
+        self.buffer = buffer
+        self.start = start  # byte position of the field in ``buffer``
         self._words = np.frombuffer(buffer, dtype=">u2", count=field.words, offset=start)
         if self.swap:  # values are assembled in a scratch copy with the words swapped
             self._scratch = np.empty(field.words, dtype=">u2")
@@ -181,6 +192,174 @@ class FieldCodec:
             return False
         self._store()
         return True
+
+
+# --- several fields in one compiled call -------------------------------------------------
+_TYPE_CODES = {"int16": 0, "uint16": 1, "int32": 2, "uint32": 3, "float32": 4}
+# columns of a FieldGroup plan row (float64; the integers are exact)
+_START, _COUNT, _TYPE, _SWAP, _S7, _SCALE, _NPC, _MIN, _MAX, _LO, _HI, _RAW = range(12)
+_INT_LIMITS = {0: (-32768.0, 32767.0), 1: (0.0, 65535.0), 2: (-(2.0**31), 2.0**31 - 1),
+               3: (0.0, 2.0**32 - 1), 4: (0.0, 0.0)}  # fmt: skip
+
+
+def _size(value):  # untyped: the overload must have the same signature
+    """Element count of an array; -1 for a scalar (broadcast to the field)."""
+    raise NotImplementedError  # compiled only (see the overload)
+
+
+def _get(value, i):
+    """Element ``i`` of an array, or the scalar itself, as float64."""
+    raise NotImplementedError  # compiled only (see the overload)
+
+
+@overload(_size)
+def _size_impl(value):
+    if isinstance(value, types.Array):
+        return lambda value: value.size
+    return lambda value: -1
+
+
+@overload(_get)
+def _get_impl(value, i):
+    if isinstance(value, types.Array):
+        return lambda value, i: float(value[i])
+    return lambda value, i: float(value)
+
+
+@njit(cache=True, inline="always")
+def _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32):
+    """The value of the bits ``u`` (one 16-bit word, or two assembled high word first),
+    as FieldCodec.decode computes it (``scale`` 1.0 / ``s7`` False for raw values)."""
+    if kind == 4:
+        bits[0] = u
+        f = as_f32[0]
+        # numpy multiplies a float32 field by a Python float scale in float32 (NEP 50)
+        return float(f) if scale == 1.0 else float(f * np.float32(scale))
+    if kind == 0 and u >= 32768:
+        u -= 65536
+    elif kind == 2 and u >= 2**31:
+        u -= 2**32
+    if s7:  # the S7 window: counts * N/count, else NaN
+        return u * npc if lo <= u <= hi else np.nan
+    return float(u) if scale == 1.0 else u * scale
+
+
+@njit(cache=True, inline="always")
+def _encode_one(x, kind, s7, scale, npc, row, bits, as_f32):
+    """The bits FieldCodec.encode stores for ``x`` (``scale`` 1.0 / ``s7`` False for raw
+    values); ``row``: (S7 min counts, S7 max counts, type min, type max)."""
+    f = x
+    if s7:  # the S7 codec's encoding
+        f = np.rint(x / npc)
+        if np.isnan(f) or f > row[1]:
+            f = float(S7_OVERFLOW)
+        elif f < row[0]:
+            f = float(S7_UNDERFLOW)
+    elif scale != 1.0:
+        f = x / scale
+    if kind == 4:
+        as_f32[0] = np.float32(f)
+        return np.int64(bits[0])
+    f = np.rint(f)
+    if np.isnan(f):
+        f = 0.0
+    f = min(max(f, row[2]), row[3])
+    return np.int64(f) & (0xFFFF if kind <= 1 else 0xFFFFFFFF)
+
+
+@njit(cache=True)
+def _decode_group(buf, plan, bits, outs):
+    as_f32 = bits.view(np.float32)  # float32 bit patterns are assembled in ``bits``
+    k = 0
+    for out in literal_unroll(outs):
+        n, kind, raw = int(plan[k, _COUNT]), int(plan[k, _TYPE]), plan[k, _RAW] != 0.0
+        if out.size != n:
+            raise ValueError("FieldGroup.decode: an output's size differs from its field's count")
+        start, step, swap = int(plan[k, _START]), 2 if kind <= 1 else 4, plan[k, _SWAP] != 0.0
+        s7 = plan[k, _S7] != 0.0 and not raw
+        scale = 1.0 if raw else plan[k, _SCALE]
+        npc, lo, hi = plan[k, _NPC], plan[k, _MIN], plan[k, _MAX]
+        for i in range(n):
+            p = start + step * i
+            u = (np.int64(buf[p]) << 8) | np.int64(buf[p + 1])
+            if kind >= 2:
+                w = (np.int64(buf[p + 2]) << 8) | np.int64(buf[p + 3])
+                u = (w << 16) | u if swap else (u << 16) | w
+            out[i] = _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32)
+        k += 1  # noqa: SIM113 (literal_unroll has no enumerate)
+
+
+@njit(cache=True)
+def _encode_group(buf, plan, bits, values):
+    as_f32 = bits.view(np.float32)
+    k = 0
+    for value in literal_unroll(values):
+        n, kind, raw = int(plan[k, _COUNT]), int(plan[k, _TYPE]), plan[k, _RAW] != 0.0
+        size = _size(value)
+        if size >= 0 and size != n:
+            raise ValueError("FieldGroup.encode: a value's size differs from its field's count")
+        start, step, swap = int(plan[k, _START]), 2 if kind <= 1 else 4, plan[k, _SWAP] != 0.0
+        s7 = plan[k, _S7] != 0.0 and not raw
+        scale = 1.0 if raw else plan[k, _SCALE]
+        row = (plan[k, _MIN], plan[k, _MAX], plan[k, _LO], plan[k, _HI])
+        npc = plan[k, _NPC]
+        for i in range(n):
+            u = _encode_one(_get(value, i), kind, s7, scale, npc, row, bits, as_f32)
+            p = start + step * i
+            if kind <= 1:
+                buf[p], buf[p + 1] = (u >> 8) & 0xFF, u & 0xFF
+                continue
+            hi, lo = (u >> 16) & 0xFFFF, u & 0xFFFF
+            if swap:
+                hi, lo = lo, hi
+            buf[p], buf[p + 1] = (hi >> 8) & 0xFF, hi & 0xFF
+            buf[p + 2], buf[p + 3] = (lo >> 8) & 0xFF, lo & 0xFF
+        k += 1
+
+
+class FieldGroup:
+    """Several :class:`FieldCodec` of ONE buffer, decoded or encoded in one compiled call.
+
+    The results are those of the codecs one by one (``decode(out, raw)``,
+    ``encode(values, raw)`` with the group's ``raw`` flag per codec), without the dozen
+    small numpy calls they make: the per-cycle decode of a reply and encode of a request.
+    The first call with a new combination of value types compiles (numba; cached on
+    disk): callers warm the group up outside the cycle.
+    """
+
+    def __init__(self, codecs: Sequence[FieldCodec], raw: Sequence[bool] | None = None) -> None:
+        if not codecs:
+            raise ValueError("FieldGroup needs at least one codec")
+        raw = [False] * len(codecs) if raw is None else list(raw)
+        if len(raw) != len(codecs):
+            raise ValueError("FieldGroup: one raw flag per codec")
+        buffer = codecs[0].buffer
+        if any(c.buffer is not buffer for c in codecs):
+            raise ValueError("FieldGroup: every codec must be bound to the same buffer")
+        self.codecs = tuple(codecs)
+        self.plan = np.array([_plan_row(c, r) for c, r in zip(codecs, raw, strict=True)])
+        self._buf = np.frombuffer(buffer, dtype=np.uint8)
+        self._bits = np.zeros(1, dtype=np.uint32)
+
+    def decode(self, outs: tuple[np.ndarray, ...]) -> None:
+        """Decode codec ``k`` into ``outs[k]`` (float64, shape (count,)), all in one call."""
+        _decode_group(self._buf, self.plan, self._bits, outs)
+
+    def encode(self, values: tuple[Any, ...]) -> None:
+        """Encode ``values[k]`` (an array of shape (count,) or a scalar) into codec ``k``."""
+        _encode_group(self._buf, self.plan, self._bits, values)
+
+
+def _plan_row(codec: FieldCodec, raw: bool) -> list[float]:
+    f, a = codec.field, codec.analog
+    kind = _TYPE_CODES[f.type]
+    lo, hi = _INT_LIMITS[kind]
+    row = [0.0] * 12
+    row[_START], row[_COUNT], row[_TYPE] = codec.start, codec.count, kind
+    row[_SWAP], row[_S7], row[_SCALE] = float(codec.swap), float(codec.s7), f.scale
+    row[_NPC], row[_MIN], row[_MAX] = a.newtons_per_count, a.min_counts, a.max_counts
+    row[_LO], row[_HI], row[_RAW] = lo, hi, float(raw)
+    return row
 
 
 @dataclass(frozen=True)

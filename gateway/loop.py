@@ -221,25 +221,23 @@ class CyclicService:
             self._failed(now, "io", exc)
             return False
         self._failures = 0
-        t1 = self.clock()
+        clock, stats, inputs, comp = self.clock, self.stats, self.inputs, self.comp
+        t1 = clock()
         self._data_at = t1
         self._got_data = True
-        stats = self.stats
         stats.add_roundtrip_from(self.driver.roundtrip_s)
-        stats.read_ring.add(t1 - now)
-        if self.plausibility.check(self.inputs):
+        if self.plausibility.check(inputs):
             stats.errors["implausible"] += 1
-        self.comp.step(self.inputs, t1, self.outputs)
-        stats.errors["invalid_value"] = self.comp.flag_events
+        comp.step(inputs, t1, self.outputs)
+        stats.errors["invalid_value"] = comp.flag_events
         self._watch_heartbeat(t1)
         for observer in self._observers:
-            observer(self.inputs, self.comp, t1)
-        t2 = self.clock()
-        stats.compensate_ring.add(t2 - t1)
+            observer(inputs, comp, t1)
+        t2 = clock()
         self._write()
-        stats.write_ring.add(self.clock() - t2)
+        stats.add_phases(t1 - now, t2 - t1, clock() - t2)
         if self.recorder is not None:  # recording hook: copies into a ring, never blocks
-            self.recorder.push(t1, self.inputs, self.outputs)
+            self.recorder.push(t1, inputs, self.outputs)
         return False
 
     def _watch_heartbeat(self, now: float) -> None:

@@ -27,12 +27,15 @@ from gateway.config import Config
 
 
 @njit(cache=True)
-def _check(velocity, length, pose, speed_max, length_max, lo, hi, rot_max):
-    """Replace implausible setpoints by NaN in place; return how many were implausible."""
+def _check(velocity, length, pose, box, speed_max, length_max, rot_max):
+    """Replace implausible setpoints by NaN in place; return how many were implausible.
+
+    ``box``: (2, 3) the position's lower and upper bounds (one array: each array
+    argument costs the call ~0.1 us)."""
     bad = 0
     pose_bad = False
     for k in range(3):
-        if pose[k] < lo[k] or pose[k] > hi[k]:
+        if pose[k] < box[0, k] or pose[k] > box[1, k]:
             pose_bad = True
         if abs(pose[3 + k]) > rot_max:
             pose_bad = True
@@ -64,14 +67,15 @@ class Plausibility:
         self.length_max = float(np.linalg.norm(self.hi - self.lo)) + radius + margin
         self.speed_max = limits.max_cable_speed_m_s
         self.rotation_max = limits.max_rotation_rad
+        self._box = np.ascontiguousarray(np.stack([self.lo, self.hi]))
 
     def check(self, inputs: Inputs) -> int:
         """Flag implausible setpoints of ``inputs`` (NaN in place); return their number."""
-        bad = _check(
-            inputs.velocity_m_s, inputs.length_m, inputs.pose, self.speed_max,
-            self.length_max, self.lo, self.hi, self.rotation_max,
+        bad: int = _check(
+            inputs.velocity_m_s, inputs.length_m, inputs.pose, self._box, self.speed_max,
+            self.length_max, self.rotation_max,
         )  # fmt: skip
-        return int(bad)
+        return bad
 
     def describe(self) -> str:
         lo = ", ".join(f"{x:g}" for x in self.lo)

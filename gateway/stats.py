@@ -8,8 +8,8 @@ merged in by :meth:`LoopStats.add_roundtrip_from`, once per successful read.
 
 from __future__ import annotations
 
-import bisect
 import math
+from bisect import bisect_left
 from typing import Protocol
 
 import numpy as np
@@ -30,7 +30,7 @@ class Histogram:
         self.count = 0
 
     def add(self, value: float) -> None:
-        self.counts[bisect.bisect_left(self.bounds, value)] += 1
+        self.counts[bisect_left(self.bounds, value)] += 1
         self.sum += value
         self.count += 1
 
@@ -48,11 +48,13 @@ class Ring:
 
     def __init__(self, size: int) -> None:
         self.values = np.zeros(size)
+        self.size = size
         self.count = 0
 
     def add(self, value: float) -> None:
-        self.values[self.count % self.values.size] = value
-        self.count += 1
+        n = self.count
+        self.values[n % self.size] = value
+        self.count = n + 1
 
     def last(self) -> float:
         """The value added last (NaN before the first)."""
@@ -94,12 +96,24 @@ class LoopStats:
         self.errors = dict.fromkeys(ERROR_KINDS, 0)
 
     def add_jitter(self, seconds: float) -> None:
-        self.jitter.add(seconds)
-        self.jitter_ring.add(seconds)
+        _book(self.jitter, self.jitter_ring, seconds)
 
     def add_cycle(self, seconds: float) -> None:
-        self.cycle.add(seconds)
-        self.cycle_ring.add(seconds)
+        _book(self.cycle, self.cycle_ring, seconds)
+
+    def add_phases(self, read_s: float, compensate_s: float, write_s: float) -> None:
+        """One successful cycle's phases (the three rings stay aligned, one index)."""
+        ring = self.read_ring
+        n = ring.count
+        i = n % ring.size
+        ring.values[i] = read_s
+        ring.count = n + 1
+        ring = self.compensate_ring
+        ring.values[i] = compensate_s
+        ring.count = n + 1
+        ring = self.write_ring
+        ring.values[i] = write_s
+        ring.count = n + 1
 
     def add_overrun(self, missed: int) -> None:
         """One cycle that ended late; ``missed`` deadlines (or SYNCs) were skipped."""
@@ -108,8 +122,19 @@ class LoopStats:
 
     def add_roundtrip_from(self, ring: _DriverRing) -> None:
         """Merge the last transaction of the driver's round-trip ring."""
-        if ring.count == 0:
+        n = ring.count
+        if n == 0:
             return
-        last = float(ring.values[(ring.count - 1) % ring.values.size])
-        self.roundtrip.add(last)
-        self.roundtrip_ring.add(last)
+        values = ring.values
+        last = values.item((n - 1) % values.size)  # a Python float
+        _book(self.roundtrip, self.roundtrip_ring, last)
+
+
+def _book(hist: Histogram, ring: Ring, value: float) -> None:
+    """``hist.add(value)`` and ``ring.add(value)`` in one call (per cycle, 3 times)."""
+    hist.counts[bisect_left(hist.bounds, value)] += 1
+    hist.sum += value
+    hist.count += 1
+    n = ring.count
+    ring.values[n % ring.size] = value
+    ring.count = n + 1

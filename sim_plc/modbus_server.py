@@ -126,8 +126,8 @@ def _close_transports(loop: asyncio.AbstractEventLoop) -> None:
     """Abort every socket transport the loop still holds and let their ``connection_lost``
     callbacks close the sockets before the loop goes away.
 
-    A connection accepted while the server shuts down is in no list of pymodbus': without
-    this its socket is left to the garbage collector (a ResourceWarning at some random
+    The backstop after :meth:`ModbusPlcServer._shut_down` (or a failed start): a transport
+    left open is otherwise left to the garbage collector (a ResourceWarning at some random
     later point, which fails whichever test is running then)."""
     transports = getattr(loop, "_transports", None)  # selector loops: fd -> transport
     for transport in list(transports.values()) if transports else []:
@@ -422,14 +422,33 @@ class ModbusPlcServer:
         try:
             await self._stopping.wait()
         finally:
-            listener.close()  # accept nothing more, then drop every connection
-            for _ in range(3):  # connections accepted just before: let them be made
-                await asyncio.sleep(0)
-            for conn in list(self.connections):
-                if conn.transport is not None:
-                    conn.transport.abort()
-            for _ in range(3):
-                await asyncio.sleep(0)
+            await self._shut_down(listener)
+
+    async def _shut_down(self, listener: asyncio.Server) -> None:
+        """Accept nothing more, let the connections already accepted be made, close the
+        listener, then drop every connection.
+
+        The order matters. asyncio accepts a connection in one loop turn and makes its
+        transport in a task one turn later, which attaches it to the listener; on a closed
+        listener that asserts (3.11 ``Server._attach``), and asyncio then drops the
+        half-made transport with its socket open: a ResourceWarning at some later garbage
+        collection, failing whichever test runs then. A client whose connect completed in
+        the kernel's backlog just before ``stop()`` (a driver opened and closed at once)
+        hits this."""
+        loop = asyncio.get_running_loop()
+        for sock in listener.sockets:
+            # also cancels an accept callback already queued for this turn
+            loop.remove_reader(sock.fileno())
+        # the accept tasks created so far were queued before this task's next step: one
+        # turn makes (and attaches) their transports, the next runs connection_made
+        for _ in range(2):
+            await asyncio.sleep(0)
+        listener.close()
+        for conn in list(self.connections):
+            if conn.transport is not None:
+                conn.transport.abort()
+        for _ in range(3):  # the aborts close the sockets in callbacks: let them run
+            await asyncio.sleep(0)
 
     def _run(self, ready: Future[int]) -> None:
         loop = asyncio.new_event_loop()

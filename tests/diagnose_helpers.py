@@ -90,6 +90,10 @@ class Foreign:
     vel_noise: float = 0.0  # std of noise on the velocity column (a measured velocity)
     long_gap_s: float = 0.0  # one stretch of this many seconds without rows, mid-recording
     blanks: int = 0  # rows with an empty tension_sensor field
+    jitter_s: float = 0.0  # uniform +-jitter_s on every time stamp (a logger's clock)
+    clip_n: float = 0.0  # sensor range: readings clipped to +-clip_n (0: no clipping)
+    clip_cables: tuple[int, ...] = ()  # cables (1-based) whose sensor clips; () = all
+    vmax: float = 0.25  # largest move speed (m/s) of "moves" / "positioning"
 
 
 @njit(cache=True)
@@ -97,10 +101,17 @@ def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: n
     """Sensor tension (N,) from platform tension and velocity; explicit Euler on x.
 
     Normal force from the law of cosines with the pulley's sensor-side tension of the
-    previous step (explicit), friction level ``(mu F_N + f0) (1 + sk exp(-(v/svs)^2))`` per
-    pulley."""
+    previous step (explicit), friction level ``(mu F_N + f0 / p) (1 + sk exp(-(v/svs)^2))``
+    per pulley (the load-independent ``f0`` is the cable's, shared by its ``p`` pulleys);
+    without pulleys ``f0`` acts alone: ``- sgn(v) f0`` (a rig's seals and guides)."""
     n, p = tp.size, wrap.size
     out = np.empty(n)
+    if p == 0:
+        for k in range(n):
+            s = 1.0 if v[k] > 0 else (-1.0 if v[k] < 0 else 0.0)
+            out[k] = tp[k] - s * f0 * (1.0 + sk * math.exp(-((v[k] / svs) ** 2)))
+        return out
+    f0 = f0 / p
     f = np.zeros(p)
     prev = np.full(p, tp[0])
     for k in range(n):
@@ -129,7 +140,19 @@ def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: n
 def _motion(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
     """Fine-grid velocity (m/s) and platform tension (N) for one cable."""
     n = t.size
-    if fo.motion == "constant":
+    if fo.motion == "positioning":  # constant-speed moves, short ramps, many reversals
+        v = np.zeros(n)
+        k, dt, sign = 0, t[1] - t[0], 1.0
+        while k < n:
+            dur = rng.uniform(0.6, 2.0)
+            vmax = rng.choice([0.35, 1.0, 1.0, 1.0]) * fo.vmax * sign  # few speed levels
+            sign = -sign if rng.uniform() < 0.8 else sign
+            m = int(dur / dt)
+            tt = np.arange(m) * dt
+            ramp = np.clip(np.minimum(tt, dur - tt) / 0.1, 0, 1)  # jerk-limited: smoothstep
+            v[k : k + m] = (ramp * ramp * (3 - 2 * ramp) * vmax)[: n - k]
+            k += m + int(rng.uniform(0.0, 0.3) / dt)
+    elif fo.motion == "constant":
         v = 0.05 + 0.002 * np.sin(2 * math.pi * 0.05 * t)
     elif fo.motion == "slow":
         v = 0.04 * np.sin(2 * math.pi * t / max(fo.seconds, 1.0) + 0.3)
@@ -138,7 +161,7 @@ def _motion(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> tuple[np.nd
         k, dt = 0, t[1] - t[0]
         while k < n:
             dur = rng.uniform(0.8, 3.0)
-            vmax = rng.uniform(0.03, 0.25) * rng.choice([-1, 1])
+            vmax = rng.uniform(0.12, 1.0) * fo.vmax * rng.choice([-1, 1])
             ramp = rng.uniform(0.05, 0.3)
             m = int(dur / dt)
             tt = np.arange(m) * dt
@@ -159,8 +182,6 @@ def _motion(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> tuple[np.nd
 def _effects(fo: Foreign, t, v, x, ts) -> np.ndarray:
     e = fo.effects
     a = np.gradient(v, t)
-    if "viscous" in e:
-        ts = ts - e["viscous"]["c_ns_m"] * v
     if "inertia" in e:
         ts = ts - e["inertia"]["m_eff_kg"] * a
     if "eccentricity" in e:
@@ -214,6 +235,9 @@ def sample_times(fo: Foreign, rng: np.random.Generator) -> np.ndarray:
     if fo.jitter:
         dt = dt * np.clip(1 + fo.jitter * rng.normal(0, 1, n), 0.2, 3)
     t = np.concatenate(([0.0], np.cumsum(dt[1:]))) + 0.5
+    if fo.jitter_s:
+        t = t + rng.uniform(-fo.jitter_s, fo.jitter_s, t.size)
+        t = t[np.concatenate(([True], np.diff(t) > 0))]
     t = t[t < fo.seconds]
     keep = np.ones(t.size, bool)
     if fo.long_gap_s:
@@ -241,11 +265,16 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
     for i in range(1, fo.cables + 1):
         v, tp, x = _motion(fo, fine, rng)
         st = fo.effects.get("stribeck", {"k": 0.0, "v_s_m_s": 0.01})
-        ts = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
+        # viscous bearing friction at the platform end of the path (docs/physics.md: the
+        # last pulley's tension is T_p - c v), then the pulleys towards the sensor
+        tn = tp - fo.effects.get("viscous", {}).get("c_ns_m", 0.0) * v
+        ts = _chain(tn, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
         ts = _effects(fo, fine, v, x, ts)
         sens = np.interp(ts_out, fine, ts) + _noise(fo, ts_out, rng)
         if fo.noise in ("quant", "mixed"):
             sens = np.round(sens / 0.1) * 0.1
+        if fo.clip_n and (not fo.clip_cables or i in fo.clip_cables):
+            sens = np.clip(sens, -fo.clip_n, fo.clip_n)
         if fo.blanks:
             sens[rng.choice(sens.size, fo.blanks, replace=False)] = np.nan
         cols[f"velocity_{i}"] = (
@@ -254,6 +283,51 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
         cols[f"tension_sensor_{i}"] = sens
         cols[f"tension_platform_{i}"] = np.interp(ts_out, fine, tp)
     return cols
+
+
+def recording_of(cols: dict[str, np.ndarray], source: str = "foreign"):
+    """A :class:`gateway.recording.Recording` of the generated columns."""
+    from gateway.recording import Recording
+
+    m = sum(1 for k in cols if k.startswith("velocity_"))
+
+    def stack(name: str) -> np.ndarray:
+        return np.column_stack([cols[f"{name}_{i}"] for i in range(1, m + 1)])
+
+    return Recording(
+        t=cols["t"],
+        velocity=stack("velocity"),
+        tension_sensor=stack("tension_sensor"),
+        tension_platform=stack("tension_platform"),
+        source=source,
+    )
+
+
+def run_foreign(fo: Foreign, nominal: str | None = None, pulleys=None, validate: bool = False):
+    """Diagnose a foreign recording through the Python API; the :class:`Diagnosis`.
+
+    ``nominal``: the nominal model (default: the truth's chain); ``pulleys``: the nominal
+    pulleys (default: the truth's); ``validate``: also score a second recording of the same
+    machine (seed + 100)."""
+    from dataclasses import replace
+
+    from gateway.config import FrictionConfig, PulleyConfig
+    from gateway.diagnose.engine import diagnose
+
+    fr = FrictionConfig(
+        model=nominal or fo.model,  # type: ignore[arg-type]
+        pulleys=tuple(
+            PulleyConfig(w, mu) for w, mu in (fo.pulleys if pulleys is None else pulleys)
+        ),
+        sigma_n_m=fo.sigma_n_m,
+    )
+    validation = None
+    if validate:
+        vrec = recording_of(generate(replace(fo, seed=fo.seed + 100)), "validation")
+        validation = (vrec, vrec.tension_platform, None)
+    diag = diagnose(recording_of(generate(fo)), fr, validation=validation)
+    check_report(diag.report)
+    return diag
 
 
 def model_yaml(pulleys, model: str = "dahl", sigma: float = 800.0, radius: float = 0.05) -> str:

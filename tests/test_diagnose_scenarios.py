@@ -27,9 +27,16 @@ FAST = {
 }
 
 
+# over ~5 s each: `make test` leaves them to `make test-long` (CI runs both)
+LONG = {"plant_mass_change", "plant_viscous", "gain+coulomb", "stribeck+inertia",
+        "lowpass+inertia", "plant_clean"}  # fmt: skip
+
+
 def _cases():
     for sc in suite():
         marks = [] if sc.name in FAST and not sc.slow else [pytest.mark.slow]
+        if sc.name in LONG:
+            marks.append(pytest.mark.long)
         yield pytest.param(sc, id=sc.name, marks=marks)
 
 

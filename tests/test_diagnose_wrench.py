@@ -179,6 +179,7 @@ def test_closed_form_plant_balances_the_wrench_and_differs_from_the_gateway_stat
 # ---- the old statics route against the wrench route ----
 
 
+@pytest.mark.long
 def test_old_statics_route_goes_wrong_and_the_wrench_route_holds():
     """Viscous hidden, closed-form controller: assuming eq. 18/19 with the config's limits
     invents tensions 70 N off, so the per-cable route reports false effects (or misses

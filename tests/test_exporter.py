@@ -78,6 +78,7 @@ def closed_by_peer(sock: socket.socket, seconds: float) -> bool:
         return False
 
 
+@pytest.mark.long
 def test_300_idle_clients_cost_one_thread_and_at_most_the_cap_in_fds(server):
     threads_before = threading.active_count()
     fds_before = open_fds()

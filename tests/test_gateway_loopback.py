@@ -113,6 +113,7 @@ def test_corrected_tracks_the_true_tension_far_better_than_raw():
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_soft_plc_stopped_and_restarted_the_gateway_resumes():
     cfg = load_config()
     plc = SoftPlc(str(cfg.source), "modbus_tcp")

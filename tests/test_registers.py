@@ -15,6 +15,7 @@ from drivers.registers import (
     S7_OVERFLOW,
     S7_UNDERFLOW,
     FieldCodec,
+    FieldGroup,
     Span,
     check_map,
     layout_map,
@@ -264,3 +265,121 @@ def test_plant_adc_uses_the_codec() -> None:
     counts = digitise(x, 500.0, 27648, saturation_n=1e9)
     assert_array_equal(counts, S7Analog(500.0).encode(x))
     assert_allclose(counts_to_newton(counts, 500.0, 27648), S7Analog(500.0).decode(counts))
+
+
+# --- FieldGroup: the fused codec gives the per-field codecs' results bit for bit ----------
+# Every distinct tuple of value types compiles once (numba, cached on disk): the tests use
+# groups of four fields so that few signatures are compiled; what varies is the data, the
+# field types, word orders, scales, S7 format and raw flags (the plan, not the signature).
+GROUP_FIELDS = st.tuples(
+    st.sampled_from(["int16", "uint16", "int32", "uint32", "float32"]),
+    st.sampled_from(["high_first", "low_first"]),
+    st.sampled_from([1.0, 0.01, -2.5, 0.1]),
+    st.booleans(),  # s7_analog (int16 only)
+    st.booleans(),  # raw
+    st.integers(1, 8),
+)
+FOUR_FIELDS = st.lists(GROUP_FIELDS, min_size=4, max_size=4)
+
+
+def _group_layout(specs: list[tuple]) -> tuple[list[RegisterField], list[bool], int]:
+    fields, raws, address = [], [], 2
+    for type_, order, scale, s7, raw, count in specs:
+        s7 = s7 and type_ == "int16"
+        fields.append(
+            RegisterField(
+                address,
+                count,
+                type_,
+                word_order=order,
+                scale=scale,
+                format="s7_analog" if s7 else "plain",
+            )
+        )
+        raws.append(raw)
+        address = fields[-1].end + 1  # a gap register between fields
+    return fields, raws, 2 * (address + 1)
+
+
+@settings(max_examples=80, deadline=None)
+@given(specs=FOUR_FIELDS, data=st.binary(min_size=400, max_size=400))
+def test_group_decode_equals_the_codecs(specs: list[tuple], data: bytes) -> None:
+    fields, raws, size = _group_layout(specs)
+    buf = bytearray(data[:size].ljust(size, b"\x00"))
+    codecs = [FieldCodec(f, buf, 0, 0, SENSOR) for f in fields]
+    outs = tuple(np.full(f.count, 7.0) for f in fields)
+    FieldGroup(codecs, raws).decode(outs)
+    for codec, raw, got in zip(codecs, raws, outs, strict=True):
+        with np.errstate(all="ignore"):  # numpy warns when it casts a signalling NaN
+            want = codec.decode(np.zeros(codec.count), raw=raw)
+        assert_array_equal(got.view(np.uint64), want.view(np.uint64))  # bit for bit, NaN too
+
+
+def _floats(n: int) -> st.SearchStrategy[np.ndarray]:
+    elems = st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.floats(-70000.0, 70000.0),  # around the integer types' ranges and S7 counts
+        st.integers(-40000, 40000).map(float),
+    )
+    return st.lists(elems, min_size=n, max_size=n).map(np.array)
+
+
+@settings(max_examples=120, deadline=None)
+@given(specs=FOUR_FIELDS, data=st.data())
+def test_group_encode_equals_the_codecs(specs: list[tuple], data: st.DataObject) -> None:
+    # the value types of the driver's request: float64 array, uint16 array, int, int
+    fields, raws, size = _group_layout(specs)
+    counts = [f.count for f in fields]
+    values = (
+        data.draw(_floats(counts[0])),
+        np.array(
+            data.draw(st.lists(st.integers(0, 65535), min_size=counts[1], max_size=counts[1])),
+            dtype=np.uint16,
+        ),
+        data.draw(st.integers(-(2**33), 2**33)),
+        data.draw(st.integers(0, 70000)),
+    )
+    for k in (2, 3):  # a scalar fills a field of any count (the codec broadcasts)
+        assert isinstance(values[k], int)
+    one, fused = bytearray(b"\xa5" * size), bytearray(b"\xa5" * size)
+    with np.errstate(all="ignore"):  # the codec's numpy casts warn on overflow (to inf)
+        for f, raw, v in zip(fields, raws, values, strict=True):
+            FieldCodec(f, one, 0, 0, SENSOR).encode(v, raw=raw)
+    FieldGroup([FieldCodec(f, fused, 0, 0, SENSOR) for f in fields], raws).encode(values)
+    assert fused == one
+
+
+@settings(max_examples=60, deadline=None)
+@given(specs=FOUR_FIELDS, data=st.data())
+def test_group_encode_float_scalars_and_int_arrays(specs: list[tuple], data: st.DataObject) -> None:
+    fields, raws, size = _group_layout(specs)
+    counts = [f.count for f in fields]
+    values = (
+        data.draw(st.floats(allow_nan=True, allow_infinity=True)),
+        np.array(
+            data.draw(
+                st.lists(st.integers(-(2**40), 2**40), min_size=counts[1], max_size=counts[1])
+            ),
+            dtype=np.int64,
+        ),
+        data.draw(_floats(counts[2])),
+        data.draw(_floats(counts[3])),
+    )
+    one, fused = bytearray(b"\x5a" * size), bytearray(b"\x5a" * size)
+    with np.errstate(all="ignore"):  # the codec's numpy casts warn on overflow (to inf)
+        for f, raw, v in zip(fields, raws, values, strict=True):
+            FieldCodec(f, one, 0, 0, SENSOR).encode(v, raw=raw)
+    FieldGroup([FieldCodec(f, fused, 0, 0, SENSOR) for f in fields], raws).encode(values)
+    assert fused == one
+
+
+def test_group_refuses_mixed_buffers_and_wrong_sizes() -> None:
+    a, b = bytearray(16), bytearray(16)
+    field = RegisterField(0, 2, "float32")
+    with pytest.raises(ValueError, match="same buffer"):
+        FieldGroup([FieldCodec(field, a, 0), FieldCodec(RegisterField(4, 1), b, 0)])
+    group = FieldGroup([FieldCodec(field, a, 0)])
+    with pytest.raises(ValueError, match="size"):
+        group.decode((np.zeros(3),))
+    with pytest.raises(ValueError, match="size"):
+        group.encode((np.zeros(1),))

@@ -26,8 +26,14 @@ Method
    that the columns allow (``mass_change`` needs pose, mass and a geometry), each a
    forward model built on :mod:`gateway.model` (:mod:`.forward`), fitted by bounded
    nonlinear least squares from grid / periodogram starting values (:mod:`.fit`):
-   rounds of forward steps (best held-out candidate on top of those kept, lenient test),
-   swaps (replace a kept effect by a better one) and a strict backward check, in which
+   rounds of forward steps (best held-out candidate on top of those kept, lenient test;
+   where no single candidate passes, the best pair of the four most promising ones, so
+   that effects which cancel alone, e.g. an offset and a drift of opposite sign, are
+   found; only while the held-out RMSE exceeds 1.1 times the noise), swaps (replace a
+   kept effect by a better one) and a strict backward check; while
+   the held-out RMSE stays above 3 times the white noise of the residual, a best-subset
+   search over a short list (the kept effects and the three best others, subsets of up to
+   two more effects, each fitted jointly) can undo an early greedy choice. In the check
    every kept effect must, against the model refitted without it, lower the held-out SSE
    by >= 0.3 % and by >= 4 standard errors of the noise of that decrease (estimated from
    held-out block sums), and differ from its nominal value by >= 4 standard errors.
@@ -35,12 +41,23 @@ Method
    ``F_R / sigma`` of the nominal chain (at most 10 % of the recording), are neither
    fitted nor scored: a recording may start in mid-motion with the friction state
    developed, while the simulation starts relaxed.
+   Parameters are bounded physically: inertia >= 0, total viscous coefficient >= 0,
+   Coulomb mu and f0 >= 0, gain > -0.9; a term that would need an impossible value sits at
+   its bound, explains nothing and is not kept. A model without pulleys (a single-axis
+   rig) gets one frictionless virtual pulley, so ``coulomb`` fits its ``f0`` alone.
+   Saturated readings (a sensor clipped at its range: the column's extreme repeated in
+   runs, :func:`.prepare.clipped_mask`) are excluded from fit and scores, counted per
+   cable in the report's ``clipped`` and named in the summary.
    Long recordings (> 150 000 samples) are selected on evenly spread training blocks
    (with 1 s of warm-up each) and the result refitted on all training samples.
 5. **Confusable rivals** (delay / lowpass / inertia, gain / coulomb, drift / offset): each
    kept one is swapped for its rivals and refitted; the evidence sentence says whether
    the held-out data separates them (>= 3 standard errors) or not.
-6. **Report** (:mod:`.report`): effects gathered over the cables that kept them (one value
+6. **Validation** (``--validate``): every kept effect, with the parameters fitted here,
+   must lower the error on the second recording against the model without it by 0.3 %
+   and by 4 standard errors (block sums); the weakest that fails is dropped and the rest
+   refitted, until all pass (:func:`.select.drop_unvalidated`).
+7. **Report** (:mod:`.report`): effects gathered over the cables that kept them (one value
    per cable), ordered by the residual energy they explain in the final model (drop-one);
    RMSE before/after each finding, cumulatively, on all samples, the held-out blocks and
    the ``--validate`` recording (same parameters, never fitted there).

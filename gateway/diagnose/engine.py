@@ -10,114 +10,28 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from gateway.config import FrictionConfig
-from gateway.diagnose import locate
 from gateway.diagnose.fit import joint_fit
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
-from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds
+from gateway.diagnose.prepare import (  # noqa: F401 - re-exported
+    cable_data,
+    clipped_mask,
+    deadband,
+    finite_rows,
+    nominal_from,
+    time_blocks,
+    velocity_noise,
+)
+from gateway.diagnose.report import Diagnosis, build_report, validation_forwards
+from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds, drop_unvalidated
 from gateway.errors import RecordingError
 from gateway.model.chain import coulomb_coefficients
 from gateway.recording import Recording
 
 Progress = Callable[[str], None]
-
-
-def nominal_from(friction: FrictionConfig) -> Nominal:
-    """The per-cable nominal chain of a friction config."""
-    return Nominal(
-        model=friction.model,
-        wrap_rad=np.asarray(friction.wrap_rad, dtype=float),
-        mu=np.asarray(friction.mu, dtype=float),
-        sigma_n_m=friction.sigma_n_m,
-        beta=friction.beta,
-        viscous_ns_m=friction.viscous_ns_m,
-        pulley_radius_m=friction.pulley_radius_m,
-    )
-
-
-VELOCITY_DEADBAND_SIGMAS = 4.0
-
-
-def velocity_noise(v: np.ndarray) -> float:
-    """Robust estimate of white noise on a velocity column (m/s), 0 for a clean setpoint.
-
-    A setpoint is smooth or piecewise linear, so its second difference is zero or tiny
-    almost everywhere; white noise of std ``s`` gives second differences of std
-    ``sqrt(6) s``. Median absolute deviation, so ramps and steps do not count.
-    """
-    if v.size < 5:
-        return 0.0
-    d2 = np.diff(v, 2)
-    return float(np.median(np.abs(d2)) / 0.6745 / math.sqrt(6.0))
-
-
-def deadband(v: np.ndarray) -> np.ndarray:
-    """``v`` with values within ``VELOCITY_DEADBAND_SIGMAS`` noise stds of zero set to 0.
-
-    A measured (noisy) velocity logged in place of the setpoint would otherwise flip the
-    sign of the simulated friction at every noise sample while the cable stands still.
-    Noise below 1e-4 of the typical speed (95th percentile) is left alone.
-    """
-    noise = velocity_noise(v)
-    if v.size == 0 or noise <= 1e-4 * float(np.percentile(np.abs(v), 95)):
-        return v.copy()  # a clean setpoint (numerical roughness only)
-    return np.where(np.abs(v) < VELOCITY_DEADBAND_SIGMAS * noise, 0.0, v)
-
-
-def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None) -> list[CableData]:
-    """One :class:`CableData` per cable; ``tp``, ``dtp_dm``: (N, m); velocity through
-    :func:`deadband`."""
-    t0 = float(rec.t[0])
-    return [
-        CableData(
-            rec.t,
-            deadband(rec.velocity[:, i]),
-            tp[:, i].copy(),
-            rec.tension_sensor[:, i].copy(),
-            t0,
-            None if dtp_dm is None else dtp_dm[:, i].copy(),
-        )
-        for i in range(rec.cables)
-    ]
-
-
-def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None):
-    """Drop the samples where any cable lacks a finite value (counted in skipped_rows)."""
-    ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
-    ok &= np.isfinite(tp).all(1)
-    if ok.all():
-        return rec, tp, dtp_dm
-    if not ok.any():
-        raise RecordingError(f"{rec.source}: no sample has every required value")
-    sub = replace(
-        rec,
-        t=rec.t[ok],
-        velocity=rec.velocity[ok],
-        tension_sensor=rec.tension_sensor[ok],
-        tension_platform=None if rec.tension_platform is None else rec.tension_platform[ok],
-        length=None,
-        pose=None if rec.pose is None else rec.pose[ok],
-        mass=None if rec.mass is None else rec.mass[ok],
-        extra={},
-        skipped_rows=rec.skipped_rows + int((~ok).sum()),
-    )
-    return sub, tp[ok], None if dtp_dm is None else dtp_dm[ok]
-
-
-def time_blocks(t: np.ndarray) -> tuple[np.ndarray, int]:
-    """Block index (N,) of interleaved time blocks; even blocks train, odd ones are held out.
-
-    About one block per second of recording, between 10 and 40 blocks (an even number).
-    """
-    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
-    nb = int(np.clip(round(span / 1.0), 10, 40))
-    nb += nb % 2
-    edges = t[0] + span * np.arange(1, nb) / nb
-    return np.searchsorted(edges, t, side="right").astype(np.int64), nb
 
 
 WARMUP_LENGTHS = 4.0
@@ -194,27 +108,6 @@ def refit_full(fw: Forward, outcome: CableOutcome, train: np.ndarray) -> CableOu
     return outcome
 
 
-@dataclass
-class Diagnosis:
-    """Everything the report and the pictures are made of."""
-
-    report: dict
-    t: np.ndarray
-    measured: np.ndarray
-    nominal_pred: np.ndarray
-    final_pred: np.ndarray
-    regime: np.ndarray
-    regions: list[locate.Region]
-    outcomes: list[CableOutcome]
-    findings_order: list[str]
-    forwards: list[Forward] = field(default_factory=list)
-
-
-def _rmse(res: np.ndarray, mask: np.ndarray | None = None) -> float:
-    r = res if mask is None else res[mask]
-    return float(math.sqrt(np.mean(r**2))) if r.size else 0.0
-
-
 def candidates_for(has_mass: bool) -> list[str]:
     """Effects the recording's columns allow (mass_change needs pose and mass)."""
     return [e for e in ALL_EFFECTS if has_mass or e != "mass_change"]
@@ -260,11 +153,18 @@ def diagnose(
     blocks, nb = time_blocks(rec.t)
     all_cands = candidates_for(dtp_dm is not None)
     subset = selection_subset(rec.t, blocks)
+    clips = [clipped_mask(d.ts) for d in datas]
+    valid = np.column_stack([~c[0] for c in clips])
+    for i, (mask, levels) in enumerate(clips):
+        if levels:
+            say(f"cable {i + 1}: {int(mask.sum())} clipped readings excluded")
+    vsel = validation_forwards(validation, nom, rec.cables)
+    vblocks = None if vsel is None else time_blocks(vsel[0][0].data.t)
     outcomes, forwards = [], []
     for i, d in enumerate(datas):
         fw = Forward(d, nom)
         cands = cable_candidates(all_cands, d, nom)
-        warm = warmup_mask(d, nom)
+        warm = warmup_mask(d, nom) & valid[:, i]
         say(
             f"cable {i + 1}/{rec.cables}: selecting among {len(cands)} candidate effects"
             + ("" if subset is None else f" on {subset[0].size} of {rec.samples} samples")
@@ -278,13 +178,21 @@ def diagnose(
                 sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th, usable=usable & warm[idx]
             ).run()
             outcome = refit_full(fw, outcome, (blocks % 2 == 0) & warm)
+        if vsel is not None and vblocks is not None:
+            vfw, vvalid = vsel
+            outcome, dropped = drop_unvalidated(
+                fw, vfw[i], vvalid[:, i], *vblocks, outcome, (blocks % 2 == 0) & warm, th
+            )
+            if dropped:
+                say(f"cable {i + 1}: {', '.join(dropped)} did not lower the validation error")
+            vfw[i].clear_cache()
         say(f"cable {i + 1}/{rec.cables}: kept {', '.join(outcome.kept) or 'nothing'}")
         fw.clear_cache()
         outcomes.append(outcome)
         forwards.append(fw)
-    from gateway.diagnose.report import build_report  # local: report imports engine types
-
-    diag = build_report(rec, forwards, outcomes, blocks, validation, nom)
+    clipped = {"per_cable": [int((~valid[:, i]).sum()) for i in range(rec.cables)],
+               "levels_n": [c[1] for c in clips]}  # fmt: skip
+    diag = build_report(rec, forwards, outcomes, blocks, vsel, nom, valid, clipped)
     diag.report["reference"] = "platform_tension"
     return diag
 

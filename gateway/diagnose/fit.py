@@ -90,16 +90,19 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
 
     if effect == "coulomb":
         mu0 = nom.mu_mean if nom.model != "none" else 0.0
+        # no wrap anywhere (a rig without pulleys): only f0 acts, mu is held at 0
+        mu_hi = 0.5 if np.any(nom.wrap_rad > 0) else 1e-6
+        lin_idx = (0, 1) if mu_hi > 1e-3 else (1,)
         # f0 >= 0: seals, brushes and preload only ever add friction (nominal f0 is 0)
         return Spec(
-            a([mu0, 0.0]), a([0.0, 0.0]), a([0.5, INF]), (0, 1), a([1e-3, 0.1]), (a([mu0, 0.0]),)
+            a([mu0, 0.0]), a([0.0, 0.0]), a([mu_hi, INF]), lin_idx, a([1e-3, 0.1]), (a([mu0, 0.0]),)
         )
     if effect == "presliding":
         s0 = math.log10(nom.sigma_n_m) if nom.model == "dahl" else 7.0
         starts = tuple(a([s]) for s in (1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0))
         return Spec(a([s0]), a([0.5]), a([7.5]), (), a([0.05]), starts)
-    if effect == "viscous":
-        return lin(0.0, 1.0)
+    if effect == "viscous":  # physical bound: the total viscous coefficient is >= 0
+        return lin(0.0, 1.0, lo=-nom.viscous_ns_m)
     if effect == "stribeck":
         lv = math.log10(v95)
         starts = tuple(a([0.0, lv + o]) for o in (-2.5, -2.0, -1.5, -1.0))
@@ -112,8 +115,8 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
             a([0.05, 0.05]),
             starts,
         )
-    if effect == "inertia":
-        return lin(0.0, 1.0)
+    if effect == "inertia":  # a rotating mass is >= 0 (a negative one is a model-form error)
+        return lin(0.0, 1.0, lo=0.0)
     if effect in ("delay", "lowpass"):
         grid = (1, 2, 3, 5, 8, 13, 20, 35, 60, 100, 200)
         return Spec(
@@ -124,8 +127,8 @@ def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: n
             a([dt / 4]),
             tuple(a([g * dt]) for g in grid),
         )
-    if effect == "gain":
-        return lin(0.0, 1e-3)
+    if effect == "gain":  # the reading keeps its sign: 1 + g > 0
+        return lin(0.0, 1e-3, lo=-0.9)
     if effect == "offset":
         return lin(0.0, 1.0)
     if effect == "drift":

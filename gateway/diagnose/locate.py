@@ -24,7 +24,7 @@ import numpy as np
 REGIMES = ("rest", "reversal", "low_speed", "high_speed", "acceleration", "steady")
 
 
-def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start and stop (exclusive) indices of the True runs of a boolean (N,) array."""
     d = np.diff(np.concatenate(([0], mask.view(np.int8), [0])))
     return np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]
@@ -40,7 +40,7 @@ def regimes(v: np.ndarray, a: np.ndarray) -> np.ndarray:
     out[av > 0.8 * v_ref] = REGIMES.index("high_speed")
     slow = av < 0.1 * v_ref
     sign = np.sign(v)
-    starts, stops = _runs(slow)
+    starts, stops = runs(slow)
     for s, e in zip(starts, stops, strict=True):
         lo, hi = max(s - 1, 0), min(e + 1, v.size)
         seg = sign[lo:hi]
@@ -76,7 +76,7 @@ def regions(t: np.ndarray, resid: np.ndarray, regime: np.ndarray, cap: int = 12)
         e = energy[:, i]
         smooth = np.convolve(e, kernel, mode="same")
         hot = smooth > 2.0 * float(e.mean())
-        starts, stops = _runs(hot)
+        starts, stops = runs(hot)
         csum = np.concatenate(([0.0], np.cumsum(e)))
         for s, stop in zip(starts, stops, strict=True):
             share = float(csum[stop] - csum[s]) / total

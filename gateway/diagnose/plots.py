@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from gateway.diagnose.engine import Diagnosis
+from gateway.diagnose.report import Diagnosis
 
 MAX_POINTS = 20000
 
@@ -41,7 +41,14 @@ def residual_plot(diag: Diagnosis, path: Path) -> None:
                 ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
         ax.set_ylabel(f"cable {i + 1}\nresidual (N)")
     axes[0, 0].legend(loc="upper right", fontsize=8)
-    axes[0, 0].set_title("measured - simulated sensor reading (shaded: located regions)")
+    axes[0, 0].set_title(
+        "measured - simulated sensor reading "
+        + (
+            "(shaded: located regions)"
+            if diag.regions
+            else "(no concentrated region: the residual is spread evenly)"
+        )
+    )
     axes[-1, 0].set_xlabel("t (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -129,6 +136,16 @@ def summary(diag: Diagnosis, source: str) -> str:
             "the recording holds a mismatch that none of the candidate effects explains (see "
             "where the residual lives, below), or noise that is not white."
         )
+    clip = rep.get("clipped", {})
+    for i, (count, levels) in enumerate(
+        zip(clip.get("per_cable", []), clip.get("levels_n", []), strict=False), 1
+    ):
+        if count:
+            lines.append(
+                f"Cable {i}: {count} readings ({count / rep['samples']:.1%}) sit at the sensor's "
+                f"saturation level ({', '.join(f'{x:.4g} N' for x in levels)}): clipped, "
+                "excluded from the fit and from every RMSE."
+            )
     lines.append("")
     if not rep["findings"]:
         lines += [
@@ -162,7 +179,15 @@ def summary(diag: Diagnosis, source: str) -> str:
     ]
     for name, s in rep["regime_shares"].items():
         lines.append(f"| {name} | {s['energy']:.1%} | {s['samples']:.1%} |")
-    lines += ["", "Largest regions (shaded in the residual plot):", ""]
+    if rep["mismatch"]:
+        lines += ["", "Largest regions (shaded in the residual plot):", ""]
+    else:
+        lines += [
+            "",
+            "No region concentrates the residual (no stretch holds more than twice the mean "
+            "residual energy): the mismatch is spread over the whole recording, as a "
+            "constant, slowly varying or speed-proportional one is; nothing is shaded.",
+        ]
     for r in rep["mismatch"][:8]:
         lines.append(
             f"- cable {r['cable']}, {r['start_s']:.2f}-{r['end_s']:.2f} s, "

@@ -15,19 +15,47 @@ bound) is written as -1.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from gateway.diagnose import locate
-from gateway.diagnose.engine import Diagnosis, Forward, Nominal, _rmse, cable_data, finite_rows
 from gateway.diagnose.evidence import evidence
-from gateway.diagnose.forward import report_stderr, to_report
+from gateway.diagnose.forward import Forward, Nominal, report_stderr, to_report
+from gateway.diagnose.prepare import cable_data, clipped_mask, finite_rows
 from gateway.diagnose.select import CableOutcome
 from gateway.recording import Recording
 
 
+@dataclass
+class Diagnosis:
+    """Everything the report and the pictures are made of."""
+
+    report: dict
+    t: np.ndarray
+    measured: np.ndarray
+    nominal_pred: np.ndarray
+    final_pred: np.ndarray
+    regime: np.ndarray
+    regions: list[locate.Region]
+    outcomes: list[CableOutcome]
+    findings_order: list[str]
+    forwards: list[Forward] = field(default_factory=list)
+
+
+def _rmse(res: np.ndarray, mask: np.ndarray | None = None) -> float:
+    r = res if mask is None else res[mask]
+    return float(math.sqrt(np.mean(r**2))) if r.size else 0.0
+
+
 def _preds(forwards: list[Forward], thetas: list[dict]) -> np.ndarray:
-    return np.column_stack([fw.predict(th) for fw, th in zip(forwards, thetas, strict=True)])
+    """Predictions (N, m), filled cable by cable; each cable's chain cache is freed after
+    use (a few (N,) arrays per cable would otherwise stay alive for the whole report)."""
+    out = np.empty((forwards[0].data.t.size, len(forwards)))
+    for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
+        out[:, i] = fw.predict(th)
+        fw.clear_cache()
+    return out
 
 
 def _subset(outcomes: list[CableOutcome], effects: list[str]) -> list[dict]:
@@ -35,21 +63,38 @@ def _subset(outcomes: list[CableOutcome], effects: list[str]) -> list[dict]:
     return [{e: o.theta[e] for e in effects if e in o.theta} for o in outcomes]
 
 
-def _order(forwards, outcomes, measured) -> list[str]:
+def _sse(forwards: list[Forward], thetas: list[dict], masks: list[np.ndarray]):
+    """Per mask (N, m) bool: sum of squared residuals and sample count over every cable,
+    computed cable by cable (no (N, m) temporaries)."""
+    sse, count = np.zeros(len(masks)), np.zeros(len(masks))
+    for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
+        r = fw.data.ts - fw.predict(th)
+        fw.clear_cache()
+        for j, mask in enumerate(masks):
+            rr = r[mask[:, i]]
+            sse[j] += float(rr @ rr)
+            count[j] += rr.size
+    return sse, count
+
+
+def _rmses(forwards, thetas, masks) -> list[float]:
+    sse, count = _sse(forwards, thetas, masks)
+    return [math.sqrt(s / c) if c else 0.0 for s, c in zip(sse, count, strict=True)]
+
+
+def _order(forwards, outcomes, valid) -> list[str]:
     """Effects ordered by the residual energy they explain in the final model (drop-one)."""
     effects = sorted({e for o in outcomes for e in o.kept})
-    full = _preds(forwards, _subset(outcomes, effects))
-    base = float(np.sum((measured - full) ** 2))
+    base = _sse(forwards, _subset(outcomes, effects), [valid])[0][0]
     worth = {}
     for e in effects:
         others = [x for x in effects if x != e]
-        worth[e] = (
-            float(np.sum((measured - _preds(forwards, _subset(outcomes, others))) ** 2)) - base
-        )
+        worth[e] = _sse(forwards, _subset(outcomes, others), [valid])[0][0] - base
     return sorted(effects, key=lambda e: worth[e], reverse=True)
 
 
-def _validation_forwards(validation, nom: Nominal, cables: int) -> list[Forward] | None:
+def validation_forwards(validation, nom: Nominal, cables: int):
+    """The validation recording's forwards and its valid (unclipped) samples, or None."""
     if validation is None:
         return None
     vrec, vtp, vdm = finite_rows(*validation)
@@ -59,7 +104,8 @@ def _validation_forwards(validation, nom: Nominal, cables: int) -> list[Forward]
         raise RecordingError(
             f"{vrec.source}: has {vrec.cables} cables, the diagnosed recording {cables}"
         )
-    return [Forward(d, nom) for d in cable_data(vrec, vtp, vdm)]
+    fws = [Forward(d, nom) for d in cable_data(vrec, vtp, vdm)]
+    return fws, np.column_stack([~clipped_mask(fw.data.ts)[0] for fw in fws])
 
 
 def _finding(effect, outcomes, rmse_pairs, ev) -> dict:
@@ -82,7 +128,9 @@ def noise_estimate(resid: np.ndarray) -> float:
     robust to the slow part of the residual and to outliers; RMS over the cables."""
     if resid.shape[0] < 3:
         return 0.0
-    per = np.median(np.abs(np.diff(resid, axis=0)), axis=0) / 0.6745 / math.sqrt(2.0)
+    per = np.array([np.median(np.abs(np.diff(resid[:, i]))) for i in range(resid.shape[1])]) / (
+        0.6745 * math.sqrt(2.0)
+    )
     return float(math.sqrt(np.mean(per**2)))
 
 
@@ -98,23 +146,29 @@ def build_report(
     blocks: np.ndarray,
     validation,
     nom: Nominal,
+    valid: np.ndarray | None = None,
+    clipped: dict | None = None,
 ) -> Diagnosis:
-    """The report dict and the arrays behind it."""
-    measured = np.column_stack([fw.data.ts for fw in forwards])
-    test = (blocks % 2 == 1)[:, None] & np.ones((1, rec.cables), bool)
+    """The report dict and the arrays behind it; ``validation``: the validation recording's
+    forwards and valid samples (:func:`validation_forwards`) or None; ``valid`` (N, m):
+    samples scored (False: a clipped reading), ``clipped``: their counts and levels."""
+    measured = rec.tension_sensor
+    valid = np.ones(measured.shape, bool) if valid is None else valid
+    test = (blocks % 2 == 1)[:, None] & valid
     nominal_pred = _preds(forwards, [{} for _ in forwards])
     resid0 = measured - nominal_pred
+    resid0[~valid] = 0.0
+    nominal_pred = nominal_pred.astype(np.float32)  # kept for the plots only
     regime = np.column_stack([locate.regimes(fw.data.v, fw.data.a) for fw in forwards])
     regions = locate.regions(rec.t, resid0, regime)
-    vfw = _validation_forwards(validation, nom, rec.cables)
-    vmeas = None if vfw is None else np.column_stack([fw.data.ts for fw in vfw])
-    order = _order(forwards, outcomes, measured)
+    vfw, vvalid = validation or (None, None)
+    order = _order(forwards, outcomes, valid)
 
-    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray]:
-        pred = _preds(forwards, _subset(outcomes, effects))
-        r = measured - pred
-        v = None if vfw is None else _rmse(vmeas - _preds(vfw, _subset(outcomes, effects)))
-        return _rmse(r), _rmse(r, test), v, pred
+    def scores(effects: list[str]) -> tuple[float, float, float | None]:
+        thetas = _subset(outcomes, effects)
+        rms, hold = _rmses(forwards, thetas, [valid, test])
+        v = None if vfw is None else _rmses(vfw, thetas, [vvalid])[0]
+        return rms, hold, v
 
     before = scores([])
     findings = []
@@ -132,7 +186,12 @@ def build_report(
         ev = evidence(effect, outcomes, regime, before[1], after[1])
         findings.append(_finding(effect, outcomes, pairs, ev))
         before = after
-    noise = noise_estimate(measured - before[3])
+    final_pred = _preds(forwards, _subset(outcomes, order))
+    final_resid = measured - final_pred
+    final_resid[~valid] = 0.0
+    noise = noise_estimate(final_resid)
+    del final_resid
+    final_pred = final_pred.astype(np.float32)
     final = {
         "rmse_n": before[0],
         "holdout_rmse_n": before[1],
@@ -140,15 +199,16 @@ def build_report(
         "unexplained_n": math.sqrt(max(before[1] ** 2 - noise**2, 0.0)),
     }
     if vfw is not None:
-        final["validation_rmse_before_n"] = _rmse(vmeas - _preds(vfw, [{} for _ in vfw]))
+        final["validation_rmse_before_n"] = _rmses(vfw, [{} for _ in vfw], [vvalid])[0]
         final["validation_rmse_after_n"] = float(before[2] or 0.0)
     report = {
         "cables": rec.cables,
         "samples": rec.samples,
         "skipped_rows": rec.skipped_rows,
         "baseline": {
-            "rmse_n": _rmse(resid0),
-            "per_cable_rmse_n": [_rmse(resid0[:, i]) for i in range(rec.cables)],
+            "rmse_n": _rmse(resid0, valid),
+            "per_cable_rmse_n": [_rmse(resid0[valid[:, i], i]) for i in range(rec.cables)],
+            "holdout_rmse_n": _rmse(resid0, test),
         },
         "mismatch": [r.__dict__ for r in regions],
         "regime_shares": {
@@ -157,7 +217,17 @@ def build_report(
         },
         "findings": findings,
         "final": final,
+        "clipped": clipped or {"per_cable": [0] * rec.cables, "levels_n": [[]] * rec.cables},
     }
     return Diagnosis(
-        report, rec.t, measured, nominal_pred, before[3], regime, regions, outcomes, order, forwards
+        report,
+        rec.t,
+        measured,
+        nominal_pred,
+        final_pred,
+        regime,
+        regions,
+        outcomes,
+        order,
+        forwards,
     )

@@ -21,6 +21,7 @@ the data can tell them apart.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -38,6 +39,15 @@ from gateway.diagnose.fit import (
 from gateway.diagnose.forward import Forward
 
 ROUNDS = 3
+PAIR_POOL = 4
+"""Singles (best held-out SSE first) whose pairs are screened when no single passes."""
+PAIR_ABOVE_NOISE = 1.1
+"""Pairs are screened only while the held-out RMSE exceeds the noise by this factor (a
+residual at the noise holds nothing for a pair to explain)."""
+SUBSET_EXTRA = 3
+"""Effects besides the kept ones on the best-subset search's short list."""
+FAR_ABOVE_NOISE = 3.0
+"""Held-out RMSE over white noise above which the selection looks further (subsets)."""
 RIVALS: dict[str, tuple[str, ...]] = {
     "delay": ("lowpass", "inertia"),
     "lowpass": ("delay", "inertia"),
@@ -69,6 +79,16 @@ class Rival:
     effect: str
     holdout_sse: float
     separable: bool
+
+
+@dataclass
+class Model:
+    """A selection state on one cable: fitted effects, their recipes and errors, prediction."""
+
+    kept: dict[str, np.ndarray]
+    specs: dict[str, Spec]
+    stderr: dict[str, np.ndarray]
+    pred: np.ndarray
 
 
 @dataclass
@@ -175,120 +195,200 @@ class CableSelector:
         return spec, FitResult({effect: theta[effect]}, nan, self.fw.predict(theta), True)
 
     def run(self) -> CableOutcome:
-        """Rounds of forward steps, swaps and the strict backward check (until a forward
-        pass adds nothing, at most ``ROUNDS``), then the confusable rivals."""
-        state: tuple = ({}, {}, {}, self.fw.predict({}))
+        """Rounds of forward steps (pairs where no single passes), swaps and the strict
+        backward check (until a forward pass adds nothing, at most ``ROUNDS``); then, while
+        the held-out residual stays far above the noise, a best-subset search over a short
+        list; then the confusable rivals."""
+        model = Model({}, {}, {}, self.fw.predict({}))
         order: list[str] = []
         for _ in range(ROUNDS):
-            before = set(state[0])
-            state, order = self._forward(state, order)
-            if set(state[0]) == before:
+            before = set(model.kept)
+            model, order = self._forward(model, order)
+            if set(model.kept) == before:
                 break  # nothing new: the swaps and the check of the last round stand
-            state = self._swap(*state)
-            state = self._backward(*state)
-        kept, specs, stderr, pred = state
-        order = [e for e in order if e in kept] + [e for e in kept if e not in order]
-        out = CableOutcome(order, kept, stderr, specs)
-        out.rivals = self._rivals(kept, specs, pred)
+            model = self._backward(self._swap(model))
+        model, order = self._look_further(model, order)
+        order = [e for e in order if e in model.kept] + [e for e in model.kept if e not in order]
+        out = CableOutcome(order, model.kept, model.stderr, model.specs)
+        out.rivals = self._rivals(model.kept, model.specs, model.pred)
         return out
 
-    def _forward(self, state: tuple, order: list[str]) -> tuple[tuple, list[str]]:
-        """Add the best candidate while one passes the (lenient) forward test."""
-        kept, specs, stderr, pred = state
-        order = list(order)
-        while len(kept) < self.th.max_effects:
-            best = None
-            for effect in (c for c in self.candidates if c not in kept):
-                spec, fit = self._screen(kept, effect, pred, specs)
-                after = self._test_sse(fit.pred)
-                ok = self._accept(pred, fit.pred, self.th.z_screen)
-                if ok and (best is None or after.sum() < best[2]):
-                    best = (effect, spec, float(after.sum()), fit)
-            if best is None:
-                break
-            effect, spec, _, fit = best
-            trial_specs = {**specs, effect: spec}
-            joint = joint_fit(
-                self.fw,
-                {**kept, effect: fit.theta[effect]},
-                trial_specs,
-                self.train,
-                stride=self.stride,
-            )
-            if not self._accept(pred, joint.pred, self.th.z_screen):
-                break
-            kept, specs, stderr, pred = joint.theta, trial_specs, joint.stderr, joint.pred
-            order.append(effect)
-        return (kept, specs, stderr, pred), order
+    def _fit(self, theta: dict[str, np.ndarray], specs: dict[str, Spec], nfev: int = 60) -> Model:
+        """Joint refit of ``theta`` (linear parts first re-solved together)."""
+        if not theta:
+            return Model({}, {}, {}, self.fw.predict({}))
+        theta = linear_refit(self.fw, theta, specs, self.train)
+        fit = joint_fit(self.fw, theta, specs, self.train, max_nfev=nfev, stride=self.stride)
+        return Model(fit.theta, dict(specs), fit.stderr, fit.pred)
 
-    def _backward(self, kept, specs, stderr, pred):
+    def _significant(self, model: Model, effect: str) -> bool:
+        return (
+            significance(model.specs[effect], model.kept[effect], model.stderr[effect], effect)
+            >= self.th.z_min
+        )
+
+    def _far_above_noise(self, model: Model) -> bool:
+        return self._above_noise(model, FAR_ABOVE_NOISE)
+
+    def _above_noise(self, model: Model, factor: float) -> bool:
+        """The held-out RMSE is more than ``factor`` times the white noise of the training
+        residual (median absolute first difference): something is unexplained."""
+        r = (self.fw.data.ts - model.pred)[self.train]
+        if r.size < 10:
+            return False
+        noise = float(np.median(np.abs(np.diff(r)))) / 0.6745 / math.sqrt(2.0)
+        test = (self.fw.data.ts - model.pred)[self.test]
+        rms = float(np.sqrt(np.mean(test**2))) if test.size else 0.0
+        return rms > factor * max(noise, 1e-12)
+
+    def _forward(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
+        """Add the best candidate while one passes the (lenient) forward test; where no
+        single one does, the best pair of the most promising singles (effects that cancel
+        alone, e.g. an offset and a drift of opposite sign)."""
+        order = list(order)
+        while len(model.kept) < self.th.max_effects:
+            ranked = []
+            for effect in (c for c in self.candidates if c not in model.kept):
+                spec, fit = self._screen(model.kept, effect, model.pred, model.specs)
+                ranked.append((float(self._test_sse(fit.pred).sum()), effect, spec, fit))
+            ranked.sort(key=lambda row: row[0])
+            added = self._add_single(model, ranked)
+            if (
+                added is None
+                and len(model.kept) + 2 <= self.th.max_effects
+                and self._above_noise(model, PAIR_ABOVE_NOISE)
+            ):
+                added = self._add_pair(model, ranked)
+            if added is None:
+                break
+            model, new = added
+            order += new
+        return model, order
+
+    def _add_single(self, model: Model, ranked) -> tuple[Model, list[str]] | None:
+        for _, effect, spec, fit in ranked:
+            if not self._accept(model.pred, fit.pred, self.th.z_screen):
+                continue
+            joint = self._fit(
+                {**model.kept, effect: fit.theta[effect]}, {**model.specs, effect: spec}
+            )
+            if self._accept(model.pred, joint.pred, self.th.z_screen):
+                return joint, [effect]
+            return None  # the best single fails jointly: stop (as the greedy step did)
+        return None
+
+    def _add_pair(self, model: Model, ranked) -> tuple[Model, list[str]] | None:
+        """The best pair among the ``PAIR_POOL`` best-ranked singles, each fitted jointly
+        with the kept effects; it must pass the forward test as a pair and each member its
+        parameter test."""
+        pool = ranked[:PAIR_POOL]
+        best: tuple[float, Model, list[str]] | None = None
+        for a in range(len(pool)):
+            for b in range(a + 1, len(pool)):
+                (_, ea, sa, fa), (_, eb, sb, fb) = pool[a], pool[b]
+                theta = {**model.kept, ea: fa.theta[ea], eb: fb.theta[eb]}
+                joint = self._fit(theta, {**model.specs, ea: sa, eb: sb}, nfev=30)
+                if not self._accept(model.pred, joint.pred, self.th.z_holdout):
+                    continue
+                if not (self._significant(joint, ea) and self._significant(joint, eb)):
+                    continue
+                sse = float(self._test_sse(joint.pred).sum())
+                if best is None or sse < best[0]:
+                    best = (sse, joint, [ea, eb])
+        return None if best is None else (best[1], best[2])
+
+    def _look_further(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
+        """While the held-out residual stays far above the noise (at most ``ROUNDS``
+        times): best subset of a short list, then forward steps on top of it and the strict
+        check; stops when that changes nothing."""
+        for _ in range(ROUNDS):
+            if not self._far_above_noise(model):
+                break
+            before = set(model.kept)
+            model = self._subsets(model)
+            model, order = self._forward(model, order)
+            model = self._backward(model)
+            if set(model.kept) == before:
+                break
+        return model, order
+
+    def _subsets(self, model: Model) -> Model:
+        """Best subset, by held-out SSE, of a short list: the kept effects and the
+        ``SUBSET_EXTRA`` best-screened others, every subset of up to ``len(kept) + 2``
+        effects fitted jointly from the screened starting values. Undoes an early greedy
+        choice that a stand-in made look right (e.g. Coulomb taking the viscous force at
+        the typical speed). Kept only if it beats the current model on the forward test."""
+        rest = [c for c in self.candidates if c not in model.kept]
+        starts: dict[str, np.ndarray] = dict(model.kept)
+        specs: dict[str, Spec] = dict(model.specs)
+        screened = []
+        base = self.fw.predict({})
+        for effect in rest:
+            spec, fit = self._screen({}, effect, base, {})
+            screened.append((float(self._test_sse(fit.pred).sum()), effect))
+            starts[effect], specs[effect] = fit.theta[effect], spec
+        screened.sort()
+        short = list(model.kept) + [e for _, e in screened[:SUBSET_EXTRA]]
+        best, best_sse = model, float(self._test_sse(model.pred).sum())
+        top = min(len(short), len(model.kept) + 2, self.th.max_effects)
+        for size in range(1, top + 1):
+            for combo in itertools.combinations(short, size):
+                if set(combo) == set(model.kept):
+                    continue
+                trial = self._fit({e: starts[e] for e in combo}, {e: specs[e] for e in combo}, 30)
+                sse = float(self._test_sse(trial.pred).sum())
+                if sse < best_sse:
+                    best, best_sse = trial, sse
+        if best is model or not self._accept(model.pred, best.pred, self.th.z_screen):
+            return model
+        return self._fit(best.kept, best.specs)
+
+    def _backward(self, model: Model) -> Model:
         """Drop, one at a time, the weakest kept effect that fails the strict test.
 
         With every kept effect in the model the residual is close to the noise, so the
         held-out z and the parameter standard errors are trustworthy here (during the
         forward steps the residual still holds the effects not yet found).
         """
-        while kept:
-            weakest, worst = None, math.inf
-            for effect in kept:
-                rest = {k: v for k, v in kept.items() if k != effect}
-                fit = (
-                    joint_fit(
-                        self.fw,
-                        rest,
-                        {k: specs[k] for k in rest},
-                        self.train,
-                        max_nfev=30,
-                        stride=self.stride,
-                    )
-                    if rest
-                    else None
-                )
-                reduced = fit.pred if fit else self.fw.predict({})
-                z_par = significance(specs[effect], kept[effect], stderr[effect], effect)
-                ok = self._accept(reduced, pred, self.th.z_holdout) and z_par >= self.th.z_min
-                score = self._z(reduced, pred)
+        while model.kept:
+            weakest: tuple[str, Model] | None = None
+            worst = math.inf
+            for effect in model.kept:
+                rest = {k: v for k, v in model.kept.items() if k != effect}
+                reduced = self._fit(rest, {k: model.specs[k] for k in rest}, nfev=30)
+                ok = self._accept(
+                    reduced.pred, model.pred, self.th.z_holdout
+                ) and self._significant(model, effect)
+                score = self._z(reduced.pred, model.pred)
                 if not ok and score < worst:
-                    weakest, worst = (effect, fit), score
+                    weakest, worst = (effect, reduced), score
             if weakest is None:
                 break
-            effect, fit = weakest
-            kept = {k: v for k, v in kept.items() if k != effect}
-            specs = {k: specs[k] for k in kept}
-            if fit is None:
-                return {}, {}, {}, self.fw.predict({})
-            kept, stderr, pred = fit.theta, fit.stderr, fit.pred
-        return kept, specs, stderr, pred
+            model = weakest[1]
+        return model
 
-    def _swap(self, kept, specs, stderr, pred):
+    def _swap(self, model: Model) -> Model:
         """One pass of swaps: replace a kept effect by another candidate if that fits the
         held-out data significantly better (greedy selection can take a near-collinear
         stand-in first, e.g. an offset for a gain on a load that varies little)."""
-        for effect in list(kept):
-            if effect not in kept:
+        for effect in list(model.kept):
+            if effect not in model.kept:
                 continue
-            rest = {k: v for k, v in kept.items() if k != effect}
+            rest = {k: v for k, v in model.kept.items() if k != effect}
+            rest_specs = {k: model.specs[k] for k in rest}
             screened = []
-            for cand in (c for c in self.candidates if c not in kept):
-                spec, fit = self._screen(
-                    rest, cand, self.fw.predict(rest), {k: specs[k] for k in rest}
-                )
+            for cand in (c for c in self.candidates if c not in model.kept):
+                spec, fit = self._screen(rest, cand, self.fw.predict(rest), rest_specs)
                 screened.append((float(self._test_sse(fit.pred).sum()), cand, spec, fit))
             screened.sort(key=lambda row: row[0])
             for _, cand, spec, fit in screened[:2]:  # the two best, each refitted jointly
-                trial_specs = {**{k: specs[k] for k in rest}, cand: spec}
-                joint = joint_fit(
-                    self.fw,
-                    {**rest, cand: fit.theta[cand]},
-                    trial_specs,
-                    self.train,
-                    stride=self.stride,
-                )
-                z_par = significance(spec, joint.theta[cand], joint.stderr[cand], cand)
-                if self._accept(pred, joint.pred, self.th.z_screen) and z_par >= self.th.z_min:
-                    kept, specs, stderr, pred = joint.theta, trial_specs, joint.stderr, joint.pred
+                joint = self._fit({**rest, cand: fit.theta[cand]}, {**rest_specs, cand: spec})
+                if self._accept(model.pred, joint.pred, self.th.z_screen) and self._significant(
+                    joint, cand
+                ):
+                    model = joint
                     break
-        return kept, specs, stderr, pred
+        return model
 
     def _rivals(self, kept, specs, pred) -> dict[str, list[Rival]]:
         """Swap each confusable kept effect for each rival; compare on held-out blocks."""
@@ -318,3 +418,57 @@ class CableSelector:
             if rows:
                 result[effect] = rows
         return result
+
+
+def drop_unvalidated(
+    fw: Forward,
+    vfw: Forward,
+    vvalid: np.ndarray,
+    vblocks: np.ndarray,
+    n_vblocks: int,
+    outcome: CableOutcome,
+    train: np.ndarray,
+    th: Thresholds,
+) -> tuple[CableOutcome, list[str]]:
+    """Drop the kept effects that do not lower the error on the validation recording.
+
+    ``vfw``: the same cable of a second recording of the machine (never fitted).
+    Every kept effect, with the parameters fitted here, must lower the validation SSE
+    against the model without it by ``rel_min`` and by ``z_holdout`` standard errors
+    (:func:`holdout_z` over the validation's time blocks); the weakest failing one is
+    dropped, the rest refitted on ``train``, until all pass. Returns the outcome and the
+    dropped effects."""
+    dropped: list[str] = []
+    ts = vfw.data.ts
+    while outcome.kept:
+        full = vfw.predict(outcome.theta)
+        r_full = np.where(vvalid, ts - full, 0.0)
+        sse_full = np.bincount(vblocks, weights=r_full**2, minlength=n_vblocks)
+        worst, worst_z = None, math.inf
+        for effect in outcome.kept:
+            rest = {k: v for k, v in outcome.theta.items() if k != effect}
+            red = vfw.predict(rest)
+            r_red = np.where(vvalid, ts - red, 0.0)
+            sse_red = np.bincount(vblocks, weights=r_red**2, minlength=n_vblocks)
+            cross = np.bincount(
+                vblocks, weights=np.where(vvalid, r_full * (full - red), 0.0), minlength=n_vblocks
+            )
+            z = holdout_z(sse_red, sse_full, cross)
+            gain = float(sse_red.sum() - sse_full.sum())
+            ok = z >= th.z_holdout and gain >= th.rel_min * float(sse_red.sum())
+            if not ok and z < worst_z:
+                worst, worst_z = effect, z
+        if worst is None:
+            break
+        dropped.append(worst)
+        keep = [e for e in outcome.kept if e != worst]
+        theta = {e: outcome.theta[e] for e in keep}
+        specs = {e: outcome.specs[e] for e in keep}
+        stderr = {e: outcome.stderr[e] for e in keep}
+        if theta:
+            stride = max(1, int(train.sum()) // 150_000)
+            fit = joint_fit(fw, theta, specs, train, max_nfev=30, stride=stride)
+            theta, stderr = fit.theta, fit.stderr
+        rivals = {e: r for e, r in outcome.rivals.items() if e in keep}
+        outcome = CableOutcome(keep, theta, stderr, specs, rivals, outcome.tried)
+    return outcome, dropped

@@ -1,0 +1,227 @@
+"""The foreign-generator cases of issue 11, strictly scored, and their table.
+
+Each case is a recording of the independent generator (:mod:`tests.diagnose_helpers`,
+never :mod:`gateway.model` physics) with its truth. A case passes only with the exact set
+of effects (an extra finding fails it), on the right cables, every parameter within its
+tolerance, and the held-out (and, with validation, the validation) RMSE lowered.
+
+``python -m tests.foreign_cases --table docs/diagnose-suite.md`` runs every case and writes
+its table into the file's "Foreign recordings" section (replaced if present).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tests.diagnose_helpers import Foreign, run_foreign
+
+P5_MIXED = ((30.0, 0.01), (60.0, 0.02), (90.0, 0.015), (45.0, 0.03), (20.0, 0.01))
+RIG_AXIS = {
+    "inertia": {"m_eff_kg": 95.0},
+    "viscous": {"c_ns_m": 200.0},
+    "coulomb": {"f0_n": 20.0},
+    "offset": {"c_n": -3.0},
+}
+
+
+@dataclass(frozen=True)
+class Case:
+    """A foreign recording, the nominal model it is diagnosed against, and the truth.
+
+    ``truth``: effect -> {reported parameter: (value, relative tolerance, absolute
+    tolerance)}; ``cables``: effect -> 1-based cables (default: all)."""
+
+    name: str
+    fo: Foreign
+    truth: dict[str, dict[str, tuple[float, float, float]]]
+    nominal: str | None = None
+    pulleys: tuple | None = None
+    validate: bool = False
+    cables: dict[str, list[int]] = field(default_factory=dict)
+    note: str = ""
+
+
+CASES = (
+    Case(
+        "rig_no_pulleys_f0",
+        Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb",
+                effects={"coulomb": {"f0_n": 5.0}}),
+        {"coulomb": {"f0_n": (5.0, 0.05, 0.0)}},
+        nominal="none", pulleys=(), note="1: nominal `none` without pulleys (crashed)",
+    ),
+    Case(
+        "rig_positioning_axis",
+        Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
+                vmax=0.13, seconds=40.0, rate_hz=500.0, effects=RIG_AXIS),
+        {"inertia": {"m_eff_kg": (95.0, 0.05, 0.0)}, "viscous": {"c_ns_m": (200.0, 0.05, 0.0)},
+         "coulomb": {"f0_n": (20.0, 0.05, 0.0)}, "offset": {"c_n": (-3.0, 0.1, 0.3)}},
+        nominal="none", pulleys=(), validate=True, note="2: greedy dead end",
+    ),
+    Case(
+        "offset_drift_cancel",
+        Foreign(model="coulomb", effects={"offset": {"c_n": 0.45}, "drift": {"k_n_s": -0.03}}),
+        {"offset": {"c_n": (0.45, 0.2, 0.05)}, "drift": {"k_n_s": (-0.03, 0.2, 0.0)}},
+        note="3: offset and drift cancel in the mean",
+    ),
+    Case(
+        "jitter_200hz_viscous",
+        Foreign(rate_hz=200.0, jitter_s=8e-4, effects={"viscous": {"c_ns_m": 300.0}}),
+        {"viscous": {"c_ns_m": (300.0, 0.05, 0.0)}},
+        note="4: 200 Hz, +-0.8 ms jitter",
+    ),
+    Case(
+        "jitter_noise_free_100hz",
+        Foreign(rate_hz=100.0, jitter_s=2e-3, noise_n=0.0),
+        {}, note="4: noise-free, 100 Hz +-2 ms",
+    ),
+    Case(
+        "jitter_noise_free_250hz",
+        Foreign(rate_hz=250.0, jitter_s=8e-4, noise_n=0.0, seed=5),
+        {}, note="4: noise-free, 250 Hz +-0.8 ms",
+    ),
+    Case(
+        "p5_viscous_validate",
+        Foreign(pulleys=P5_MIXED, effects={"viscous": {"c_ns_m": 80.0}}),
+        {"viscous": {"c_ns_m": (80.0, 0.1, 0.0)}},
+        validate=True, note="5: no finding that does not generalise",
+    ),
+    Case(
+        "p5_viscous_no_validate",
+        Foreign(pulleys=P5_MIXED, effects={"viscous": {"c_ns_m": 80.0}}, seed=4),
+        {"viscous": {"c_ns_m": (80.0, 0.1, 0.0)}},
+        note="5: the same without --validate",
+    ),
+    Case(
+        "clipped_cable2",
+        Foreign(cables=2, clip_n=480.0, clip_cables=(2,), effects={"viscous": {"c_ns_m": 300.0}}),
+        {"viscous": {"c_ns_m": (300.0, 0.05, 0.0)}},
+        note="7: cable 2 clipped at 480 N",
+    ),
+    Case(
+        "dahl_f0",
+        Foreign(effects={"coulomb": {"f0_n": 3.0}}),
+        {"coulomb": {"f0_n": (3.0, 0.1, 0.0), "mu": (0.02, 0.1, 0.0)}},
+        note="8: f0 under Dahl",
+    ),
+)  # fmt: skip
+
+
+@dataclass
+class Score:
+    """How a case came out."""
+
+    case: Case
+    found: list[str]
+    named: bool
+    cables_ok: bool
+    param_err: float  # worst |error| / tolerance over the truth's parameters (<= 1 passes)
+    holdout: tuple[float, float]
+    validation: tuple[float, float] | None
+    clipped: int
+    seconds: float
+
+    @property
+    def passed(self) -> bool:
+        down = self.holdout[1] <= self.holdout[0] + 1e-12
+        if self.validation is not None:
+            down = down and self.validation[1] <= self.validation[0] + 1e-12
+        return self.named and self.cables_ok and self.param_err <= 1.0 and down
+
+
+def score(case: Case) -> Score:
+    """Run one case and score it strictly."""
+    start = time.perf_counter()
+    diag = run_foreign(case.fo, case.nominal, case.pulleys, case.validate)
+    seconds = time.perf_counter() - start
+    rep = diag.report
+    found = [f["effect"] for f in rep["findings"]]
+    cables_ok, err = True, 0.0
+    for f in rep["findings"]:
+        truth = case.truth.get(f["effect"])
+        if truth is None:
+            continue
+        want = case.cables.get(f["effect"], list(range(1, case.fo.cables + 1)))
+        cables_ok &= f["cables"] == want
+        for name, (value, rel, absol) in truth.items():
+            tol = max(rel * abs(value), absol)
+            for got in f["parameters"].get(name, [math.inf]):
+                err = max(err, abs(got - value) / tol)
+    fin = rep["final"]
+    hold = (rep["baseline"]["holdout_rmse_n"], fin["holdout_rmse_n"])
+    val = None
+    if "validation_rmse_before_n" in fin:
+        val = (fin["validation_rmse_before_n"], fin["validation_rmse_after_n"])
+    clipped = int(sum(rep.get("clipped", {}).get("per_cable", [])))
+    return Score(case, found, set(found) == set(case.truth), cables_ok, err, hold, val,
+                 clipped, seconds)  # fmt: skip
+
+
+def table(scores: list[Score]) -> str:
+    """The markdown section of the foreign cases."""
+    passed = sum(s.passed for s in scores)
+    lines = [
+        "## Foreign recordings (independent generator)",
+        "",
+        "Generated by `python -m tests.foreign_cases --table docs/diagnose-suite.md`. "
+        "Recordings of the independent generator `tests/diagnose_helpers.py` (explicit "
+        "Euler on a 5 kHz grid, resampled), one per failure class of issue 11. Strict score: "
+        "the exact set of effects (an extra finding fails), the right cables, every "
+        "parameter within tolerance (`param err` <= 1), held-out and validation RMSE down.",
+        "",
+        f"**Passed: {passed}/{len(scores)}.**",
+        "",
+        "Notes. Class 4: on this generator, stepping the friction state with `v dt` of the "
+        "sample and with the exact (trapezoid) travel differ by < 0.5 % of the residual RMS "
+        "at 200 Hz +-0.8 ms (the error is second order, `a dt^2 / 2`), so the class's failure "
+        "does not reproduce here; the cases stay as regression cases. Class 6 is covered by "
+        "the physical bounds (tests in `tests/test_diagnose_issue11.py`). `dahl_f0`: `f0` "
+        "comes out 2.68 N for 3.0 N (-10.5 %, tolerance 10 %) while `mu` is 1 % high: with "
+        "the load varying by only +-40 %, `mu T` and `f0` are nearly collinear and the small "
+        "difference between the generator's pulley law and the model's moves `f0`.",
+        "",
+        "| case | class | truth | found | pass | param err | held-out before -> after "
+        "| validation before -> after | clipped | s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for s in scores:
+        val = "" if s.validation is None else f"{s.validation[0]:.3f} -> {s.validation[1]:.3f}"
+        lines.append(
+            f"| {s.case.name} | {s.case.note} | {', '.join(sorted(s.case.truth)) or 'none'} "
+            f"| {', '.join(s.found) or 'none'} | {'yes' if s.passed else '**no**'} "
+            f"| {s.param_err:.2f} | {s.holdout[0]:.3f} -> {s.holdout[1]:.3f} | {val} "
+            f"| {s.clipped} | {s.seconds:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_table(path: Path, text: str) -> None:
+    """Replace (or append) the foreign section of ``path``."""
+    old = path.read_text(encoding="utf-8") if path.exists() else ""
+    head = old.split("## Foreign recordings")[0].rstrip("\n")
+    path.write_text(head + "\n\n" + text, encoding="utf-8")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--table", type=Path)
+    ap.add_argument("-k", default="", help="only cases whose name contains this")
+    args = ap.parse_args()
+    scores = []
+    for case in CASES:
+        if args.k not in case.name:
+            continue
+        s = score(case)
+        print(f"{case.name}: found {s.found or 'none'} pass={s.passed} err={s.param_err:.2f} "
+              f"hold {s.holdout[0]:.3f}->{s.holdout[1]:.3f} val {s.validation} "
+              f"clipped {s.clipped} {s.seconds:.1f}s", flush=True)  # fmt: skip
+        scores.append(s)
+    if args.table:
+        write_table(args.table, table(scores))
+
+
+if __name__ == "__main__":
+    main()
