@@ -221,3 +221,20 @@ def test_inadmissible_fitted_values_are_clamped_and_named(tmp_path):
     f0 = load_config(out).friction.effect_values(M)["coulomb"]["f0_n"]
     assert_allclose(f0, [1.2, 0, 0, 0, 0, 0, 0, 0], rtol=0, atol=0)
     assert "# clamped: coulomb.f0_n on cable 2: fitted -0.24" in out.read_text()
+
+
+def test_negative_f0_folds_into_mu_at_the_mean_tension(tmp_path):
+    rec, _ = _plant({}, 0.0, 2.0)
+    report = _report(
+        [{"effect": "coulomb", "cables": [1, 2], "parameters": {"mu": [0.015, 0.027],
+                                                                "f0_n": [1.2, -9.0]}}]
+    )  # fmt: skip
+    out = tmp_path / "fitted.yaml"
+    friction = load_friction(DEFAULT_CONFIG_PATH)
+    write_model(out, DEFAULT_CONFIG_PATH, friction, report, rec)
+    eff = load_config(out).friction.effect_values(M)["coulomb"]
+    k = float(np.sum(2 * np.sin(0.5 * np.asarray(friction.wrap_rad))))
+    t2 = float(np.mean(rec.tension_sensor[:, 1]))
+    assert eff["f0_n"][1] == 0.0 and eff["f0_n"][0] == 1.2
+    assert_allclose(eff["mu"][1] * k * t2, 0.027 * k * t2 - 9.0, rtol=1e-9)  # same level
+    assert "# folded: coulomb on cable 2" in out.read_text()

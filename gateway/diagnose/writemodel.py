@@ -122,8 +122,34 @@ def fitted_friction(
     mu = total.get("coulomb", {}).get("mu")
     if mu is not None and np.any(np.isnan(mu)) and not np.all(np.isnan(mu)):
         mu[np.isnan(mu)] = nominal_mu  # a file holds no NaN: the nominal pulleys' mean mu
+    if rec is not None and "coulomb" in total:
+        fold_negative_f0(total["coulomb"], friction, rec, notes)
     clamp_to_admissible(total, notes)
     return dataclasses.replace(friction, effects=FrictionConfig.effects_mapping(total))
+
+
+def fold_negative_f0(
+    coulomb: dict[str, np.ndarray], friction: FrictionConfig, rec: Recording,
+    notes: list[str] | None,
+) -> None:  # fmt: skip
+    """A negative ``f0_n`` (``mu`` and ``f0`` trade off on a cable whose tension varies
+    little: the fit pins their sum ``lambda(mu) T + f0``) is folded into ``mu`` at the
+    cable's mean reading ``T``: ``mu' = mu + f0 / (T sum_j 2 sin(wrap_j / 2))``, ``f0' = 0``
+    (the same Coulomb level there), in place; named in ``notes``."""
+    f0, mu = coulomb["f0_n"], coulomb["mu"]
+    k = float(np.sum(2.0 * np.sin(0.5 * np.asarray(friction.wrap_rad, dtype=float))))
+    tension = np.nanmean(np.asarray(rec.tension_sensor, dtype=float), axis=0)
+    fold = (f0 < 0) & np.isfinite(mu) & (tension > 0) & (k > 0)
+    if not np.any(fold):
+        return
+    new_mu = np.maximum(mu[fold] + f0[fold] / (tension[fold] * k), 0.0)
+    if notes is not None:
+        for i, m_new in zip(np.flatnonzero(fold), new_mu, strict=True):
+            notes.append(
+                f"folded: coulomb on cable {i + 1}: fitted mu {mu[i]:.4g}, f0_n {f0[i]:.4g}; "
+                f"written as mu {m_new:.4g}, f0_n 0 (the same level at its mean {tension[i]:.0f} N)"
+            )
+    mu[fold], f0[fold] = new_mu, 0.0
 
 
 def clamp_to_admissible(eff: fx.Effects, notes: list[str] | None = None) -> None:
@@ -141,7 +167,7 @@ def clamp_to_admissible(eff: fx.Effects, notes: list[str] | None = None) -> None
                 cables = ", ".join(str(i + 1) for i in np.flatnonzero(bad))
                 if notes is not None:
                     notes.append(
-                        f"{name}.{prm.name} on cable {cables}: fitted "
+                        f"clamped: {name}.{prm.name} on cable {cables}: fitted "
                         f"{', '.join(f'{x:.4g}' for x in v[bad])}, written as {low:g} "
                         "(the smallest admissible)"
                     )
@@ -156,7 +182,8 @@ def write_model(
     rec: Recording | None = None,
 ) -> FrictionConfig:
     """Write the fitted model file ``path`` (module docstring); returns its friction.
-    Clamped values (:func:`clamp_to_admissible`) are named in the file's header."""
+    Folded and clamped values (:func:`fold_negative_f0`, :func:`clamp_to_admissible`) are
+    named in the file's header."""
     notes: list[str] = []
     fitted = fitted_friction(friction, report, int(report["cables"]), rec, notes)
     data = read_yaml(model_path)
@@ -166,7 +193,7 @@ def write_model(
         f"# fitted model: {model_path} plus the findings of a diagnosis of "
         f"{rec.source if rec is not None else 'a recording'} (cdpr-gateway diagnose "
         "--write-model)\n"
-    ) + "".join(f"# clamped: {n}\n" for n in notes)
+    ) + "".join(f"# {n}\n" for n in notes)
     try:
         path.write_text(header + yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
     except OSError as exc:
