@@ -4,7 +4,9 @@ Each example hides one effect (viscous, offset, gain, load-independent Coulomb f
 mass_change at 2-5x the 0.5 N sensor noise) in a soft PLC whose controller distributes
 tensions by the closed form (not the gateway's statics). Per example: the finding, the
 corrected-tension RMSE against the plant's truth before and after calibration, the noise
-floor (the same plant without the effect, nominal model) and after / floor (goal <= 1.15).
+floor (the same plant without the effect, nominal model), after / floor (goal <= 1.15) and
+the gateway's cycles in each run (30 000 in 30 s on an idle machine: fewer means the
+machine was loaded, and the RMSE of a run then varies by tens of per cent).
 
 ``python -m bench calibrate`` (30 s per run, three runs per example: ~10 min in all);
 ``CALIBRATE_SECONDS`` and ``CALIBRATE_ONLY=viscous,gain`` change that. Results stay in
@@ -32,9 +34,10 @@ def _row(name: str, res: dict) -> str:
     want = EXPECTED.get(name, name)
     found = ", ".join(res["findings"]) or "none"
     ok = "ok" if want in res["findings"] and ratio <= GOAL else "FAIL"
+    cycles = "/".join(str(res[k]["cycles"]) for k in ("noise_floor", "before", "after"))
     return (
         f"| {name:<11} | {found:<18} | {res['before']['rmse_n']:6.3f} | "
-        f"{res['after']['rmse_n']:6.3f} | {floor:6.3f} | {ratio:5.2f} | {ok} |"
+        f"{res['after']['rmse_n']:6.3f} | {floor:6.3f} | {ratio:5.2f} | {ok} | {cycles} |"
     )
 
 
@@ -61,7 +64,8 @@ def run() -> None:
             tmp.cleanup()
     print(f"\ncalibrate, {seconds:g} s per run (before/after/floor: corrected-tension RMSE "
           f"vs the plant's truth, N; ratio = after / floor, goal <= {GOAL})")  # fmt: skip
-    print("| effect      | finding            | before |  after |  floor | ratio |    |")
-    print("|---|---|---|---|---|---|---|")
+    print("| effect      | finding            | before |  after |  floor | ratio |    | cycles "
+          "floor/before/after |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(r)
