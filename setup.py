@@ -11,5 +11,8 @@ from setuptools import find_packages, setup
 setup(
     packages=[*find_packages(include=["gateway*", "drivers*", "sim_plc*"]), "gateway.data"],
     package_dir={"gateway.data": "config"},
-    package_data={"gateway": ["py.typed"], "gateway.data": ["*.yaml", "*.eds"]},
+    package_data={
+        "gateway": ["py.typed"],
+        "gateway.data": ["*.yaml", "*.eds", "calibrate/*.yaml"],
+    },
 )

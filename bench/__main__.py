@@ -1,6 +1,7 @@
 """Run the benchmarks: ``python -m bench`` (all but the soak) or ``python -m bench model statics``.
 
-The 600-s soak runs only when named (``python -m bench soak``, ``make soak``).
+The 600-s soak and the calibrate table (~10 min) run only when named (``python -m bench
+soak``, ``make soak``, ``python -m bench calibrate``).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import sys
 import time
 from pathlib import Path
 
-ONLY_BY_NAME = {"soak"}  # ~10 min: its own target, not part of a plain `make bench`
+ONLY_BY_NAME = {"soak", "calibrate"}  # ~10 min each: only when named, not in a plain `make bench`
 
 
 def main(argv: list[str]) -> int:

@@ -1,12 +1,13 @@
-"""``cdpr-gateway`` command line: ``run | check | demo | sim-plc | record | replicate | diagnose``.
+"""``cdpr-gateway`` command line: ``run | check | demo | sim-plc | record | replicate | diagnose
+| calibrate``.
 
 Each command lives in its own module, imported only when that command is chosen. A command
 module provides ``configure_parser(command, parser)`` and ``run_command(command, args)``
 returning the exit status. Errors of the project (:class:`GatewayError`) end the program
 with status 2 and one clear line on stderr, and so do bad command-line arguments; anything
 else is a bug and shows a traceback. The soft PLC's commands (``demo``, ``sim-plc``,
-``record``, ``replicate``) live in ``sim_plc`` and are imported only when chosen: the
-daemon's modules never import ``sim_plc``.
+``record``, ``replicate``, ``calibrate``) live in ``sim_plc`` and are imported only when
+chosen: the daemon's modules never import ``sim_plc``.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("sim_plc.cli", "run the soft PLC's plant and write a recording (CSV)"),
     "replicate": ("sim_plc.replicate", "reproduce the paper's experiment (JSON, markdown, PNG)"),
     "diagnose": ("gateway.diagnose.cli", "find and model the physics a recording shows"),
+    "calibrate": ("sim_plc.calibrate", "soft PLC loop: record, diagnose, write the model, rerun"),
 }
 
 

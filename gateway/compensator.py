@@ -72,6 +72,15 @@ SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
 INVALID = int(ChannelStatus.INVALID)
 
 
+@njit(cache=True)
+def _differs(a: np.ndarray, b: np.ndarray) -> bool:
+    """True when some element of ``a`` differs from ``b`` (no allocation)."""
+    for i in range(a.size):  # noqa: SIM110 (numba: a plain loop)
+        if a[i] != b[i]:
+            return True
+    return False
+
+
 class Limits(NamedTuple):
     """Validation limits: range (N) and the stuck / substitution times (s)."""
 
@@ -190,7 +199,11 @@ class Compensator:
         self.corrected_n = np.full(m, np.nan)
         self.friction_n = np.full(m, np.nan)  # corrected - used: the whole correction
         self.wrench = np.full(6, np.nan)
-        self._velocity_prev = np.zeros(m)
+        self._velocity_prev = np.zeros(m)  # the previous PLC sample's setpoint velocity
+        self._velocity_hold = np.zeros(m)  # the one before it (a repeated sample: hold a)
+        self._sample_at = math.nan  # when the last new PLC sample arrived
+        self._sample_dt = 0.0  # time between the last two new PLC samples
+        self._heartbeat = -1
         self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
         self._length_in = np.zeros(m)
         self._pose_in = np.zeros(6)
@@ -245,11 +258,7 @@ class Compensator:
         dt = now - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
         dt = dt if dt > 0.0 else 0.0
         self._stepped_at = now
-        self._online(
-            self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
-            self._length_in, self.model_in_n,
-        )  # fmt: skip
-        self._velocity_prev[:] = self.velocity_m_s
+        self._online_inputs(now, int(inputs.plc_heartbeat))
         self.stepper.step(
             self.model_in_n, self.velocity_m_s, self.corrected_n, min(dt, self.max_step_s)
         )
@@ -263,6 +272,30 @@ class Compensator:
         out.tension_corrected_n[:] = self.corrected_n
         out.channel_status[:] = self.status
         out.wrench[:] = self.wrench
+
+    def _online_inputs(self, now: float, heartbeat: int) -> None:
+        """Gain, offset, inertia, eccentricity removed. The inertia's acceleration is the
+        backward difference between *new* PLC samples (a new heartbeat or a new setpoint
+        velocity) over the time between their arrivals; a cycle that reads the same sample
+        again holds it (a difference of 0 over one cycle, then of two samples over the
+        next, would swing the inertia term between 0 and twice its size)."""
+        new = heartbeat != self._heartbeat or _differs(self.velocity_m_s, self._velocity_prev)
+        self._heartbeat = heartbeat
+        if new:
+            dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
+            dt = dt if dt > 0.0 else 0.0
+            self._online(
+                self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
+                self._length_in, self.model_in_n,
+            )  # fmt: skip
+            self._velocity_hold[:] = self._velocity_prev
+            self._velocity_prev[:] = self.velocity_m_s
+            self._sample_at, self._sample_dt = now, dt
+        else:  # the same sample again: the same acceleration
+            self._online(
+                self.online, self.used_n, self._velocity_prev, self._velocity_hold,
+                self._sample_dt, self._length_in, self.model_in_n,
+            )  # fmt: skip
 
     def mark_unread(self, now_s: float) -> None:
         """A cycle whose read failed: flag every channel stale; the model is not stepped."""

@@ -141,3 +141,25 @@ def test_never_good_channel_is_invalid_at_once():
     feed(comp, inp, out, 0, t, 0.0)
     assert out.channel_status[7] == ChannelStatus.INVALID
     assert np.isnan(out.tension_corrected_n[7])
+
+
+def test_inertia_holds_its_acceleration_when_a_plc_sample_is_read_twice():
+    """Each PLC sample (heartbeat k) read on two cycles: the inertia term is m_eff times
+    the acceleration between samples on both cycles, never 0 and then twice that."""
+    import dataclasses
+
+    base = config()
+    friction = dataclasses.replace(base.friction, effects={"inertia": {"m_eff_kg": 20.0}})
+    comp = Compensator(dataclasses.replace(base, friction=friction))
+    inp, out = Inputs.allocate(base.cables), Outputs.allocate(base.cables)
+    inp.pose[:] = base.geometry.home_pose
+    acc = 0.5  # m/s^2 between samples two cycles apart
+    inp.tension_raw_n[:] = 200.0
+    for cycle in range(40):
+        k = cycle // 2
+        inp.plc_heartbeat = k
+        inp.velocity_m_s[:] = 0.05 + acc * k * 2 * DT
+        inp.read_time_s = float(cycle)
+        comp.step(inp, cycle * DT, out)
+        if k >= 1:
+            assert_allclose(comp.model_in_n, 200.0 + 20.0 * acc, rtol=0, atol=1e-9)

@@ -25,7 +25,7 @@ def test_the_shipped_files_are_found_through_the_package():
         assert data_file(name).is_file(), name
     assert data_file("default.yaml") == DEFAULT_CONFIG_PATH
     # the wheel maps config/ to gateway/data/ (setup.py): every shipped file matches it
-    patterns = {p.suffix for p in (ROOT / "config").iterdir()}
+    patterns = {p.suffix for p in (ROOT / "config").rglob("*") if p.is_file()}
     assert patterns <= {".yaml", ".eds"}, patterns
 
 

@@ -1,5 +1,7 @@
 """``cdpr-gateway diagnose RECORDING --model MODEL.yaml --json REPORT.json [--report DIR]
-[--validate OTHER]``: see spec/recording.md and :mod:`gateway.diagnose.engine`."""
+[--validate OTHER] [--write-model FITTED.yaml]``: see spec/recording.md,
+:mod:`gateway.diagnose.engine` and (the model file's fitted effects)
+:mod:`gateway.diagnose.writemodel`."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from gateway.config import Config, config_from_mapping, load_friction, output_pa
 from gateway.configtypes import read_yaml
 from gateway.diagnose import platform
 from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
+from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
 from gateway.recording import Recording, read_recording
 
@@ -31,6 +34,11 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         "--validate",
         type=Path,
         help="a second recording of the same machine, scored but never fitted",
+    )
+    parser.add_argument(
+        "--write-model",
+        type=Path,
+        help="write the model plus every fitted effect here (friction.effects)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
@@ -53,6 +61,11 @@ def _tensions(rec: Recording, cfg: Config | None, say):
     return tp, platform.mass_sensitivity(rec, cfg, say)
 
 
+def _read(path: Path, model: Path) -> Recording:
+    """A further recording, relative to the model's fitted effects (as the diagnosed one)."""
+    return relative_to_model(read_recording(path), load_friction(model))[0]
+
+
 def run_command(command: str, args: argparse.Namespace) -> int:
     start = time.perf_counter()
 
@@ -61,8 +74,11 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     output_path(args.json, "--json")  # before the work; never creates directories
-    friction, cfg = load_model(args.model)
-    rec = read_recording(args.recording)
+    if args.write_model is not None:
+        output_path(args.write_model, "--write-model")
+    model_friction, cfg = load_model(args.model)
+    rec, nominal = relative_to_model(read_recording(args.recording), model_friction)  # type: ignore[arg-type]
+    friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
         + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
@@ -70,13 +86,13 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
-        wrec = None if args.validate is None else read_recording(args.validate)
+        wrec = None if args.validate is None else _read(args.validate, args.model)
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
         tp, dm = _tensions(rec, cfg, say)
         validation = None
         if args.validate is not None:
-            vrec = read_recording(args.validate)
+            vrec = _read(args.validate, args.model)
             vtp, vdm = _tensions(vrec, cfg, say)
             validation = (vrec, vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
@@ -93,6 +109,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         else:
             write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
+    if args.write_model is not None:
+        write_model(args.write_model, args.model, model_friction, diag.report, rec)  # type: ignore[arg-type]
+        say(f"fitted model in {args.write_model}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"
     print(

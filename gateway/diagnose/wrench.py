@@ -42,7 +42,6 @@ from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.platform import require_geometry
 from gateway.errors import RecordingError
 from gateway.model import chain, kinematics, statics
-from gateway.model import effects as fx
 from gateway.recording import Recording
 
 PER_CABLE = ("coulomb", "viscous", "inertia", "gain", "offset", "drift")
@@ -61,6 +60,9 @@ STEP = {"mu": 1e-3, "f0_n": 0.1, "c_ns_m": 1.0, "m_eff_kg": 0.1, "g": 1e-3, "c_n
 FIT_BUDGET = 25_000
 """Samples the selection and the fit use at most (memory: ~48 columns x 6 rows each)."""
 INSTRUMENT_S = 0.05
+DERIVATIVE_S = 0.2
+"""Moving average (s) before the pose is differentiated, on jittered time stamps only
+(:func:`_smooth_derivatives`): a 0.3 Hz motion loses 2 % of its acceleration."""
 """Moving-average window (s) of the readings the Jacobian is computed on."""
 VIF_MAX = 1000.0
 """A cable's parameter of an effect is identifiable when its variance inflation
@@ -120,8 +122,7 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
     a_mat = kinematics.structure_matrix_batch(
         np.asarray(geo.frame_anchors_m), np.asarray(geo.platform_anchors_m), pose
     )
-    vel = np.gradient(pose[:, :3], t, axis=0)
-    acc = np.gradient(vel, t, axis=0)
+    vel, acc = _smooth_derivatives(t, pose[:, :3])
     com = geo.center_of_mass_m
     w0 = statics.gravity_wrench_batch(mass, geo.gravity_m_s2, pose, com)
     w0 = w0 + statics.inertial_wrench(mass, acc)
@@ -132,7 +133,7 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
         t=t,
         v=v,
         ts=rec.tension_sensor[ok].astype(float),
-        a=fx.acceleration(t, v),
+        a=_smooth_derivatives(t, v)[0],  # = fx.acceleration on evenly spaced rows
         a_mat=a_mat,
         w0=w0,
         dw_dm=dw,
@@ -144,9 +145,37 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
     )
 
 
-def _window(t: np.ndarray) -> int:
+def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and second time derivative of ``x`` (N, k). On evenly spaced rows plain
+    differences; otherwise over a moving average of :data:`DERIVATIVE_S` of ``x`` and of
+    ``t`` (odd reflection at the ends keeps a ramp a ramp). A recording made by the gateway
+    stamps each row with its read time (jitter of a cycle): plain differences of such rows
+    turn that jitter into accelerations of tens of m/s^2. On a setpoint trajectory (< a
+    few Hz) the average changes nothing else."""
+    steps = np.diff(t)
+    n = _window(t, DERIVATIVE_S) | 1
+    if steps.size < 2 or np.std(steps) <= 1e-6 * np.median(steps) or t.size <= n + 2:
+        vel = np.gradient(x, t, axis=0)
+        return vel, np.gradient(vel, t, axis=0)
+    ts = _box(t, n)
+    if np.any(np.diff(ts) <= 0):
+        ts = t
+    vel = np.gradient(_box(x, n), ts, axis=0)
+    return vel, np.gradient(_box(vel, n), ts, axis=0)
+
+
+def _box(x: np.ndarray, n: int) -> np.ndarray:
+    """Moving average over ``n`` (odd) rows, the ends extended by odd reflection."""
+    h = n // 2
+    lo = 2.0 * x[:1] - x[h:0:-1]
+    hi = 2.0 * x[-1:] - x[-2 : -h - 2 : -1]
+    padded = np.concatenate([lo, x, hi])
+    return uniform_filter1d(padded, n, axis=0, mode="nearest")[h : h + x.shape[0]]
+
+
+def _window(t: np.ndarray, seconds: float = INSTRUMENT_S) -> int:
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-    return int(max(1, min(round(INSTRUMENT_S / max(dt, 1e-9)), t.size // 10 or 1)))
+    return int(max(1, min(round(seconds / max(dt, 1e-9)), t.size // 10 or 1)))
 
 
 def neutral(effect: str, nom: Nominal, m: int) -> np.ndarray:
