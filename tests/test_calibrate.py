@@ -61,6 +61,7 @@ def test_bad_seconds_is_refused(tmp_path, capsys):
 
 @pytest.mark.loopback
 @pytest.mark.slow
+@pytest.mark.long
 def test_calibrate_viscous_closed_form_closes_the_loop(tmp_path, capsys):
     out = tmp_path / "cal"
     argv = ["calibrate", "--config", str(EXAMPLES / "viscous.yaml"), "--seconds", str(SECONDS),
