@@ -63,6 +63,7 @@ FLAG_STUCK = 4
 FLAG_STALE = 8
 RANGE_MARGIN = 0.05  # readings down to -5 % of the range are noise around zero, not faults
 MOVING_M_S = 1e-6  # |setpoint velocity| above this counts as moving for the stuck check
+PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples (inertia)
 # The chain's time step is the time since the previous step (overruns: the skipped cycles'
 # cable travel counts), bounded to this many periods: after an outage the setpoint motion
 # in between is unknown, so its travel is not extrapolated from the first velocity after it.
@@ -204,6 +205,7 @@ class Compensator:
         self._sample_at = math.nan  # when the last new PLC sample arrived
         self._sample_dt = 0.0  # time between the last two new PLC samples
         self._heartbeat = -1
+        self._plc_period_s = math.nan  # the PLC's sample spacing, averaged over samples
         self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
         self._length_in = np.zeros(m)
         self._pose_in = np.zeros(6)
@@ -276,14 +278,25 @@ class Compensator:
     def _online_inputs(self, now: float, heartbeat: int) -> None:
         """Gain, offset, inertia, eccentricity removed. The inertia's acceleration is the
         backward difference between *new* PLC samples (a new heartbeat or a new setpoint
-        velocity) over the time between their arrivals; a cycle that reads the same sample
-        again holds it (a difference of 0 over one cycle, then of two samples over the
-        next, would swing the inertia term between 0 and twice its size)."""
-        new = heartbeat != self._heartbeat or _differs(self.velocity_m_s, self._velocity_prev)
+        velocity); a cycle that reads the same sample again holds it (a difference of 0
+        over one cycle, then of two samples over the next, would swing the inertia term
+        between 0 and twice its size). The time between two samples ``k`` heartbeats apart
+        is ``k`` times the PLC's sample spacing, averaged over past samples
+        (``PLC_PERIOD_GAIN``): single arrival times carry the bus jitter, which the
+        difference quotient would amplify. Without a counting heartbeat, or across a gap
+        of more than ``MAX_STEP_PERIODS`` samples, the arrival times are used."""
+        steps = (heartbeat - self._heartbeat) & 0xFFFF if self._heartbeat >= 0 else 0
+        new = steps != 0 or _differs(self.velocity_m_s, self._velocity_prev)
         self._heartbeat = heartbeat
         if new:
             dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
             dt = dt if dt > 0.0 else 0.0
+            if 1 <= steps <= MAX_STEP_PERIODS and dt > 0.0:
+                spacing = dt / steps
+                est = self._plc_period_s
+                est = spacing if est != est else est + PLC_PERIOD_GAIN * (spacing - est)
+                self._plc_period_s = est
+                dt = steps * est
             self._online(
                 self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
                 self._length_in, self.model_in_n,

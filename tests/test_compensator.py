@@ -163,3 +163,28 @@ def test_inertia_holds_its_acceleration_when_a_plc_sample_is_read_twice():
         comp.step(inp, cycle * DT, out)
         if k >= 1:
             assert_allclose(comp.model_in_n, 200.0 + 20.0 * acc, rtol=0, atol=1e-9)
+
+
+def test_inertia_acceleration_ignores_the_jitter_of_arrival_times():
+    """PLC samples 1 ms apart (heartbeat +1 each) read at jittered times (+-40 % of a
+    period): the acceleration uses the PLC's averaged sample spacing, so the inertia term
+    stays at m_eff * a instead of swinging with each arrival's jitter."""
+    import dataclasses
+
+    base = config()
+    friction = dataclasses.replace(base.friction, effects={"inertia": {"m_eff_kg": 20.0}})
+    comp = Compensator(dataclasses.replace(base, friction=friction))
+    inp, out = Inputs.allocate(base.cables), Outputs.allocate(base.cables)
+    inp.pose[:] = base.geometry.home_pose
+    inp.tension_raw_n[:] = 200.0
+    acc = 0.5
+    rng = np.random.default_rng(3)
+    errors = []
+    for k in range(600):
+        inp.plc_heartbeat = k & 0xFFFF
+        inp.velocity_m_s[:] = 0.05 + acc * k * DT
+        now = k * DT + rng.uniform(-0.4, 0.4) * DT
+        comp.step(inp, now, out)
+        if k >= 300:  # after the spacing estimate has settled
+            errors.append(np.max(np.abs(comp.model_in_n - (200.0 + 20.0 * acc))))
+    assert max(errors) < 0.05 * 20.0 * acc  # within 5 % of the term (jitter alone: +-70 %)
