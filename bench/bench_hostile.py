@@ -16,29 +16,20 @@ storm|ratchet [SECONDS]`` runs one (the same script measured the code before the
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import tempfile
 import threading
 import time
-from typing import Any
 
 from drivers.base import Inputs, make_driver
-from gateway.config import Config, TlsConfig, load_config
+from gateway.config import Config, TlsConfig
 from gateway.errors import DriverError, DriverTimeoutError
 from gateway.loop import CyclicService
-from tests.hostile_modbus import LOCALHOST, HostileServer, make_tls_pair
+from tests.hostile_modbus import HostileServer, make_tls_pair
+from tests.hostile_modbus import gateway_config as _config
 
 STORM_MODES = ("exception", "malformed", "accept_drop", "reset_mid_frame", "tls_refuse")
 LATENCY_S = 0.0465
-
-
-def _config(port: int, **modbus: Any) -> Config:
-    cfg = load_config()
-    mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
-    bus = dataclasses.replace(cfg.bus, driver="modbus_tcp", modbus_tcp=mb)
-    metrics = dataclasses.replace(cfg.metrics, enabled=False)
-    return dataclasses.replace(cfg, bus=bus, metrics=metrics)
 
 
 def storm_one(mode: str, seconds: float) -> tuple[float, int]:

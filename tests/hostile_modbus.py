@@ -23,6 +23,7 @@ after ``max_seconds``.
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import ssl
 import struct
@@ -30,6 +31,9 @@ import subprocess
 import threading
 import time
 from dataclasses import dataclass
+from typing import Any
+
+from gateway.config import Config, load_config
 
 LOCALHOST = "127.0.0.1"
 MODES = (
@@ -213,3 +217,12 @@ def make_tls_pair(directory: str) -> dict[str, str]:
         )  # fmt: skip
         paths[f"{who}_cert"], paths[f"{who}_key"] = cert, key
     return paths
+
+
+def gateway_config(port: int, **modbus: Any) -> Config:
+    """The default config pointed at a hostile server on loopback (metrics off)."""
+    cfg = load_config()
+    mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
+    bus = dataclasses.replace(cfg.bus, driver="modbus_tcp", modbus_tcp=mb)
+    metrics = dataclasses.replace(cfg.metrics, enabled=False)
+    return dataclasses.replace(cfg, bus=bus, metrics=metrics)

@@ -8,32 +8,23 @@ socket timeout); a PLC that accepts no connection never stalls the cycle.
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import socket
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from drivers.base import Inputs, make_driver
 from drivers.modbus_tcp import ModbusTcpDriver
-from gateway.config import Config, TlsConfig, load_config
+from gateway.config import Config, TlsConfig
 from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
 from gateway.loop import CyclicService
 from tests.hostile_modbus import LOCALHOST, HostileServer, make_tls_pair
+from tests.hostile_modbus import gateway_config as _config
 
 pytestmark = pytest.mark.loopback
-
-
-def _config(port: int, **modbus: Any) -> Config:
-    cfg = load_config()
-    mb = dataclasses.replace(cfg.bus.modbus_tcp, host=LOCALHOST, port=port, **modbus)
-    bus = dataclasses.replace(cfg.bus, driver="modbus_tcp", modbus_tcp=mb)
-    metrics = dataclasses.replace(cfg.metrics, enabled=False)
-    return dataclasses.replace(cfg, bus=bus, metrics=metrics)
 
 
 def test_reply_from_another_unit_is_dropped_and_counted() -> None:
