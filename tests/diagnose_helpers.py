@@ -106,7 +106,9 @@ def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: n
 
     Normal force from the law of cosines with the pulley's sensor-side tension of the
     previous step (explicit), friction level ``(mu F_N + f0 / p) (1 + sk exp(-(v/svs)^2))``
-    per pulley (the load-independent ``f0`` is the cable's, shared by its ``p`` pulleys);
+    per pulley (the load-independent ``f0`` is the cable's, shared by its ``p`` pulleys;
+    its own tension drop raises ``F_N`` a little, which the model's ``lambda T + f0``
+    leaves out: ~1 % of ``f0``, docs/physics.md);
     without pulleys ``f0`` acts alone: ``- sgn(v) f0`` (a rig's seals and guides)."""
     n, p = tp.size, wrap.size
     out = np.empty(n)
