@@ -100,9 +100,15 @@ class Foreign:
 def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: no cover
     """Sensor tension (N,) from platform tension and velocity; explicit Euler on x.
 
+    Dahl: ``dF/dx = sigma (1 - F / F_R sgn(v))`` (beta = 1) exactly as written, without a
+    clamp of ``|F|`` to ``F_R`` (a clamp is not Dahl: it snapped the state to a falling
+    level at once, even at standstill, and the model rightly does not).
+
     Normal force from the law of cosines with the pulley's sensor-side tension of the
     previous step (explicit), friction level ``(mu F_N + f0 / p) (1 + sk exp(-(v/svs)^2))``
-    per pulley (the load-independent ``f0`` is the cable's, shared by its ``p`` pulleys);
+    per pulley (the load-independent ``f0`` is the cable's, shared by its ``p`` pulleys;
+    its own tension drop raises ``F_N`` a little, which the model's ``lambda T + f0``
+    leaves out: ~1 % of ``f0``, docs/physics.md);
     without pulleys ``f0`` acts alone: ``- sgn(v) f0`` (a rig's seals and guides)."""
     n, p = tp.size, wrap.size
     out = np.empty(n)
@@ -124,9 +130,12 @@ def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: n
             fr = (mu[j] * fn + f0) * (1.0 + sk * math.exp(-((v[k] / svs) ** 2)))
             if dahl:
                 if fr > 0:
-                    f[j] += sigma * (1.0 - f[j] / fr * s) * dx
-                    if abs(f[j]) > fr:
-                        f[j] = fr * np.sign(f[j])
+                    # eq. 14 as it stands: no clamp |F| <= F_R (a falling level is
+                    # approached over travel, and nothing moves while dx = 0); Euler
+                    # sub-steps keep sigma |dx| / F_R <= 0.05 per sub-step
+                    sub = max(1, math.ceil(sigma * abs(dx) / fr / 0.05))
+                    for _ in range(sub):
+                        f[j] += sigma * (1.0 - f[j] / fr * s) * dx / sub
                 else:
                     f[j] = 0.0
             else:

@@ -174,14 +174,23 @@ def table(scores: list[Score]) -> str:
         "",
         f"**Passed: {passed}/{len(scores)}.**",
         "",
-        "Notes. Class 4: on this generator, stepping the friction state with `v dt` of the "
-        "sample and with the exact (trapezoid) travel differ by < 0.5 % of the residual RMS "
-        "at 200 Hz +-0.8 ms (the error is second order, `a dt^2 / 2`), so the class's failure "
-        "does not reproduce here; the cases stay as regression cases. Class 6 is covered by "
-        "the physical bounds (tests in `tests/test_diagnose_issue11.py`). `dahl_f0`: `f0` "
-        "comes out 2.68 N for 3.0 N (-10.5 %, tolerance 10 %) while `mu` is 1 % high: with "
-        "the load varying by only +-40 %, `mu T` and `f0` are nearly collinear and the small "
-        "difference between the generator's pulley law and the model's moves `f0`.",
+        "Notes. Class 4: the false findings do not reproduce here (the cases stay as "
+        "regression cases), but since the generator's clamp is gone (below) the chain's "
+        "stepping with `v dt` of each sample instead of the trapezoid travel shows: noise-"
+        "free, 100 Hz +-2 ms leaves 0.25 N RMS after warm-up (0.03 N with trapezoid "
+        "travel), 250 Hz +-0.8 ms 0.05 N (0.016 N); exact travel in the chain is still "
+        "open. Class 6 is covered by "
+        "the physical bounds (tests in `tests/test_diagnose_issue11.py`). `dahl_f0` (and "
+        "every Dahl case) earlier failed on a generator bug: its Dahl state was clamped to "
+        "`|F| <= F_R`, which is not eq. 14 (a falling level was reached at once, even at "
+        "standstill); generator and model then differed by 0.30 N RMS (0.45 N at "
+        "standstill) and `f0` came out 2.68 N for 3.0 N whatever the noise, grid or `mu`. "
+        "Without the clamp they differ by 0.04 N RMS on a 5 kHz grid. What remains of the "
+        "`f0` bias (-4 %, noise-free) is model form amplified by the `mu`-`f0` correlation "
+        "(-0.988 on this +-40 % load): half from stepping the state with `v dt` of each "
+        "250 Hz sample instead of the trapezoid travel, half from the generator's normal "
+        "force including `f0`'s own tension drop (~1 % of `f0`); with `mu` fixed at its "
+        "truth `f0` is 3.00 N.",
         "",
         "| case | class | truth | found | pass | param err | held-out before -> after "
         "| validation before -> after | clipped | s |",

@@ -180,6 +180,43 @@ def test_f0_adds_to_the_coulomb_level_under_dahl() -> None:
     assert_allclose(force[n // 2 :], expected, rtol=0, atol=1e-9)
 
 
+def test_f0_splits_over_the_pulleys_under_dahl() -> None:
+    """At steady sliding each of the n pulleys tends to lambda_j T_j + f0 / n, T_j its own
+    platform-side tension (worked out here pulley by pulley, platform to sensor)."""
+    sigma, f0, tp = 800.0, 3.0, 300.0
+    pulleys = (PulleyConfig(90.0, 0.02), PulleyConfig(45.0, 0.03))  # j = 1 (sensor), 2
+    fr = FrictionConfig(model="dahl", pulleys=pulleys, sigma_n_m=sigma)
+    params = fx.chain_params(fr, fx.effect_values({"coulomb": {"f0_n": f0}}, 1), 1)
+    lam_pos, lam_neg = (c[0] for c in coulomb_coefficients(params))
+    n, dt = 3000, 1e-3
+    for speed, lam in ((0.2, lam_pos), (-0.2, lam_neg)):  # 0.6 m: ~40 relaxation lengths
+        s = math.copysign(1.0, speed)
+        ts = simulate(params, np.full((n, 1), tp), np.full((n, 1), speed), dt)[-1, 0]
+        t2 = tp
+        t1 = t2 - s * (lam[1] * t2 + f0 / 2)
+        want = t1 - s * (lam[0] * t1 + f0 / 2)
+        assert ts == pytest.approx(want, abs=1e-9), speed
+
+
+def test_dahl_level_falls_over_travel_not_at_once() -> None:
+    """No clamp |F| <= F_R: when the tension (so the level lambda T + f0) drops at
+    standstill the state stays; moving again it relaxes over travel to the new level."""
+    sigma, f0, dt = 800.0, 2.0, 1e-3
+    fr = FrictionConfig(model="dahl", pulleys=(PulleyConfig(90.0, 0.02),), sigma_n_m=sigma)
+    params = fx.chain_params(fr, fx.effect_values({"coulomb": {"f0_n": f0}}, 1), 1)
+    lam = float(coulomb_coefficients(params)[0][0, 0])
+    k1, k2, k3 = 3000, 3500, 5000  # slide at 300 N, stand at 100 N, slide at 100 N
+    tp = np.where(np.arange(k3) < k1, 300.0, 100.0)[:, None]
+    k = np.arange(k3)
+    v = np.where(k < k1, 0.2, np.where(k >= k2, 0.05, 0.0))[:, None]
+    force = tp[:, 0] - simulate(params, tp, v, dt)[:, 0]
+    high, low = lam * 300.0 + f0, lam * 100.0 + f0
+    assert force[k1 - 1] == pytest.approx(high, abs=1e-9)
+    assert_allclose(force[k1:k2], high, rtol=0, atol=1e-12)  # standstill: above the level
+    x = 0.05 * dt * np.arange(1, k3 - k2 + 1)
+    assert_allclose(force[k2:], low + (high - low) * np.exp(-sigma * x / low), rtol=0, atol=1e-9)
+
+
 def test_eccentricity_phase_from_travel_to_length() -> None:
     r, l0, phi = 0.03, 2.345, 0.7
     length = l0 + np.linspace(0, 0.5, 50)
