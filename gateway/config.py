@@ -183,12 +183,20 @@ class RealtimeConfig:
     cpus: tuple[int, ...] = ()  # CPU affinity of the cycle's thread; () leaves it as is
     lock_memory: bool = True  # mlockall(MCL_CURRENT | MCL_FUTURE): no page faults
     gc_off: bool = True  # after the start-up gc.freeze(), no garbage collection at all
+    # held in /dev/cpu_dma_latency while running: idle CPUs poll instead of halting, so a
+    # wake-up (the next deadline, the PLC's reply) is not delayed by leaving a sleep state;
+    # None leaves the CPUs' idle states alone
+    cpu_dma_latency_us: int | None = 0
 
     def __post_init__(self) -> None:
         if self.policy != "other":
             require(1 <= self.priority <= 99, "priority must be in 1..99 for fifo and rr")
         require(all(c >= 0 for c in self.cpus), "cpus must be CPU numbers >= 0")
         require(len(set(self.cpus)) == len(self.cpus), "cpus must not repeat a CPU")
+        require(
+            self.cpu_dma_latency_us is None or 0 <= self.cpu_dma_latency_us <= 2_000_000_000,
+            "cpu_dma_latency_us must be null or in 0..2000000000",
+        )
 
 
 @dataclass(frozen=True)

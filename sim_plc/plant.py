@@ -25,7 +25,9 @@ so a diagnosis can find it. Without ``mass_change`` ``tension_platform`` is the 
 
 Two forms over the same code: :func:`make_recording` (batch, vectorised) and
 :meth:`Plant.step` (one period into a :class:`ProcessImage`; setpoints and statics are
-precomputed one chunk ahead, spread evenly over the cycles of the chunk before).
+precomputed one chunk ahead, spread evenly over the cycles of the chunk before). The soft
+PLC runs that stepping in a worker process and only replays its samples
+(:mod:`sim_plc.prepare`, :meth:`Plant.use_chunks`).
 """
 
 from __future__ import annotations
@@ -282,8 +284,9 @@ class Plant:
         self.reset()
 
     def use_chunks(self, chunks: Any) -> None:
-        """Take solved chunks from ``chunks.get(index)`` (:class:`sim_plc.prepare.ChunkWorker`,
-        another process) instead of preparing them here; restarts at t = 0."""
+        """Replay the samples of ``chunks.get(index)`` (:class:`sim_plc.prepare.ChunkWorker`:
+        the same plant run in another process) instead of stepping the physics here;
+        restarts at t = 0."""
         self.chunks = chunks
         self.reset()
 
@@ -294,9 +297,9 @@ class Plant:
         self.rng = np.random.default_rng(m.sim.seed)
         self.stepper = chain.ChainStepper(m.params, self.period_s, forward=False)
         self.fx = effects.ForwardStepper(m.effects, m.cables, self.period_s)
-        if self.chunks is not None:
+        if self.chunks is not None:  # the worker's plant runs; this one replays it
             self._cur, self._nxt = self.chunks.get(0), self.chunks.get(1)
-            self._solved = self.chunk  # solved by the worker
+            self._solved = self.chunk
         else:
             self._cur = m.setpoints(self._times(0))
             self._nxt = m.prepare(self._times(1))
@@ -313,11 +316,28 @@ class Plant:
         """Time of the next sample ``step()`` produces (s)."""
         return self.k * self.period_s
 
-    def _advance_chunk(self) -> None:
-        if self.chunks is not None:
+    def _replay(self, image: ProcessImage | None) -> None:
+        """Sample ``k`` as the worker's plant produced it: a row copy, no physics here."""
+        i = self.k % self.chunk
+        if i == 0 and self.k > 0:
             self._cur = self._nxt
             self._nxt = self.chunks.get(self.k // self.chunk + 1)
-            return
+        cur = self._cur
+        np.copyto(self.analog, cur.analog[i])
+        np.copyto(self.counts, cur.counts[i], casting="unsafe")
+        if image is not None:
+            with image.lock:
+                image.raw_counts[:] = self.counts
+                image.velocity_m_s[:] = cur.velocity[i]
+                image.length_m[:] = cur.length[i]
+                image.pose[:] = cur.pose[i]
+                image.platform_mass_kg = float(cur.mass[i])
+                image.plc_heartbeat = (image.plc_heartbeat + 1) & 0xFFFF
+                image.true_tension_n[:] = cur.tension_true[i]
+                image.time_s = float(cur.t[i])
+        self.k += 1
+
+    def _advance_chunk(self) -> None:
         while self._solved < self.chunk:
             self.model.solve_tensions(self._nxt, self._solved)
             self._solved += 1
@@ -327,6 +347,9 @@ class Plant:
 
     def step(self, image: ProcessImage | None = None) -> None:
         """Produce sample ``k`` (time ``k * period_s``) and write it into ``image``."""
+        if self.chunks is not None:
+            self._replay(image)
+            return
         m, i = self.model, self.k % self.chunk
         if i == 0 and self.k > 0:
             self._advance_chunk()

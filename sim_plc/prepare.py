@@ -1,21 +1,25 @@
-"""Plant chunks prepared in a worker process, so the soft PLC's serving process never does.
+"""The plant run in a worker process, so the soft PLC's serving process only replays it.
 
-:class:`sim_plc.plant.Plant` steps through chunks of ``chunk`` samples whose setpoints and
-statics (kinematics, wrench, one tension distribution per sample) are computed ahead.
-Done in the PLC's own process, that preparation held the GIL for 1.4-2.1 ms every 250th
-step: the Modbus server thread, which needs the same GIL, stalled that long (issue 12).
+:class:`sim_plc.plant.Plant` in its own process would hold the GIL for every step (the
+chain, the effects, the noise and the A/D: 20-60 us, over 100 us one step in ten on a
+busy machine) and, every 250th step, for the statics of the next chunk (1.4-2.1 ms): the
+Modbus server thread, which needs the same GIL, stalled that long (issue 12).
 
-:class:`ChunkWorker` computes them in a separate process (``spawn``: no threads or locks
-of the parent are inherited), only the arrays a step reads (``t``, ``pose``, ``length``,
-``velocity``, ``mass``, ``tension_true``: ~60 kB per 250 samples). They live in shared memory
-(``RawArray``, ``ahead + 3`` slots): the worker writes chunk ``i`` into slot
-``i % slots`` and sends only a note ``(i, error length)``: nothing is copied or
-unpickled in the serving process; requests and notes are fixed-size records on a socket,
-read without blocking (a few system calls per chunk). ``get(i)`` returns chunk ``i`` and
-asks for the next ``ahead`` chunks, so a chunk is normally ready long before it is
-needed; when it is not (start-up, an overloaded machine) ``get`` waits and counts it in
-``waits``. An error of the worker (an infeasible pose) is raised by ``get`` for the chunk
-it concerns.
+:class:`ChunkWorker` runs the plant itself, a whole :class:`~sim_plc.plant.Plant` stepped
+sample by sample in a separate process (``spawn``: no threads or locks of the parent are
+inherited), ``chunk`` samples at a time, and hands over what a step of the serving
+process writes into its process image (``t``, ``pose``, ``length``, ``velocity``,
+``mass``, ``tension_true``, the ``analog`` reading and the A/D ``counts``: ~80 kB per 250
+samples). The plant is open loop (nothing the gateway writes changes it), so it can run
+ahead. The samples live in shared memory (``RawArray``, ``ahead + 3`` slots): the worker
+writes chunk ``i`` into slot ``i % slots`` and sends only a note ``(i, error length)``:
+nothing is copied or unpickled in the serving process; requests and notes are fixed-size
+records on a socket, read without blocking (a few system calls per chunk). ``get(i)``
+returns chunk ``i`` and asks for the next ``ahead`` chunks, so a chunk is normally ready
+long before it is needed; when it is not (start-up, an overloaded machine) ``get`` waits
+and counts it in ``waits``. A request for an earlier chunk than the worker's plant has
+reached (the serving plant was reset) restarts the worker's plant from t = 0. An error of
+the worker (an infeasible pose) is raised by ``get`` for the chunk it concerns.
 
 The worker gives up any real-time setting it inherited (SCHED_OTHER, every CPU): it is
 background work and must not compete with the cycle it feeds. Under real-time settings the
@@ -33,6 +37,7 @@ import pickle
 import select
 import struct
 import time
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -56,13 +61,29 @@ def _background() -> None:
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
 
 
-FIELDS = ("t", "pose", "length", "velocity", "mass", "tension_true")  # what Plant.step reads
+# what a step of the serving process writes into its image, per sample
+FIELDS = ("t", "pose", "length", "velocity", "mass", "tension_true", "analog", "counts")
+
+
+@dataclass
+class Chunk:
+    """One chunk of plant samples (views of a shared-memory slot; rows are samples)."""
+
+    t: np.ndarray
+    pose: np.ndarray
+    length: np.ndarray
+    velocity: np.ndarray
+    mass: np.ndarray
+    tension_true: np.ndarray
+    analog: np.ndarray
+    counts: np.ndarray  # float64 holding the int16 A/D counts exactly
 
 
 def _slot_views(raw: Any, slots: int, chunk: int, cables: int) -> list[dict[str, np.ndarray]]:
     """Numpy views of each slot of the shared buffer: one array per field of FIELDS."""
     shapes = {"t": (chunk,), "pose": (chunk, 6), "length": (chunk, cables), "mass": (chunk,),
-              "velocity": (chunk, cables), "tension_true": (chunk, cables)}  # fmt: skip
+              "velocity": (chunk, cables), "tension_true": (chunk, cables),
+              "analog": (chunk, cables), "counts": (chunk, cables)}  # fmt: skip
     flat = np.frombuffer(raw, dtype=np.float64)
     views, off = [], 0
     for _ in range(slots):
@@ -76,7 +97,7 @@ def _slot_views(raw: Any, slots: int, chunk: int, cables: int) -> list[dict[str,
 
 
 def slot_doubles(chunk: int, cables: int) -> int:
-    return chunk * (1 + 6 + 1 + 3 * cables)
+    return chunk * (1 + 6 + 1 + 5 * cables)
 
 
 def _read_exact(fd: int, n: int) -> bytes | None:
@@ -93,30 +114,55 @@ def _read_exact(fd: int, n: int) -> bytes | None:
     return out
 
 
+def _run_chunk(plant: Any, image: Any, slot: dict[str, np.ndarray]) -> None:
+    """Step ``plant`` through one chunk, each sample's image values into ``slot``."""
+    for j in range(plant.chunk):
+        plant.step(image)
+        slot["t"][j] = image.time_s
+        slot["pose"][j] = image.pose
+        slot["length"][j] = image.length_m
+        slot["velocity"][j] = image.velocity_m_s
+        slot["mass"][j] = image.platform_mass_kg
+        slot["tension_true"][j] = image.true_tension_n
+        slot["analog"][j] = plant.analog
+        slot["counts"][j] = plant.counts
+
+
 def _worker(conn: Connection, raw: Any, slots: int, cfg: Config, sim: SimPlcConfig,
             chunk: int) -> None:  # fmt: skip
     """Serve chunk indices (int64 requests on ``conn``'s socket; -1 or EOF: stop): chunk
-    ``i`` is written into slot ``i % slots`` of ``raw``, then a note ``(i, n)`` is sent,
-    followed by ``n`` bytes of the pickled exception when it failed (n > 0)."""
+    ``i`` of the plant's run is written into slot ``i % slots`` of ``raw``, then a note
+    ``(i, n)`` is sent, followed by ``n`` bytes of the pickled exception when it failed
+    (n > 0). The plant runs forward only; an earlier index restarts it from t = 0."""
     _background()
-    from sim_plc.plant import PlantModel  # here: the parent's plant.py imports this module
+    from sim_plc.image import ProcessImage  # here: the parent's plant.py imports this module
+    from sim_plc.plant import Plant
 
     fd = conn.fileno()
-    model = PlantModel(cfg, sim)
-    views = _slot_views(raw, slots, chunk, model.cables)
-    period = model.sim.period_s
+    plant = Plant(cfg, sim, chunk)
+    image = ProcessImage(plant.model.cables)
+    views = _slot_views(raw, slots, chunk, plant.model.cables)
+    scratch = _slot_views(np.zeros(slot_doubles(chunk, plant.model.cables)), 1, chunk,
+                          plant.model.cables)[0]  # fmt: skip
+    done = 0  # chunks the plant has run
     while (request := _read_exact(fd, _REQUEST.size)) is not None:
         index = _REQUEST.unpack(request)[0]
         if index < 0:
             return
-        t = (index * chunk + np.arange(chunk)) * period
         error = b""
         try:
-            sp = model.setpoints(t)
-            for name in FIELDS:
-                views[index % slots][name][...] = getattr(sp, name)
+            if index < done:
+                plant.reset()
+                done = 0
+            while done < index:  # not in normal use: requests come in order
+                _run_chunk(plant, image, scratch)
+                done += 1
+            _run_chunk(plant, image, views[index % slots])
+            done += 1
         except Exception as exc:  # raised by get()
             error = pickle.dumps(exc)
+            plant.reset()
+            done = 0
         try:
             os.write(fd, _NOTE.pack(index, len(error)) + error)
         except OSError:
@@ -141,9 +187,6 @@ class ChunkWorker:
         self._last = -1
 
     def start(self) -> ChunkWorker:
-        from sim_plc.plant import Setpoints
-
-        self._setpoints = Setpoints
         ctx = mp.get_context("spawn")
         cables = self.cfg.cables
         raw = ctx.RawArray("d", self.slots * slot_doubles(self.chunk, cables))
@@ -219,9 +262,8 @@ class ChunkWorker:
             self._wait_for(next(iter(self._asked)))
         self._ready.clear()
 
-    def get(self, index: int) -> Any:
-        """Chunk ``index`` as ``Setpoints`` (views of shared memory; only the fields a
-        step reads, the others empty), valid until ``get(index + 2)``."""
+    def get(self, index: int) -> Chunk:
+        """Chunk ``index`` (views of shared memory), valid until ``get(index + 2)``."""
         if self._fd < 0:
             raise GatewayError("plant chunk worker: not started or closed")
         if index < self._last:
@@ -237,11 +279,7 @@ class ChunkWorker:
             del self._ready[stale]
         if error:
             raise pickle.loads(error)
-        v, empty = self._views[index % self.slots], np.empty(0)
-        return self._setpoints(
-            v["t"], v["pose"], v["length"], v["velocity"], empty, v["mass"], empty, empty,
-            v["tension_true"], empty,
-        )  # fmt: skip
+        return Chunk(**self._views[index % self.slots])
 
     def close(self, timeout_s: float = 5.0) -> None:
         conn, proc = self._conn, self._proc

@@ -206,7 +206,8 @@ def test_sim_plc_realtime_flag_reports_one_line(monkeypatch, capsys, tmp_path) -
 
     data = yaml.safe_load(REPLICATE_YAML.read_text())
     data.setdefault("loop", {})["realtime"] = {"policy": "other", "priority": 0,
-                                               "lock_memory": False, "gc_off": False}  # fmt: skip
+                                               "lock_memory": False, "gc_off": False,
+                                               "cpu_dma_latency_us": None}  # fmt: skip
     path = tmp_path / "rt.yaml"
     path.write_text(yaml.safe_dump(data))
 
@@ -229,7 +230,8 @@ def test_sim_plc_fifo_with_the_chunk_worker_serves_then_stops(monkeypatch, capsy
     import yaml
 
     data = yaml.safe_load(REPLICATE_YAML.read_text())
-    data.setdefault("loop", {})["realtime"] = {"lock_memory": False, "gc_off": False}
+    data.setdefault("loop", {})["realtime"] = {"lock_memory": False, "gc_off": False,
+                                               "cpu_dma_latency_us": None}  # fmt: skip
     path = tmp_path / "rt.yaml"
     path.write_text(yaml.safe_dump(data))
 
