@@ -78,7 +78,8 @@ def _shared_fd(nbytes: int) -> int:
         fd = os.memfd_create("cdpr-gateway-record", os.MFD_CLOEXEC)
     except (AttributeError, OSError):  # not Linux, or a seccomp filter without memfd
         shm = "/dev/shm" if os.path.isdir("/dev/shm") else None
-        fd = os.dup(tempfile.TemporaryFile(dir=shm).fileno())  # already unlinked
+        with tempfile.TemporaryFile(dir=shm) as tmp:  # already unlinked
+            fd = os.dup(tmp.fileno())
     os.ftruncate(fd, nbytes)
     return fd
 
@@ -207,6 +208,9 @@ class Recorder:
             event = self._next_event(self._proc.stdout)
             if event is None or "error" in event:
                 self._proc.wait()
+                with contextlib.suppress(OSError):
+                    self._proc.stdin.close()
+                self._proc.stdout.close()
                 self._release()
                 code, why = (event or {}).get("error") or (0, "")
                 why = why or f"the writer process ended (exit status {self._proc.returncode})"

@@ -160,9 +160,9 @@ class Sink:
         with contextlib.suppress(OSError, ValueError):
             w._raw.close()  # a buffered file may still flush part of a row here
         with contextlib.suppress(OSError):
-            if w.path.suffix != ".gz" and w.path.is_file():
-                if w.path.stat().st_size > self.good_bytes:
-                    os.truncate(w.path, self.good_bytes)
+            path = w.path
+            if path.suffix != ".gz" and path.is_file() and path.stat().st_size > self.good_bytes:
+                os.truncate(path, self.good_bytes)
 
     def log_dropped(self, force: bool = False) -> None:
         now, dropped = time.monotonic(), self.ctl[DROPPED]
