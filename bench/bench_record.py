@@ -10,7 +10,8 @@ this process, without a recorder and with one (writing ``.csv.gz`` to a temporar
 directory, default ``record:`` settings) in alternating halves, so that a drifting load on
 a shared machine hits both kinds alike. Printed per kind: cycles, overruns, jitter
 p50/p99/p99.9, cycle p50/p99, CPU; for the recording: rows written, samples dropped, file
-size, the extra CPU, and the file read back with ``gateway.recording.read_recording``
+size, the extra CPU (in the gateway's process, and in the recorder's writer process), and
+the file read back with ``gateway.recording.read_recording``
 (samples, time to read, the reader's peak RSS growth). Figures only: nothing asserts on
 time.
 """
@@ -53,16 +54,20 @@ class _Runs:
     errors: int = 0
     wall: float = 0.0
     cpu: float = 0.0
+    writer_cpu: float = 0.0  # the recorder's writer process
     jitter: list[np.ndarray] = field(default_factory=list)
     cycle: list[np.ndarray] = field(default_factory=list)
 
     def add(self, cfg: Config, cycles: int, recorder: Recorder | None) -> None:
         service = CyclicService(cfg, build_driver(cfg), history=cycles + 16)
         service.recorder = recorder
+        pid = recorder.pid if recorder is not None else None
+        c0 = _process_cpu(pid)
         u0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
         service.run(cycles=cycles)
         u1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
         self.cpu += u1.ru_utime + u1.ru_stime - u0.ru_utime - u0.ru_stime
+        self.writer_cpu += _process_cpu(pid) - c0
         self.wall += w1 - w0
         s = service.stats
         self.cycles += s.cycles
@@ -82,6 +87,17 @@ class _Runs:
               f"errors {self.errors}")  # fmt: skip
         print(f"    jitter p50/p99/p99.9 {us(self.jitter, 50, 99, 99.9)}; "
               f"cycle p50/p99 {us(self.cycle, 50, 99)}")  # fmt: skip
+
+
+def _process_cpu(pid: int | None) -> float:
+    """User + system CPU seconds of process ``pid`` so far (/proc; 0 without one)."""
+    if pid is None:
+        return 0.0
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 class _Plc:
@@ -159,7 +175,8 @@ def run() -> None:
           f"{rec.dropped}, {size / 1e6:.1f} MB gzip ({size / max(rec.rows_written, 1):.0f} "
           f"B/row){', FAILED: ' + rec.failed if rec.failed else ''}")  # fmt: skip
     extra = recorded.cpu / recorded.wall - plain.cpu / plain.wall
-    print(f"    recording costs {100 * extra:+.1f} % of one core")
+    print(f"    recording costs {100 * extra:+.1f} % of one core in the gateway's process, "
+          f"{100 * recorded.writer_cpu / recorded.wall:.1f} % in the writer process")  # fmt: skip
     print(f"  overruns with/without recording: {recorded.overruns} / {plain.overruns}")
     print(f"  read back: {back.samples} samples, {back.cables} cables, mass "
           f"{'yes' if back.mass is not None else 'no'}, {took:.1f} s, peak RSS growth "

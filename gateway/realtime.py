@@ -42,9 +42,10 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from gateway.config import RealtimeConfig
+if TYPE_CHECKING:  # annotations only: the recorder's writer process imports this module
+    from gateway.config import RealtimeConfig  # without the model and numba
 
 MCL_CURRENT, MCL_FUTURE = 1, 2
 _POLICIES = {"fifo": "SCHED_FIFO", "rr": "SCHED_RR", "other": "SCHED_OTHER"}

@@ -1,17 +1,18 @@
-"""The gateway's recorder: ring buffer in the cycle, writer thread, rotation, failures."""
+"""The gateway's recorder: shared ring in the cycle, writer process, rotation, failures."""
 
 from __future__ import annotations
 
-import errno
+import fcntl
 import gzip
-import io
 import logging
+import os
 import signal
 import subprocess
 import sys
 import textwrap
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -47,36 +48,40 @@ def push_many(rec: Recorder, start: int, count: int) -> None:
         rec.push(k * 1e-3, inp, out)
 
 
-class BlockingFile(io.BytesIO):
-    """A file whose writes after the first (the header) wait until released."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.release = threading.Event()
-        self.writes = 0
-
-    def write(self, data: bytes) -> int:  # type: ignore[override]
-        self.writes += 1
-        if self.writes > 1:
-            self.release.wait(30)
-        return super().write(data)
-
-    def close(self) -> None:
-        self.final = self.getvalue()
-        super().close()
+def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return cond()
 
 
-class FullDisk(io.FileIO):
-    """A real file that fails with ENOSPC once it would exceed ``limit`` bytes."""
+def data_rows(text: str) -> list[str]:
+    return [x for x in text.splitlines() if not x.startswith("#")][1:]
 
-    limit = 3000
 
-    def write(self, data: bytes) -> int:  # type: ignore[override]
-        if self.tell() + len(data) > self.limit:
-            half = max(0, self.limit - self.tell())
-            super().write(bytes(data)[:half])  # a partial write, as a full disk does
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return super().write(data)
+def writer_children() -> list[int]:
+    """Pids of this process's children that run the recorder's writer."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmd = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == os.getpid() and b"gateway.recorder_proc" in cmd:
+            pids.append(int(entry.name))
+    return pids
+
+
+def gone(pid: int) -> bool:
+    """The process has exited (reaped, or a zombie nobody reaps in a container)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in "ZX"
+    except OSError:
+        return True
 
 
 def test_round_trip_through_the_reader(tmp_path: Path) -> None:
@@ -112,53 +117,140 @@ def test_column_selection(tmp_path: Path) -> None:
 
 
 def test_slow_disk_never_blocks_the_cycle_and_drops_are_counted(tmp_path: Path) -> None:
-    slow = BlockingFile()
-    cfg = RecordConfig(path=str(tmp_path / "slow.csv"), buffer_rows=64, batch_s=0.001)
-    rec = Recorder(cfg, M, opener=lambda p: slow)
-    rec.start()
-    push_many(rec, 0, 10)
-    deadline = time.monotonic() + 10
-    while slow.writes < 2 and time.monotonic() < deadline:  # the writer is stuck in write
-        time.sleep(0.001)
-    assert slow.writes == 2
-    pusher = threading.Thread(target=push_many, args=(rec, 10, 500))
-    pusher.start()
-    pusher.join(10)
-    assert not pusher.is_alive()  # 500 cycles pushed while the disk was stuck
-    assert not slow.release.is_set()
-    assert rec.dropped == 510 - 64  # the ring held 64 rows; every other sample counted
-    slow.release.set()
-    rec.close()
-    rows = [x for x in slow.final.decode().splitlines() if not x.startswith("#")][1:]
-    assert len(rows) == 64 == rec.rows_written
+    """The file is a FIFO nobody reads (a 4 KiB pipe): the writer blocks in write() like
+    on a stalled disk; the ring fills, later samples are dropped and counted."""
+    fifo = tmp_path / "slow.csv"
+    os.mkfifo(fifo)
+    rfd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        fcntl.fcntl(rfd, 1031, 4096)  # F_SETPIPE_SZ
+        cfg = RecordConfig(path=str(fifo), buffer_rows=64, batch_s=0.001)
+        rec = Recorder(cfg, M)
+        rec.start()
+        stuck: list[int] = []
+        for k in range(2000):  # the writer gets a chance every 10 samples
+            push_many(rec, k, 1)
+            if k % 10 == 0:
+                time.sleep(0.001)
+            if rec.dropped and not stuck:
+                stuck.append(k)
+        assert stuck, "the ring never filled"
+        assert rec.dropped > 1000 and rec.failed is None
+        os.set_blocking(rfd, True)
+        chunks: list[bytes] = []
+        reader = threading.Thread(
+            target=lambda: chunks.extend(iter(lambda: os.read(rfd, 65536), b""))
+        )
+        reader.start()  # the disk comes back: the writer drains the ring
+        rec.close()
+        reader.join(10)
+    finally:
+        os.close(rfd)
+    rows = data_rows(b"".join(chunks).decode())
+    assert len(rows) == rec.rows_written and rec.rows_written + rec.dropped == 2000
+    assert rec.rows_written >= 64  # the ring's rows were kept, not dropped
     t = np.array([float(r.split(",")[0]) for r in rows])
-    assert_allclose(t, np.arange(64) * 1e-3, atol=1e-12)  # the oldest rows, whole
+    assert_allclose(t, np.arange(t.size) * 1e-3, atol=1e-12)  # the oldest rows, whole
 
 
-def test_full_disk_stops_the_recorder_cleanly(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+@pytest.mark.parametrize("name", ["full.csv", "full.csv.gz"])
+def test_dev_full_stops_the_recorder_and_counts_the_rest(
+    tmp_path: Path, name: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    path = tmp_path / "full.csv"
-    cfg = RecordConfig(path=str(path), batch_s=0.001)
-    rec = Recorder(cfg, M, with_mass=True, opener=lambda p: FullDisk(p, "wb"))
+    """/dev/full: the kernel's ENOSPC on the first write that reaches it (a plain CSV at
+    the first flush; a gzip when its compressed data is flushed, at the latest at close)."""
+    path = tmp_path / name
+    path.symlink_to("/dev/full")
+    rec = Recorder(RecordConfig(path=str(path), batch_s=0.001), M, with_mass=True)
     rec.start()
     with caplog.at_level(logging.WARNING, logger="cdpr_gateway.recorder"):
-        for k in range(200):
-            push_many(rec, k, 1)
-            time.sleep(0.0002)
-        assert rec._thread is not None
-        rec._thread.join(10)
-        assert not rec._thread.is_alive()  # the writer ended by itself
-        assert rec.failed is not None and "No space" in rec.failed
-        before = rec.dropped
-        push_many(rec, 1000, 5)  # the cycle goes on; nothing is recorded any more
-        assert rec.dropped == before + 5
+        push_many(rec, 0, 200)
+        if name.endswith(".csv"):
+            assert wait_for(lambda: rec.failed is not None)  # the writer stopped by itself
+            push_many(rec, 200, 5)  # the cycle goes on; nothing is recorded any more
+            assert rec.dropped == 205 and rec.rows_written == 0
         rec.close()
-    assert rec.rows_written + rec.dropped == 205
+    assert rec.failed is not None and "No space" in rec.failed
+    pushed = 205 if name.endswith(".csv") else 200
+    assert rec.rows_written + rec.dropped == pushed
     assert any("recording stopped" in r.message and "No space" in r.message for r in caplog.records)
-    back = read_recording(path)  # cut back to the last whole row: readable
-    assert back.samples == rec.rows_written
-    assert path.stat().st_size <= FullDisk.limit
+    assert sum("recording stopped" in r.message for r in caplog.records) == 1  # logged once
+
+
+SMALL_FILE = textwrap.dedent(
+    """
+    import resource, sys, time
+    from tests.test_recorder import M, push_many
+    from gateway.recorder import RecordConfig, Recorder
+
+    rec = Recorder(RecordConfig(path=sys.argv[1], batch_s=0.001), M, with_mass=True)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (3000, resource.RLIM_INFINITY))  # inherited
+    rec.start()
+    for k in range(200):
+        push_many(rec, k, 1)
+        time.sleep(0.0002)
+    rec.close()
+    print(rec.rows_written, rec.dropped, rec.failed, flush=True)
+    """
+)
+
+
+def test_a_write_cut_by_the_kernel_leaves_whole_rows(tmp_path: Path) -> None:
+    """A file size limit (RLIMIT_FSIZE, inherited by the writer) fails a write halfway,
+    as a disk filling up does: the plain CSV is cut back to its last whole row."""
+    path = tmp_path / "cut.csv"
+    proc = subprocess.run(
+        [sys.executable, "-c", SMALL_FILE, str(path)], cwd=ROOT, capture_output=True,
+        text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    written, dropped, failed = proc.stdout.split(maxsplit=2)
+    assert "File too large" in failed and "recording stopped" in proc.stderr
+    assert int(written) > 0 and int(written) + int(dropped) == 200
+    back = read_recording(path, min_samples=1)  # cut back to the last whole row: readable
+    assert back.samples == int(written)
+    assert path.stat().st_size <= 3000
+
+
+def test_a_killed_writer_stops_the_recorder_and_the_cycle_goes_on(tmp_path: Path) -> None:
+    rec = Recorder(RecordConfig(path=str(tmp_path / "k.csv"), batch_s=0.001), M)
+    rec.start()
+    push_many(rec, 0, 10)
+    assert wait_for(lambda: rec.rows_written == 10)
+    assert rec.pid is not None
+    os.kill(rec.pid, signal.SIGKILL)
+    assert wait_for(lambda: rec.failed is not None)
+    assert "exit status -9" in str(rec.failed)
+    push_many(rec, 10, 5)
+    assert rec.dropped == 5 and rec.rows_written == 10
+    rec.close()
+    assert rec.rows_written + rec.dropped == 15
+
+
+def test_close_leaves_no_process_descriptor_or_shared_memory(tmp_path: Path) -> None:
+    fds = sorted(os.listdir("/proc/self/fd"))
+    shm = sorted(os.listdir("/dev/shm"))
+    rec = Recorder(RecordConfig(path=str(tmp_path / "n.csv.gz"), batch_s=0.01), M, with_mass=True)
+    rec.start()
+    assert writer_children() == [rec.pid]
+    assert sorted(os.listdir("/dev/shm")) == shm  # the ring has no name
+    push_many(rec, 0, 20)
+    rec.close()
+    rec.close()  # twice is fine
+    assert writer_children() == []
+    assert rec._events is not None and not rec._events.is_alive()
+    assert sorted(os.listdir("/proc/self/fd")) == fds  # the ring is unmapped, pipes closed
+    assert sorted(os.listdir("/dev/shm")) == shm
+    assert read_recording(tmp_path / "n.csv.gz", min_samples=1).samples == 20
+    push_many(rec, 20, 3)  # a push after close is counted, never written
+    assert rec.dropped == 3
+
+
+def test_an_unwritable_path_fails_at_start(tmp_path: Path) -> None:
+    rec = Recorder(RecordConfig(path=str(tmp_path / "no" / "dir.csv")), M)
+    with pytest.raises(OSError, match="No such file"):
+        rec.start()
+    assert writer_children() == []
 
 
 def test_rotation_by_size_gives_complete_numbered_files(tmp_path: Path) -> None:
@@ -198,7 +290,7 @@ SCRIPT = textwrap.dedent(
     inp, out = Inputs.allocate(2), Outputs.allocate(2)
     inp.platform_mass_kg = 40.0
     k = 0
-    print("ready", flush=True)
+    print("ready", rec.pid, flush=True)
     while not stop.is_set() and k < 200000:
         inp.tension_raw_n[:] = k
         rec.push(k * 1e-3, inp, out)
@@ -219,7 +311,7 @@ def test_sigterm_leaves_a_valid_gzip(tmp_path: Path) -> None:
         text=True,
     )
     assert proc.stdout is not None
-    assert proc.stdout.readline().strip() == "ready"
+    assert proc.stdout.readline().split()[0] == "ready"
     time.sleep(0.5)
     proc.send_signal(signal.SIGTERM)
     stdout, _ = proc.communicate(timeout=30)
@@ -230,6 +322,27 @@ def test_sigterm_leaves_a_valid_gzip(tmp_path: Path) -> None:
     back = read_recording(out)
     assert back.samples == pushed
     assert_allclose(back.tension_sensor[:, 0], np.arange(pushed), rtol=0)
+
+
+def test_a_killed_gateway_leaves_no_orphan_writer(tmp_path: Path) -> None:
+    """SIGKILL on the gateway: the writer sees its pipe close, finishes the file (the
+    gzip trailer) and exits."""
+    out = tmp_path / "orphan.csv.gz"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SCRIPT, str(out)], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    )
+    assert proc.stdout is not None
+    ready, pid = proc.stdout.readline().split()
+    assert ready == "ready"
+    writer = int(pid)
+    time.sleep(0.3)
+    proc.kill()
+    proc.wait(10)
+    proc.stdout.close()
+    assert wait_for(lambda: gone(writer)), "the writer outlived the gateway"
+    back = read_recording(out)  # complete: a cut gzip is refused
+    assert back.samples > 10
+    assert_allclose(back.tension_sensor[:, 0], np.arange(back.samples), rtol=0)
 
 
 def _virtual_config(tmp_path: Path) -> Path:
@@ -343,36 +456,28 @@ def test_the_plant_writes_a_falling_platform_mass() -> None:
     assert masses[0] > 0 and np.all(np.diff(masses) <= 0) and masses[-1] < masses[0]
 
 
-def test_the_writer_thread_runs_below_a_real_time_cycle(tmp_path: Path) -> None:
-    """Threads inherit the policy of the thread that starts them: a recorder started by a
-    SCHED_FIFO cycle thread must still write at SCHED_OTHER, never competing with it."""
-    import os
+def test_the_writer_process_runs_below_a_real_time_cycle(tmp_path: Path) -> None:
+    """A process inherits the policy and nice of the thread that forks it: a recorder
+    started by a SCHED_FIFO cycle thread must still write at SCHED_OTHER, nice >= 10."""
 
-    def fifo_then_start(out: list[int]) -> None:
+    def fifo_then_start(out: list[tuple[int, int]]) -> None:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
         except (AttributeError, OSError):
-            out.append(-1)  # not permitted here: nothing to check
-            return
+            return  # not permitted here: nothing to check
         rec = Recorder(RecordConfig(path=str(tmp_path / "rt.csv"), batch_s=0.01), M)
         rec.start()
         try:
-            assert rec._thread is not None
-            deadline = time.monotonic() + 5.0
-            tid = rec._thread.native_id
-            while time.monotonic() < deadline:  # the writer lowers itself when it starts
-                if tid is not None and os.sched_getscheduler(tid) == os.SCHED_OTHER:
-                    break
-                time.sleep(0.01)
-            assert tid is not None
-            out.append(os.sched_getscheduler(tid))
+            assert rec.pid is not None
+            out.append((os.sched_getscheduler(rec.pid), os.getpriority(os.PRIO_PROCESS, rec.pid)))
         finally:
             rec.close()
 
-    result: list[int] = []
+    result: list[tuple[int, int]] = []
     starter = threading.Thread(target=fifo_then_start, args=(result,))
     starter.start()
-    starter.join(10.0)
-    if result == [-1]:
+    starter.join(30.0)
+    if not result:
         pytest.skip("SCHED_FIFO is not permitted for this process")
-    assert result == [os.SCHED_OTHER]
+    policy, nice = result[0]
+    assert policy == os.SCHED_OTHER and nice >= 10
