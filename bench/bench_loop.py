@@ -2,11 +2,16 @@
 settings off and on, side by side in one run, and the floor.
 
 ``python -m bench loop`` (``BENCH_SECONDS`` shortens the default 60 s per run;
-``BENCH_LOOP_CANOPEN=0`` leaves out the CANopen run; ``BENCH_BUSY_WAIT_S`` overrides
-``loop.busy_wait_s``). Two runs of the same length, each against a fresh soft PLC
+``BENCH_LOOP_CANOPEN=0`` leaves out the CANopen run; ``BENCH_LOOP_POLL=0`` the middle
+run; ``BENCH_BUSY_WAIT_S`` overrides
+``loop.busy_wait_s``). Three runs of the same length, each against a fresh soft PLC
 subprocess (``cdpr-gateway sim-plc --port 0``, chunks prepared by its worker process):
 
 * **RT off**: both processes as they start (SCHED_OTHER, no memory locking, GC on);
+* **RT off + poll**: as RT off, but this process holds ``/dev/cpu_dma_latency`` at 0,
+  so idle CPUs poll instead of halting (the one setting of ``loop.realtime`` that acts on
+  the whole machine; on a VM with the ``haltpoll`` idle driver a halted vCPU's wake-up is
+  the largest delay: docs/realtime.md);
 * **RT on**: the config's ``loop.realtime`` forced on in this process (the gateway's
   cycle thread: SCHED_FIFO 50, mlockall, GC frozen and off, :mod:`gateway.realtime`)
   and ``sim-plc --realtime`` (the same for the soft PLC's threads).
@@ -176,12 +181,21 @@ def _causes(service: CyclicService, wire: WireTimer) -> dict[str, Any]:
     return out
 
 
-def run_modbus(cfg: Config, seconds: float, rt: bool) -> dict[str, Any]:
-    """One run (RT off or on) against a fresh soft PLC; the figures as a dict."""
+def run_modbus(cfg: Config, seconds: float, rt: bool, poll: bool = False) -> dict[str, Any]:
+    """One run (RT off or on) against a fresh soft PLC; the figures as a dict. ``poll``
+    (RT off only): this process holds ``/dev/cpu_dma_latency`` at 0 for the run, the one
+    real-time setting that acts on the whole machine (idle CPUs poll instead of halting)."""
     cycles = max(1, round(seconds / cfg.loop.period_s))
     plc = BenchPlc(str(cfg.source), rt)
     report = None
+    held = None
     try:
+        if poll:
+            try:
+                held = realtime.CPU_DMA_LATENCY, os.open(realtime.CPU_DMA_LATENCY, os.O_WRONLY)
+                os.write(held[1], (0).to_bytes(4, sys.byteorder, signed=True))
+            except OSError as exc:
+                print(f"  (RT off + poll: {realtime.CPU_DMA_LATENCY}: {exc.strerror})")
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
         service = CyclicService(live, build_driver(live), history=cycles + 16)
         wire = WireTimer(service.driver, cycles + 16)
@@ -196,13 +210,18 @@ def run_modbus(cfg: Config, seconds: float, rt: bool) -> dict[str, Any]:
     finally:
         if report is not None:
             realtime.undo(report)
+        if held is not None:
+            os.close(held[1])
         plc.close()
     wall = wall1 - wall0
     return {
-        "rt": rt, "service": service, "wall": wall, "rss": rss, "floor": floor,
+        "rt": rt, "name": "RT on" if rt else ("RT off + poll" if poll else "RT off"),
+        "service": service, "wall": wall, "rss": rss, "floor": floor,
         "cpu": (u1.ru_utime + u1.ru_stime - u0.ru_utime - u0.ru_stime) / wall,
         "minflt": u1.ru_minflt - u0.ru_minflt, "majflt": u1.ru_majflt - u0.ru_majflt,
-        "gateway_rt": report.line("gateway real-time") if report else "gateway real-time: off",
+        "gateway_rt": report.line("gateway real-time") if report else (
+            "gateway real-time: off" + (
+                f"; the bench holds {realtime.CPU_DMA_LATENCY} at 0" if held else "")),
         "plc_rt": "; ".join(plc.lines("sim-plc: real-time")) or "n/a",
         "plc_stop": "; ".join(plc.lines("sim-plc: stopped")) or "n/a",
         "causes": _causes(service, wire), "wire": wire.recent(),
@@ -263,16 +282,14 @@ def _parts(parts: tuple[np.ndarray, ...] | None) -> str:
     return " / ".join(f"{np.median(p) * 1e6:.0f}" for p in parts) + " us"
 
 
-def _print_side_by_side(off: dict[str, Any], on: dict[str, Any]) -> None:
-    a, b = _rows(off), _rows(on)
-    print(f"  {'':<34}{'RT off':<40}RT on")
-    for (name, x), (_, y) in zip(a, b, strict=True):
-        print(f"  {name:<34}{x:<40}{y}")
-    for r in (off, on):
-        tag = "on " if r["rt"] else "off"
-        print(f"  RT {tag}: {r['gateway_rt']}")
-        print(f"  RT {tag}: {r['plc_rt']}")
-        print(f"  RT {tag}: {r['plc_stop']}")
+def _print_side_by_side(*runs: dict[str, Any]) -> None:
+    table = [_rows(r) for r in runs]
+    print(f"  {'':<34}" + "".join(f"{r['name']:<40}" for r in runs).rstrip())
+    for i, (name, _) in enumerate(table[0]):
+        print(f"  {name:<34}" + "".join(f"{rows[i][1]:<40}" for rows in table).rstrip())
+    for r in runs:
+        for key in ("gateway_rt", "plc_rt", "plc_stop"):
+            print(f"  {r['name']}: {r[key]}")
 
 
 def run_canopen(cfg: Config, seconds: float) -> None:
@@ -300,9 +317,11 @@ def run() -> None:
         cfg = dataclasses.replace(cfg, loop=loop)
     print(f"  gateway vs soft PLC (subprocess) over modbus_tcp on loopback, {seconds:g} s each,"
           f" busy-wait {cfg.loop.busy_wait_s * 1e6:.0f} us")  # fmt: skip
-    off = run_modbus(cfg, seconds, rt=False)
-    on = run_modbus(cfg, seconds, rt=True)
-    _print_side_by_side(off, on)
+    runs = [run_modbus(cfg, seconds, rt=False)]
+    if os.environ.get("BENCH_LOOP_POLL", "1") != "0":
+        runs.append(run_modbus(cfg, seconds, rt=False, poll=True))
+    runs.append(run_modbus(cfg, seconds, rt=True))
+    _print_side_by_side(*runs)
     if os.environ.get("BENCH_LOOP_CANOPEN", "1") != "0":
         print()
         run_canopen(cfg, seconds)
