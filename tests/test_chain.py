@@ -123,7 +123,7 @@ def test_stepper_matches_batch_and_converges_in_two_passes() -> None:
     out = np.zeros(cfg.cables)
     got = np.empty_like(ts)
     passes = []
-    stepper.step(ts[0], np.zeros(cfg.cables), out)  # the batch form takes no travel at k = 0
+    stepper.step(ts[0], vel[0], out, 0.0)  # the batch form takes no travel at k = 0
     got[0] = out
     for k in range(1, n):
         passes.append(stepper.step(ts[k], vel[k], out))
