@@ -241,9 +241,10 @@ class Compensator:
         """One cycle on a successful read; fills ``out`` tensions, status and wrench.
 
         The model's time step is the time since the previous step (0 on the first), so
-        the acceleration (inertia) and the cable travel (Dahl, ``v dt``) follow the actual
-        samples: a cycle skipped after an overrun loses no travel. The chain's step is
-        bounded to ``MAX_STEP_PERIODS`` periods (after an outage).
+        the acceleration (inertia) and the cable travel (Dahl, the trapezoid
+        ``(v_prev + v) / 2 dt`` with the previous cycle's velocity, ``chain.travel_into``)
+        follow the actual samples: a cycle skipped after an overrun loses no travel. The
+        chain's step is bounded to ``MAX_STEP_PERIODS`` periods (after an outage).
         """
         if inputs.read_time_s != self._last_read_time:
             self._last_read_time = inputs.read_time_s

@@ -362,11 +362,8 @@ class Plant:
             self._nxt.t[0], self._nxt.velocity[0])  # fmt: skip
         self._t3[:2], self._v3[:2] = self._t3[1:], self._v3[1:]
         self._t3[1:], self._v3[1], self._v3[2] = (t, nxt_t), v, nxt_v
-        if self.k == 0:
-            self._ts = chain.simulate(m.params, tp[None], v[None], np.array([t]),
-                                      state=self.stepper.state)[0]  # fmt: skip
-        else:
-            self.stepper.step(tp, v, self._ts)
+        # no travel at the first sample (as in the batch form); then a period's
+        self.stepper.step(tp, v, self._ts, 0.0 if self.k == 0 else -1.0)
         ts = self.fx.path(self.k, self._t3, self._v3, cur.length[i], self._ts)
         ts = self.fx.sensor(self.k, t, ts)
         self.analog = ts + self.rng.standard_normal(m.cables) * m.noise_std

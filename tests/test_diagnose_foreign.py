@@ -68,6 +68,25 @@ def test_warmup_skips_the_unknown_start_of_the_friction_state():
     assert warmup_mask(still, nom).sum() >= 0.9 * t.size  # capped at 10 %
 
 
+def test_warmup_again_after_a_gap_in_the_rows():
+    """Rows missing for 0.5 s: how the cable moved (and the tension along the way) is
+    unknown, so the friction state after the gap is, as at the start; jitter is no gap."""
+    t = np.arange(0.0, 10.0, 4e-3)
+    t = t + np.random.default_rng(2).uniform(-8e-4, 8e-4, t.size)  # +-0.8 ms: no gap
+    t = t[(t < 5.0) | (t > 5.5)]
+    v = np.full(t.size, 0.1)
+    d = CableData(t, v, np.full(t.size, 300.0), np.full(t.size, 300.0), 0.0)
+    nom = nominal_from(FrictionConfig(sigma_n_m=500.0))
+    mask = warmup_mask(d, nom)
+    after = int(np.searchsorted(t, 5.5))
+    need = 4.0 * 0.015 * 2 * np.sin(np.radians(45.0)) * 300.0 / 500.0  # m of travel
+    assert not mask[after] and mask[after - 1]  # the last sample before the gap counts
+    back = after + int(np.argmax(mask[after:]))
+    assert d.x[back] - d.x[after] == pytest.approx(need, abs=1e-3)
+    assert mask[back:].all()
+    assert mask[int(np.argmax(mask)) : after].all()  # nothing masked between start and gap
+
+
 def test_velocity_deadband_only_for_a_noisy_velocity_column():
     rng = np.random.default_rng(0)
     t = np.arange(0.0, 20.0, 4e-3)

@@ -175,7 +175,10 @@ def test_f0_adds_to_the_coulomb_level_under_dahl() -> None:
     force = tp - ts  # the pulley's friction force F (T_p = T_s + F)
     level_out, level_in = lam_pos * tp + f0, lam_neg * tp + f0
     assert force[n // 2 - 1] == pytest.approx(level_out, abs=1e-9)  # relaxed paying out
-    x = 0.05 * dt * np.arange(1, n // 2 + 1)
+    # |x| since the reversal: the travel of the trapezoid between the samples (the step
+    # across the reversal has none: (0.05 - 0.05) / 2 dt)
+    x = displacement(dt * np.arange(n), v[:, 0])
+    x = np.abs(x[n // 2 :] - x[n // 2 - 1])
     expected = -level_in + (force[n // 2 - 1] + level_in) * np.exp(-sigma * x / level_in)
     assert_allclose(force[n // 2 :], expected, rtol=0, atol=1e-9)
 
@@ -212,9 +215,13 @@ def test_dahl_level_falls_over_travel_not_at_once() -> None:
     force = tp[:, 0] - simulate(params, tp, v, dt)[:, 0]
     high, low = lam * 300.0 + f0, lam * 100.0 + f0
     assert force[k1 - 1] == pytest.approx(high, abs=1e-9)
-    assert_allclose(force[k1:k2], high, rtol=0, atol=1e-12)  # standstill: above the level
-    x = 0.05 * dt * np.arange(1, k3 - k2 + 1)
-    assert_allclose(force[k2:], low + (high - low) * np.exp(-sigma * x / low), rtol=0, atol=1e-9)
+    # the stop's own step still travels (0.2 + 0) / 2 dt = 0.1 mm at the new level: F moves
+    # by ~2 % of the gap, then stands while v = 0 (far above the level, not snapped to it)
+    assert low + 0.95 * (high - low) < force[k1] < high
+    assert_allclose(force[k1:k2], force[k1], rtol=0, atol=1e-12)  # standstill
+    x = displacement(dt * k, v[:, 0])  # travel (trapezoid) since the level fell
+    x = x[k1:] - x[k1 - 1]
+    assert_allclose(force[k1:], low + (high - low) * np.exp(-sigma * x / low), rtol=0, atol=1e-9)
 
 
 def test_eccentricity_phase_from_travel_to_length() -> None:

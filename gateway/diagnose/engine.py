@@ -38,6 +38,10 @@ WARMUP_LENGTHS = 4.0
 """Relaxation lengths ``F_R / sigma`` of cable travel after which the chain state has
 forgotten its unknown start (error ``exp(-4)`` ~ 2 %)."""
 WARMUP_MAX_SHARE = 0.1
+GAP_SPACINGS = 10.0
+"""A step longer than this many median sample spacings is a gap (rows missing): how the
+cable moved in it is unknown, so the friction state after it is too, as at the start."""
+GAP_WARMUP_MAX_SHARE = 0.5
 
 
 def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
@@ -48,7 +52,10 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     the cable travel ``x``. Samples before the cable has travelled ``WARMUP_LENGTHS``
     relaxation lengths (``F_R``: the largest pulley's Coulomb level at the 99th percentile
     of the platform tension; ``sigma``: the nominal stiffness) are left out, at most
-    ``WARMUP_MAX_SHARE`` of the samples.
+    ``WARMUP_MAX_SHARE`` of the samples. The same after every gap (a step longer than
+    ``GAP_SPACINGS`` median spacings: the chain's travel over it, the trapezoid of the two
+    velocities, is a guess), while all warm-ups together leave out at most
+    ``GAP_WARMUP_MAX_SHARE`` of the samples.
     """
     n = d.t.size
     if nom.model == "none" or nom.mu.size == 0 or n < 2:
@@ -57,9 +64,18 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     lam = float(np.max(0.5 * (lam_pos + lam_neg)))  # mean of the two directions
     f_r = lam * float(np.percentile(np.abs(d.tp), 99))
     travel = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(d.x)))))
-    first = int(np.searchsorted(travel, WARMUP_LENGTHS * f_r / nom.sigma_n_m))
+    need = WARMUP_LENGTHS * f_r / nom.sigma_n_m
+    dt = np.diff(d.t)
+    after_gaps = np.nonzero(dt > GAP_SPACINGS * float(np.median(dt)))[0] + 1
     out = np.ones(n, bool)
-    out[: min(first, int(WARMUP_MAX_SHARE * n))] = False
+    budget = int(GAP_WARMUP_MAX_SHARE * n)
+    for start in (0, *after_gaps.tolist()):
+        if budget <= 0:
+            break
+        end = int(np.searchsorted(travel, travel[start] + need))
+        end = min(end, start + int(WARMUP_MAX_SHARE * n), start + budget)
+        out[start:end] = False
+        budget -= max(end - start, 0)
     return out
 
 

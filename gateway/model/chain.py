@@ -4,8 +4,8 @@
 Per pulley ``T_j = T_{j-1} + F_j`` where ``F_j`` is
 
 * ``coulomb``: ``sgn(v) F_Rj`` (eq. 8, 11, 12),
-* ``dahl``: the pre-sliding state stepped with :func:`friction.dahl_step` over
-  ``dx = v dt`` (eq. 14), carried between calls,
+* ``dahl``: the pre-sliding state stepped with :func:`friction.dahl_step` over the
+  cable travel of each step (eq. 14), carried between calls,
 * ``none``: 0,
 
 with the Coulomb level ``F_Rj = (lambda_ij(s) |T_j| + f0_i / n) S_i(v)`` (physics.md:
@@ -16,6 +16,13 @@ a load-independent part (seals, preload; split evenly over the pulleys) and
 ``S = 1 + k exp(-(v / v_s)^2)`` the Stribeck factor. Viscous friction ``c_i v`` is added
 at the platform end: ``T_p = T_n + c v``. ``|T|`` makes the law hold for push forces too
 (a single-axis test rig).
+
+Cable travel (:func:`travel_into`, the one definition every form uses): the trapezoid over
+the actual sample times, ``dx_k = (v_{k-1} + v_k) / 2 (t_k - t_{k-1})``, ``dx_0 = 0``; the
+Dahl state advances by ``dx_k`` and takes its direction from it, while the Coulomb sign,
+the Stribeck factor and the viscous term take the sample's own ``v_k``. (Stepping with
+``v_k dt_k`` instead makes an error of the order ``a dt^2 / 2`` per step that sampling
+jitter turns into noise: 0.13 N RMS on a noise-free 100 Hz +-2 ms recording.)
 
 Simulation (platform -> sensor) is explicit: ``F_Rj`` follows from the known platform-side
 tension, so each pulley is one exact Dahl step. Compensation (sensor -> platform) is
@@ -176,7 +183,10 @@ def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20)
 
 @njit(cache=True, inline="always")
 def _pulley(t_b, lam, f0p, strib, f_old, dx, sigma, beta, model):
-    """Friction force of one pulley whose platform-side tension is ``t_b``, and dF/dt_b."""
+    """Friction force of one pulley whose platform-side tension is ``t_b``, and dF/dt_b.
+
+    ``dx``: the step's cable travel (Dahl) or, for Coulomb, anything with the sign of
+    the sample's velocity (only its sign is read)."""
     if dx == 0.0:
         return (0.0 if model == 1 else f_old), 0.0
     s = 1.0 if dx > 0.0 else -1.0
@@ -200,18 +210,37 @@ def _stribeck(p, i, v):
     return 1.0 + p.strib_k[i] * math.exp(-((v / p.strib_v[i]) ** 2))
 
 
+@njit(cache=True)
+def travel_into(vel, dt, v_prev, dx):
+    """Cable travel of each step (m), the trapezoid over the actual sample spacing:
+    ``dx[k, i] = (v_prev[i] + vel[k, i]) / 2 * dt[k]`` with ``v_prev`` the velocity of the
+    step before, updated in place (so a per-cycle caller carries it). ``vel``, ``dx``
+    (N, m); ``dt`` (N,); ``v_prev`` (m,)."""
+    for k in range(vel.shape[0]):
+        for i in range(vel.shape[1]):
+            dx[k, i] = 0.5 * (v_prev[i] + vel[k, i]) * dt[k]
+            v_prev[i] = vel[k, i]
+
+
+@njit(cache=True, inline="always")
+def _direction(model, v, dx):
+    """What sets the pulley's direction: the velocity for Coulomb, the travel for Dahl."""
+    return v if model == 1 else dx
+
+
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
-def compensate_kernel(p, t_in, vel, dt, f_state, out):
-    """Sensor -> platform for (N, m) ``t_in``, ``vel``, ``out``; ``dt`` (N,); ``f_state``
-    (m, n) in/out. Each pulley's implicit equation by Newton, seeded with the previous
-    cycle's force. Returns the largest number of Newton passes any pulley needed."""
+def compensate_kernel(p, t_in, vel, dx_all, f_state, out):
+    """Sensor -> platform for (N, m) ``t_in``, ``vel``, travel ``dx_all`` (:func:`travel_into`)
+    and ``out``; ``f_state`` (m, n) in/out. Each pulley's implicit equation by Newton, seeded
+    with the previous cycle's force. Returns the largest number of Newton passes any pulley
+    needed."""
     n_samples, m = t_in.shape
     n = p.lam_pos.shape[1]
     worst = 0
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            dx = v * dt[k]
+            dx = _direction(p.model, v, dx_all[k, i])
             t_a = t_in[k, i]
             if p.model != 0:
                 strib = _stribeck(p, i, v)
@@ -238,7 +267,7 @@ def compensate_kernel(p, t_in, vel, dt, f_state, out):
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
-def simulate_kernel(p, t_in, vel, dt, f_state, out):
+def simulate_kernel(p, t_in, vel, dx_all, f_state, out):
     """Platform -> sensor, same arguments as :func:`compensate_kernel`; explicit (each
     pulley's Coulomb level follows from its known platform-side tension)."""
     n_samples, m = t_in.shape
@@ -246,7 +275,7 @@ def simulate_kernel(p, t_in, vel, dt, f_state, out):
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            dx = v * dt[k]
+            dx = _direction(p.model, v, dx_all[k, i])
             t_b = t_in[k, i] - p.viscous[i] * v
             if p.model != 0:
                 strib = _stribeck(p, i, v)
@@ -289,6 +318,16 @@ def _time_steps(t: np.ndarray | float, n_samples: int) -> np.ndarray:
     return np.concatenate(([0.0], np.diff(t_arr)))
 
 
+def travel(t: np.ndarray | float, velocity: np.ndarray) -> np.ndarray:
+    """Cable travel (N, m) of each step, m, for velocity (N, m) at times ``t`` (N,) or a
+    constant period: :func:`travel_into` with no travel at the first sample."""
+    vel = np.ascontiguousarray(velocity, dtype=float)
+    dx = np.empty_like(vel)
+    if vel.shape[0]:
+        travel_into(vel, _time_steps(t, vel.shape[0]), vel[0].copy(), dx)
+    return dx
+
+
 def new_state(params: ChainParams) -> np.ndarray:
     """Friction state (m, n), N: relaxed (every pulley force zero)."""
     return np.zeros((params.cables, params.pulleys))
@@ -315,7 +354,7 @@ def _run_batch(
     out = np.empty_like(t_in)
     kernel = compensate_kernel if forward else simulate_kernel
     p = kernel_params(params, tol_n, max_iter)
-    kernel(p, t_in, vel, _time_steps(t, t_in.shape[0]), f_state, out)
+    kernel(p, t_in, vel, travel(t, vel), f_state, out)
     return out
 
 
@@ -352,7 +391,10 @@ def compensate(
 class ChainStepper:
     """Per-cycle form: one sample for every cable on preallocated buffers.
 
-    The friction state is carried between calls. ``step`` allocates nothing.
+    The friction state and the previous step's velocity (for the travel,
+    :func:`travel_into`) are carried between calls. ``step`` allocates nothing. The first
+    step after construction or :meth:`reset` has no previous velocity: it takes its own
+    (``dx = v dt``; the batch form takes no travel at its first sample, ``dt = 0``).
     """
 
     def __init__(
@@ -372,16 +414,22 @@ class ChainStepper:
         self._in = np.zeros((1, m))
         self._vel = np.zeros((1, m))
         self._out = np.zeros((1, m))
+        self._dx = np.zeros((1, m))
+        self._v_prev = np.zeros(m)
+        self._primed = False
         self._dt = np.array([self.period_s])
         self._p = kernel_params(params, tol_n, max_iter)
+        self._travel = entry_point(travel_into, self._vel, self._dt, self._v_prev, self._dx)
         self._kernel = entry_point(
             compensate_kernel if forward else simulate_kernel,
-            self._p, self._in, self._vel, self._dt, self.state, self._out,
+            self._p, self._in, self._vel, self._dx, self.state, self._out,
         )  # fmt: skip
 
     def reset(self) -> None:
-        """Relax every pulley (e.g. after a long outage when the real state is unknown)."""
+        """Relax every pulley (e.g. after a long outage when the real state is unknown);
+        the next step has no previous velocity."""
         self.state[:] = 0.0
+        self._primed = False
 
     def step(
         self, tension: np.ndarray, velocity: np.ndarray, out: np.ndarray, dt: float = -1.0
@@ -390,9 +438,13 @@ class ChainStepper:
         return the Newton passes (0 when simulating)."""
         self._in[0] = tension
         self._vel[0] = velocity
+        if not self._primed:
+            self._v_prev[:] = self._vel[0]
+            self._primed = True
         self._dt[0] = self.period_s if dt < 0.0 else dt  # own buffers: types fixed
+        self._travel(self._vel, self._dt, self._v_prev, self._dx)
         self.iterations = self._kernel(
-            self._p, self._in, self._vel, self._dt, self.state, self._out
+            self._p, self._in, self._vel, self._dx, self.state, self._out
         )
         out[:] = self._out[0]
         return self.iterations
