@@ -162,6 +162,10 @@ def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
     return fx.chain_params(nom, values, 1)
 
 
+CACHE_BYTES = 16 << 20
+"""Memory for one :class:`Forward`'s cached chain simulations (speed only, never results)."""
+
+
 class Forward:
     """Prediction of one cable's sensor reading for a set of effects, with a chain cache.
 
@@ -173,7 +177,9 @@ class Forward:
         self.data = data
         self.nom = nom
         self._cache: dict[tuple, np.ndarray] = {}
-        self._cache_size = cache_size
+        # at most CACHE_BYTES of simulations (but 2): a 10-min cable's is 4.8 MB
+        fit = CACHE_BYTES // max(8 * data.t.size, 1)
+        self._cache_size = max(min(cache_size, fit), min(cache_size, 2))
         self.simulations = 0
 
     def clear_cache(self) -> None:
