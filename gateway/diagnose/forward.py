@@ -162,7 +162,7 @@ def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
     return fx.chain_params(nom, values, 1)
 
 
-CACHE_BYTES = 16 << 20
+CACHE_BYTES = 10 << 20
 """Memory for one :class:`Forward`'s cached chain simulations (speed only, never results)."""
 
 
@@ -177,7 +177,7 @@ class Forward:
         self.data = data
         self.nom = nom
         self._cache: dict[tuple, np.ndarray] = {}
-        # at most CACHE_BYTES of simulations (but 2): a 10-min cable's is 4.8 MB
+        # at most CACHE_BYTES of simulations (but 2): 4.8 MB each for a 10-min cable
         fit = CACHE_BYTES // max(8 * data.t.size, 1)
         self._cache_size = max(min(cache_size, fit), min(cache_size, 2))
         self.simulations = 0
