@@ -33,6 +33,7 @@ from typing import IO
 import numpy as np
 
 from gateway.errors import RecordingError
+from gateway.heap import return_large_frees
 from gateway.recording_writer import RecordingWriter, format_rows  # noqa: F401 - re-exported
 
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
@@ -334,6 +335,7 @@ def read_recording(
 ) -> Recording:
     """Read and validate a recording (docs/recording-format.md), streaming the body."""
     path = Path(path)
+    return_large_frees()  # the result arrays grow by realloc: mremap, not copies
     try:
         with _open_text(path) as fh:
             lines = _lines(path, fh)
@@ -370,9 +372,10 @@ def read_recording(
 class _Columns:
     """The result arrays, filled chunk by chunk from the parsed rows: ``targets`` maps a
     name to the source column of each of its columns (-1: absent, NaN). The capacity grows
-    1.5x at a time with ``ndarray.resize`` (``realloc``; for arrays this large glibc moves
-    the pages with ``mremap`` instead of copying them), and the untouched capacity is
-    never resident: the peak is the arrays themselves plus one chunk, 8 bytes per value."""
+    by 1/8 at a time with ``ndarray.resize`` (``realloc``; glibc moves the pages of a large
+    array with ``mremap`` instead of copying them; numpy zero-fills the new rows, so the
+    spare capacity, at most 1/8, is resident): the peak is the arrays themselves, 8 bytes
+    per value, plus at most 1/8 of them and one chunk."""
 
     FIRST_ROWS = 1 << 16
 
@@ -384,8 +387,8 @@ class _Columns:
 
     def append(self, block: np.ndarray) -> None:
         stop = self.rows + block.shape[0]
-        if stop > self.capacity:
-            self.capacity = max(stop, self.capacity * 3 // 2, self.FIRST_ROWS)
+        if stop > self.capacity:  # resize zero-fills the new rows: they are resident
+            self.capacity = max(stop, self.capacity * 9 // 8, self.FIRST_ROWS)
             for arr in self.arrays.values():
                 arr.resize((self.capacity, arr.shape[1]), refcheck=False)
         for name, src in self.sources.items():

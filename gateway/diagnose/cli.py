@@ -6,9 +6,11 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from gateway.config import Config, config_from_mapping, load_friction, output_path
@@ -66,6 +68,20 @@ def _read(path: Path, model: Path) -> Recording:
     return relative_to_model(read_recording(path), load_friction(model))[0]
 
 
+def _slim(rec: Recording) -> tuple[Recording, Callable[[Recording], Recording]]:
+    """The recording without the columns the diagnosis no longer reads once the platform
+    tensions and dT_p/dm exist (pose, cable lengths: 112 bytes per sample of 8 cables),
+    and a function that gives the model writer back what it reads of them (the first
+    cable lengths, for the eccentricity's phase)."""
+    first = None if rec.length is None else rec.length[:1].copy()
+    slim = dataclasses.replace(rec, pose=None, length=None)
+
+    def keep_for_model(r: Recording) -> Recording:
+        return dataclasses.replace(r, length=first)  # one row: write_model reads length[0]
+
+    return slim, keep_for_model
+
+
 def run_command(command: str, args: argparse.Namespace) -> int:
     start = time.perf_counter()
 
@@ -83,6 +99,10 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
         + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
     )
+
+    def keep_for_model(r: Recording) -> Recording:
+        return r
+
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
@@ -90,6 +110,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
         tp, dm = _tensions(rec, cfg, say)
+        rec, keep_for_model = _slim(rec)
         validation = None
         if args.validate is not None:
             vrec = _read(args.validate, args.model)
@@ -110,7 +131,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     if args.write_model is not None:
-        write_model(args.write_model, args.model, model_friction, diag.report, rec)  # type: ignore[arg-type]
+        write_model(args.write_model, args.model, model_friction, diag.report, keep_for_model(rec))  # type: ignore[arg-type]
         say(f"fitted model in {args.write_model}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"
