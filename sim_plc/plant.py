@@ -252,7 +252,14 @@ def _recording_setpoints(model: PlantModel, t: np.ndarray, progress: Progress | 
     is per sample), keeping only what a recording needs: the structure matrices and the
     wrenches of one chunk at a time, never of the whole run (10 min: 1 GB -> < 400 MB)."""
     n, m = t.size, model.cables
-    keep = ("pose", "length", "velocity", "mass", "tension_true", "tension_recorded")
+    keep: tuple[str, ...] = (
+        "pose",
+        "length",
+        "velocity",
+        "mass",
+        "tension_true",
+        "tension_recorded",
+    )
     out = {"pose": np.empty((n, 6)), "mass": np.empty(n)}
     out.update({k: np.empty((n, m)) for k in keep if k not in out and k != "tension_true"})
     if model.hidden_q != 0.0:  # else the truth is what is recorded: one array for both

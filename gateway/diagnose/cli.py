@@ -68,6 +68,10 @@ def _read(path: Path, model: Path) -> Recording:
     return relative_to_model(read_recording(path), load_friction(model))[0]
 
 
+def _unchanged(rec: Recording) -> Recording:
+    return rec
+
+
 def _slim(rec: Recording) -> tuple[Recording, Callable[[Recording], Recording]]:
     """The recording without the columns the diagnosis no longer reads once the platform
     tensions and dT_p/dm exist (pose, cable lengths: 112 bytes per sample of 8 cables),
@@ -100,9 +104,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
     )
 
-    def keep_for_model(r: Recording) -> Recording:
-        return r
-
+    keep_for_model: Callable[[Recording], Recording] = _unchanged
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
