@@ -73,17 +73,16 @@ def _unchanged(rec: Recording) -> Recording:
 
 
 def _slim(rec: Recording) -> tuple[Recording, Callable[[Recording], Recording]]:
-    """The recording without the columns the diagnosis no longer reads once the platform
-    tensions and dT_p/dm exist (pose, cable lengths: 112 bytes per sample of 8 cables),
-    and a function that gives the model writer back what it reads of them (the first
-    cable lengths, for the eccentricity's phase)."""
+    """The recording without its cable lengths, which the diagnosis does not read (64
+    bytes per sample of 8 cables), and a function that gives the model writer back what
+    it reads of them (the first lengths, for the eccentricity's phase). The pose goes too
+    once the platform tensions and dT_p/dm exist (48 bytes per sample)."""
     first = None if rec.length is None else rec.length[:1].copy()
-    slim = dataclasses.replace(rec, pose=None, length=None)
 
     def keep_for_model(r: Recording) -> Recording:
         return dataclasses.replace(r, length=first)  # one row: write_model reads length[0]
 
-    return slim, keep_for_model
+    return dataclasses.replace(rec, length=None), keep_for_model
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
@@ -111,8 +110,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         wrec = None if args.validate is None else _read(args.validate, args.model)
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
-        tp, dm = _tensions(rec, cfg, say)
         rec, keep_for_model = _slim(rec)
+        tp, dm = _tensions(rec, cfg, say)
+        rec = dataclasses.replace(rec, pose=None)  # read by _tensions only
         validation = None
         if args.validate is not None:
             vrec = _read(args.validate, args.model)
