@@ -10,12 +10,11 @@ contiguous ``1..m`` with ``m <= MAX_CABLES``; a line longer than ``MAX_LINE_CHAR
 than ``MAX_COLUMNS`` columns or ``MAX_METADATA_LINES`` metadata lines, a time step below
 ``MIN_STEP_S``, a value beyond ``MAX_ABS_VALUE`` (``MAX_ABS_TIME_S`` for ``t``), a
 non-finite value, fewer than ``min_samples`` kept rows or more than ``max_samples`` rows
-are refused. The body is parsed in chunks of ``CHUNK_ROWS`` lines straight into float64
-blocks holding only the kept rows; the result arrays are filled from them block by block,
-so the peak memory is about ``16 * columns`` bytes per sample (the kept blocks plus the
-result) plus a constant for one chunk: 8 bytes x columns x 1e6 = 8 MB per column per
-million samples for the result, e.g. ~420 MB for a million samples of a gateway recording
-of 8 cables (51 columns) while reading, ~260 MB of them kept.
+are refused. The body is parsed in chunks of ``CHUNK_ROWS`` lines, each straight into
+the result arrays (grown in place, :class:`_Columns`), so the peak memory is the result,
+8 bytes x columns per sample, plus a constant for one chunk (~10 MB): 8 MB per column per
+million samples, e.g. 410 MB for a million samples of a gateway recording of 8 cables
+(51 columns), 190 MB for a 10-min sim_plc recording (600 000 samples x 40 columns).
 
 Writing streams too (:class:`RecordingWriter`, :func:`write_recording`): rows are
 formatted and written ``CHUNK_ROWS`` at a time, never the whole file as one string.
@@ -34,6 +33,7 @@ from typing import IO
 import numpy as np
 
 from gateway.errors import RecordingError
+from gateway.heap import return_large_frees
 from gateway.recording_writer import RecordingWriter, format_rows  # noqa: F401 - re-exported
 
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
@@ -47,7 +47,7 @@ MAX_LINE_CHARS = 1 << 20  # 1 MiB per line (header included)
 MAX_METADATA_LINES = 1000
 MIN_SAMPLES = 10  # fewer kept rows than this: "too short"
 DEFAULT_MAX_SAMPLES = 20_000_000  # 5.5 h at 1 kHz; read_recording(max_samples=...) to change
-MAX_VALUES = 250_000_000  # samples x columns: 16 bytes each while reading = 4 GB at most
+MAX_VALUES = 250_000_000  # samples x columns: 8 bytes each = 2 GB at most
 MIN_STEP_S = 1e-6  # consecutive time stamps closer than this are refused (1 MHz at most)
 MAX_ABS_TIME_S = 1e12  # Unix time stamps (~1.7e9 s) are fine
 MAX_ABS_VALUE = 1e9  # any other column: N, m, m/s, rad, kg
@@ -253,11 +253,13 @@ def _parse_chunk(path: Path, body: list[str], line_of: list[int], names: list[st
 class _Reader:
     """Chunk by chunk checks that need the previous chunk (time steps, counts)."""
 
-    def __init__(self, path: Path, names: list[str], required: list[int], max_samples: int):
+    def __init__(
+        self, path: Path, names: list[str], required: list[int], max_samples: int, sink: _Columns
+    ):
         self.path, self.names, self.required = path, names, required
         self.t_col = names.index("t")
         self.max_samples = min(max_samples, MAX_VALUES // len(names))
-        self.blocks: list[np.ndarray] = []
+        self.sink = sink
         self.kept = 0
         self.skipped = 0
         self.last_t: float | None = None
@@ -280,9 +282,9 @@ class _Reader:
             raise RecordingError(
                 f"{self.path}:{line_of[rows[-1]]}: more than {self.max_samples} samples "
                 f"of {len(self.names)} columns (the reader's limits: max_samples, and "
-                f"{MAX_VALUES:.1e} values = {16 * MAX_VALUES / 1e9:.0f} GB to read)"
+                f"{MAX_VALUES:.1e} values = {8 * MAX_VALUES / 1e9:.0f} GB to read)"
             )
-        self.blocks.append(kept)
+        self.sink.append(kept)
 
     def _check_values(self, data: np.ndarray, line_of: list[int]) -> None:
         with np.errstate(invalid="ignore"):
@@ -333,12 +335,15 @@ def read_recording(
 ) -> Recording:
     """Read and validate a recording (docs/recording-format.md), streaming the body."""
     path = Path(path)
+    return_large_frees()  # the result arrays grow by realloc: mremap, not copies
     try:
         with _open_text(path) as fh:
             lines = _lines(path, fh)
             meta, head, names = _split_header(path, lines)
             cables, cols = _layout(path, head, names)
-            reader = _Reader(path, names, _required_columns(names, cols), max_samples)
+            sink = _Columns(_targets(names, cables, cols))
+            required = _required_columns(names, cols)
+            reader = _Reader(path, names, required, max_samples, sink)
             body: list[str] = []
             line_of: list[int] = []
             for number, text in lines:
@@ -361,43 +366,73 @@ def read_recording(
         raise RecordingError(
             f"{path}: too short: {reader.kept} samples, at least {min_samples} are needed"
         )
-    return _assemble(path, meta, names, cables, cols, reader)
+    return _assemble(path, meta, sink.finish(), reader.skipped)
 
 
-def _assemble(path, meta, names, cables, cols, reader: _Reader) -> Recording:
-    """Result arrays filled block by block; each block is freed once copied."""
-    n = reader.kept
+class _Columns:
+    """The result arrays, filled chunk by chunk from the parsed rows: ``targets`` maps a
+    name to the source column of each of its columns (-1: absent, NaN). The capacity grows
+    by 1/8 at a time with ``ndarray.resize`` (``realloc``; glibc moves the pages of a large
+    array with ``mremap`` instead of copying them; numpy zero-fills the new rows, so the
+    spare capacity, at most 1/8, is resident): the peak is the arrays themselves, 8 bytes
+    per value, plus at most 1/8 of them and one chunk."""
+
+    FIRST_ROWS = 1 << 16
+
+    def __init__(self, targets: dict[str, list[int]]) -> None:
+        self.rows = 0
+        self.capacity = 0
+        self.sources = {k: np.asarray(c, dtype=np.intp) for k, c in targets.items()}
+        self.arrays = {k: np.empty((0, len(c))) for k, c in targets.items()}
+
+    def append(self, block: np.ndarray) -> None:
+        stop = self.rows + block.shape[0]
+        if stop > self.capacity:  # resize zero-fills the new rows: they are resident
+            self.capacity = max(stop, self.capacity * 9 // 8, self.FIRST_ROWS)
+            for arr in self.arrays.values():
+                arr.resize((self.capacity, arr.shape[1]), refcheck=False)
+        for name, src in self.sources.items():
+            rows = self.arrays[name][self.rows : stop]
+            if np.all(src >= 0):
+                rows[:] = block[:, src]
+            else:
+                rows[:] = np.nan
+                present = np.nonzero(src >= 0)[0]
+                rows[:, present] = block[:, src[present]]
+        self.rows = stop
+
+    def finish(self) -> dict[str, np.ndarray]:
+        """The arrays, cut to the rows read (``t``, ``mass`` and extras as (N,))."""
+        out = {}
+        for name, arr in self.arrays.items():
+            arr.resize((self.rows, arr.shape[1]), refcheck=False)
+            flat = name in ("t", "mass") or name.startswith("extra:")
+            out[name] = arr.reshape(self.rows) if flat else arr
+        self.arrays = {}
+        return out
+
+
+def _targets(names: list[str], cables: int, cols: dict[str, list[int]]) -> dict[str, list[int]]:
+    """Result array name -> source column per result column (-1: absent): ``t``, each
+    cable kind present, ``pose`` (all six or none), ``mass`` and ``extra:NAME`` columns."""
     index = {name: i for i, name in enumerate(names)}
-    out: dict[str, np.ndarray] = {"t": np.empty(n)}
-    sources: list[tuple[np.ndarray, list[int]]] = [(out["t"][:, None], [index["t"]])]
+    out = {"t": [index["t"]]}
     for kind in CABLE_KINDS:
         if any(c >= 0 for c in cols[kind]):
-            out[kind] = np.full((n, cables), np.nan)
-            present = [i for i, c in enumerate(cols[kind]) if c >= 0]
-            if len(present) == cables:
-                sources.append((out[kind], cols[kind]))
-            else:
-                for i in present:
-                    sources.append((out[kind][:, i : i + 1], [cols[kind][i]]))
+            out[kind] = list(cols[kind])
     if all(p in index for p in POSE_COLUMNS):
-        out["pose"] = np.empty((n, 6))
-        sources.append((out["pose"], [index[p] for p in POSE_COLUMNS]))
-    known = {"t", "mass", *POSE_COLUMNS}
-    extra_names = [x for x in names if x not in known and not _CABLE_COLUMN.match(x)]
+        out["pose"] = [index[p] for p in POSE_COLUMNS]
     if "mass" in index:
-        extra_names.insert(0, "mass")
-    extras = {x: np.empty(n) for x in extra_names}
-    sources += [(arr[:, None], [index[x]]) for x, arr in extras.items()]
-    start = 0
-    blocks = reader.blocks
-    while blocks:
-        block = blocks.pop(0)
-        stop = start + block.shape[0]
-        for target, columns in sources:
-            target[start:stop] = block[:, columns]
-        start = stop
-        del block
-    mass = extras.pop("mass", None)
+        out["mass"] = [index["mass"]]
+    known = {"t", "mass", *POSE_COLUMNS}
+    for x in names:
+        if x not in known and not _CABLE_COLUMN.match(x):
+            out[f"extra:{x}"] = [index[x]]
+    return out
+
+
+def _assemble(path: Path, meta: dict[str, str], out: dict[str, np.ndarray], skipped: int):
+    extras = {k[len("extra:") :]: v for k, v in out.items() if k.startswith("extra:")}
     return Recording(
         t=out["t"],
         velocity=out["velocity"],
@@ -405,10 +440,10 @@ def _assemble(path, meta, names, cables, cols, reader: _Reader) -> Recording:
         tension_platform=out.get("tension_platform"),
         length=out.get("length"),
         pose=out.get("pose"),
-        mass=mass,
+        mass=out.get("mass"),
         metadata=meta,
         extra=extras,
-        skipped_rows=reader.skipped,
+        skipped_rows=skipped,
         source=str(path),
     )
 

@@ -6,9 +6,11 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from gateway.config import Config, config_from_mapping, load_friction, output_path
@@ -66,6 +68,23 @@ def _read(path: Path, model: Path) -> Recording:
     return relative_to_model(read_recording(path), load_friction(model))[0]
 
 
+def _unchanged(rec: Recording) -> Recording:
+    return rec
+
+
+def _slim(rec: Recording) -> tuple[Recording, Callable[[Recording], Recording]]:
+    """The recording without its cable lengths, which the diagnosis does not read (64
+    bytes per sample of 8 cables), and a function that gives the model writer back what
+    it reads of them (the first lengths, for the eccentricity's phase). The pose goes too
+    once the platform tensions and dT_p/dm exist (48 bytes per sample)."""
+    first = None if rec.length is None else rec.length[:1].copy()
+
+    def keep_for_model(r: Recording) -> Recording:
+        return dataclasses.replace(r, length=first)  # one row: write_model reads length[0]
+
+    return dataclasses.replace(rec, length=None), keep_for_model
+
+
 def run_command(command: str, args: argparse.Namespace) -> int:
     start = time.perf_counter()
 
@@ -83,13 +102,17 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
         + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
     )
+
+    keep_for_model: Callable[[Recording], Recording] = _unchanged
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
         wrec = None if args.validate is None else _read(args.validate, args.model)
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
+        rec, keep_for_model = _slim(rec)
         tp, dm = _tensions(rec, cfg, say)
+        rec = dataclasses.replace(rec, pose=None)  # read by _tensions only
         validation = None
         if args.validate is not None:
             vrec = _read(args.validate, args.model)
@@ -110,7 +133,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     if args.write_model is not None:
-        write_model(args.write_model, args.model, model_friction, diag.report, rec)  # type: ignore[arg-type]
+        write_model(args.write_model, args.model, model_friction, diag.report, keep_for_model(rec))  # type: ignore[arg-type]
         say(f"fitted model in {args.write_model}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"

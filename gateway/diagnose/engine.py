@@ -28,6 +28,7 @@ from gateway.diagnose.prepare import (  # noqa: F401 - re-exported
 from gateway.diagnose.report import Diagnosis, build_report, validation_forwards
 from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds, drop_unvalidated
 from gateway.errors import RecordingError
+from gateway.heap import return_large_frees
 from gateway.model.chain import coulomb_coefficients
 from gateway.recording import Recording
 
@@ -159,6 +160,7 @@ def diagnose(
     a second recording of the same machine, its platform tensions and dtp_dm.
     """
     say = progress or (lambda _msg: None)
+    return_large_frees()  # many (N,) temporaries: freed ones must not stay resident
     th = thresholds or Thresholds()
     tp = rec.tension_platform if tp is None else tp
     if tp is None:
@@ -169,10 +171,13 @@ def diagnose(
     blocks, nb = time_blocks(rec.t)
     all_cands = candidates_for(dtp_dm is not None)
     subset = selection_subset(rec.t, blocks)
-    clips = [clipped_mask(d.ts) for d in datas]
-    valid = np.column_stack([~c[0] for c in clips])
-    for i, (mask, levels) in enumerate(clips):
-        if levels:
+    valid = np.empty((rec.samples, rec.cables), bool)
+    levels = []
+    for i, d in enumerate(datas):
+        mask, at = clipped_mask(d.ts)
+        valid[:, i] = ~mask
+        levels.append(at)
+        if at:
             say(f"cable {i + 1}: {int(mask.sum())} clipped readings excluded")
     vsel = validation_forwards(validation, nom, rec.cables)
     vblocks = None if vsel is None else time_blocks(vsel[0][0].data.t)
@@ -193,6 +198,8 @@ def diagnose(
             outcome = CableSelector(
                 sub_fw, sub_blocks, int(sub_blocks.max()) + 1, cands, th, usable=usable & warm[idx]
             ).run()
+            del sub_fw  # its series and cached simulations, before the full-length refit
+            d.release()  # x and a: recomputed only if a kept effect needs them
             outcome = refit_full(fw, outcome, (blocks % 2 == 0) & warm)
         if vsel is not None and vblocks is not None:
             vfw, vvalid = vsel
@@ -207,7 +214,7 @@ def diagnose(
         outcomes.append(outcome)
         forwards.append(fw)
     clipped = {"per_cable": [int((~valid[:, i]).sum()) for i in range(rec.cables)],
-               "levels_n": [c[1] for c in clips]}  # fmt: skip
+               "levels_n": levels}  # fmt: skip
     diag = build_report(rec, forwards, outcomes, blocks, vsel, nom, valid, clipped)
     diag.report["reference"] = "platform_tension"
     return diag

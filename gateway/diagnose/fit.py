@@ -40,6 +40,10 @@ def _speeds(d: CableData) -> tuple[float, float]:
     return v95, dt
 
 
+KAPPA_BATCH = 16
+"""Wave numbers per batch of the periodogram: six (20000, 16) float64 temporaries, 15 MB."""
+
+
 def eccentricity_kappas(
     d: CableData, resid: np.ndarray, mask: np.ndarray, r_nom: float, top: int = 3
 ) -> list[float]:
@@ -62,14 +66,14 @@ def eccentricity_kappas(
     n_grid = int(min(3000, max(200, (k_hi - k_lo) * span / (0.5 * math.pi))))
     kappas = np.linspace(k_lo, k_hi, n_grid)
     power = np.empty(n_grid)
-    for lo in range(0, n_grid, 64):
-        kk = kappas[lo : lo + 64]
+    for lo in range(0, n_grid, KAPPA_BATCH):
+        kk = kappas[lo : lo + KAPPA_BATCH]
         ph = np.outer(x, kk)
         s, c = np.sin(ph), np.cos(ph)
         ss, cc, sc = (s * s).sum(0), (c * c).sum(0), (s * c).sum(0)
         rs, rc = r @ s, r @ c
         det = np.maximum(ss * cc - sc**2, 1e-300)
-        power[lo : lo + 64] = (cc * rs**2 - 2 * sc * rs * rc + ss * rc**2) / det
+        power[lo : lo + KAPPA_BATCH] = (cc * rs**2 - 2 * sc * rs * rc + ss * rc**2) / det
     order = np.argsort(power)[::-1]
     chosen: list[float] = []
     for j in order:

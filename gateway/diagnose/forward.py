@@ -19,7 +19,7 @@ Everything is one cable: arrays (N,), parameters scalars.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,31 +31,49 @@ CHAIN_EFFECTS = (*fx.CHAIN_EFFECTS, "mass_change")
 ALL_EFFECTS = fx.EFFECT_NAMES
 
 
-@dataclass
 class CableData:
     """One cable's series. ``t``, ``v``, ``tp``, ``ts`` (N,): s, m/s, N, N.
 
     ``x`` displacement (m) and ``a`` acceleration (m/s^2) from ``v``; ``t0`` the
     recording's first time (drift is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of
     platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
-    ``x`` and ``a`` are computed here unless given (a subset of a longer recording takes
-    them from the whole recording).
+    ``x`` and ``a`` are given (a subset of a longer recording takes them from the whole
+    recording) or computed from ``t`` and ``v`` when first read and dropped again by
+    :meth:`release` (memory: 16 bytes per sample that only the cable being worked on holds;
+    recomputing them gives the same values bit for bit).
     """
 
-    t: np.ndarray
-    v: np.ndarray
-    tp: np.ndarray
-    ts: np.ndarray
-    t0: float
-    dtp_dm: np.ndarray | None = None
-    x: np.ndarray = field(default=None)  # type: ignore[arg-type]
-    a: np.ndarray = field(default=None)  # type: ignore[arg-type]
+    def __init__(
+        self,
+        t: np.ndarray,
+        v: np.ndarray,
+        tp: np.ndarray,
+        ts: np.ndarray,
+        t0: float,
+        dtp_dm: np.ndarray | None = None,
+        x: np.ndarray | None = None,
+        a: np.ndarray | None = None,
+    ) -> None:
+        self.t, self.v, self.tp, self.ts, self.t0, self.dtp_dm = t, v, tp, ts, t0, dtp_dm
+        self._given = x is not None or a is not None
+        self._x, self._a = x, a
 
-    def __post_init__(self) -> None:
-        if self.x is None:
-            self.x = fx.displacement(self.t, self.v)
-        if self.a is None:
-            self.a = fx.acceleration(self.t, self.v) if self.t.size > 1 else np.zeros_like(self.v)
+    @property
+    def x(self) -> np.ndarray:
+        if self._x is None:
+            self._x = fx.displacement(self.t, self.v)
+        return self._x
+
+    @property
+    def a(self) -> np.ndarray:
+        if self._a is None:
+            self._a = fx.acceleration(self.t, self.v) if self.t.size > 1 else np.zeros_like(self.v)
+        return self._a
+
+    def release(self) -> None:
+        """Drop ``x`` and ``a`` when they were computed here (the next read recomputes)."""
+        if not self._given:
+            self._x = self._a = None
 
     def subset(self, idx: np.ndarray) -> CableData:
         """The samples ``idx`` (sorted), keeping ``x``, ``a`` and ``t0`` of the whole."""
@@ -144,6 +162,10 @@ def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
     return fx.chain_params(nom, values, 1)
 
 
+CACHE_BYTES = 10 << 20
+"""Memory for one :class:`Forward`'s cached chain simulations (speed only, never results)."""
+
+
 class Forward:
     """Prediction of one cable's sensor reading for a set of effects, with a chain cache.
 
@@ -155,12 +177,15 @@ class Forward:
         self.data = data
         self.nom = nom
         self._cache: dict[tuple, np.ndarray] = {}
-        self._cache_size = cache_size
+        # at most CACHE_BYTES of simulations (but 2): 4.8 MB each for a 10-min cable
+        fit = CACHE_BYTES // max(8 * data.t.size, 1)
+        self._cache_size = max(min(cache_size, fit), min(cache_size, 2))
         self.simulations = 0
 
     def clear_cache(self) -> None:
-        """Free the cached chain simulations."""
+        """Free the cached chain simulations and the data's computed ``x`` and ``a``."""
         self._cache.clear()
+        self.data.release()
 
     def chain(self, eff: dict[str, np.ndarray]) -> np.ndarray:
         """Sensor-side tension (N,) from the friction chain (and mass change) alone."""

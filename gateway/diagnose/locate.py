@@ -17,7 +17,7 @@ are regions, scored by their share of the total residual energy of all cables.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -64,28 +64,77 @@ class Region:
     share: float
 
 
+def cable_regions(t: np.ndarray, e: np.ndarray, regime: np.ndarray, cable: int) -> list[Region]:
+    """Regions of one cable (1-based ``cable``) from its residual energy ``e`` = r^2 (N,)
+    and regimes (N,); ``share`` is the region's energy itself (divide by the total)."""
+    w = max(25, e.size // 200)
+    kernel = np.ones(w) / w
+    smooth = np.convolve(e, kernel, mode="same")
+    hot = smooth > 2.0 * float(e.mean())
+    starts, stops = runs(hot)
+    csum = np.concatenate(([0.0], np.cumsum(e)))
+    found = []
+    for s, stop in zip(starts, stops, strict=True):
+        counts = np.bincount(regime[s:stop], minlength=len(REGIMES))
+        share = float(csum[stop] - csum[s])
+        found.append(
+            Region(cable, float(t[s]), float(t[stop - 1]), REGIMES[int(counts.argmax())], share)
+        )
+    return found
+
+
+def _top(found: list[Region], total: float, cap: int) -> list[Region]:
+    total = total or 1.0
+    out = [replace(r, share=r.share / total) for r in found]
+    out.sort(key=lambda r: r.share, reverse=True)
+    return out[:cap]
+
+
 def regions(t: np.ndarray, resid: np.ndarray, regime: np.ndarray, cap: int = 12) -> list[Region]:
     """The ``cap`` regions with the largest share; ``resid``, ``regime``: (N, m)."""
-    n, m = resid.shape
     energy = resid**2
-    total = float(energy.sum()) or 1.0
-    w = max(25, n // 200)
-    kernel = np.ones(w) / w
-    found: list[Region] = []
-    for i in range(m):
-        e = energy[:, i]
-        smooth = np.convolve(e, kernel, mode="same")
-        hot = smooth > 2.0 * float(e.mean())
-        starts, stops = runs(hot)
-        csum = np.concatenate(([0.0], np.cumsum(e)))
-        for s, stop in zip(starts, stops, strict=True):
-            share = float(csum[stop] - csum[s]) / total
-            counts = np.bincount(regime[s:stop, i], minlength=len(REGIMES))
-            found.append(
-                Region(i + 1, float(t[s]), float(t[stop - 1]), REGIMES[int(counts.argmax())], share)
-            )
-    found.sort(key=lambda r: r.share, reverse=True)
-    return found[:cap]
+    found = [
+        r
+        for i in range(resid.shape[1])
+        for r in cable_regions(t, energy[:, i], regime[:, i], i + 1)
+    ]
+    return _top(found, float(energy.sum()), cap)
+
+
+class EnergyMap:
+    """Regions and regime shares gathered cable by cable (:meth:`add`), so that no (N, m)
+    residual is needed: what :func:`regions` and :func:`report_fields` give for the whole."""
+
+    def __init__(self, t: np.ndarray) -> None:
+        self.t = t
+        self.total = 0.0
+        self.energy = np.zeros(len(REGIMES))
+        self.samples = np.zeros(len(REGIMES))
+        self.found: list[Region] = []
+
+    def add(self, cable: int, resid: np.ndarray, regime: np.ndarray) -> None:
+        """One cable's residual (N,) and regimes (N,); ``cable`` 1-based."""
+        e = resid**2
+        self.total += float(e.sum())
+        self.found += cable_regions(self.t, e, regime, cable)
+        self.energy += np.bincount(regime, weights=e, minlength=len(REGIMES))
+        self.samples += np.bincount(regime, minlength=len(REGIMES))
+
+    def regions(self, cap: int = 12) -> list[Region]:
+        return _top(self.found, self.total, cap)
+
+    def report_fields(self, regions: list[Region]) -> dict:
+        total, count = self.total or 1.0, float(self.samples.sum()) or 1.0
+        return {
+            "mismatch": [r.__dict__ for r in regions],
+            "regime_shares": {
+                k: {
+                    "energy": float(self.energy[j]) / total,
+                    "samples": float(self.samples[j] / count),
+                }
+                for j, k in enumerate(REGIMES)
+            },
+        }
 
 
 def regime_shares(resid: np.ndarray, regime: np.ndarray) -> dict[str, tuple[float, float]]:

@@ -24,6 +24,8 @@ import numpy as np
 from gateway.diagnose.report import Diagnosis
 
 MAX_POINTS = 20000
+SIGNATURE_POINTS = 1_000_000
+"""Samples (all cables) a signature plot bins: every k-th beyond that (memory)."""
 
 
 def thin(n: int) -> slice:
@@ -66,8 +68,9 @@ def residual_plot(diag: Diagnosis, path: Path) -> None:
     fig, axes = plt.subplots(m, 1, figsize=(10, 1.8 * m + 1), sharex=True, squeeze=False)
     sl = thin(diag.t.size)
     for i, ax in enumerate(axes[:, 0]):
-        ax.plot(diag.t[sl], (diag.measured - diag.nominal_pred)[sl, i], lw=0.5, label="nominal")
-        ax.plot(diag.t[sl], (diag.measured - diag.final_pred)[sl, i], lw=0.5, label="fitted")
+        y = diag.measured[sl, i]  # thinned before the difference: no (N, m) temporary
+        ax.plot(diag.t[sl], y - diag.nominal_pred[sl, i], lw=0.5, label="nominal")
+        ax.plot(diag.t[sl], y - diag.final_pred[sl, i], lw=0.5, label="fitted")
         for reg in diag.regions:
             if reg.cable == i + 1:
                 ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
@@ -88,13 +91,15 @@ def residual_plot(diag: Diagnosis, path: Path) -> None:
 def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
     """Residual without ``effect`` against its contribution, binned, all its cables."""
     xs, ys = [], []
-    for fw, o, i in zip(diag.forwards, diag.outcomes, range(len(diag.outcomes)), strict=True):
-        if effect not in o.theta:
-            continue
+    cables = [i for i, o in enumerate(diag.outcomes) if effect in o.theta]
+    step = max(1, diag.t.size * len(cables) // SIGNATURE_POINTS)
+    for i in cables:
+        fw, o = diag.forwards[i], diag.outcomes[i]
         rest = {k: v for k, v in o.theta.items() if k != effect}
-        without = fw.predict(rest)
-        xs.append(diag.final_pred[:, i] - without)
-        ys.append(diag.measured[:, i] - without)
+        without = fw.predict(rest)[::step]
+        fw.clear_cache()
+        xs.append(diag.final_pred[::step, i] - without)
+        ys.append(diag.measured[::step, i] - without)
     x, y = np.concatenate(xs), np.concatenate(ys)
     mx, my = binned_means(x, y, 40)
     fig, ax = plt.subplots(figsize=(5.5, 4.5))

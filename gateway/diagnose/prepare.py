@@ -12,7 +12,6 @@ from gateway.config import FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.errors import RecordingError
-from gateway.model import effects as fx
 from gateway.recording import Recording
 
 
@@ -72,16 +71,15 @@ def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None) -> lis
     :func:`deadband`.
 
     Memory: the tensions and a clean velocity are views of the recording's columns (not
-    copies); displacement and acceleration cost 16 bytes per sample and cable (float32
-    would halve that but moves the finite-difference fits of eccentricity and inertia)."""
+    copies); displacement and acceleration (16 bytes per sample) are computed when a cable
+    is worked on and freed by :meth:`Forward.clear_cache` (float32 would halve them but
+    moves the finite-difference fits of eccentricity and inertia)."""
     t0 = float(rec.t[0])
     out = []
     for i in range(rec.cables):
         v = deadband(rec.velocity[:, i])
-        x = fx.displacement(rec.t, v)
-        a = fx.acceleration(rec.t, v) if rec.t.size > 1 else np.zeros_like(v)
         dm = None if dtp_dm is None else dtp_dm[:, i]
-        out.append(CableData(rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm, x, a))
+        out.append(CableData(rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm))
     return out
 
 

@@ -49,16 +49,6 @@ def _rmse(res: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float(math.sqrt(np.mean(r**2))) if r.size else 0.0
 
 
-def _preds(forwards: list[Forward], thetas: list[dict]) -> np.ndarray:
-    """Predictions (N, m), filled cable by cable; each cable's chain cache is freed after
-    use (a few (N,) arrays per cable would otherwise stay alive for the whole report)."""
-    out = np.empty((forwards[0].data.t.size, len(forwards)))
-    for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
-        out[:, i] = fw.predict(th)
-        fw.clear_cache()
-    return out
-
-
 def _subset(outcomes: list[CableOutcome], effects: list[str]) -> list[dict]:
     """Per cable, the fitted parameters of those of ``effects`` the cable kept."""
     return [{e: o.theta[e] for e in effects if e in o.theta} for o in outcomes]
@@ -139,20 +129,76 @@ def rmse_pairs(before: Sequence, after: Sequence, validation: bool) -> dict[str,
     return pairs
 
 
+def _noise_std(r: np.ndarray) -> float:
+    """White-noise std of one residual column: median absolute first difference / sqrt 2."""
+    return float(np.median(np.abs(np.diff(r)))) / (0.6745 * math.sqrt(2.0))
+
+
 def noise_estimate(resid: np.ndarray) -> float:
     """White-noise std (N) of a residual (N, m): median absolute first difference / sqrt 2,
     robust to the slow part of the residual and to outliers; RMS over the cables."""
     if resid.shape[0] < 3:
         return 0.0
-    per = np.array([np.median(np.abs(np.diff(resid[:, i]))) for i in range(resid.shape[1])]) / (
-        0.6745 * math.sqrt(2.0)
-    )
+    per = np.array([_noise_std(resid[:, i]) for i in range(resid.shape[1])])
     return float(math.sqrt(np.mean(per**2)))
 
 
 def _num(v: float) -> float:
     """JSON-safe float (NaN/inf -> a large sentinel is worse than 0 for a stderr: use -1)."""
     return float(v) if math.isfinite(v) else -1.0
+
+
+def _regimes(forwards: list[Forward]) -> np.ndarray:
+    """(N, m) int8 regimes; each cable's computed acceleration is freed after use."""
+    out = np.empty((forwards[0].data.t.size, len(forwards)), np.int8)
+    for i, fw in enumerate(forwards):
+        out[:, i] = locate.regimes(fw.data.v, fw.data.a)
+        fw.data.release()
+    return out
+
+
+def _baseline(t, forwards, valid, test, regime):
+    """The nominal model's predictions (N, m) float32 (for the plots), the report's
+    ``baseline`` and the located regions with their :class:`locate.EnergyMap`, computed
+    cable by cable: no (N, m) float64 residual is held."""
+    pred = np.empty(valid.shape, np.float32)
+    sse, count = np.zeros(2), np.zeros(2)
+    per_cable = []
+    emap = locate.EnergyMap(t)
+    for i, fw in enumerate(forwards):
+        p = fw.predict({})
+        fw.clear_cache()
+        pred[:, i] = p
+        r = fw.data.ts - p
+        del p
+        r[~valid[:, i]] = 0.0
+        for j, mask in enumerate((valid[:, i], test[:, i])):
+            rr = r[mask]
+            sse[j] += float(rr @ rr)
+            count[j] += rr.size
+            if j == 0:
+                per_cable.append(_rmse(rr))
+        emap.add(i + 1, r, regime[:, i])
+    rms, hold = (math.sqrt(s / c) if c else 0.0 for s, c in zip(sse, count, strict=True))
+    base = {"rmse_n": rms, "per_cable_rmse_n": per_cable, "holdout_rmse_n": hold}
+    return pred, base, emap.regions(), emap
+
+
+def _final(forwards, thetas, valid):
+    """The final model's predictions (N, m) float32 and the white noise of its residual
+    (:func:`noise_estimate`), cable by cable."""
+    pred = np.empty(valid.shape, np.float32)
+    per = np.zeros(len(forwards))
+    for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
+        p = fw.predict(th)
+        fw.clear_cache()
+        pred[:, i] = p
+        r = fw.data.ts - p
+        del p
+        r[~valid[:, i]] = 0.0
+        if r.size >= 3:
+            per[i] = _noise_std(r)
+    return pred, float(math.sqrt(np.mean(per**2))) if valid.shape[0] >= 3 else 0.0
 
 
 def build_report(
@@ -167,16 +213,14 @@ def build_report(
 ) -> Diagnosis:
     """The report dict and the arrays behind it; ``validation``: the validation recording's
     forwards and valid samples (:func:`validation_forwards`) or None; ``valid`` (N, m):
-    samples scored (False: a clipped reading), ``clipped``: their counts and levels."""
+    samples scored (False: a clipped reading), ``clipped``: their counts and levels.
+    Memory: besides the recording, (N, m) bool masks, int8 regimes and the two float32
+    predictions kept for the plots; residuals exist one cable at a time."""
     measured = rec.tension_sensor
     valid = np.ones(measured.shape, bool) if valid is None else valid
     test = (blocks % 2 == 1)[:, None] & valid
-    nominal_pred = _preds(forwards, [{} for _ in forwards])
-    resid0 = measured - nominal_pred
-    resid0[~valid] = 0.0
-    nominal_pred = nominal_pred.astype(np.float32)  # kept for the plots only
-    regime = np.column_stack([locate.regimes(fw.data.v, fw.data.a) for fw in forwards])
-    regions = locate.regions(rec.t, resid0, regime)
+    regime = _regimes(forwards)
+    nominal_pred, baseline, regions, emap = _baseline(rec.t, forwards, valid, test, regime)
     vfw, vvalid = validation or (None, None)
     order = _order(forwards, outcomes, valid)
 
@@ -194,12 +238,7 @@ def build_report(
         ev = evidence(effect, outcomes, regime, before[1], after[1])
         findings.append(_finding(effect, outcomes, pairs, ev))
         before = after
-    final_pred = _preds(forwards, _subset(outcomes, order))
-    final_resid = measured - final_pred
-    final_resid[~valid] = 0.0
-    noise = noise_estimate(final_resid)
-    del final_resid
-    final_pred = final_pred.astype(np.float32)
+    final_pred, noise = _final(forwards, _subset(outcomes, order), valid)
     final = {
         "rmse_n": before[0],
         "holdout_rmse_n": before[1],
@@ -213,12 +252,8 @@ def build_report(
         "cables": rec.cables,
         "samples": rec.samples,
         "skipped_rows": rec.skipped_rows,
-        "baseline": {
-            "rmse_n": _rmse(resid0, valid),
-            "per_cable_rmse_n": [_rmse(resid0[valid[:, i], i]) for i in range(rec.cables)],
-            "holdout_rmse_n": _rmse(resid0, test),
-        },
-        **locate.report_fields(regions, resid0, regime),
+        "baseline": baseline,
+        **emap.report_fields(regions),
         "findings": findings,
         "final": final,
         "clipped": clipped or {"per_cable": [0] * rec.cables, "levels_n": [[]] * rec.cables},
