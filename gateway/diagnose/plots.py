@@ -68,9 +68,10 @@ def residual_plot(diag: Diagnosis, path: Path) -> None:
     fig, axes = plt.subplots(m, 1, figsize=(10, 1.8 * m + 1), sharex=True, squeeze=False)
     sl = thin(diag.t.size)
     for i, ax in enumerate(axes[:, 0]):
-        y = diag.measured[sl, i]  # thinned before the difference: no (N, m) temporary
-        ax.plot(diag.t[sl], y - diag.nominal_pred[sl, i], lw=0.5, label="nominal")
-        ax.plot(diag.t[sl], y - diag.final_pred[sl, i], lw=0.5, label="fitted")
+        nominal, final = (p[sl] for p in diag.predictions(i))  # one cable at a time
+        y = diag.measured[sl, i]
+        ax.plot(diag.t[sl], y - nominal, lw=0.5, label="nominal")
+        ax.plot(diag.t[sl], y - final, lw=0.5, label="fitted")
         for reg in diag.regions:
             if reg.cable == i + 1:
                 ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
@@ -94,11 +95,11 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
     cables = [i for i, o in enumerate(diag.outcomes) if effect in o.theta]
     step = max(1, diag.t.size * len(cables) // SIGNATURE_POINTS)
     for i in cables:
-        fw, o = diag.forwards[i], diag.outcomes[i]
-        rest = {k: v for k, v in o.theta.items() if k != effect}
+        fw, final = diag.forwards[i], diag.final_theta(i)
+        rest = {k: v for k, v in final.items() if k != effect}
         without = fw.predict(rest)[::step]
+        xs.append(fw.predict(final)[::step] - without)
         fw.clear_cache()
-        xs.append(diag.final_pred[::step, i] - without)
         ys.append(diag.measured[::step, i] - without)
     x, y = np.concatenate(xs), np.concatenate(ys)
     mx, my = binned_means(x, y, 40)
@@ -118,10 +119,11 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
 def overlay_plot(diag: Diagnosis, path: Path) -> None:
     """Measured, nominal and fitted reading around the largest located region."""
     i, sel = around_largest_region(diag.t, diag.regions)
+    nominal, final = (p[sel] for p in diag.predictions(i))
     fig, ax = plt.subplots(figsize=(10, 4))
     ax.plot(diag.t[sel], diag.measured[sel, i], lw=0.8, label="measured", color="grey")
-    ax.plot(diag.t[sel], diag.nominal_pred[sel, i], lw=1.0, label="nominal model")
-    ax.plot(diag.t[sel], diag.final_pred[sel, i], lw=1.0, label="fitted model")
+    ax.plot(diag.t[sel], nominal, lw=1.0, label="nominal model")
+    ax.plot(diag.t[sel], final, lw=1.0, label="fitted model")
     ax.set_xlabel("t (s)")
     ax.set_ylabel(f"cable {i + 1} sensor reading (N)")
     ax.set_title("before / after around the largest mismatch region")
