@@ -133,6 +133,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
+    say(f"report in {args.json}")
     if args.report is not None:
         from gateway.diagnose.plots import write_report
         from gateway.diagnose.wrench_plots import write_report as write_wrench_report
