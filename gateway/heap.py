@@ -35,3 +35,17 @@ def return_large_frees(threshold: int = DEFAULT_THRESHOLD) -> bool:
         return False
     _set.append(int(threshold))
     return True
+
+
+def trim_heap() -> bool:
+    """Give the free pages inside glibc's heap back to the system (``malloc_trim(0)``):
+    after many small blocks are freed (a matplotlib figure: tens of MB) that are not at
+    the heap's top. True when it was called; no-op where there is no glibc."""
+    try:
+        malloc_trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return False
+    malloc_trim.argtypes = (ctypes.c_size_t,)
+    malloc_trim.restype = ctypes.c_int
+    malloc_trim(0)
+    return True

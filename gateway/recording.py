@@ -25,7 +25,7 @@ from __future__ import annotations
 import gzip
 import io
 import re
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -52,6 +52,7 @@ MIN_STEP_S = 1e-6  # consecutive time stamps closer than this are refused (1 MHz
 MAX_ABS_TIME_S = 1e12  # Unix time stamps (~1.7e9 s) are fine
 MAX_ABS_VALUE = 1e9  # any other column: N, m, m/s, rad, kg
 CHUNK_ROWS = 8192
+FIRST_ROW_ONLY = ("length", "pose", "mass", "tension_platform")
 READ_BLOCK_CHARS = 1 << 22
 _TOO_LONG = f"line longer than {MAX_LINE_CHARS} characters"
 
@@ -61,7 +62,8 @@ class Recording:
     """Arrays of one recording; ``m`` cables, ``N`` kept samples.
 
     ``t`` (N,) s; ``velocity``, ``tension_sensor`` (N, m); ``tension_platform`` and
-    ``length`` (N, m) or None; ``pose`` (N, 6) or None; ``mass`` (N,) or None.
+    ``length`` (N, m) or None; ``pose`` (N, 6) or None; ``mass`` (N,) or None; an optional
+    array read with ``read_recording(first_row_only=...)`` holds its first row only.
     """
 
     t: np.ndarray
@@ -332,16 +334,24 @@ def read_recording(
     *,
     min_samples: int = MIN_SAMPLES,
     max_samples: int = DEFAULT_MAX_SAMPLES,
+    first_row_only: Collection[str] = (),
 ) -> Recording:
-    """Read and validate a recording (docs/recording-format.md), streaming the body."""
+    """Read and validate a recording (docs/recording-format.md), streaming the body.
+
+    ``first_row_only``: names of optional arrays (``length``, ``pose``, ``mass``,
+    ``tension_platform``) of which only the first kept row is stored, shape (1, k) (``mass``
+    (1,)), for a caller that reads no more of them (memory: 8 bytes per value and sample
+    not held). Their values are parsed and checked as any other: the same refusals."""
     path = Path(path)
+    if not set(first_row_only) <= set(FIRST_ROW_ONLY):
+        raise ValueError(f"first_row_only: only {FIRST_ROW_ONLY}, not {first_row_only!r}")
     return_large_frees()  # the result arrays grow by realloc: mremap, not copies
     try:
         with _open_text(path) as fh:
             lines = _lines(path, fh)
             meta, head, names = _split_header(path, lines)
             cables, cols = _layout(path, head, names)
-            sink = _Columns(_targets(names, cables, cols))
+            sink = _Columns(_targets(names, cables, cols), first_row_only)
             required = _required_columns(names, cols)
             reader = _Reader(path, names, required, max_samples, sink)
             body: list[str] = []
@@ -379,37 +389,48 @@ class _Columns:
 
     FIRST_ROWS = 1 << 16
 
-    def __init__(self, targets: dict[str, list[int]]) -> None:
+    def __init__(self, targets: dict[str, list[int]], first_row_only: Collection[str] = ()) -> None:
         self.rows = 0
         self.capacity = 0
         self.sources = {k: np.asarray(c, dtype=np.intp) for k, c in targets.items()}
         self.arrays = {k: np.empty((0, len(c))) for k, c in targets.items()}
+        self.heads = {k: self.arrays.pop(k) for k in first_row_only if k in self.arrays}
 
     def append(self, block: np.ndarray) -> None:
         stop = self.rows + block.shape[0]
+        if self.rows == 0:  # the first kept row of the arrays read no further
+            for name, arr in self.heads.items():
+                arr.resize((1, arr.shape[1]), refcheck=False)
+                _fill(arr, block[:1], self.sources[name])
         if stop > self.capacity:  # resize zero-fills the new rows: they are resident
             self.capacity = max(stop, self.capacity * 9 // 8, self.FIRST_ROWS)
             for arr in self.arrays.values():
                 arr.resize((self.capacity, arr.shape[1]), refcheck=False)
-        for name, src in self.sources.items():
-            rows = self.arrays[name][self.rows : stop]
-            if np.all(src >= 0):
-                rows[:] = block[:, src]
-            else:
-                rows[:] = np.nan
-                present = np.nonzero(src >= 0)[0]
-                rows[:, present] = block[:, src[present]]
+        for name, arr in self.arrays.items():
+            _fill(arr[self.rows : stop], block, self.sources[name])
         self.rows = stop
 
     def finish(self) -> dict[str, np.ndarray]:
-        """The arrays, cut to the rows read (``t``, ``mass`` and extras as (N,))."""
+        """The arrays, cut to the rows read (``t``, ``mass`` and extras as (N,)); those
+        read for their first row only as (1, k) ((1,))."""
         out = {}
-        for name, arr in self.arrays.items():
-            arr.resize((self.rows, arr.shape[1]), refcheck=False)
+        for name, arr in [*self.arrays.items(), *self.heads.items()]:
+            if name not in self.heads:
+                arr.resize((self.rows, arr.shape[1]), refcheck=False)
             flat = name in ("t", "mass") or name.startswith("extra:")
-            out[name] = arr.reshape(self.rows) if flat else arr
-        self.arrays = {}
+            out[name] = arr.reshape(arr.shape[0]) if flat else arr
+        self.arrays, self.heads = {}, {}
         return out
+
+
+def _fill(rows: np.ndarray, block: np.ndarray, src: np.ndarray) -> None:
+    """``rows`` from the parsed ``block``'s columns ``src`` (-1: absent, NaN)."""
+    if np.all(src >= 0):
+        rows[:] = block[:, src]
+    else:
+        rows[:] = np.nan
+        present = np.nonzero(src >= 0)[0]
+        rows[:, present] = block[:, src[present]]
 
 
 def _targets(names: list[str], cables: int, cols: dict[str, list[int]]) -> dict[str, list[int]]:

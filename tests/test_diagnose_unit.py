@@ -184,3 +184,32 @@ def test_standstill_recording_finds_offset_not_eccentricity():
     report = diagnose(rec, FrictionConfig()).report
     assert [f["effect"] for f in report["findings"]] == ["offset"]
     assert report["findings"][0]["parameters"]["c_n"][0] == pytest.approx(0.3, abs=0.03)
+
+
+def test_recomputed_predictions_give_the_reported_rmse():
+    """The plots' predictions are recomputed per cable (not held): they give the report's
+    baseline and final RMSE."""
+    from gateway.diagnose.engine import diagnose
+    from gateway.diagnose.plots import overlay_series, residual_series, thin
+    from sim_plc.scenarios import Scenario, make_recording
+
+    sc = Scenario("offset", {"offset": {"c_n": [2.0, 0.0]}}, cables=2, seconds=20.0)
+    rec = make_recording(sc)
+    diag = diagnose(rec, sc.nominal())
+    assert [f["effect"] for f in diag.report["findings"]] == ["offset"]
+    sse = np.zeros(2)
+    for i in range(rec.cables):
+        nominal, final = diag.predictions(i)
+        assert (final is nominal) == (not diag.final_theta(i))
+        r0, r1 = diag.measured[:, i] - nominal, diag.measured[:, i] - final
+        assert_allclose(math.sqrt(np.mean(r0**2)), diag.report["baseline"]["per_cable_rmse_n"][i],
+                        rtol=1e-12)  # fmt: skip
+        sse += [r0 @ r0, r1 @ r1]
+    n = rec.samples * rec.cables
+    assert_allclose(np.sqrt(sse / n), [diag.report["baseline"]["rmse_n"],
+                    diag.report["final"]["rmse_n"]], rtol=1e-12)  # fmt: skip
+    nom_thin, fin_thin = residual_series(diag)
+    assert nom_thin.shape == fin_thin.shape == (diag.t[thin(diag.t.size)].size, rec.cables)
+    assert_allclose(fin_thin[:, 0], diag.predictions(0)[1][thin(diag.t.size)], rtol=0)
+    nom_win, fin_win = overlay_series(diag)
+    assert nom_win.shape == fin_win.shape and nom_win.size > 0

@@ -98,3 +98,69 @@ def test_reading_batch_equals_the_whole_run_formula(effects: dict) -> None:
     whole = model.reading(model.adc(plant.sensor_batch(model, sp, noise)))
     chunked = plant.reading_batch(model, sp, np.random.default_rng(model.sim.seed))
     assert_array_equal(chunked, whole)
+
+
+def _with_lengths_and_pose(n: int) -> Recording:
+    rng = np.random.default_rng(5)
+    return Recording(
+        t=np.arange(n) * 1e-3,
+        velocity=rng.standard_normal((n, 2)),
+        tension_sensor=rng.standard_normal((n, 2)) + 100,
+        tension_platform=rng.standard_normal((n, 2)) + 100,
+        length=rng.standard_normal((n, 2)) + 2,
+        pose=rng.standard_normal((n, 6)),
+        mass=np.full(n, 40.0),
+    )
+
+
+def test_reader_keeps_the_first_row_only_where_asked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(recording, "CHUNK_ROWS", 7)
+    path = tmp_path / "r.csv"
+    write_recording(path, _with_lengths_and_pose(100))
+    whole = read_recording(path)
+    head = read_recording(path, first_row_only=("length", "pose", "mass"))
+    assert head.length is not None and head.pose is not None and head.mass is not None
+    assert head.length.shape == (1, 2) and head.pose.shape == (1, 6) and head.mass.shape == (1,)
+    assert_array_equal(head.length, whole.length[:1])  # type: ignore[index]
+    assert_array_equal(head.pose, whole.pose[:1])  # type: ignore[index]
+    for name in ("t", "velocity", "tension_sensor", "tension_platform"):
+        assert_array_equal(getattr(head, name), getattr(whole, name))
+    with pytest.raises(ValueError, match="first_row_only"):
+        read_recording(path, first_row_only=("velocity",))
+
+
+def test_reader_refuses_a_bad_value_in_a_column_read_for_its_first_row(tmp_path: Path) -> None:
+    from gateway.errors import RecordingError
+
+    path = tmp_path / "r.csv"
+    write_recording(path, _with_lengths_and_pose(50))
+    lines = path.read_text().splitlines()
+    names = next(x for x in lines if not x.startswith("#")).split(",")
+    at = len(lines) - 10
+    fields = lines[at].split(",")
+    fields[names.index("length_2")] = "1e300"
+    lines[at] = ",".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(RecordingError, match="length_2"):
+        read_recording(path, first_row_only=("length",))
+
+
+def test_mass_sensitivity_knots_read_per_cable_equal_the_whole() -> None:
+    from gateway.diagnose.platform import MassSensitivity
+    from gateway.diagnose.prepare import cable_data, finite_rows
+
+    rec = _with_lengths_and_pose(300)
+    rec.tension_sensor[17, 1] = np.nan  # a row finite_rows drops
+    knots = MassSensitivity(rec.t[::37].copy(), np.random.default_rng(2).random((9, 2)))
+    full = knots.full(rec.t)
+    assert full.shape == (300, 2)
+    sub, tp, lazy = finite_rows(rec, rec.tension_platform, knots)  # type: ignore[arg-type]
+    assert lazy is knots and sub.samples == 299
+    _, _, eager = finite_rows(rec, rec.tension_platform, full)  # type: ignore[arg-type]
+    for i, d in enumerate(cable_data(sub, tp, lazy)):
+        assert_array_equal(d.dtp_dm, eager[:, i])  # type: ignore[index]
+        d.release()
+        assert d._dm is None  # computed per cable when read, dropped after
+        assert_array_equal(d.dtp_dm, eager[:, i])  # type: ignore[index]

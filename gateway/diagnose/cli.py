@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from gateway.config import Config, config_from_mapping, load_friction, output_path
+from gateway.config import Config, FrictionConfig, config_from_mapping, load_friction, output_path
 from gateway.configtypes import read_yaml
 from gateway.diagnose import platform
 from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
@@ -63,9 +63,13 @@ def _tensions(rec: Recording, cfg: Config | None, say):
     return tp, platform.mass_sensitivity(rec, cfg, say)
 
 
-def _read(path: Path, model: Path) -> Recording:
-    """A further recording, relative to the model's fitted effects (as the diagnosed one)."""
-    return relative_to_model(read_recording(path), load_friction(model))[0]
+def _read(path: Path, friction: FrictionConfig) -> tuple[Recording, FrictionConfig]:
+    """A recording relative to the model's fitted effects (``friction.effects``) and the
+    nominal friction (:func:`relative_to_model`). Without effects, only the first row of
+    the cable lengths is read: the diagnosis reads none of them, the model writer the
+    first (the eccentricity's phase); undoing effects needs all of them."""
+    first_only = () if friction.effects else ("length",)
+    return relative_to_model(read_recording(path, first_row_only=first_only), friction)
 
 
 def _unchanged(rec: Recording) -> Recording:
@@ -74,15 +78,21 @@ def _unchanged(rec: Recording) -> Recording:
 
 def _slim(rec: Recording) -> tuple[Recording, Callable[[Recording], Recording]]:
     """The recording without its cable lengths, which the diagnosis does not read (64
-    bytes per sample of 8 cables), and a function that gives the model writer back what
-    it reads of them (the first lengths, for the eccentricity's phase). The pose goes too
-    once the platform tensions and dT_p/dm exist (48 bytes per sample)."""
+    bytes per sample of 8 cables when they were read whole), and a function that gives the
+    model writer back what it reads of them (the first lengths, for the eccentricity's
+    phase). Pose and mass go too once the platform tensions and dT_p/dm exist
+    (:func:`_without_pose`)."""
     first = None if rec.length is None else rec.length[:1].copy()
 
     def keep_for_model(r: Recording) -> Recording:
         return dataclasses.replace(r, length=first)  # one row: write_model reads length[0]
 
     return dataclasses.replace(rec, length=None), keep_for_model
+
+
+def _without_pose(rec: Recording) -> Recording:
+    """``rec`` without pose and mass (56 bytes per sample), read by :func:`_tensions` only."""
+    return dataclasses.replace(rec, pose=None, mass=None)
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
@@ -96,7 +106,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if args.write_model is not None:
         output_path(args.write_model, "--write-model")
     model_friction, cfg = load_model(args.model)
-    rec, nominal = relative_to_model(read_recording(args.recording), model_friction)  # type: ignore[arg-type]
+    rec, nominal = _read(args.recording, model_friction)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
@@ -107,22 +117,23 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
-        wrec = None if args.validate is None else _read(args.validate, args.model)
+        wrec = None if args.validate is None else _read(args.validate, model_friction)[0]  # type: ignore[arg-type]
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
         rec, keep_for_model = _slim(rec)
         tp, dm = _tensions(rec, cfg, say)
-        rec = dataclasses.replace(rec, pose=None)  # read by _tensions only
+        rec = _without_pose(rec)
         validation = None
         if args.validate is not None:
-            vrec = _read(args.validate, args.model)
+            vrec = dataclasses.replace(_read(args.validate, model_friction)[0], length=None)  # type: ignore[arg-type]
             vtp, vdm = _tensions(vrec, cfg, say)
-            validation = (vrec, vtp, vdm if dm is not None else None)
+            validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
     try:
         args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
+    say(f"report in {args.json}")
     if args.report is not None:
         from gateway.diagnose.plots import write_report
         from gateway.diagnose.wrench_plots import write_report as write_wrench_report

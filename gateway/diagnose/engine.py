@@ -17,6 +17,7 @@ from gateway.config import FrictionConfig
 from gateway.diagnose.fit import joint_fit
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.prepare import (  # noqa: F401 - re-exported
+    Sensitivity,
     cable_data,
     clipped_mask,
     deadband,
@@ -148,15 +149,16 @@ def diagnose(
     rec: Recording,
     friction: FrictionConfig,
     tp: np.ndarray | None = None,
-    dtp_dm: np.ndarray | None = None,
-    validation: tuple[Recording, np.ndarray, np.ndarray | None] | None = None,
+    dtp_dm: Sensitivity = None,
+    validation: tuple[Recording, np.ndarray, Sensitivity] | None = None,
     thresholds: Thresholds | None = None,
     progress: Progress | None = None,
 ) -> Diagnosis:
     """Diagnose ``rec`` against the nominal ``friction`` model (see the module docstring).
 
-    ``tp`` (N, m): platform tensions (default: the recording's); ``dtp_dm`` (N, m) N/kg:
-    platform tension per kg of platform mass (enables ``mass_change``); ``validation``:
+    ``tp`` (N, m): platform tensions (default: the recording's); ``dtp_dm`` (N, m) N/kg
+    or its knots (:class:`gateway.diagnose.platform.MassSensitivity`): platform tension
+    per kg of platform mass (enables ``mass_change``); ``validation``:
     a second recording of the same machine, its platform tensions and dtp_dm.
     """
     say = progress or (lambda _msg: None)

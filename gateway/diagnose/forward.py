@@ -19,6 +19,7 @@ Everything is one cable: arrays (N,), parameters scalars.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,7 +41,9 @@ class CableData:
     ``x`` and ``a`` are given (a subset of a longer recording takes them from the whole
     recording) or computed from ``t`` and ``v`` when first read and dropped again by
     :meth:`release` (memory: 16 bytes per sample that only the cable being worked on holds;
-    recomputing them gives the same values bit for bit).
+    recomputing them gives the same values bit for bit). ``dtp_dm`` may be given as a
+    function that computes it (e.g. interpolates knots): then it is computed when first
+    read and dropped by :meth:`release` as well.
     """
 
     def __init__(
@@ -50,13 +53,21 @@ class CableData:
         tp: np.ndarray,
         ts: np.ndarray,
         t0: float,
-        dtp_dm: np.ndarray | None = None,
+        dtp_dm: np.ndarray | Callable[[], np.ndarray] | None = None,
         x: np.ndarray | None = None,
         a: np.ndarray | None = None,
     ) -> None:
-        self.t, self.v, self.tp, self.ts, self.t0, self.dtp_dm = t, v, tp, ts, t0, dtp_dm
+        self.t, self.v, self.tp, self.ts, self.t0 = t, v, tp, ts, t0
         self._given = x is not None or a is not None
         self._x, self._a = x, a
+        self._dm_source = dtp_dm if callable(dtp_dm) else None
+        self._dm = None if callable(dtp_dm) else dtp_dm
+
+    @property
+    def dtp_dm(self) -> np.ndarray | None:
+        if self._dm is None and self._dm_source is not None:
+            self._dm = self._dm_source()
+        return self._dm
 
     @property
     def x(self) -> np.ndarray:
@@ -71,9 +82,12 @@ class CableData:
         return self._a
 
     def release(self) -> None:
-        """Drop ``x`` and ``a`` when they were computed here (the next read recomputes)."""
+        """Drop ``x``, ``a`` and ``dtp_dm`` when they were computed here (the next read
+        recomputes)."""
         if not self._given:
             self._x = self._a = None
+        if self._dm_source is not None:
+            self._dm = None
 
     def subset(self, idx: np.ndarray) -> CableData:
         """The samples ``idx`` (sorted), keeping ``x``, ``a`` and ``t0`` of the whole."""

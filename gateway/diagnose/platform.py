@@ -9,6 +9,7 @@ differences), as in :mod:`gateway.model.statics`; the tension limits are the con
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -61,10 +62,33 @@ def platform_tensions(rec: Recording, cfg: Config | None) -> np.ndarray:
         raise RecordingError(f"{rec.source}: platform tensions from pose and mass: {exc}") from exc
 
 
+@dataclass(frozen=True)
+class MassSensitivity:
+    """``dT_p/dm`` (N/kg) solved at ``SENSITIVITY_POINTS`` knot times ``t_knots`` (k,),
+    ``values`` (k, m), linearly interpolated in time where read: one cable's (N,) series
+    exists only while that cable is worked on (8 bytes per sample and cable not held)."""
+
+    t_knots: np.ndarray
+    values: np.ndarray
+
+    @property
+    def cables(self) -> int:
+        return int(self.values.shape[1])
+
+    def column(self, t: np.ndarray, i: int) -> np.ndarray:
+        """(N,) cable ``i``'s (0-based) sensitivity at the times ``t``."""
+        return np.interp(t, self.t_knots, self.values[:, i])
+
+    def full(self, t: np.ndarray) -> np.ndarray:
+        """(N, m) every cable's sensitivity at the times ``t``."""
+        return np.column_stack([self.column(t, i) for i in range(self.cables)])
+
+
 def mass_sensitivity(
     rec: Recording, cfg: Config | None, say: Callable[[str], None] | None = None
-) -> np.ndarray | None:
-    """(N, m) ``dT_p/dm`` in N/kg, or None when pose, mass or geometry are missing."""
+) -> MassSensitivity | None:
+    """``dT_p/dm`` in N/kg (:class:`MassSensitivity`; ``.full(rec.t)`` for the (N, m)
+    array), or None when pose, mass or geometry are missing."""
     if rec.pose is None or rec.mass is None or cfg is None or cfg.cables != rec.cables:
         return None
     idx = np.unique(
@@ -78,5 +102,4 @@ def mass_sensitivity(
         hi = _solve(cfg, rec, idx, mass + 1.0)
     except InfeasiblePoseError:
         return None
-    sens = hi - lo
-    return np.column_stack([np.interp(rec.t, rec.t[idx], sens[:, i]) for i in range(rec.cables)])
+    return MassSensitivity(rec.t[idx], hi - lo)

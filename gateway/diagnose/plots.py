@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from gateway.diagnose.report import Diagnosis
+from gateway.heap import trim_heap
 
 MAX_POINTS = 20000
 SIGNATURE_POINTS = 1_000_000
@@ -37,6 +38,7 @@ def save(fig: Any, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+    trim_heap()  # a figure's many small blocks, freed, would stay resident
 
 
 def binned_means(x: np.ndarray, y: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
@@ -62,15 +64,35 @@ def around_largest_region(t: np.ndarray, regions: Sequence[Any]) -> tuple[int, n
     return i, (t >= mid - half) & (t <= mid + half)
 
 
-def residual_plot(diag: Diagnosis, path: Path) -> None:
-    """Residual over time per cable, regions shaded."""
+Series = tuple[np.ndarray, np.ndarray]
+"""Nominal and final predictions (n, m) (thinned) or (n,) (one cable's window)."""
+
+
+def residual_series(diag: Diagnosis) -> Series:
+    """The predictions of every cable at the residual plot's thinned samples, computed
+    one cable at a time (before any figure exists: memory)."""
+    sl = thin(diag.t.size)
+    pairs = [tuple(p[sl] for p in diag.predictions(i)) for i in range(diag.measured.shape[1])]
+    return np.column_stack([n for n, _ in pairs]), np.column_stack([f for _, f in pairs])
+
+
+def overlay_series(diag: Diagnosis) -> Series:
+    """The predictions of the overlay plot's cable in its window."""
+    i, sel = around_largest_region(diag.t, diag.regions)
+    nominal, final = diag.predictions(i)
+    return nominal[sel], final[sel]
+
+
+def residual_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> None:
+    """Residual over time per cable, regions shaded (``series``: :func:`residual_series`)."""
     m = diag.measured.shape[1]
+    nominal, final = residual_series(diag) if series is None else series
     fig, axes = plt.subplots(m, 1, figsize=(10, 1.8 * m + 1), sharex=True, squeeze=False)
     sl = thin(diag.t.size)
     for i, ax in enumerate(axes[:, 0]):
-        y = diag.measured[sl, i]  # thinned before the difference: no (N, m) temporary
-        ax.plot(diag.t[sl], y - diag.nominal_pred[sl, i], lw=0.5, label="nominal")
-        ax.plot(diag.t[sl], y - diag.final_pred[sl, i], lw=0.5, label="fitted")
+        y = diag.measured[sl, i]
+        ax.plot(diag.t[sl], y - nominal[:, i], lw=0.5, label="nominal")
+        ax.plot(diag.t[sl], y - final[:, i], lw=0.5, label="fitted")
         for reg in diag.regions:
             if reg.cable == i + 1:
                 ax.axvspan(reg.start_s, reg.end_s, color="tab:red", alpha=0.2)
@@ -94,11 +116,11 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
     cables = [i for i, o in enumerate(diag.outcomes) if effect in o.theta]
     step = max(1, diag.t.size * len(cables) // SIGNATURE_POINTS)
     for i in cables:
-        fw, o = diag.forwards[i], diag.outcomes[i]
-        rest = {k: v for k, v in o.theta.items() if k != effect}
+        fw, final = diag.forwards[i], diag.final_theta(i)
+        rest = {k: v for k, v in final.items() if k != effect}
         without = fw.predict(rest)[::step]
+        xs.append(fw.predict(final)[::step] - without)
         fw.clear_cache()
-        xs.append(diag.final_pred[::step, i] - without)
         ys.append(diag.measured[::step, i] - without)
     x, y = np.concatenate(xs), np.concatenate(ys)
     mx, my = binned_means(x, y, 40)
@@ -115,13 +137,15 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
     save(fig, path)
 
 
-def overlay_plot(diag: Diagnosis, path: Path) -> None:
-    """Measured, nominal and fitted reading around the largest located region."""
+def overlay_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> None:
+    """Measured, nominal and fitted reading around the largest located region
+    (``series``: :func:`overlay_series`)."""
     i, sel = around_largest_region(diag.t, diag.regions)
+    nominal, final = overlay_series(diag) if series is None else series
     fig, ax = plt.subplots(figsize=(10, 4))
     ax.plot(diag.t[sel], diag.measured[sel, i], lw=0.8, label="measured", color="grey")
-    ax.plot(diag.t[sel], diag.nominal_pred[sel, i], lw=1.0, label="nominal model")
-    ax.plot(diag.t[sel], diag.final_pred[sel, i], lw=1.0, label="fitted model")
+    ax.plot(diag.t[sel], nominal, lw=1.0, label="nominal model")
+    ax.plot(diag.t[sel], final, lw=1.0, label="fitted model")
     ax.set_xlabel("t (s)")
     ax.set_ylabel(f"cable {i + 1} sensor reading (N)")
     ax.set_title("before / after around the largest mismatch region")
@@ -236,6 +260,16 @@ def write_files(
 
 
 def write_report(diag: Diagnosis, directory: Path, source: str) -> None:
-    """Write the pictures and ``summary.md`` into ``directory`` (created if needed)."""
+    """Write the pictures and ``summary.md`` into ``directory`` (created if needed). The
+    predictions the residual and overlay plots show are computed first (one cable at a
+    time), so that no chain simulation runs while a figure exists."""
     text = summary(diag, source)
-    write_files(diag, directory, text, residual_plot, overlay_plot, signature_plot)
+    res, ovl = residual_series(diag), overlay_series(diag)
+    write_files(
+        diag,
+        directory,
+        text,
+        lambda d, path: residual_plot(d, path, res),
+        lambda d, path: overlay_plot(d, path, ovl),
+        signature_plot,
+    )

@@ -4,13 +4,16 @@ the velocity dead band, saturated sensor readings and the held-out time blocks."
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
 from gateway.config import FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.forward import CableData, Nominal
+from gateway.diagnose.platform import MassSensitivity
 from gateway.errors import RecordingError
 from gateway.recording import Recording
 
@@ -66,25 +69,34 @@ def deadband(v: np.ndarray) -> np.ndarray:
     return np.where(np.abs(v) < VELOCITY_DEADBAND_SIGMAS * noise, 0.0, v)
 
 
-def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None) -> list[CableData]:
-    """One :class:`CableData` per cable; ``tp``, ``dtp_dm``: (N, m); velocity through
-    :func:`deadband`.
+Sensitivity = np.ndarray | MassSensitivity | None
+"""``dT_p/dm``: (N, m) N/kg, or its knots (interpolated per cable when read), or None."""
+
+
+def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity) -> list[CableData]:
+    """One :class:`CableData` per cable; ``tp`` (N, m); velocity through :func:`deadband`.
 
     Memory: the tensions and a clean velocity are views of the recording's columns (not
-    copies); displacement and acceleration (16 bytes per sample) are computed when a cable
-    is worked on and freed by :meth:`Forward.clear_cache` (float32 would halve them but
-    moves the finite-difference fits of eccentricity and inertia)."""
+    copies); displacement and acceleration (16 bytes per sample) and ``dtp_dm`` given as
+    :class:`MassSensitivity` (8) are computed when a cable is worked on and freed by
+    :meth:`Forward.clear_cache` (float32 would halve them but moves the finite-difference
+    fits of eccentricity and inertia)."""
     t0 = float(rec.t[0])
     out = []
     for i in range(rec.cables):
         v = deadband(rec.velocity[:, i])
-        dm = None if dtp_dm is None else dtp_dm[:, i]
+        dm: np.ndarray | Callable[[], np.ndarray] | None = None
+        if isinstance(dtp_dm, MassSensitivity):
+            dm = partial(dtp_dm.column, rec.t, i)
+        elif dtp_dm is not None:
+            dm = dtp_dm[:, i]
         out.append(CableData(rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm))
     return out
 
 
-def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None):
-    """Drop the samples where any cable lacks a finite value (counted in skipped_rows)."""
+def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity):
+    """Drop the samples where any cable lacks a finite value (counted in skipped_rows);
+    a :class:`MassSensitivity` stays as it is (read at the kept samples' times)."""
     ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
     ok &= np.isfinite(tp).all(1)
     if ok.all():
@@ -103,7 +115,7 @@ def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | None):
         extra={},
         skipped_rows=rec.skipped_rows + int((~ok).sum()),
     )
-    return sub, tp[ok], None if dtp_dm is None else dtp_dm[ok]
+    return sub, tp[ok], dtp_dm[ok] if isinstance(dtp_dm, np.ndarray) else dtp_dm
 
 
 CLIP_MIN_SHARE = 0.002

@@ -30,18 +30,30 @@ from gateway.recording import Recording
 
 @dataclass
 class Diagnosis:
-    """Everything the report and the pictures are made of."""
+    """Everything the report and the pictures are made of. The predictions are not held
+    (16 bytes per sample and cable as float64): :meth:`predictions` recomputes a cable's."""
 
     report: dict
     t: np.ndarray
     measured: np.ndarray
-    nominal_pred: np.ndarray
-    final_pred: np.ndarray
     regime: np.ndarray
     regions: list[locate.Region]
     outcomes: list[CableOutcome]
     findings_order: list[str]
     forwards: list[Forward] = field(default_factory=list)
+
+    def final_theta(self, i: int) -> dict[str, np.ndarray]:
+        """Cable ``i``'s (0-based) fitted parameters of the findings (the final model)."""
+        return _subset([self.outcomes[i]], self.findings_order)[0]
+
+    def predictions(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Cable ``i``'s (0-based) sensor reading (N,) as the nominal and the final model
+        predict it (the same array when the cable kept nothing); chain caches freed."""
+        fw, theta = self.forwards[i], self.final_theta(i)
+        nominal = fw.predict({})
+        final = fw.predict(theta) if theta else nominal
+        fw.clear_cache()
+        return nominal, final
 
 
 def _rmse(res: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -158,19 +170,14 @@ def _regimes(forwards: list[Forward]) -> np.ndarray:
 
 
 def _baseline(t, forwards, valid, test, regime):
-    """The nominal model's predictions (N, m) float32 (for the plots), the report's
-    ``baseline`` and the located regions with their :class:`locate.EnergyMap`, computed
-    cable by cable: no (N, m) float64 residual is held."""
-    pred = np.empty(valid.shape, np.float32)
+    """The report's ``baseline`` and the located regions with their
+    :class:`locate.EnergyMap`, computed cable by cable: no (N, m) residual is held."""
     sse, count = np.zeros(2), np.zeros(2)
     per_cable = []
     emap = locate.EnergyMap(t)
     for i, fw in enumerate(forwards):
-        p = fw.predict({})
+        r = fw.data.ts - fw.predict({})
         fw.clear_cache()
-        pred[:, i] = p
-        r = fw.data.ts - p
-        del p
         r[~valid[:, i]] = 0.0
         for j, mask in enumerate((valid[:, i], test[:, i])):
             rr = r[mask]
@@ -181,24 +188,20 @@ def _baseline(t, forwards, valid, test, regime):
         emap.add(i + 1, r, regime[:, i])
     rms, hold = (math.sqrt(s / c) if c else 0.0 for s, c in zip(sse, count, strict=True))
     base = {"rmse_n": rms, "per_cable_rmse_n": per_cable, "holdout_rmse_n": hold}
-    return pred, base, emap.regions(), emap
+    return base, emap.regions(), emap
 
 
-def _final(forwards, thetas, valid):
-    """The final model's predictions (N, m) float32 and the white noise of its residual
-    (:func:`noise_estimate`), cable by cable."""
-    pred = np.empty(valid.shape, np.float32)
+def _final_noise(forwards, thetas, valid) -> float:
+    """The white noise of the final model's residual (:func:`noise_estimate`), cable by
+    cable."""
     per = np.zeros(len(forwards))
     for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
-        p = fw.predict(th)
+        r = fw.data.ts - fw.predict(th)
         fw.clear_cache()
-        pred[:, i] = p
-        r = fw.data.ts - p
-        del p
         r[~valid[:, i]] = 0.0
         if r.size >= 3:
             per[i] = _noise_std(r)
-    return pred, float(math.sqrt(np.mean(per**2))) if valid.shape[0] >= 3 else 0.0
+    return float(math.sqrt(np.mean(per**2))) if valid.shape[0] >= 3 else 0.0
 
 
 def build_report(
@@ -214,13 +217,13 @@ def build_report(
     """The report dict and the arrays behind it; ``validation``: the validation recording's
     forwards and valid samples (:func:`validation_forwards`) or None; ``valid`` (N, m):
     samples scored (False: a clipped reading), ``clipped``: their counts and levels.
-    Memory: besides the recording, (N, m) bool masks, int8 regimes and the two float32
-    predictions kept for the plots; residuals exist one cable at a time."""
+    Memory: besides the recording, (N, m) bool masks and int8 regimes; predictions and
+    residuals exist one cable at a time (:meth:`Diagnosis.predictions` for the plots)."""
     measured = rec.tension_sensor
     valid = np.ones(measured.shape, bool) if valid is None else valid
     test = (blocks % 2 == 1)[:, None] & valid
     regime = _regimes(forwards)
-    nominal_pred, baseline, regions, emap = _baseline(rec.t, forwards, valid, test, regime)
+    baseline, regions, emap = _baseline(rec.t, forwards, valid, test, regime)
     vfw, vvalid = validation or (None, None)
     order = _order(forwards, outcomes, valid)
 
@@ -238,7 +241,7 @@ def build_report(
         ev = evidence(effect, outcomes, regime, before[1], after[1])
         findings.append(_finding(effect, outcomes, pairs, ev))
         before = after
-    final_pred, noise = _final(forwards, _subset(outcomes, order), valid)
+    noise = _final_noise(forwards, _subset(outcomes, order), valid)
     final = {
         "rmse_n": before[0],
         "holdout_rmse_n": before[1],
@@ -258,15 +261,4 @@ def build_report(
         "final": final,
         "clipped": clipped or {"per_cable": [0] * rec.cables, "levels_n": [[]] * rec.cables},
     }
-    return Diagnosis(
-        report,
-        rec.t,
-        measured,
-        nominal_pred,
-        final_pred,
-        regime,
-        regions,
-        outcomes,
-        order,
-        forwards,
-    )
+    return Diagnosis(report, rec.t, measured, regime, regions, outcomes, order, forwards)

@@ -58,11 +58,14 @@ SIGNATURE_POINTS = 20000
 @dataclass
 class WrenchDiagnosis(Diagnosis):
     """A :class:`Diagnosis` of the wrench reference. ``measured`` is zero (the balance),
-    the predictions are minus the force residuals (N, 3); ``signatures``: per finding,
+    ``nominal_pred`` and ``final_pred`` minus the force residuals (N, 3) of the nominal and
+    the final model (held: the balance is not per cable); ``signatures``: per finding,
     its contribution to the force residual and the residual the final model leaves
     without it (both flattened, thinned), for :mod:`.wrench_plots`."""
 
     signatures: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    nominal_pred: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    final_pred: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 class WrenchSelector:
@@ -399,5 +402,6 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
         },
     }
     zeros = np.zeros((data.t.size, 3))
-    return WrenchDiagnosis(report, data.t, zeros, -r_nominal[:, :3], -r_final[:, :3],
-                           np.repeat(regime, 3, axis=1), regions, [], order, [])  # fmt: skip
+    regimes = np.repeat(regime, 3, axis=1)
+    return WrenchDiagnosis(report, data.t, zeros, regimes, regions, [], order, [],
+                           nominal_pred=-r_nominal[:, :3], final_pred=-r_final[:, :3])  # fmt: skip
