@@ -164,3 +164,23 @@ def test_mass_sensitivity_knots_read_per_cable_equal_the_whole() -> None:
         d.release()
         assert d._dm is None  # computed per cable when read, dropped after
         assert_array_equal(d.dtp_dm, eager[:, i])  # type: ignore[index]
+
+
+def test_chain_batch_in_row_blocks_equals_one_block(monkeypatch) -> None:
+    """simulate/compensate run the kernel in row blocks (the travel array stays small);
+    the friction state and the previous velocity carried across give the same bits."""
+    from gateway.model import chain
+    from sim_plc.plant import PlantModel
+    from tests.plant_helpers import make_config
+
+    params = PlantModel(make_config()).params
+    rng = np.random.default_rng(3)
+    n, m = 5003, params.cables
+    t = np.cumsum(rng.uniform(0.0008, 0.0012, n))
+    v = np.cumsum(rng.normal(0, 0.002, (n, m)), axis=0)
+    tp = 300 + np.cumsum(rng.normal(0, 1, (n, m)), axis=0)
+    whole = chain.simulate(params, tp, v, t), chain.compensate(params, tp, v, t)
+    monkeypatch.setattr(chain, "BATCH_ROWS", 97)
+    blocks = chain.simulate(params, tp, v, t), chain.compensate(params, tp, v, t)
+    np.testing.assert_array_equal(blocks[0], whole[0])
+    np.testing.assert_array_equal(blocks[1], whole[1])

@@ -306,6 +306,9 @@ def coulomb_coefficients(params: ChainParams) -> tuple[np.ndarray, np.ndarray]:
     return lam_pos, lam_neg
 
 
+BATCH_ROWS = 32768  # rows per kernel call in the batch forms (bounds the travel array)
+
+
 def _time_steps(t: np.ndarray | float, n_samples: int) -> np.ndarray:
     """``dt_k = t_k - t_{k-1}`` with ``dt_0 = 0`` (no travel before the first sample)."""
     if np.ndim(t) == 0:
@@ -354,7 +357,18 @@ def _run_batch(
     out = np.empty_like(t_in)
     kernel = compensate_kernel if forward else simulate_kernel
     p = kernel_params(params, tol_n, max_iter)
-    kernel(p, t_in, vel, travel(t, vel), f_state, out)
+    n = t_in.shape[0]
+    if n == 0:
+        return out
+    dt = _time_steps(t, n)
+    # the travel in row blocks (the friction state and the previous velocity carried
+    # across): a 10-min, 8-cable run would otherwise hold a 38 MB travel array
+    dx = np.empty((min(n, BATCH_ROWS), t_in.shape[1]))
+    v_prev = vel[0].copy()
+    for a in range(0, n, BATCH_ROWS):
+        b = min(a + BATCH_ROWS, n)
+        travel_into(vel[a:b], dt[a:b], v_prev, dx[: b - a])
+        kernel(p, t_in[a:b], vel[a:b], dx[: b - a], f_state, out[a:b])
     return out
 
 
