@@ -188,12 +188,11 @@ def run_modbus(cfg: Config, seconds: float, rt: bool, poll: bool = False) -> dic
     cycles = max(1, round(seconds / cfg.loop.period_s))
     plc = BenchPlc(str(cfg.source), rt)
     report = None
-    held = None
+    held: int | None = None  # the PM QoS file descriptor while ``poll`` holds it
     try:
         if poll:
             try:
-                held = realtime.CPU_DMA_LATENCY, os.open(realtime.CPU_DMA_LATENCY, os.O_WRONLY)
-                os.write(held[1], (0).to_bytes(4, sys.byteorder, signed=True))
+                held = realtime.Ops().open_latency(0)
             except OSError as exc:
                 print(f"  (RT off + poll: {realtime.CPU_DMA_LATENCY}: {exc.strerror})")
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
@@ -211,7 +210,7 @@ def run_modbus(cfg: Config, seconds: float, rt: bool, poll: bool = False) -> dic
         if report is not None:
             realtime.undo(report)
         if held is not None:
-            os.close(held[1])
+            os.close(held)
         plc.close()
     wall = wall1 - wall0
     return {
@@ -221,7 +220,7 @@ def run_modbus(cfg: Config, seconds: float, rt: bool, poll: bool = False) -> dic
         "minflt": u1.ru_minflt - u0.ru_minflt, "majflt": u1.ru_majflt - u0.ru_majflt,
         "gateway_rt": report.line("gateway real-time") if report else (
             "gateway real-time: off" + (
-                f"; the bench holds {realtime.CPU_DMA_LATENCY} at 0" if held else "")),
+                f"; the bench holds {realtime.CPU_DMA_LATENCY} at 0" if held is not None else "")),
         "plc_rt": "; ".join(plc.lines("sim-plc: real-time")) or "n/a",
         "plc_stop": "; ".join(plc.lines("sim-plc: stopped")) or "n/a",
         "causes": _causes(service, wire), "wire": wire.recent(),

@@ -254,21 +254,14 @@ def _recording_setpoints(model: PlantModel, t: np.ndarray, progress: Progress | 
     is per sample), keeping only what a recording needs: the structure matrices and the
     wrenches of one chunk at a time, never of the whole run (10 min: 1 GB -> < 400 MB)."""
     n, m = t.size, model.cables
-    keep: tuple[str, ...] = (
-        "pose",
-        "length",
-        "velocity",
-        "mass",
-        "tension_true",
-        "tension_recorded",
-    )
+    # without a hidden mass change the truth is what is recorded: one array for both
+    hidden = model.hidden_q != 0.0
+    keep = ("pose", "length", "velocity", "mass", "tension_recorded") + (
+        ("tension_true",) if hidden else ())  # fmt: skip
     out = {"pose": np.empty((n, 6)), "mass": np.empty(n)}
-    out.update({k: np.empty((n, m)) for k in keep if k not in out and k != "tension_true"})
-    if model.hidden_q != 0.0:  # else the truth is what is recorded: one array for both
-        out["tension_true"] = np.empty((n, m))
-    else:
+    out.update({k: np.empty((n, m)) for k in keep if k not in out})
+    if not hidden:
         out["tension_true"] = out["tension_recorded"]
-        keep = tuple(k for k in keep if k != "tension_true")
     for start in range(0, n, RECORD_CHUNK):
         part = model.prepare(t[start : start + RECORD_CHUNK])
         for k in range(part.t.size):
@@ -342,7 +335,6 @@ class Plant:
         self.fx = effects.ForwardStepper(m.effects, m.cables, self.period_s)
         if self.chunks is not None:  # the worker's plant runs; this one replays it
             self._cur, self._nxt = self.chunks.get(0), self.chunks.get(1)
-            self._solved = self.chunk
         else:
             self._cur = m.setpoints(self._times(0))
             self._nxt = m.prepare(self._times(1))
