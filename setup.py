@@ -2,7 +2,7 @@
 
 The shipped configs and EDS files stay in the top-level ``config/`` folder (the copy users
 read and edit); the wheel carries them as the package data ``gateway/data/``, found at run
-time with importlib.resources (``gateway/resources.py``). Everything else is in
+time with importlib.resources (``gateway/core/resources.py``). Everything else is in
 pyproject.toml.
 """
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from drivers.base import Inputs, Outputs
 from drivers.canopen import CanopenDriver
-from gateway.config import load_config
+from gateway.core.config import load_config
 from gateway.errors import DriverTimeoutError
 from sim_plc.canopen_nodes import CanopenPlc
 from sim_plc.image import ProcessImage

@@ -142,8 +142,8 @@ def measure(cycles: int) -> dict[str, list[float]]:
     import numpy as np
 
     from drivers.base import Outputs
-    from gateway.config import load_config
-    from gateway.loop import CyclicService
+    from gateway.core.config import load_config
+    from gateway.runtime.loop import CyclicService
 
     cfg = load_config()
     driver = _fake_driver(cfg)
@@ -242,8 +242,8 @@ def _worker() -> None:
     cycles = int(sys.argv[2])
     report = None
     if os.environ.get("BENCH_CYCLE_RT", "1") != "0":
-        from gateway import realtime
-        from gateway.config import RealtimeConfig
+        from gateway.core.config import RealtimeConfig
+        from gateway.runtime import realtime
 
         report = realtime.apply(RealtimeConfig(enabled=True), force=True)
     try:

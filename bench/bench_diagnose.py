@@ -45,7 +45,7 @@ def _generate(path: str) -> None:
 
 def run() -> None:
     from gateway.diagnose.engine import diagnose
-    from gateway.recording import Recording
+    from gateway.recordings.reader import Recording
 
     with tempfile.TemporaryDirectory() as tmp:
         path = str(Path(tmp) / "rec.npz")

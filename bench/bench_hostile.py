@@ -2,7 +2,7 @@
 
 Two probes (issue "hostile PLC" items 3 and 4), each bounded in time:
 
-* ``storm``: the real cycle (:class:`gateway.loop.CyclicService` with the Modbus driver)
+* ``storm``: the real cycle (:class:`gateway.runtime.loop.CyclicService` with the Modbus driver)
   runs ``seconds`` against a PLC that answers exceptions (6, busy), malformed frames,
   accepts then drops, resets mid-frame, or refuses the client certificate (TLS); prints
   the TCP connections the gateway opened per second (goal: a growing interval up to
@@ -22,9 +22,9 @@ import threading
 import time
 
 from drivers.base import Inputs, make_driver
-from gateway.config import Config, TlsConfig
+from gateway.core.config import Config, TlsConfig
 from gateway.errors import DriverError, DriverTimeoutError
-from gateway.loop import CyclicService
+from gateway.runtime.loop import CyclicService
 from tests.hostile_modbus import HostileServer, make_tls_pair
 from tests.hostile_modbus import gateway_config as _config
 

@@ -13,7 +13,7 @@ subprocess (``cdpr-gateway sim-plc --port 0``, chunks prepared by its worker pro
   the whole machine; on a VM with the ``haltpoll`` idle driver a halted vCPU's wake-up is
   the largest delay: docs/realtime.md);
 * **RT on**: the config's ``loop.realtime`` forced on in this process (the gateway's
-  cycle thread: SCHED_FIFO 50, mlockall, GC frozen and off, :mod:`gateway.realtime`)
+  cycle thread: SCHED_FIFO 50, mlockall, GC frozen and off, :mod:`gateway.runtime.realtime`)
   and ``sim-plc --realtime`` (the same for the soft PLC's threads).
 
 Reported per run, as the ROS 2 real-time demos do: min / mean / p99 / p99.9 / max of the
@@ -56,11 +56,11 @@ from typing import Any
 import numpy as np
 
 from bench import stop_process
-from gateway import realtime
-from gateway.config import Config, load_config
-from gateway.daemon import build_driver
-from gateway.loop import CyclicService
-from gateway.stats import Ring
+from gateway.core.config import Config, load_config
+from gateway.runtime import realtime
+from gateway.runtime.loop import CyclicService
+from gateway.runtime.stats import Ring
+from gateway.service.daemon import build_driver
 from sim_plc.demo import InProcessCanopenPlc, with_port
 
 FLOOR_MAX = 20000  # floor transactions (back to back)

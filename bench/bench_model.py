@@ -15,9 +15,9 @@ from dataclasses import replace
 import numpy as np
 
 from drivers.base import Inputs, Outputs
-from gateway.compensator import Compensator
-from gateway.config import Config, load_config
+from gateway.core.config import Config, load_config
 from gateway.model.chain import ChainParams, ChainStepper, compensate, simulate
+from gateway.runtime.compensator import Compensator
 
 
 def _signals(n: int, m: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.config import load_config
+from gateway.core.config import load_config
 from sim_plc.image import ProcessImage
 from sim_plc.plant import Plant, make_recording
 from sim_plc.runtime import PlcRuntime
@@ -79,8 +79,8 @@ def _stall_run(cfg: Any, seconds: float, worker: bool, rt: bool) -> None:
     """One stall measurement; with ``rt`` this process (runtime and probe threads) runs
     SCHED_FIFO 50 + mlockall and the worker SCHED_FIFO 1, so the machine's other load
     drops out and what is left is the GIL."""
-    from gateway import realtime
-    from gateway.config import RealtimeConfig
+    from gateway.core.config import RealtimeConfig
+    from gateway.runtime import realtime
     from sim_plc.prepare import ChunkWorker
 
     plant = Plant(cfg)

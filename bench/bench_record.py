@@ -11,7 +11,7 @@ directory, default ``record:`` settings) in alternating halves, so that a drifti
 a shared machine hits both kinds alike. Printed per kind: cycles, overruns, jitter
 p50/p99/p99.9, cycle p50/p99, CPU; for the recording: rows written, samples dropped, file
 size, the extra CPU (in the gateway's process, and in the recorder's writer process), and
-the file read back with ``gateway.recording.read_recording``
+the file read back with ``gateway.recordings.reader.read_recording``
 (samples, time to read, the reader's peak RSS growth). Figures only: nothing asserts on
 time.
 """
@@ -34,12 +34,12 @@ from typing import IO
 import numpy as np
 
 from bench import stop_process
-from gateway import realtime
-from gateway.config import Config, RealtimeConfig, load_config
-from gateway.daemon import build_driver, start_recorder
-from gateway.loop import CyclicService
-from gateway.recorder import Recorder
-from gateway.recording import read_recording
+from gateway.core.config import Config, RealtimeConfig, load_config
+from gateway.recordings.reader import read_recording
+from gateway.runtime import realtime
+from gateway.runtime.loop import CyclicService
+from gateway.service.daemon import build_driver, start_recorder
+from gateway.service.recorder import Recorder
 from sim_plc.demo import with_port
 
 HALVES = 2  # each kind runs in this many parts, alternating, against drifting load

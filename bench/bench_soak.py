@@ -33,9 +33,9 @@ from typing import Any
 import numpy as np
 
 from drivers.modbus_tcp import ModbusTcpDriver
-from gateway.config import load_config
-from gateway.loop import CyclicService
-from gateway.metrics import make_registry
+from gateway.core.config import load_config
+from gateway.runtime.loop import CyclicService
+from gateway.service.metrics import make_registry
 from sim_plc.faultproxy import FaultProxy
 from tests.reliability_helpers import (
     PlcHeartbeat,

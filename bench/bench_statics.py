@@ -12,7 +12,7 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from gateway.config import load_config
+from gateway.core.config import load_config
 from gateway.model import kinematics, statics
 
 _CFG = load_config()  # the shipped geometry, mass and tension limits

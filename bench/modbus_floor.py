@@ -97,7 +97,7 @@ def server_cost(n: int = 5000) -> tuple[float, np.ndarray]:
     """The soft PLC server's own CPU per request (s) over ``n`` floor round trips, and
     the round trips: the server in this process, its thread's CPU clock read before and
     after (so the client's and the kernel's loopback work on the client side are out)."""
-    from gateway.config import load_config
+    from gateway.core.config import load_config
     from sim_plc.image import ProcessImage
     from sim_plc.modbus_server import ModbusPlcServer
 
@@ -118,7 +118,7 @@ def server_cost(n: int = 5000) -> tuple[float, np.ndarray]:
 def side_by_side(n: int = 5000, blocks: int = 5) -> dict[str, np.ndarray]:
     """Soft PLC server on a free port; floor and driver in interleaved blocks of n/blocks."""
     from drivers.modbus_tcp import ModbusTcpDriver
-    from gateway.config import load_config
+    from gateway.core.config import load_config
     from sim_plc.image import ProcessImage
     from sim_plc.modbus_server import ModbusPlcServer
 

@@ -17,8 +17,8 @@ import canopen
 import numpy as np
 from canopen import objectdictionary as od_types
 
+from gateway.core.resources import data_dir
 from gateway.errors import DriverInitError, DriverIOError
-from gateway.resources import data_dir
 
 TENSION_N_PER_COUNT = 0.02
 VELOCITY_M_S_PER_COUNT = 2e-5

@@ -49,7 +49,7 @@ import numpy as np
 
 from drivers.base import Backoff, Driver, Inputs, Outputs
 from drivers.registers import FieldCodec, FieldGroup, Span, layout_map
-from gateway.config import ModbusTcpConfig
+from gateway.core.config import ModbusTcpConfig
 from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError
 
 FC_READ = 3

@@ -40,7 +40,7 @@ from numba import literal_unroll, njit, types
 from numba.extending import overload
 
 from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW, S7Analog
-from gateway.config import RegisterField, RegisterMap, SensorConfig
+from gateway.core.config import RegisterField, RegisterMap, SensorConfig
 from gateway.errors import ConfigError
 
 MAX_READ_REGISTERS = 125  # functions 3, 4, 23 (read part)

@@ -70,7 +70,7 @@ class S7Analog:
 
     @staticmethod
     def from_sensor(sensor: Any) -> S7Analog:
-        """From a :class:`gateway.config.SensorConfig` (``range_n``, ``adc_full_scale``)."""
+        """From a :class:`gateway.core.config.SensorConfig` (``range_n``, ``adc_full_scale``)."""
         return s7_codec(float(sensor.range_n), int(sensor.adc_full_scale))
 
     # --- decode ----------------------------------------------------------------------

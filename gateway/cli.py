@@ -22,8 +22,11 @@ from gateway import __version__
 from gateway.errors import GatewayError
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "run": ("gateway.daemon", "run the gateway daemon against the PLC in the config"),
-    "check": ("gateway.check", "validate a config; with --connect read once (writes nothing)"),
+    "run": ("gateway.service.daemon", "run the gateway daemon against the PLC in the config"),
+    "check": (
+        "gateway.service.check",
+        "validate a config; with --connect read once (writes nothing)",
+    ),
     "demo": ("sim_plc.demo", "soft PLC and gateway on loopback, then a table of results"),
     "sim-plc": ("sim_plc.cli", "serve the soft PLC (Modbus TCP / CANopen) until stopped"),
     "record": ("sim_plc.cli", "run the soft PLC's plant and write a recording (CSV)"),

@@ -41,14 +41,14 @@ from typing import Any
 import numpy as np
 import yaml
 
-from gateway.config import Config, load_config, load_friction
-from gateway.configtypes import read_yaml
-from gateway.daemon import build_driver, start_recorder
+from gateway.core.config import Config, load_config, load_friction
+from gateway.core.configtypes import read_yaml
 from gateway.diagnose.engine import reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
-from gateway.loop import CyclicService
-from gateway.recording import Recording, read_recording
+from gateway.recordings.reader import Recording, read_recording
+from gateway.runtime.loop import CyclicService
+from gateway.service.daemon import build_driver, start_recorder
 from sim_plc import demo
 
 BUS = "modbus_tcp"  # the truth side channel is a Modbus register block

@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Any
 
-from gateway.config import (
+from gateway.core.config import (
     DEFAULT_CONFIG_PATH,
     Config,
     TlsConfig,
@@ -29,7 +29,7 @@ from gateway.config import (
     output_path,
 )
 from gateway.errors import ConfigError
-from gateway.recording import write_recording
+from gateway.recordings.reader import write_recording
 from sim_plc.config import load_sim_config
 
 
@@ -173,7 +173,7 @@ def _plant(cfg: Config, in_process: bool) -> tuple[Any, Any, Any]:
 
 
 def _serve(cfg: Config, args: argparse.Namespace) -> int:
-    from gateway import realtime
+    from gateway.runtime import realtime
     from sim_plc.runtime import PlcRuntime
 
     plant, chunks, image = _plant(cfg, bool(getattr(args, "chunks_in_process", False)))

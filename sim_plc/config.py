@@ -1,6 +1,6 @@
 """The ``sim_plc:`` section of a config file: YAML -> frozen dataclasses.
 
-``load_sim_config(cfg)`` validates ``cfg.sim_plc`` (kept raw by :mod:`gateway.config`) with
+``load_sim_config(cfg)`` validates ``cfg.sim_plc`` (kept raw by :mod:`gateway.core.config`) with
 key paths prefixed ``sim_plc`` and resolves what defaults to other sections: the truth
 friction (``sim_plc.friction`` is merged over the config's ``friction:``), the tension
 limits of the plant's tension distribution (``sim_plc.tension`` over ``tension:``) and the
@@ -23,8 +23,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from gateway.config import Config, FrictionConfig, TensionConfig
-from gateway.configtypes import convert, require
+from gateway.core.config import Config, FrictionConfig, TensionConfig
+from gateway.core.configtypes import convert, require
 from gateway.errors import ConfigError
 from gateway.model.effects import Effects, effect_values
 from sim_plc.distribution import DistributionConfig

@@ -8,7 +8,7 @@ jitter and round-trip percentiles, and per cable the RMSE of the raw and of the 
 tension against the plant's true platform tension.
 
 Real time: unless ``--no-realtime``, the gateway's loop thread applies ``loop.realtime``
-(:mod:`gateway.realtime`, forced as if ``enabled``: SCHED_FIFO, mlockall, GC off) and the
+(:mod:`gateway.runtime.realtime`, forced as if ``enabled``: SCHED_FIFO, mlockall, GC off) and the
 soft PLC is started with ``--realtime``; what each applied and refused is in the output.
 
 The gateway never sees the truth: the demo observes the plant through its own channel and
@@ -52,13 +52,13 @@ from typing import IO, Any, TextIO
 import numpy as np
 
 from drivers.s7 import S7Analog
-from gateway import realtime
-from gateway.config import DEFAULT_CONFIG_PATH, Config, RealtimeConfig, load_config
-from gateway.daemon import build_driver
+from gateway.core.config import DEFAULT_CONFIG_PATH, Config, RealtimeConfig, load_config
 from gateway.errors import GatewayError
-from gateway.loop import CyclicService
 from gateway.model.chain import ChainParams, ChainStepper
-from gateway.realtime import RealtimeReport
+from gateway.runtime import realtime
+from gateway.runtime.loop import CyclicService
+from gateway.runtime.realtime import RealtimeReport
+from gateway.service.daemon import build_driver
 from sim_plc.image import ProcessImage
 from sim_plc.modbus_server import TRUTH_ADDRESS
 from sim_plc.truth import (

@@ -34,7 +34,7 @@ from typing import Literal
 
 import numpy as np
 
-from gateway.configtypes import require
+from gateway.core.configtypes import require
 from gateway.errors import InfeasiblePoseError
 from gateway.model import statics
 

@@ -23,7 +23,7 @@ from drivers.registers import (
     Span,
     layout_map,
 )
-from gateway.config import Config, RegisterField
+from gateway.core.config import Config, RegisterField
 from sim_plc.image import ProcessImage
 
 INPUT_AREA_ALIGN = 8

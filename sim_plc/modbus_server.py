@@ -52,7 +52,7 @@ import threading
 from concurrent.futures import Future
 from typing import Any
 
-from gateway.config import Config, TlsConfig
+from gateway.core.config import Config, TlsConfig
 from gateway.errors import GatewayError
 from sim_plc.image import ProcessImage
 from sim_plc.modbus_image import (  # noqa: F401 - re-exported: modbus_server is their old home

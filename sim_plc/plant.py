@@ -41,10 +41,10 @@ from typing import Any
 import numpy as np
 
 from drivers.s7 import s7_codec
-from gateway.config import Config
+from gateway.core.config import Config
 from gateway.errors import InfeasiblePoseError
 from gateway.model import chain, effects, kinematics, statics
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 from sim_plc.config import SimPlcConfig, load_sim_config, per_cable
 from sim_plc.distribution import Distributor
 from sim_plc.image import ProcessImage

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.config import Config
+from gateway.core.config import Config
 from gateway.errors import GatewayError
 from sim_plc.config import SimPlcConfig
 

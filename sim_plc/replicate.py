@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from gateway.config import Config, load_config
+from gateway.core.config import Config, load_config
+from gateway.core.resources import data_file
 from gateway.model import chain
-from gateway.resources import data_file
 from sim_plc.config import SimPlcConfig, load_sim_config
 from sim_plc.plant import PlantModel, Setpoints, sensor_batch
 

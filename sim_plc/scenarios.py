@@ -24,17 +24,17 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.config import (
+from gateway.core.config import (
     DEFAULT_CONFIG_PATH,
     Config,
     FrictionConfig,
     PulleyConfig,
     config_from_mapping,
 )
-from gateway.configtypes import read_yaml
+from gateway.core.configtypes import read_yaml
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 NOISE_N = 0.4
 RANGE_N = 500.0

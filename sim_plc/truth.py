@@ -24,7 +24,7 @@ from collections.abc import Callable
 import numpy as np
 
 from drivers.base import Inputs
-from gateway.compensator import Compensator
+from gateway.runtime.compensator import Compensator
 from sim_plc.modbus_server import TRUTH_ADDRESS
 
 SCORE_AFTER_S = 0.5  # scoring skips the model's warm-up

@@ -14,7 +14,7 @@ import pytest
 
 from drivers.base import Inputs, Outputs
 from drivers.canopen import SLOW_PERIOD_CYCLES, CanopenDriver
-from gateway.config import Config, load_config
+from gateway.core.config import Config, load_config
 from sim_plc.canopen_nodes import CanopenPlc
 from sim_plc.image import ProcessImage
 

@@ -22,7 +22,7 @@ import jsonschema
 import numpy as np
 from numba import njit
 
-from gateway.recording import write_recording
+from gateway.recordings.reader import write_recording
 from sim_plc.scenarios import Scenario, make_recording
 
 MODEL_YAML = """friction:
@@ -295,8 +295,8 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
 
 
 def recording_of(cols: dict[str, np.ndarray], source: str = "foreign"):
-    """A :class:`gateway.recording.Recording` of the generated columns."""
-    from gateway.recording import Recording
+    """A :class:`gateway.recordings.reader.Recording` of the generated columns."""
+    from gateway.recordings.reader import Recording
 
     m = sum(1 for k in cols if k.startswith("velocity_"))
 
@@ -320,7 +320,7 @@ def run_foreign(fo: Foreign, nominal: str | None = None, pulleys=None, validate:
     machine (seed + 100)."""
     from dataclasses import replace
 
-    from gateway.config import FrictionConfig, PulleyConfig
+    from gateway.core.config import FrictionConfig, PulleyConfig
     from gateway.diagnose.engine import diagnose
 
     fr = FrictionConfig(

@@ -1,4 +1,4 @@
-"""Driver harnesses for the contract suite (tests/test_driver_contract.py).
+"""Driver harnesses for the contract suite (tests/drivers/test_driver_contract.py).
 
 Every driver joins the suite with ONE harness factory here and one subclass of the
 contract class in the test module (python-can's ``back2back_test.py`` style). A factory is
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from drivers.base import Driver, make_driver
 from drivers.canopen import CanopenDriver
 from drivers.virtual import VirtualDriver
-from gateway.config import load_config
+from gateway.core.config import load_config
 from sim_plc.canopen_nodes import CanopenPlc
 from sim_plc.image import ProcessImage
 from tests.canopen_helpers import canopen_config, virtual_bus_factory

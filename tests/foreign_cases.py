@@ -181,7 +181,7 @@ def table(scores: list[Score]) -> str:
         "from 0.25 to 0.029 N RMS (100 Hz +-2 ms) and from 0.041 to 0.009 N (250 Hz "
         "+-0.8 ms), the held-out RMSE from 0.218 to 0.024 N and from 0.052 to 0.012 N; "
         "the generator-vs-model floor is 0.010-0.021 N (1 kHz, no jitter). Class 6 is "
-        "covered by the physical bounds (tests in `tests/test_diagnose_issue11.py`). "
+        "covered by the physical bounds (tests in `tests/diagnose/test_foreign_regressions.py`). "
         "`dahl_f0` (and every Dahl case) earlier failed on a generator bug: its Dahl "
         "state was clamped to `|F| <= F_R`, which is not eq. 14 (a falling level was "
         "reached at once, even at standstill); generator and model then differed by 0.30 N "

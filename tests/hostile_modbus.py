@@ -33,7 +33,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from gateway.config import Config, load_config
+from gateway.core.config import Config, load_config
 
 LOCALHOST = "127.0.0.1"
 MODES = (

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.config import Config, load_config
+from gateway.core.config import Config, load_config
 from sim_plc.image import ProcessImage
 
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.config import Config, load_config
+from gateway.core.config import Config, load_config
 from sim_plc.image import ProcessImage
 from sim_plc.modbus_server import ModbusPlcServer
 

@@ -6,8 +6,8 @@ import copy
 from pathlib import Path
 from typing import Any
 
-from gateway.config import Config, config_from_mapping
-from gateway.configtypes import read_yaml
+from gateway.core.config import Config, config_from_mapping
+from gateway.core.configtypes import read_yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 REPLICATE_YAML = ROOT / "config" / "replicate.yaml"

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gateway.config import Config, load_config
+from gateway.core.config import Config, load_config
 from sim_plc.image import ProcessImage
 
 if TYPE_CHECKING:
@@ -347,8 +347,8 @@ class GatewayRig:
 
     def start(self) -> GatewayRig:
         from drivers.modbus_tcp import ModbusTcpDriver
-        from gateway.loop import CyclicService
-        from gateway.metrics import make_registry
+        from gateway.runtime.loop import CyclicService
+        from gateway.service.metrics import make_registry
         from sim_plc.faultproxy import FaultProxy
 
         plc_cfg = load_config()

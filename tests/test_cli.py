@@ -35,7 +35,7 @@ def test_every_command_module_exists() -> None:
 
 import yaml  # noqa: E402
 
-from gateway.config import DEFAULT_CONFIG_PATH  # noqa: E402
+from gateway.core.config import DEFAULT_CONFIG_PATH  # noqa: E402
 from tests.modbus_helpers import plc_server  # noqa: E402
 
 
@@ -189,8 +189,8 @@ def test_the_daemons_modules_never_import_sim_plc() -> None:
 
     root = Path(__file__).resolve().parent.parent
     code = (
-        "import sys, gateway.cli, gateway.daemon, gateway.loop, gateway.metrics, gateway.check, "
-        "gateway.stats, gateway.pacing, gateway.plausibility, gateway.sdnotify; "
+        "import sys, gateway.cli, gateway.service.daemon, gateway.service.metrics, "
+        "gateway.service.check, gateway.runtime; "
         "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sim_plc'))"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

@@ -13,13 +13,19 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from gateway.config import Config, FrictionConfig, config_from_mapping, load_friction, output_path
-from gateway.configtypes import read_yaml
+from gateway.core.config import (
+    Config,
+    FrictionConfig,
+    config_from_mapping,
+    load_friction,
+    output_path,
+)
+from gateway.core.configtypes import read_yaml
 from gateway.diagnose import platform
 from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
-from gateway.recording import Recording, read_recording
+from gateway.recordings.reader import Recording, read_recording
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:

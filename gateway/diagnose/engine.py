@@ -13,7 +13,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from gateway.config import FrictionConfig
+from gateway.core.config import FrictionConfig
+from gateway.core.heap import return_large_frees
 from gateway.diagnose.fit import joint_fit
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.prepare import (  # noqa: F401 - re-exported
@@ -29,9 +30,8 @@ from gateway.diagnose.prepare import (  # noqa: F401 - re-exported
 from gateway.diagnose.report import Diagnosis, build_report, validation_forwards
 from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds, drop_unvalidated
 from gateway.errors import RecordingError
-from gateway.heap import return_large_frees
 from gateway.model.chain import coulomb_coefficients
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 Progress = Callable[[str], None]
 

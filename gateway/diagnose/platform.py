@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gateway.config import Config
+from gateway.core.config import Config
 from gateway.errors import ConfigError, InfeasiblePoseError, RecordingError
 from gateway.model import kinematics, statics
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 SENSITIVITY_POINTS = 2000
 """Samples at which dT_p/dm is solved (interpolated in time in between)."""

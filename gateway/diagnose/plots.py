@@ -21,8 +21,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from gateway.core.heap import trim_heap
 from gateway.diagnose.report import Diagnosis
-from gateway.heap import trim_heap
 
 MAX_POINTS = 20000
 SIGNATURE_POINTS = 1_000_000

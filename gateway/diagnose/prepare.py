@@ -10,12 +10,12 @@ from functools import partial
 
 import numpy as np
 
-from gateway.config import FrictionConfig
+from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.platform import MassSensitivity
 from gateway.errors import RecordingError
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 
 def nominal_from(friction: FrictionConfig) -> Nominal:

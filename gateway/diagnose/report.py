@@ -25,7 +25,7 @@ from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import Forward, Nominal, report_stderr, to_report
 from gateway.diagnose.prepare import cable_data, clipped_mask, finite_rows
 from gateway.diagnose.select import CableOutcome
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 
 @dataclass

@@ -36,13 +36,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from gateway.config import Config, FrictionConfig
+from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose.engine import deadband, nominal_from, time_blocks, warmup_mask
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.platform import require_geometry
 from gateway.errors import RecordingError
 from gateway.model import chain, kinematics, statics
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 PER_CABLE = ("coulomb", "viscous", "inertia", "gain", "offset", "drift")
 WRENCH_EFFECTS = (*PER_CABLE, "mass_change")

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gateway.config import Config, FrictionConfig
+from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
@@ -45,7 +45,7 @@ from gateway.diagnose.wrench import (
     prepare,
     wrench_data,
 )
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 ROUNDS = 3
 GN_ITERATIONS = 3

@@ -38,12 +38,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from gateway.config import FrictionConfig
-from gateway.configtypes import read_yaml
+from gateway.core.config import FrictionConfig
+from gateway.core.configtypes import read_yaml
 from gateway.errors import ConfigError, GatewayError
 from gateway.model import chain
 from gateway.model import effects as fx
-from gateway.recording import Recording
+from gateway.recordings.reader import Recording
 
 ADDITIVE = ("viscous", "offset", "drift", "inertia", "mass_change")
 """Effects whose correction on top of a model adds to the model's value."""

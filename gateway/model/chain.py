@@ -117,7 +117,7 @@ class ChainParams:
 
     @staticmethod
     def from_friction(friction: object, cables: int) -> ChainParams:
-        """The nominal chain of a :class:`gateway.config.FrictionConfig` (same for every
+        """The nominal chain of a :class:`gateway.core.config.FrictionConfig` (same for every
         cable), without its fitted ``effects``: for those use
         :func:`gateway.model.effects.chain_params`."""
         return ChainParams.build(

@@ -9,7 +9,7 @@
 * :func:`path_sensor` / :func:`online_effects`: the path and sensor effects' parameters
   for the batch forms (:mod:`.forms`) and for the gateway's per-cycle form.
 * :func:`compensate_online`: the gateway's compensation in batch form (the reference
-  the per-cycle :class:`gateway.compensator.Compensator` is tested against).
+  the per-cycle :class:`gateway.runtime.compensator.Compensator` is tested against).
 """
 
 from __future__ import annotations

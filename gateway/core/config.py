@@ -1,0 +1,460 @@
+"""The gateway's configuration: YAML -> frozen dataclasses, validated once at start.
+
+``load_config(path)`` reads a full config file (``config/default.yaml`` is the reference).
+Every section has defaults, so a file only states what differs. Unknown keys and bad
+values raise :class:`ConfigError` naming the file and the dotted key. The ``sim_plc``
+section belongs to the soft PLC: it is kept as a raw mapping here and validated by
+``sim_plc`` when the soft PLC loads it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from gateway.core.configtypes import convert, read_yaml, require
+from gateway.core.registermap import (  # noqa: F401 - re-exported: gateway.core.config is their old home
+    RegisterField,
+    RegisterMap,
+    RegisterType,
+)
+from gateway.core.resources import data_file, resolve_beside
+from gateway.errors import ConfigError
+from gateway.model.effects.registry import Effects, effect_values
+from gateway.model.effects.registry import to_mapping as effects_to_mapping
+
+Vec3 = tuple[float, float, float]
+
+DEFAULT_CONFIG_PATH = data_file("default.yaml")  # config/ in a checkout, package data in a wheel
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    """Frame anchors ``a_i`` (world frame, m) and platform anchors ``b_i`` (platform frame)."""
+
+    frame_anchors_m: tuple[Vec3, ...]
+    platform_anchors_m: tuple[Vec3, ...]
+    platform_mass_kg: float = 40.0
+    gravity_m_s2: float = 9.81
+    center_of_mass_m: Vec3 = (0.0, 0.0, 0.0)
+    home_pose: tuple[float, float, float, float, float, float] = (0.0, 0.0, 1.5, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        require(len(self.frame_anchors_m) >= 1, "frame_anchors_m: at least one cable")
+        require(
+            len(self.frame_anchors_m) == len(self.platform_anchors_m),
+            f"frame_anchors_m has {len(self.frame_anchors_m)} entries but platform_anchors_m "
+            f"has {len(self.platform_anchors_m)}",
+        )
+        require(self.platform_mass_kg > 0, "platform_mass_kg must be > 0")
+
+    @property
+    def cables(self) -> int:
+        return len(self.frame_anchors_m)
+
+
+@dataclass(frozen=True)
+class TensionConfig:
+    """Admissible cable tensions for the tension distribution (paper: 0 < T < 1000 N)."""
+
+    min_n: float = 20.0
+    max_n: float = 490.0
+
+    def __post_init__(self) -> None:
+        require(0 <= self.min_n < self.max_n, "need 0 <= min_n < max_n")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The force sensors: range and the S7 analog format (0..adc_full_scale = 0..range)."""
+
+    range_n: float = 500.0
+    adc_full_scale: int = 27648
+
+    def __post_init__(self) -> None:
+        require(self.range_n > 0, "range_n must be > 0")
+        require(0 < self.adc_full_scale <= 32767, "adc_full_scale must be in 1..32767")
+
+
+@dataclass(frozen=True)
+class PulleyConfig:
+    """One pulley between sensor and platform: wrap (deflection) angle and bearing mu."""
+
+    wrap_deg: float
+    mu: float
+
+    def __post_init__(self) -> None:
+        require(0 <= self.wrap_deg <= 180, "wrap_deg must be in 0..180")
+        require(0 <= self.mu < 1, "mu must be in 0..1")
+
+
+EffectParams = dict[str, float | tuple[float, ...]]
+
+
+@dataclass(frozen=True)
+class FrictionConfig:
+    """The pulley friction model (recording.md, 'The nominal model file').
+
+    ``effects``: optional fitted effects (what ``diagnose --write-model`` writes), by the
+    ids and parameter names of the effects registry (:mod:`gateway.model.effects`), each
+    parameter a scalar for every cable or a list with one value per cable, e.g.
+    ``effects: {viscous: {c_ns_m: 0.4}, offset: {c_n: [0.3, -0.2, ...]}}``. Unknown effects
+    or parameters are errors naming the key; list lengths are checked against the cable
+    count where the geometry is known (:class:`Config`, :meth:`effect_values`).
+    """
+
+    model: Literal["none", "coulomb", "dahl"] = "dahl"
+    pulleys: tuple[PulleyConfig, ...] = (
+        PulleyConfig(90.0, 0.015),
+        PulleyConfig(60.0, 0.015),
+        PulleyConfig(30.0, 0.015),
+    )
+    sigma_n_m: float = 500.0
+    beta: float = 1.0
+    viscous_ns_m: float = 0.0
+    pulley_radius_m: float = 0.05
+    effects: dict[str, EffectParams] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        require(self.sigma_n_m > 0, "sigma_n_m must be > 0")
+        require(self.beta > 0, "beta must be > 0")
+        require(self.viscous_ns_m >= 0, "viscous_ns_m must be >= 0")
+        require(self.pulley_radius_m > 0, "pulley_radius_m must be > 0")
+        for name, params in self.effects.items():
+            sizes = {len(v) for v in params.values() if isinstance(v, tuple | list)}
+            if len(sizes) > 1:
+                raise ValueError(f"effects.{name}: per-cable lists of different lengths")
+            effect_values({name: params}, sizes.pop() if sizes else 1, self.pulley_radius_m)
+
+    @property
+    def wrap_rad(self) -> tuple[float, ...]:
+        return tuple(math.radians(p.wrap_deg) for p in self.pulleys)
+
+    @property
+    def mu(self) -> tuple[float, ...]:
+        return tuple(p.mu for p in self.pulleys)
+
+    def effect_values(self, cables: int) -> Effects:
+        """The fitted effects as per-cable arrays (ValueError naming the key if a list
+        does not have ``cables`` values)."""
+        return effect_values(self.effects, cables, self.pulley_radius_m, "friction.effects")
+
+    def to_mapping(self) -> dict[str, Any]:
+        """The ``friction:`` mapping as YAML would hold it (``load_friction`` reads it back)."""
+        out: dict[str, Any] = {
+            "model": self.model,
+            "pulleys": [{"wrap_deg": p.wrap_deg, "mu": p.mu} for p in self.pulleys],
+            "sigma_n_m": self.sigma_n_m,
+            "beta": self.beta,
+            "viscous_ns_m": self.viscous_ns_m,
+            "pulley_radius_m": self.pulley_radius_m,
+        }
+        if self.effects:
+            out["effects"] = {
+                name: {
+                    k: (list(v) if isinstance(v, tuple | list) else v) for k, v in params.items()
+                }
+                for name, params in self.effects.items()
+            }
+        return out
+
+    @staticmethod
+    def effects_mapping(values: Effects) -> dict[str, EffectParams]:
+        """Per-cable arrays -> the ``effects`` field's form (scalar where cables agree)."""
+        return {
+            name: {k: (tuple(v) if isinstance(v, list) else v) for k, v in params.items()}
+            for name, params in effects_to_mapping(values).items()
+        }
+
+
+@dataclass(frozen=True)
+class RealtimeConfig:
+    """``loop.realtime``: real-time settings applied at start where the process may
+    (:mod:`gateway.runtime.realtime`); what is refused is logged, never fatal."""
+
+    enabled: bool = False
+    policy: Literal["fifo", "rr", "other"] = "fifo"  # SCHED_FIFO, SCHED_RR, SCHED_OTHER
+    priority: int = 50  # 1..99 for fifo and rr
+    cpus: tuple[int, ...] = ()  # CPU affinity of the cycle's thread; () leaves it as is
+    lock_memory: bool = True  # mlockall(MCL_CURRENT | MCL_FUTURE): no page faults
+    gc_off: bool = True  # after the start-up gc.freeze(), no garbage collection at all
+    # held in /dev/cpu_dma_latency while running: idle CPUs poll instead of halting, so a
+    # wake-up (the next deadline, the PLC's reply) is not delayed by leaving a sleep state;
+    # None leaves the CPUs' idle states alone
+    cpu_dma_latency_us: int | None = 0
+
+    def __post_init__(self) -> None:
+        if self.policy != "other":
+            require(1 <= self.priority <= 99, "priority must be in 1..99 for fifo and rr")
+        require(all(c >= 0 for c in self.cpus), "cpus must be CPU numbers >= 0")
+        require(len(set(self.cpus)) == len(self.cpus), "cpus must not repeat a CPU")
+        require(
+            self.cpu_dma_latency_us is None or 0 <= self.cpu_dma_latency_us <= 2_000_000_000,
+            "cpu_dma_latency_us must be null or in 0..2000000000",
+        )
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """The cyclic service: period, channel validation and the PLC watchdog."""
+
+    period_s: float = 0.001
+    substitute_max_s: float = 0.05  # last-good substitution lasts at most this, then invalid
+    stuck_after_s: float = 0.5  # a channel that does not change for this long is stuck
+    stale_after_s: float = 0.01  # no fresh read for this long: channels are stale
+    heartbeat_timeout_s: float = 0.1  # PLC heartbeat unchanged this long: stop writing, fault
+    fixed_point_tol_n: float = 1e-9
+    fixed_point_max_iter: int = 8
+    overrun_warning_interval_s: float = 10.0
+    busy_wait_s: float = 0.0002  # spin this long before each deadline instead of sleeping
+    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
+
+    def __post_init__(self) -> None:
+        require(1e-4 <= self.period_s <= 1.0, "period_s must be in 0.0001..1")
+        require(self.substitute_max_s >= 0, "substitute_max_s must be >= 0")
+        require(self.stuck_after_s > 0, "stuck_after_s must be > 0")
+        require(self.stale_after_s > 0, "stale_after_s must be > 0")
+        require(self.heartbeat_timeout_s > 0, "heartbeat_timeout_s must be > 0")
+        require(self.overrun_warning_interval_s > 0, "overrun_warning_interval_s must be > 0")
+        require(0 <= self.busy_wait_s < self.period_s, "busy_wait_s must be in 0..period_s")
+        require(self.fixed_point_max_iter >= 1, "fixed_point_max_iter must be >= 1")
+
+
+@dataclass(frozen=True)
+class TlsConfig:
+    """Modbus/TCP Security (TLS); paths to PEM files."""
+
+    certfile: str
+    keyfile: str
+    cafile: str | None = None
+    verify_peer: bool = True
+
+
+@dataclass(frozen=True)
+class ModbusTcpConfig:
+    host: str = "127.0.0.1"
+    port: int = 5020
+    unit_id: int = 1
+    timeout_s: float = 0.05
+    connect_timeout_s: float = 1.0
+    use_fc23: bool = True
+    reconnect_min_s: float = 0.05
+    reconnect_max_s: float = 2.0
+    tls: TlsConfig | None = None
+    registers: RegisterMap = field(default_factory=RegisterMap)
+
+    def __post_init__(self) -> None:
+        require(0 < self.port <= 65535, "port must be in 1..65535")
+        require(0 <= self.unit_id <= 255, "unit_id must be in 0..255")
+        require(self.timeout_s > 0, "timeout_s must be > 0")
+
+
+@dataclass(frozen=True)
+class CanopenConfig:
+    interface: str = "virtual"
+    channel: str = "cdpr"
+    bitrate: int = 1_000_000
+    gateway_node_id: int = 0x20
+    analog_node_id: int = 0x10
+    plc_node_id: int = 0x01
+    sync_period_s: float = 0.001
+    timeout_s: float | None = None  # read timeout; default 2.5 SYNC periods
+    gateway_eds: str = "gateway.eds"  # relative: beside the config file (left out: shipped)
+    analog_eds: str = "analog_in_401.eds"
+    plc_eds: str = "plc_master.eds"
+
+    def __post_init__(self) -> None:
+        require(1 <= self.gateway_node_id <= 127, "gateway_node_id must be in 1..127")
+        require(1 <= self.analog_node_id <= 127, "analog_node_id must be in 1..127")
+        require(1 <= self.plc_node_id <= 127, "plc_node_id must be in 1..127")
+        ids = {self.gateway_node_id, self.analog_node_id, self.plc_node_id}
+        require(len(ids) == 3, "gateway_node_id, analog_node_id and plc_node_id must differ")
+        require(self.sync_period_s > 0, "sync_period_s must be > 0")
+        require(self.timeout_s is None or self.timeout_s > 0, "timeout_s must be > 0")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    driver: str = "modbus_tcp"
+    modbus_tcp: ModbusTcpConfig = field(default_factory=ModbusTcpConfig)
+    canopen: CanopenConfig = field(default_factory=CanopenConfig)
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = 9109  # 0: any free port
+    certfile: str | None = None
+    keyfile: str | None = None
+    basic_auth_user: str | None = None
+    basic_auth_password_sha256: str | None = None
+
+    def __post_init__(self) -> None:
+        require(0 <= self.port <= 65535, "port must be in 0..65535")
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    """Plausibility bounds of the PLC's setpoints (gateway/runtime/plausibility.py).
+
+    The pose must lie in the frame's bounding box widened by ``workspace_margin_m``, with
+    rotations up to ``max_rotation_rad``; cable speeds up to ``max_cable_speed_m_s``.
+    """
+
+    max_cable_speed_m_s: float = 10.0
+    max_rotation_rad: float = math.pi
+    workspace_margin_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        require(self.max_cable_speed_m_s > 0, "max_cable_speed_m_s must be > 0")
+        require(0 < self.max_rotation_rad <= 2 * math.pi, "max_rotation_rad must be in 0..2 pi")
+        require(self.workspace_margin_m >= 0, "workspace_margin_m must be >= 0")
+
+
+RECORD_KINDS = (
+    "velocity", "tension_sensor", "length", "pose", "mass", "tension_corrected", "status",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """The ``record:`` config section; ``path`` None: no recording unless ``--record``."""
+
+    path: str | None = None
+    rotate_bytes: int | None = None  # a new file after this many bytes of CSV text
+    rotate_s: float | None = None  # a new file after this many seconds
+    columns: tuple[str, ...] = RECORD_KINDS
+    buffer_rows: int = 65536  # ring size: 65 s at 1 kHz of disk stall before drops
+    batch_s: float = 0.1  # the writer drains the ring this often
+
+    def __post_init__(self) -> None:
+        require(
+            self.rotate_bytes is None or self.rotate_bytes >= 4096, "rotate_bytes must be >= 4096"
+        )
+        require(self.rotate_s is None or self.rotate_s >= 1.0, "rotate_s must be >= 1")
+        unknown = [c for c in self.columns if c not in RECORD_KINDS]
+        require(not unknown, f"columns: unknown {unknown[:1]} (known: {', '.join(RECORD_KINDS)})")
+        require(16 <= self.buffer_rows <= 1 << 24, "buffer_rows must be in 16..16777216")
+        require(0.001 <= self.batch_s <= 10.0, "batch_s must be in 0.001..10")
+
+
+@dataclass(frozen=True)
+class Config:
+    geometry: GeometryConfig
+    tension: TensionConfig = field(default_factory=TensionConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    friction: FrictionConfig = field(default_factory=FrictionConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
+    sim_plc: dict[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        fr = self.friction
+        try:
+            effect_values(fr.effects, self.cables, fr.pulley_radius_m, "effects")
+        except ValueError as exc:
+            raise ValueError(f"friction: {exc}") from None
+
+    @property
+    def cables(self) -> int:
+        return self.geometry.cables
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and localhost: an address no other host can reach."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def exposure_warning(key: str, host: str, port: int, source: str = "") -> str | None:
+    """The line to log when ``key`` binds a listener other hosts can reach, else None."""
+    if is_loopback_host(host):
+        return None
+    where = f" in {source}" if source else ""
+    return (
+        f"{key}{where} binds {host}:{port}: reachable from other hosts, not only this "
+        "one (the default is 127.0.0.1); make sure a firewall limits who can connect"
+    )
+
+
+def config_warnings(cfg: Config) -> list[str]:
+    """Values that are legal but probably wrong, one line each naming the file and key."""
+    where = f"{cfg.source}: " if cfg.source else ""
+    lines = []
+    if cfg.tension.max_n > cfg.sensor.range_n:
+        lines.append(
+            f"{where}tension.max_n: {cfg.tension.max_n:g} N is above the sensor range "
+            f"(sensor.range_n: {cfg.sensor.range_n:g} N): tensions above the range read as "
+            "overflow (invalid)"
+        )
+    return lines
+
+
+def output_path(path: str | Path, option: str) -> Path:
+    """``path`` for a file a command will write, checked before the work starts.
+
+    The directory must exist and be writable (it is never created: a typo in a path must
+    not leave directories behind); errors name the option and the path.
+    """
+    p = Path(path)
+    parent = p.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{option} {p}: directory {parent} does not exist")
+    if p.is_dir():
+        raise ConfigError(f"{option} {p}: is a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {p}: directory {parent} is not writable")
+    return p
+
+
+def config_from_mapping(data: dict[str, Any], source: str = "") -> Config:
+    """Validate a parsed YAML mapping into a :class:`Config`."""
+    if "source" in data:  # 'source' is filled in here, never read from the file
+        raise ConfigError(f"{source}: source: unknown key")
+    cfg = convert(Config, {**data, "source": source}, "", source)
+    stated = (data.get("bus") or {}).get("canopen") or {}
+    return _with_eds_resolved(cfg, stated, source if source and Path(source).is_file() else None)
+
+
+def _with_eds_resolved(cfg: Config, stated: dict[str, Any], config_file: str | None) -> Config:
+    """The EDS paths made absolute: a relative path the file states names a file beside the
+    config file; one it leaves out is the shipped EDS file of that name (config/)."""
+    can = cfg.bus.canopen
+
+    def where(key: str, value: str) -> str:
+        return str(resolve_beside(value, config_file if key in stated else None))
+
+    can = dataclasses.replace(
+        can,
+        gateway_eds=where("gateway_eds", can.gateway_eds),
+        analog_eds=where("analog_eds", can.analog_eds),
+        plc_eds=where("plc_eds", can.plc_eds),
+    )
+    return dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, canopen=can))
+
+
+def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> Config:
+    """Read and validate a full config file."""
+    return config_from_mapping(read_yaml(path), str(path))
+
+
+def load_friction(path: str | Path) -> FrictionConfig:
+    """Read a nominal model file: a ``friction:`` mapping alone or inside a full config."""
+    data = read_yaml(path)
+    if "friction" in data:
+        return convert(FrictionConfig, data["friction"], "friction", str(path))
+    return convert(FrictionConfig, data, "", str(path))

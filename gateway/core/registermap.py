@@ -1,0 +1,79 @@
+"""The Modbus holding-register map of the ``bus.modbus_tcp.registers`` config section.
+
+Where each block of values the gateway reads from or writes to the PLC sits, and in which
+type, word order and scaling. Also importable from :mod:`gateway.core.config`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from gateway.core.configtypes import require
+
+RegisterType = Literal["int16", "uint16", "int32", "uint32", "float32"]
+
+
+@dataclass(frozen=True)
+class RegisterField:
+    """A block of ``count`` values of one type starting at holding register ``address``.
+
+    ``word_order`` applies to 32-bit types; ``format: s7_analog`` maps 0..adc_full_scale
+    to 0..sensor range; otherwise value = raw * scale.
+    """
+
+    address: int
+    count: int = 1
+    type: RegisterType = "uint16"
+    word_order: Literal["high_first", "low_first"] = "high_first"
+    scale: float = 1.0
+    format: Literal["plain", "s7_analog"] = "plain"
+
+    def __post_init__(self) -> None:
+        require(0 <= self.address <= 65535, "address must be in 0..65535")
+        require(self.count >= 1, "count must be >= 1")
+        require(self.scale != 0, "scale must not be 0")
+
+    @property
+    def words(self) -> int:
+        per = 2 if self.type in ("int32", "uint32", "float32") else 1
+        return self.count * per
+
+    @property
+    def end(self) -> int:
+        """One past the last register of the block."""
+        return self.address + self.words
+
+
+@dataclass(frozen=True)
+class RegisterMap:
+    """Holding-register map (0-based). Inputs are read from the PLC, outputs written."""
+
+    raw_tensions: RegisterField = RegisterField(0, 8, "int16", format="s7_analog")
+    setpoint_velocities: RegisterField = RegisterField(8, 8, "float32")
+    setpoint_lengths: RegisterField = RegisterField(24, 8, "float32")
+    pose: RegisterField = RegisterField(40, 6, "float32")
+    plc_heartbeat: RegisterField = RegisterField(52, 1, "uint16")
+    corrected_tensions: RegisterField = RegisterField(100, 8, "float32")
+    channel_status: RegisterField = RegisterField(116, 8, "uint16")
+    gateway_heartbeat: RegisterField = RegisterField(124, 1, "uint16")
+    gateway_state: RegisterField = RegisterField(125, 1, "uint16")
+    wrench: RegisterField = RegisterField(126, 6, "float32")
+    platform_mass: RegisterField | None = None  # optional: the platform mass (kg), count 1
+
+    def inputs(self) -> dict[str, RegisterField]:
+        names = ("raw_tensions", "setpoint_velocities", "setpoint_lengths", "pose", "plc_heartbeat")
+        found = {n: getattr(self, n) for n in names}
+        if self.platform_mass is not None:
+            found["platform_mass"] = self.platform_mass
+        return found
+
+    def outputs(self) -> dict[str, RegisterField]:
+        names = (
+            "corrected_tensions",
+            "channel_status",
+            "gateway_heartbeat",
+            "gateway_state",
+            "wrench",
+        )
+        return {n: getattr(self, n) for n in names}

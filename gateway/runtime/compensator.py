@@ -1,0 +1,338 @@
+"""Per-cycle compensation: validate -> substitute -> fitted effects -> chain -> tensions, wrench.
+
+One :class:`Compensator` holds every buffer and state the cycle needs, allocated at
+construction; :meth:`Compensator.step` allocates nothing (numba kernels and in-place
+numpy). Arrays are (m,) per cable unless noted; tensions in N, velocities in m/s, time in s
+on the loop's clock.
+
+Scaling (S7 analog counts or register scale -> N) is done by the driver from the register
+map; the compensator starts from :attr:`Inputs.tension_raw_n`.
+
+Validation, per channel and cycle (flags are bits of :attr:`Compensator.flags`):
+
+* ``NAN``: the reading (or its setpoint velocity) is not finite;
+* ``RANGE``: below ``-RANGE_MARGIN * range_n`` or above ``range_n`` (S7 overflow 32767
+  scales to 593 N for a 500 N sensor and is out of range);
+* ``STUCK``: unchanged (bit for bit) for ``loop.stuck_after_s`` while the setpoint
+  velocity is not zero (a cable at rest may legitimately read a constant);
+* ``STALE``: the read failed this cycle, or the driver delivered no new data for longer
+  than ``loop.stale_after_s``.
+
+A flagged channel is fed its last good value for at most ``loop.substitute_max_s`` after
+that value was read (status 1, SUBSTITUTED); after that, or if it never read good, it is
+INVALID (status 2). For an invalid channel the corrected tension, the friction estimate
+and every wrench component are NaN (float32 NaN in the registers): the PLC is never handed
+a made-up number as if it were good, and a PLC that ignores the status word sees NaN, not a
+plausible value. The Dahl model keeps stepping on invalid channels with the last good value
+(or 0 N if none) so its state stays finite and follows the setpoint motion.
+
+Then the fitted effects of the config's ``friction.effects`` that a causal per-cycle model
+can undo are removed (:func:`gateway.model.effects.online_inputs_into`: offset and gain,
+inertia from the backward difference of the setpoint velocity over the time since the last
+step, eccentricity from the setpoint length), and the chain (``ChainStepper``, sensor ->
+platform; nominal friction plus the fitted Coulomb ``mu``/``f0``, pre-sliding, viscous and
+Stribeck via :func:`gateway.model.effects.chain_params`) with the setpoint velocities gives
+the corrected platform tensions ``T_p``. Delay, low-pass and drift are not compensated
+(docs/physics.md says why). :attr:`Compensator.friction_n` is ``T_p`` minus the sensor value
+fed to the model (the whole correction); the platform wrench is ``w = -A(pose) T_p``
+(forward statics, docs/physics.md sec. 1) at the pose setpoint.
+
+The kernels take structured state (:class:`Limits`, :class:`ChannelState`,
+``OnlineEffects``, ``KernelParams``) and are called through their compiled entry points
+(:mod:`gateway.model.fastcall`) on the compensator's own buffers.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from drivers.base import ChannelStatus, Inputs, Outputs
+from gateway.core.config import Config
+from gateway.model import effects as fx
+from gateway.model.chain import ChainStepper
+from gateway.model.fastcall import entry_point
+from gateway.model.statics import wrench_into
+
+FLAG_NAN = 1
+FLAG_RANGE = 2
+FLAG_STUCK = 4
+FLAG_STALE = 8
+RANGE_MARGIN = 0.05  # readings down to -5 % of the range are noise around zero, not faults
+MOVING_M_S = 1e-6  # |setpoint velocity| above this counts as moving for the stuck check
+PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples (inertia)
+# The chain's time step is the time since the previous step (overruns: the skipped cycles'
+# cable travel counts), bounded to this many periods: after an outage the setpoint motion
+# in between is unknown, so its travel is not extrapolated from the first velocity after it.
+MAX_STEP_PERIODS = 10
+GOOD = int(ChannelStatus.GOOD)
+SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
+INVALID = int(ChannelStatus.INVALID)
+
+
+@njit(cache=True)
+def _differs(a: np.ndarray, b: np.ndarray) -> bool:
+    """True when some element of ``a`` differs from ``b`` (no allocation)."""
+    for i in range(a.size):  # noqa: SIM110 (numba: a plain loop)
+        if a[i] != b[i]:
+            return True
+    return False
+
+
+class Limits(NamedTuple):
+    """Validation limits: range (N) and the stuck / substitution times (s)."""
+
+    lo: float
+    hi: float
+    stuck_after_s: float
+    substitute_max_s: float
+
+
+class ChannelState(NamedTuple):
+    """Per-channel (m,) validation state and the model inputs it selects."""
+
+    last_value: np.ndarray  # last reading, as read
+    changed_at: np.ndarray  # when it last changed (or the cable was at rest)
+    last_good: np.ndarray  # last good reading (NaN: none yet)
+    good_at: np.ndarray  # when it was read
+    flags: np.ndarray  # FLAG_* bits of this cycle
+    status: np.ndarray  # ChannelStatus
+    used: np.ndarray  # sensor value fed to the model
+    vel_used: np.ndarray  # setpoint velocity fed to the model
+
+    @staticmethod
+    def allocate(cables: int) -> ChannelState:
+        return ChannelState(
+            np.full(cables, np.nan), np.zeros(cables), np.full(cables, np.nan),
+            np.full(cables, -np.inf), np.zeros(cables, dtype=np.uint8),
+            np.full(cables, INVALID, dtype=np.uint16), np.zeros(cables), np.zeros(cables),
+        )  # fmt: skip
+
+
+@njit(cache=True)
+def _validate(lim, st, raw, vel, now, stale):
+    """Flag, substitute and pick the model inputs; return the channels newly flagged."""
+    newly = 0
+    for i in range(raw.size):
+        x = raw[i]
+        v = vel[i]
+        f = FLAG_STALE if stale else 0
+        if not math.isfinite(x) or not math.isfinite(v):
+            f |= FLAG_NAN
+        elif x < lim.lo or x > lim.hi:
+            f |= FLAG_RANGE
+        st.vel_used[i] = v if math.isfinite(v) else 0.0
+        if x != st.last_value[i] or abs(st.vel_used[i]) < MOVING_M_S:
+            st.changed_at[i] = now
+        st.last_value[i] = x
+        if now - st.changed_at[i] >= lim.stuck_after_s:
+            f |= FLAG_STUCK
+        if f != 0 and st.flags[i] == 0:
+            newly += 1
+        st.flags[i] = f
+        if f == 0:
+            st.last_good[i] = x
+            st.good_at[i] = now
+            st.status[i] = GOOD
+            st.used[i] = x
+            continue
+        st.status[i] = SUBSTITUTED if now - st.good_at[i] <= lim.substitute_max_s else INVALID
+        st.used[i] = st.last_good[i] if math.isfinite(st.last_good[i]) else 0.0
+    return newly
+
+
+@njit(cache=True)
+def _mark_stale(now, substitute_max, good_at, flags, status):
+    """A cycle without a fresh read: every channel stale, substituted or invalid."""
+    newly = 0
+    for i in range(flags.size):
+        if flags[i] == 0:
+            newly += 1
+        flags[i] |= FLAG_STALE
+        status[i] = SUBSTITUTED if now - good_at[i] <= substitute_max else INVALID
+    return newly
+
+
+@njit(cache=True)
+def _finish(corrected, used, status, friction):
+    """Invalid channels -> NaN; friction = corrected - sensor value; any invalid?"""
+    bad = False
+    for i in range(corrected.size):
+        if status[i] == INVALID:
+            corrected[i] = np.nan
+            bad = True
+        friction[i] = corrected[i] - used[i]
+    return bad
+
+
+class Compensator:
+    """Validation, substitution, compensation of the fitted effects and wrench, m cables."""
+
+    def __init__(self, cfg: Config) -> None:
+        m = cfg.cables
+        lp = cfg.loop
+        fr = cfg.friction
+        self.cables = m
+        values = fr.effect_values(m)
+        self.params = fx.chain_params(fr, values, m)
+        self.online = fx.online_effects(values, m, fr.pulley_radius_m)
+        self.stepper = ChainStepper(
+            self.params, lp.period_s, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter
+        )
+        self.limits = Limits(
+            -RANGE_MARGIN * cfg.sensor.range_n, float(cfg.sensor.range_n), lp.stuck_after_s,
+            lp.substitute_max_s,
+        )  # fmt: skip
+        self.stale_after_s = lp.stale_after_s
+        self.max_step_s = MAX_STEP_PERIODS * lp.period_s
+        self.frame_anchors = np.array(cfg.geometry.frame_anchors_m, dtype=float)
+        self.platform_anchors = np.array(cfg.geometry.platform_anchors_m, dtype=float)
+        self.channels = ChannelState.allocate(m)
+        self.raw_n = np.full(m, np.nan)  # last reading (N), as read
+        self.used_n = self.channels.used  # sensor value fed to the model
+        self.velocity_m_s = self.channels.vel_used  # setpoint velocity fed to the model
+        self.flags = self.channels.flags
+        self.status = self.channels.status
+        self.model_in_n = np.zeros(m)  # sensor side of the chain: gain, offset, path removed
+        self.corrected_n = np.full(m, np.nan)
+        self.friction_n = np.full(m, np.nan)  # corrected - used: the whole correction
+        self.wrench = np.full(6, np.nan)
+        self._velocity_prev = np.zeros(m)  # the previous PLC sample's setpoint velocity
+        self._velocity_hold = np.zeros(m)  # the one before it (a repeated sample: hold a)
+        self._sample_at = math.nan  # when the last new PLC sample arrived
+        self._sample_dt = 0.0  # time between the last two new PLC samples
+        self._heartbeat = -1
+        self._plc_period_s = math.nan  # the PLC's sample spacing, averaged over samples
+        self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
+        self._length_in = np.zeros(m)
+        self._pose_in = np.zeros(6)
+        self._stepped_at = math.nan
+        self._last_read_time = math.nan
+        self._fresh_at = -math.inf
+        self.flag_events = 0  # channels that went from good to flagged (errors{invalid_value})
+        # compiled entries on the own buffers (no per-call type dispatch; fastcall.py)
+        self._validate = entry_point(
+            _validate, self.limits, self.channels, self.raw_n, self._velocity_in, 0.0, False
+        )
+        self._online = entry_point(
+            fx.online_inputs_into, self.online, self.used_n, self.velocity_m_s,
+            self._velocity_prev, 0.0, self._length_in, self.model_in_n,
+        )  # fmt: skip
+        self._finish = entry_point(
+            _finish, self.corrected_n, self.used_n, self.status, self.friction_n
+        )
+        self._wrench = entry_point(
+            wrench_into, self.frame_anchors, self.platform_anchors, self._pose_in,
+            self.corrected_n, self.wrench,
+        )  # fmt: skip
+
+    @property
+    def stuck_after_s(self) -> float:
+        return self.limits.stuck_after_s
+
+    @property
+    def substitute_max_s(self) -> float:
+        return self.limits.substitute_max_s
+
+    def step(self, inputs: Inputs, now_s: float, out: Outputs) -> None:
+        """One cycle on a successful read; fills ``out`` tensions, status and wrench.
+
+        The model's time step is the time since the previous step (0 on the first), so
+        the acceleration (inertia) and the cable travel (Dahl, the trapezoid
+        ``(v_prev + v) / 2 dt`` with the previous cycle's velocity, ``chain.travel_into``)
+        follow the actual samples: a cycle skipped after an overrun loses no travel. The
+        chain's step is bounded to ``MAX_STEP_PERIODS`` periods (after an outage).
+        """
+        if inputs.read_time_s != self._last_read_time:
+            self._last_read_time = inputs.read_time_s
+            self._fresh_at = now_s
+        now = float(now_s)
+        stale = bool(now - self._fresh_at > self.stale_after_s)
+        self.raw_n[:] = inputs.tension_raw_n
+        self._velocity_in[:] = inputs.velocity_m_s
+        self._length_in[:] = inputs.length_m
+        self._pose_in[:] = inputs.pose
+        self.flag_events += self._validate(
+            self.limits, self.channels, self.raw_n, self._velocity_in, now, stale
+        )
+        dt = now - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
+        dt = dt if dt > 0.0 else 0.0
+        self._stepped_at = now
+        self._online_inputs(now, int(inputs.plc_heartbeat))
+        self.stepper.step(
+            self.model_in_n, self.velocity_m_s, self.corrected_n, min(dt, self.max_step_s)
+        )
+        if self._finish(self.corrected_n, self.used_n, self.status, self.friction_n):
+            self.wrench[:] = np.nan
+        else:
+            self._wrench(
+                self.frame_anchors, self.platform_anchors, self._pose_in, self.corrected_n,
+                self.wrench,
+            )  # fmt: skip
+        out.tension_corrected_n[:] = self.corrected_n
+        out.channel_status[:] = self.status
+        out.wrench[:] = self.wrench
+
+    def _online_inputs(self, now: float, heartbeat: int) -> None:
+        """Gain, offset, inertia, eccentricity removed. The inertia's acceleration is the
+        backward difference between *new* PLC samples (a new heartbeat or a new setpoint
+        velocity); a cycle that reads the same sample again holds it (a difference of 0
+        over one cycle, then of two samples over the next, would swing the inertia term
+        between 0 and twice its size). The time between two samples ``k`` heartbeats apart
+        is ``k`` times the PLC's sample spacing, averaged over past samples
+        (``PLC_PERIOD_GAIN``): single arrival times carry the bus jitter, which the
+        difference quotient would amplify. Without a counting heartbeat, or across a gap
+        of more than ``MAX_STEP_PERIODS`` samples, the arrival times are used."""
+        steps = (heartbeat - self._heartbeat) & 0xFFFF if self._heartbeat >= 0 else 0
+        new = steps != 0 or _differs(self.velocity_m_s, self._velocity_prev)
+        self._heartbeat = heartbeat
+        if new:
+            dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
+            dt = dt if dt > 0.0 else 0.0
+            if 1 <= steps <= MAX_STEP_PERIODS and dt > 0.0:
+                spacing = dt / steps
+                est = self._plc_period_s
+                est = spacing if est != est else est + PLC_PERIOD_GAIN * (spacing - est)
+                self._plc_period_s = est
+                dt = steps * est
+            self._online(
+                self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
+                self._length_in, self.model_in_n,
+            )  # fmt: skip
+            self._velocity_hold[:] = self._velocity_prev
+            self._velocity_prev[:] = self.velocity_m_s
+            self._sample_at, self._sample_dt = now, dt
+        else:  # the same sample again: the same acceleration
+            self._online(
+                self.online, self.used_n, self._velocity_prev, self._velocity_hold,
+                self._sample_dt, self._length_in, self.model_in_n,
+            )  # fmt: skip
+
+    def mark_unread(self, now_s: float) -> None:
+        """A cycle whose read failed: flag every channel stale; the model is not stepped."""
+        self.flag_events += _mark_stale(
+            now_s, self.limits.substitute_max_s, self.channels.good_at, self.flags, self.status
+        )
+
+    def invalidate_outputs(self, out: Outputs) -> None:
+        """Fill ``out`` with 'no value': NaN tensions and wrench, every channel invalid."""
+        out.tension_corrected_n[:] = np.nan
+        out.channel_status[:] = INVALID
+        out.wrench[:] = np.nan
+
+
+def warm_up(cfg: Config) -> None:
+    """Compile every numba kernel of the cycle now, on throwaway buffers (not in cycle 1)."""
+    comp = Compensator(cfg)
+    inputs = Inputs.allocate(cfg.cables)
+    outputs = Outputs.allocate(cfg.cables)
+    inputs.tension_raw_n[:] = 100.0
+    inputs.velocity_m_s[:] = 0.01
+    inputs.pose[:] = cfg.geometry.home_pose
+    for k in range(2):
+        inputs.read_time_s = float(k)
+        comp.step(inputs, 0.001 * k, outputs)
+    comp.mark_unread(1.0)

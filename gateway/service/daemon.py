@@ -1,0 +1,225 @@
+"""``cdpr-gateway run --config FILE [--cycles N] [--seconds N] [--record OUT.csv.gz]
+[--log-level LEVEL]``: the gateway daemon.
+
+Loads and validates the config, builds the driver named in ``bus.driver``, serves the
+Prometheus metrics on ``metrics.host:metrics.port`` and runs the cyclic service until a
+terminating signal (SIGTERM, SIGINT, SIGHUP, SIGQUIT, SIGUSR1, SIGUSR2, SIGALRM) or
+``--cycles``, then writes the STOPPED state and exits 0. A PLC that cannot be reached at
+start is not fatal: the loop retries with backoff and says why. Configuration problems end
+the program with one line naming the file and the key (exit 2).
+
+Logging: ``TIME LEVEL LOGGER: message`` on stderr; a start-up banner (version, config
+file, bus, model, real-time settings); the loop logs each state change once (connected,
+active, disconnected/fault with the cause, recovered). Foreign libraries' loggers
+(canopen, can, pymodbus) are quieted to WARNING unless ``--log-level DEBUG``. Under systemd
+(``NOTIFY_SOCKET`` set) the loop sends READY=1 once active and WATCHDOG=1 while it cycles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import signal
+import sys
+import threading
+from typing import Any
+
+from drivers.base import Driver, Lifecycle, make_driver
+from gateway import __version__
+from gateway.core.config import (
+    DEFAULT_CONFIG_PATH,
+    Config,
+    config_warnings,
+    exposure_warning,
+    load_config,
+)
+from gateway.errors import ConfigError, DriverInitError
+from gateway.runtime import realtime
+from gateway.runtime.loop import CyclicService, describe_bus
+from gateway.runtime.sdnotify import Notifier
+from gateway.service.metrics import MetricsServer, make_registry
+from gateway.service.recorder import Recorder
+
+log = logging.getLogger("cdpr_gateway")
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+FOREIGN_LOGGERS = ("canopen", "can", "pymodbus")
+
+
+def log_level(text: str) -> str:
+    """argparse type for ``--log-level``: one of :data:`LOG_LEVELS`, any case."""
+    level = text.upper()
+    if level not in LOG_LEVELS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a log level (choose from {', '.join(LOG_LEVELS)})"
+        )
+    return level
+
+
+def add_log_level(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--log-level", type=log_level, default="INFO",
+                        help="DEBUG, INFO, WARNING, ERROR or CRITICAL (default INFO)")  # fmt: skip
+
+
+def setup_logging(level: str) -> None:
+    """The project's log format on stderr; foreign loggers at WARNING unless DEBUG."""
+    logging.basicConfig(stream=sys.stderr, format=LOG_FORMAT)  # no-op if already set up
+    logging.getLogger().setLevel(level)
+    foreign = logging.DEBUG if level == "DEBUG" else logging.WARNING
+    for name in FOREIGN_LOGGERS:
+        logging.getLogger(name).setLevel(foreign)
+
+
+def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
+    parser.add_argument("--cycles", type=int, default=None, help="stop after N cycles")
+    add_log_level(parser)
+    parser.add_argument("--seconds", type=float, default=None, help="stop after N seconds")
+    parser.add_argument(
+        "--record", default=None, help="record what the gateway sees (CSV, .csv.gz); "
+        "overrides record.path",
+    )  # fmt: skip
+
+
+def build_driver(cfg: Config, name: str | None = None, **kwargs: Any) -> Driver:
+    """The configured driver; failures become :class:`ConfigError` naming file and key."""
+    name = name or cfg.bus.driver
+    try:
+        if kwargs:
+            from drivers.base import driver_class
+
+            return driver_class(name)(cfg, **kwargs)
+        return make_driver(cfg, name)
+    except DriverInitError as exc:
+        key = "bus.driver" if "unknown driver" in str(exc) else f"bus.{name}"
+        raise ConfigError(f"{cfg.source}: {key}: {exc}") from exc
+    except ConfigError as exc:
+        raise _with_source(cfg, name, exc) from exc
+    except ImportError as exc:
+        raise ConfigError(
+            f"{cfg.source}: bus.driver: driver {name!r} is not available: {exc}"
+        ) from exc
+
+
+def _with_source(cfg: Config, bus: str, exc: ConfigError) -> ConfigError:
+    """A driver's config error (register map, counts) with the file and full key."""
+    text = str(exc)
+    if cfg.source and text.startswith(cfg.source):
+        return exc
+    if text.startswith("registers"):
+        text = f"bus.{bus}.{text}"
+    return ConfigError(f"{cfg.source}: {text}" if cfg.source else text)
+
+
+def describe_model(cfg: Config) -> str:
+    f = cfg.friction
+    wraps = "/".join(f"{p.wrap_deg:g}" for p in f.pulleys)
+    return (
+        f"{f.model}, {len(f.pulleys)} pulleys (wrap {wraps} deg), sigma {f.sigma_n_m:g} N/m, "
+        f"{cfg.cables} cables"
+    )
+
+
+def banner(cfg: Config) -> list[str]:
+    """The start-up lines: what runs, from which file, against which PLC, how fast."""
+    lp = cfg.loop
+    return [
+        f"cdpr-gateway {__version__} starting; config {cfg.source or '(built in)'}",
+        f"bus: {describe_bus(cfg)} (bus.{cfg.bus.driver})",
+        f"model: {describe_model(cfg)}",
+        f"loop: period {lp.period_s * 1e3:g} ms, busy-wait {lp.busy_wait_s * 1e6:g} us, "
+        f"PLC heartbeat timeout {lp.heartbeat_timeout_s:g} s; real-time scheduling: "
+        "not configured (default scheduler)",
+    ]
+
+
+def summary(service: CyclicService) -> str:
+    stats = service.stats
+    return (
+        f"cycles {stats.cycles}, written {stats.written}, overruns {stats.overruns} "
+        f"(skipped {stats.skipped}), reconnects {service.reconnects}, "
+        f"errors {sum(stats.errors.values())}"
+    )
+
+
+def start_recorder(cfg: Config, override: str | None) -> Recorder | None:
+    """The recorder of ``record:`` (``--record`` overrides the path), started; or None."""
+    rc = cfg.record if override is None else dataclasses.replace(cfg.record, path=override)
+    if rc.path is None:
+        return None
+    regs = cfg.bus.modbus_tcp.registers
+    with_mass = cfg.bus.driver == "modbus_tcp" and regs.platform_mass is not None
+    meta = {
+        "source": "cdpr-gateway run --record",
+        "version": __version__,
+        "config": cfg.source,
+        "bus": describe_bus(cfg),
+        "friction": f"{cfg.friction.model}, {len(cfg.friction.pulleys)} pulleys",
+        "period_s": repr(cfg.loop.period_s),
+    }
+    recorder = Recorder(rc, cfg.cables, with_mass=with_mass, metadata=meta)
+    try:
+        recorder.start()
+    except OSError as exc:
+        key = "--record" if override is not None else f"{cfg.source}: record.path"
+        raise ConfigError(f"{key}: cannot write {rc.path}: {exc.strerror or exc}") from exc
+    log.info("recording to %s (%d columns)", rc.path, len(recorder.columns))
+    return recorder
+
+
+def summary_record(recorder: Recorder) -> str:
+    files = ", ".join(str(p) for p in recorder.files)
+    failed = f", FAILED: {recorder.failed}" if recorder.failed else ""
+    return f"recorded {recorder.rows_written} rows to {files} (dropped {recorder.dropped}{failed})"
+
+
+def run_command(command: str, args: argparse.Namespace) -> int:
+    setup_logging(args.log_level)
+    if args.cycles is not None and args.cycles < 1:
+        raise ConfigError("--cycles: must be >= 1")
+    if args.seconds is not None and not args.seconds > 0:
+        raise ConfigError("--seconds: must be > 0")
+    cfg = load_config(args.config)
+    for line in banner(cfg):
+        log.info("%s", line)
+    for line in config_warnings(cfg):
+        log.warning("%s", line)
+    notifier = Notifier.from_env()
+    service = CyclicService(cfg, build_driver(cfg), notifier=notifier)
+    server = None
+    if cfg.metrics.enabled:
+        server = MetricsServer(cfg.metrics, make_registry(service), cfg.source)
+        log.info("metrics on http://%s:%d/metrics", server.host, server.port)
+        exposed = exposure_warning("metrics.host", server.host, server.port, cfg.source)
+        if exposed:
+            log.warning("%s", exposed)
+    previous = service.install_signal_handlers()
+    timer = None
+    try:
+        service.recorder = start_recorder(cfg, args.record)
+        if args.seconds is not None:
+            timer = threading.Timer(args.seconds, service.stop)
+            timer.daemon = True
+            timer.start()
+        service.configure()
+        rt = realtime.apply(cfg.loop.realtime)  # this thread runs the cycle
+        (log.warning if rt.refused else log.info)("%s", rt.line())
+        service.run(args.cycles)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if timer is not None:
+            timer.cancel()
+        if server is not None:
+            server.close()
+        if notifier is not None:
+            notifier.close()
+        if service.recorder is not None:
+            service.recorder.close()
+    assert service.state is Lifecycle.STOPPED
+    print(f"stopped: {summary(service)}", file=sys.stderr, flush=True)
+    if service.recorder is not None:
+        print(summary_record(service.recorder), file=sys.stderr, flush=True)
+    return 0

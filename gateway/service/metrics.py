@@ -1,0 +1,147 @@
+"""Prometheus metrics, read from the loop's statistics at scrape time (design.md table).
+
+:class:`GatewayCollector` is a custom collector (prometheus_client): it allocates nothing
+in the loop; each scrape turns :class:`gateway.runtime.loop.LoopStats`, the compensator's arrays
+and the driver's state into exactly these families:
+
+========================================  =========  ===============  ==========================
+name                                      type       labels           source
+========================================  =========  ===============  ==========================
+cdpr_gateway_cycle_seconds                histogram                   read + compensate + write
+cdpr_gateway_jitter_seconds               histogram                   start - deadline
+cdpr_gateway_overruns_total               counter                     cycles past the deadline
+cdpr_gateway_record_dropped_total         counter                     samples not recorded
+cdpr_gateway_bus_roundtrip_seconds        histogram  bus              one transaction
+cdpr_gateway_errors_total                 counter    kind             see ``ERROR_KINDS``
+cdpr_gateway_reconnects_total             counter    bus
+cdpr_gateway_connected                    gauge      bus              1 while the bus is up
+cdpr_gateway_tension_raw_newtons          gauge      cable            scaled reading
+cdpr_gateway_tension_corrected_newtons    gauge      cable            platform tension
+cdpr_gateway_friction_newtons             gauge      cable            corrected - sensor
+cdpr_gateway_channel_status               gauge      cable            0 good 1 subst. 2 invalid
+cdpr_gateway_build_info                   gauge      version, bus     1
+cdpr_gateway_state                        gauge                       lifecycle, as register 125
+cdpr_gateway_plc_heartbeat_age_seconds    gauge                       since the PLC heartbeat moved
+cdpr_gateway_sample_age_seconds           gauge                       since the last good read
+========================================  =========  ===============  ==========================
+
+``cdpr_gateway_state`` is the wire code the PLC reads: 0 stopped, 1 connected (not yet
+writing), 2 active, 3 fault. The two ages are NaN until the first reading.
+
+Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`;
+``MetricsServer`` is re-exported here for the daemon.
+
+Cables are labelled 1..m. ``errors_total{kind="invalid_value"}`` counts channels going
+from good to flagged (events, not flagged cycles). Every label value of ``kind`` is
+always present (0 until it happens) so dashboards and alerts see a stable set.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    Metric,
+)
+from prometheus_client.registry import Collector
+
+from gateway import __version__
+from gateway.runtime.loop import CyclicService
+from gateway.runtime.stats import Histogram
+from gateway.service.exporter import MetricsServer
+
+__all__ = ["GatewayCollector", "MetricsServer", "make_registry"]
+
+PREFIX = "cdpr_gateway"
+
+
+def _histogram(name: str, doc: str, hist: Histogram, labels: dict[str, str] | None = None):
+    labels = labels or {}
+    family = HistogramMetricFamily(f"{PREFIX}_{name}", doc, labels=list(labels))
+    family.add_metric(list(labels.values()), hist.cumulative(), hist.sum)
+    return family
+
+
+class GatewayCollector(Collector):
+    """Yields the design.md metric families from a running :class:`CyclicService`."""
+
+    def __init__(self, service: CyclicService, bus: str | None = None) -> None:
+        self.service = service
+        self.bus = bus or service.cfg.bus.driver
+
+    def collect(self) -> Iterator[Metric]:
+        svc, stats, bus = self.service, self.service.stats, self.bus
+        yield _histogram("cycle_seconds", "Duration of read + compensate + write.", stats.cycle)
+        yield _histogram(
+            "jitter_seconds", "Lateness of each cycle start against its deadline.", stats.jitter
+        )
+        yield CounterMetricFamily(
+            f"{PREFIX}_overruns_total", "Cycles that missed their deadline.", stats.overruns
+        )
+        recorder = getattr(svc, "recorder", None)  # gateway.service.recorder: samples not recorded
+        yield CounterMetricFamily(
+            f"{PREFIX}_record_dropped_total",
+            "Samples the recorder dropped (its buffer was full or the disk failed).",
+            recorder.dropped if recorder is not None else 0,
+        )
+        yield _histogram(
+            "bus_roundtrip_seconds", "One fieldbus transaction.", stats.roundtrip, {"bus": bus}
+        )
+        errors = CounterMetricFamily(f"{PREFIX}_errors_total", "Errors by kind.", labels=["kind"])
+        for kind, count in stats.errors.items():
+            errors.add_metric([kind], count)
+        yield errors
+        yield _labelled(CounterMetricFamily, "reconnects_total", "Bus reconnections.",
+                        "bus", {bus: svc.reconnects})  # fmt: skip
+        yield _labelled(GaugeMetricFamily, "connected", "1 while the bus is up.",
+                        "bus", {bus: 1.0 if svc.bus_up else 0.0})  # fmt: skip
+        comp = svc.comp
+        per_cable = (
+            ("tension_raw_newtons", "Scaled sensor reading.", comp.raw_n),
+            ("tension_corrected_newtons", "Compensated platform tension.", comp.corrected_n),
+            ("friction_newtons", "Estimated friction between sensor and platform.",
+             comp.friction_n),
+            ("channel_status", "0 good, 1 substituted, 2 invalid.", comp.status),
+        )  # fmt: skip
+        for name, doc, values in per_cable:
+            yield _labelled(GaugeMetricFamily, name, doc, "cable",
+                            {str(i + 1): float(v) for i, v in enumerate(values)})  # fmt: skip
+        info = GaugeMetricFamily(
+            f"{PREFIX}_build_info", "Version and bus.", labels=["version", "bus"]
+        )
+        info.add_metric([__version__, bus], 1.0)
+        yield info
+        yield GaugeMetricFamily(
+            f"{PREFIX}_state",
+            "Lifecycle as the PLC sees it: 0 stopped, 1 connected, 2 active, 3 fault.",
+            float(int(svc.state)),
+        )
+        yield GaugeMetricFamily(
+            f"{PREFIX}_plc_heartbeat_age_seconds",
+            "Seconds since the PLC heartbeat last changed (NaN before the first reading).",
+            svc.plc_heartbeat_age_s(),
+        )
+        yield GaugeMetricFamily(
+            f"{PREFIX}_sample_age_seconds",
+            "Seconds since the last successful read from the PLC (NaN before the first).",
+            svc.sample_age_s(),
+        )
+
+
+def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, float]) -> Metric:
+    family = kind(f"{PREFIX}_{name}", doc, labels=[label])
+    for value_label, value in values.items():
+        family.add_metric([value_label], value)
+    return family
+
+
+def make_registry(service: CyclicService, bus: str | None = None) -> CollectorRegistry:
+    """A fresh registry holding only the gateway collector."""
+    registry = CollectorRegistry()
+    registry.register(GatewayCollector(service, bus))
+    return registry

@@ -1,0 +1,367 @@
+"""Issue 10 part 2: the diagnosis from the wrench balance when there is no platform tension.
+
+Recordings come from the soft PLC's plant whose controller distributes tensions by Pott's
+closed form with its own limits (``sim_plc.distribution``), not by the gateway's statics;
+the recordings keep pose and mass only (no ``tension_platform_i``). Sizes: sensor noise
+0.4 N; every hidden effect 2-5x that on the cables that carry it.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+from scipy.optimize import minimize
+
+from gateway.core.config import DEFAULT_CONFIG_PATH, Config, config_from_mapping
+from gateway.core.configtypes import read_yaml
+from gateway.diagnose import platform
+from gateway.diagnose.engine import diagnose, reference_mode
+from gateway.diagnose.wrench import WrenchModel, nominal_from, wrench_data
+from gateway.diagnose.wrench_select import diagnose_wrench
+from gateway.errors import ConfigError, InfeasiblePoseError
+from gateway.model import kinematics, statics
+from gateway.recordings.reader import Recording
+from sim_plc.config import load_sim_config
+from sim_plc.distribution import closed_form, qp
+from sim_plc.plant import make_recording
+from tests.diagnose_helpers import check_report
+
+NOISE = 0.4
+SECONDS = 20.0
+RATE = 250.0
+CLOSED_FORM = {"method": "closed_form", "tau_min_n": 0.0, "tau_max_n": 360.0}
+CASES: dict[str, dict] = {
+    "clean": {},
+    "viscous": {"viscous": {"c_ns_m": 15.0}},  # 15 N s/m x 0.055 m/s RMS: ~2x noise
+    "offset": {"offset": {"c_n": [1.5, 0.0, 0.0, -1.2, 0.0, 1.0, 0.0, 0.0]}},
+    "gain": {"gain": {"g": 0.005}},  # 1.4 N on the upper cables (~280 N)
+    "mass_change": {"mass_change": {"q_kg_s": 0.01}},  # 0.2 kg: 2 N of weight at the end
+    "inertia": {"inertia": {"m_eff_kg": 10.0}},  # x 0.072 m/s^2 RMS: ~2x noise
+    "coulomb": {"coulomb": {"f0_n": 1.0}},  # load-independent Coulomb: 2.5x noise
+}
+# relative tolerances (sim_plc.scenarios.TOLERANCE); f0 and mu absolute
+TOL_REL = {"c_ns_m": 0.15, "c_n": 0.2, "g": 0.2, "q_kg_s": 0.2, "m_eff_kg": 0.25}
+TOL_ABS = {"f0_n": 0.15, "mu": 0.001}
+NOMINAL_MU = 0.015  # config/default.yaml: the truth mu when only f0 is hidden
+
+
+def plant_config(effects: dict, seed: int = 3, distribution: dict | None = None) -> Config:
+    data = read_yaml(DEFAULT_CONFIG_PATH)
+    data["sim_plc"] = {
+        "period_s": 1.0 / RATE,
+        "extrusion_kg_s": 0.0,
+        "noise_std_n": NOISE,
+        "seed": seed,
+        "trajectory": {"kind": "random", "random": {"seed": seed}},
+        "effects": effects,
+        "distribution": CLOSED_FORM if distribution is None else distribution,
+    }
+    return config_from_mapping(data, str(DEFAULT_CONFIG_PATH))
+
+
+@functools.cache
+def recording(case: str, seed: int = 3) -> tuple[Recording, Recording, Config]:
+    """(pose-and-mass-only recording, the plant's full recording, config)."""
+    cfg = plant_config(CASES[case], seed)
+    full = make_recording(cfg, None, SECONDS)
+    return replace(full, tension_platform=None, source=f"{case}.csv"), full, cfg
+
+
+@functools.cache
+def wrench_report(case: str) -> dict:
+    rec, _, cfg = recording(case)
+    return diagnose_wrench(rec, cfg.friction, cfg).report
+
+
+def truth(case: str, name: str) -> np.ndarray:
+    effect = next(iter(CASES[case]))
+    value = CASES[case][effect].get(name, NOMINAL_MU if name == "mu" else np.nan)
+    return np.broadcast_to(np.asarray(value, float), (8,))
+
+
+def assert_parameters(case: str, finding: dict) -> None:
+    """Every fitted cable within tolerance (relative; cables without the effect: within
+    that tolerance of the largest true value; f0 and mu absolute)."""
+    for name, values in finding["parameters"].items():
+        true = truth(case, name)
+        for cable, value in zip(finding["cables"], values, strict=True):
+            t = float(true[cable - 1])
+            if name in TOL_ABS:
+                allowed = TOL_ABS[name]
+            else:
+                floor = TOL_REL[name] * float(np.max(np.abs(true)))
+                allowed = max(TOL_REL[name] * abs(t), floor if t == 0.0 else 0.0)
+            assert abs(value - t) <= allowed, (case, name, cable, value, t)
+
+
+# ---- the soft PLC's tension distributions ----
+
+
+def _pose_problem(pose=(0.1, -0.05, 1.6, 0.02, -0.03, 0.05), mass=40.0):
+    cfg = plant_config({})
+    geo = cfg.geometry
+    a = kinematics.structure_matrix(geo.frame_anchors_m, geo.platform_anchors_m, np.array(pose))
+    w = statics.gravity_wrench(mass, geo.gravity_m_s2, np.array(pose))
+    return a, w
+
+
+def test_qp_with_midpoint_target_is_the_gateway_statics():
+    a, w = _pose_problem()
+    assert_allclose(qp(a, w, 20.0, 490.0, 255.0), statics.distribute_tensions(a, w, 20.0, 490.0),
+                    atol=1e-7)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("lo", "hi", "target"), [(0.0, 360.0, 150.0), (20.0, 300.0, 20.0), (0.0, 400.0, 0.0)]
+)
+def test_qp_other_target_balances_and_is_closest_within_limits(lo, hi, target):
+    """Against an independent solver (SLSQP on the same problem)."""
+    a, w = _pose_problem()
+    tau = qp(a, w, lo, hi, target)
+    assert_allclose(a @ tau + w, 0.0, atol=1e-7)
+    assert np.all(tau >= lo - 1e-9) and np.all(tau <= hi + 1e-9)
+    ref = minimize(
+        lambda x: np.sum((x - target) ** 2) / 1e4,
+        np.full(8, 0.5 * (lo + hi)),
+        jac=lambda x: 2 * (x - target) / 1e4,
+        constraints=[{"type": "eq", "fun": lambda x: (a @ x + w) / 100, "jac": lambda x: a / 100}],
+        bounds=[(lo, hi)] * 8,
+        method="SLSQP",
+        options={"ftol": 1e-15, "maxiter": 1000},
+    )
+    assert ref.success
+    assert_allclose(tau, ref.x, atol=1e-3)
+
+
+def test_closed_form_is_potts_formula_and_refuses_to_clip():
+    a, w = _pose_problem()
+    tau = closed_form(a, w, 0.0, 360.0)
+    tau_m = np.full(8, 180.0)
+    assert_allclose(tau, tau_m - np.linalg.pinv(a) @ (w + a @ tau_m), atol=1e-9)
+    assert_allclose(a @ tau + w, 0.0, atol=1e-8)
+    with pytest.raises(InfeasiblePoseError, match="closed-form"):
+        closed_form(a, w, 120.0, 140.0)
+    with pytest.raises(InfeasiblePoseError):
+        qp(a, w, 10.0, 250.0, 10.0)  # no tensions in 10..250 N balance this pose
+
+
+@pytest.mark.parametrize(
+    ("dist", "key"),
+    [
+        ({"method": "qp", "tau_min_n": 10.0, "tau_max_n": 300.0, "target_n": 400.0}, "target"),
+        ({"method": "closed_form", "target_n": 100.0}, "target_n"),
+        ({"method": "simplex"}, "method"),
+        ({"method": "qp", "tau_min_n": 300.0, "tau_max_n": 10.0}, "tau_max_n"),
+    ],
+)
+def test_distribution_config_errors_name_the_key(dist, key):
+    with pytest.raises(ConfigError, match=r"sim_plc\.distribution") as err:
+        load_sim_config(plant_config({}, distribution=dist))
+    assert key in str(err.value)
+
+
+def test_closed_form_plant_balances_the_wrench_and_differs_from_the_gateway_statics():
+    rec, full, cfg = recording("clean")
+    data = wrench_data(rec, cfg)
+    resid = np.einsum("nim,nm->ni", data.a_mat, full.tension_platform) + data.w0
+    # the plant balances the analytic acceleration; ours is from the sampled pose
+    assert np.sqrt(np.mean(resid[:, :3] ** 2)) < 0.05
+    statics_tp = platform.platform_tensions(rec, cfg)
+    assert np.mean(np.abs(statics_tp - full.tension_platform)) > 30.0  # N: another sharing
+
+
+# ---- the old statics route against the wrench route ----
+
+
+@pytest.mark.long
+def test_old_statics_route_goes_wrong_and_the_wrench_route_holds():
+    """Viscous hidden, closed-form controller: assuming eq. 18/19 with the config's limits
+    invents tensions 70 N off, so the per-cable route reports false effects (or misses
+    the viscous one); the wrench route names exactly viscous within tolerance."""
+    rec, _, cfg = recording("viscous")
+    n = int(8.0 * RATE)  # the old route selects per cable: 8 s of it suffice to go wrong
+    assert rec.pose is not None and rec.mass is not None
+    head = replace(
+        rec,
+        t=rec.t[:n],
+        velocity=rec.velocity[:n],
+        tension_sensor=rec.tension_sensor[:n],
+        length=None,
+        pose=rec.pose[:n],
+        mass=rec.mass[:n],
+    )
+    old = diagnose(
+        head,
+        cfg.friction,
+        tp=platform.platform_tensions(head, cfg),
+        dtp_dm=platform.mass_sensitivity(head, cfg),
+    ).report
+    old_effects = [f["effect"] for f in old["findings"]]
+    assert old_effects != ["viscous"]
+    assert set(old_effects) - {"viscous"}, old_effects  # false findings
+    assert old["baseline"]["rmse_n"] > 20 * NOISE  # the invented tensions dominate
+    new = wrench_report("viscous")
+    assert [f["effect"] for f in new["findings"]] == ["viscous"]
+    assert_parameters("viscous", new["findings"][0])
+
+
+# ---- the wrench route on its own ----
+
+
+@pytest.mark.parametrize("case", ["viscous", "offset", "gain", "mass_change", "inertia", "coulomb"])
+def test_wrench_names_exactly_the_hidden_effect(case):
+    rep = wrench_report(case)
+    check_report(rep)
+    assert rep["reference"] == "wrench"
+    assert rep["baseline"]["per_cable_rmse_n"] == []
+    assert [f["effect"] for f in rep["findings"]] == [case]
+    f = rep["findings"][0]
+    assert_parameters(case, f)
+    floor = NOISE * math.sqrt(8 / 3)  # white sensor noise through A, per force component
+    assert rep["final"]["holdout_rmse_n"] < 1.1 * floor
+    assert f["holdout_rmse_before_n"] > 1.3 * f["holdout_rmse_after_n"]
+    assert all(m["cable"] == 0 for m in rep["mismatch"])
+
+
+def test_wrench_route_holds_under_a_qp_controller_with_another_target():
+    """The controller's eq. 18/19 with limits 0..400 N aiming at 120 N (the gateway's
+    statics aims at 255 N): the wrench route does not care how tensions are shared."""
+    dist = {"method": "qp", "tau_min_n": 0.0, "tau_max_n": 400.0, "target_n": 120.0}
+    cfg = plant_config(CASES["viscous"], seed=5, distribution=dist)
+    full = make_recording(cfg, None, SECONDS)
+    assert np.mean(np.abs(platform.platform_tensions(full, cfg) - full.tension_platform)) > 30
+    rep = diagnose_wrench(replace(full, tension_platform=None), cfg.friction, cfg).report
+    assert [f["effect"] for f in rep["findings"]] == ["viscous"]
+    assert_parameters("viscous", rep["findings"][0])
+
+
+def test_wrench_clean_recording_gives_no_finding():
+    rep = wrench_report("clean")
+    check_report(rep)
+    assert rep["findings"] == []
+    assert rep["reference"] == "wrench"
+    assert rep["final"]["rmse_n"] < 1.1 * NOISE * math.sqrt(8 / 3)
+    ident = rep["identifiability"]
+    for effect in ("viscous", "gain", "offset", "inertia", "coulomb"):
+        assert ident[effect]["identifiable_cables"] == list(range(1, 9)), effect
+    assert ident["mass_change"]["identifiable"] is True
+
+
+def test_wrench_validation_recording_is_scored_not_fitted():
+    rec, _, cfg = recording("viscous")
+    vrec, _, _ = recording("viscous", seed=4)
+    rep = diagnose_wrench(rec, cfg.friction, cfg, validation=vrec).report
+    check_report(rep)
+    f = rep["findings"][0]
+    assert f["validation_rmse_after_n"] < 0.5 * f["validation_rmse_before_n"]
+    assert rep["final"]["validation_rmse_after_n"] < 1.1 * NOISE * math.sqrt(8 / 3)
+
+
+def test_standing_platform_leaves_per_cable_effects_unidentifiable():
+    """Constant pose: the null space of A never turns, so the offsets and gains of the
+    cables cannot be told from pretension: the report says so and fits none of them."""
+    _, full, cfg = recording("clean")
+    n = 1500
+    pose = np.tile(np.asarray(cfg.geometry.home_pose, float), (n, 1))
+    t = np.arange(n) / RATE
+    tp = platform.platform_tensions(replace(full, t=t, pose=pose, mass=np.full(n, 40.0)), cfg)
+    rng = np.random.default_rng(0)
+    reading = tp + rng.normal(0, NOISE, tp.shape)
+    rec = Recording(t=t, velocity=np.zeros((n, 8)), tension_sensor=reading, pose=pose,
+                    mass=np.full(n, 40.0), source="still.csv")  # fmt: skip
+    assert reference_mode(rec) == "wrench"
+    rep = diagnose_wrench(rec, cfg.friction, cfg).report
+    check_report(rep)
+    ident = rep["identifiability"]
+    for effect in ("offset", "gain"):
+        assert ident[effect]["identifiable_cables"] == [], effect
+        assert ident[effect]["unidentifiable_cables"] == list(range(1, 9))
+    assert ident["viscous"]["identifiable_cables"] == []  # no motion: no sensitivity
+    assert rep["findings"] == []
+
+
+def test_residual_is_zero_for_the_truth_without_noise():
+    """The model carried through the chain with the hidden parameters balances exactly."""
+    data = read_yaml(DEFAULT_CONFIG_PATH)
+    cfg = plant_config({"gain": {"g": 0.005}, "viscous": {"c_ns_m": 10.0}})
+    data = cfg.sim_plc | {"noise_std_n": 0.0}
+    cfg = replace(cfg, sim_plc=data)
+    full = make_recording(cfg, None, 4.0)
+    rec = replace(full, tension_platform=None)
+    model = WrenchModel(wrench_data(rec, cfg), nominal_from(cfg.friction))
+    theta = {"gain": np.full((1, 8), 0.005), "viscous": np.full((1, 8), 10.0)}
+    r_true = model.residual(theta)
+    r_nom = model.residual({})
+    # S7 quantisation (0.018 N) and the sampled acceleration are all that is left
+    assert np.sqrt(np.mean(r_true[:, :3] ** 2)) < 0.05
+    assert np.sqrt(np.mean(r_nom[:, :3] ** 2)) > 10 * np.sqrt(np.mean(r_true[:, :3] ** 2))
+
+
+def test_cli_wrench_mode_writes_report_and_pictures(tmp_path):
+    from gateway.cli import main
+    from gateway.recordings.reader import write_recording
+
+    rec, _, _ = recording("viscous")
+    path = tmp_path / "pose_only.csv.gz"
+    write_recording(path, rec)
+    out = tmp_path / "r.json"
+    rc = main(["diagnose", str(path), "--model", str(DEFAULT_CONFIG_PATH), "--json", str(out),
+               "--report", str(tmp_path / "rep"), "--quiet"])  # fmt: skip
+    assert rc == 0
+    report = json.loads(out.read_text())
+    check_report(report)
+    assert report["reference"] == "wrench"
+    assert [f["effect"] for f in report["findings"]] == ["viscous"]
+    for name in ("residual.png", "overlay.png", "signature_viscous.png", "summary.md"):
+        assert (tmp_path / "rep" / name).stat().st_size > 0, name
+    assert "wrench balance" in (tmp_path / "rep" / "summary.md").read_text()
+
+
+def test_long_recordings_are_fitted_on_thinned_samples(monkeypatch):
+    """Above FIT_BUDGET samples the selection and fit use evenly thinned samples (bounded
+    memory); the chain and the scores still run over every sample."""
+    from gateway.diagnose import wrench
+
+    monkeypatch.setattr(wrench, "FIT_BUDGET", 1200)
+    rec, _, cfg = recording("viscous")
+    prep = wrench.prepare(rec, cfg, cfg.friction)
+    assert 1200 >= prep.rows.size >= 1000 and prep.chol.shape[0] == prep.rows.size
+    rep = diagnose_wrench(rec, cfg.friction, cfg).report
+    assert rep["samples"] == rec.samples
+    assert [f["effect"] for f in rep["findings"]] == ["viscous"]
+    assert_parameters("viscous", rep["findings"][0])
+
+
+def sweep(seeds: tuple[int, ...] = (4, 6, 7)) -> str:
+    """The cases on other seeds (not a test: the figures for the report).
+    ``PYTHONPATH=. python -m tests.diagnose.test_wrench``."""
+    named = within = total = false = 0
+    for seed in seeds:
+        for case in CASES:
+            rec, _, cfg = recording(case, seed)
+            rep = diagnose_wrench(rec, cfg.friction, cfg).report
+            found = [f["effect"] for f in rep["findings"]]
+            if case == "clean":
+                false += len(found)
+                continue
+            total += 1
+            named += found == [case]
+            try:
+                assert_parameters(case, rep["findings"][0])
+                within += found == [case]
+            except (AssertionError, IndexError) as exc:
+                print(f"seed {seed} {case}: {found} {exc}")
+    return (
+        f"seeds {seeds}: named exactly {named}/{total}, parameters in tolerance "
+        f"{within}/{total}, false findings on {len(seeds)} clean recordings: {false}"
+    )
+
+
+if __name__ == "__main__":
+    print(sweep())

@@ -1,0 +1,233 @@
+"""``cdpr-gateway run`` and ``cdpr-gateway demo --offline`` end to end (bounded)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+import tracemalloc
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import yaml
+from numpy.testing import assert_allclose
+
+from drivers.base import Inputs
+from gateway.cli import main
+from gateway.core.config import DEFAULT_CONFIG_PATH
+from sim_plc.truth import SCORE_AFTER_S, CycleRing, TruthMatcher
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def write_config(tmp_path: Path, **sections) -> Path:
+    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data["bus"]["driver"] = "virtual"
+    data["metrics"]["port"] = 0
+    for key, value in sections.items():
+        data[key] = {**data.get(key, {}), **value}
+    path = tmp_path / "gateway.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_run_bounded_cycles_exits_zero(tmp_path, capsys):
+    path = write_config(tmp_path)
+    assert main(["run", "--config", str(path), "--cycles", "50"]) == 0
+    assert "cycles 50" in capsys.readouterr().err
+
+
+def test_run_unknown_driver_names_the_key(tmp_path, capsys):
+    path = write_config(tmp_path, bus={"driver": "profinet"})
+    assert main(["run", "--config", str(path), "--cycles", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "bus.driver" in err and "profinet" in err and str(path) in err
+
+
+def test_run_bad_value_names_the_key(tmp_path, capsys):
+    path = write_config(tmp_path, loop={"period_s": -1})
+    assert main(["run", "--config", str(path)]) == 2
+    assert re.search(r"loop\W+period_s", capsys.readouterr().err)
+
+
+def test_run_sigterm_stops_cleanly(tmp_path):
+    path = write_config(tmp_path)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway.cli", "run", "--config", str(path)],
+        stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT,
+    )  # fmt: skip
+    lines: list[str] = []
+    ready = threading.Event()
+
+    def reader() -> None:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append(line)
+            if "connected to" in line:
+                ready.set()
+
+    thread = threading.Thread(target=reader, daemon=True)
+    thread.start()
+    try:
+        assert ready.wait(60), "".join(lines)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    thread.join(timeout=10)
+    assert proc.stderr is not None
+    proc.stderr.close()
+    text = "".join(lines)
+    assert re.search(r"metrics on http://127\.0\.0\.1:\d+/metrics", text)
+    assert "stopped: cycles" in text
+    # issue 14: timestamps and logger names, the start-up banner, the state change
+    stamp = r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} (INFO|WARNING) cdpr_gateway(\.loop)?: "
+    assert re.search(stamp + r"cdpr-gateway \S+ starting; config " + re.escape(str(path)), text,
+                     re.MULTILINE), text  # fmt: skip
+    assert re.search(stamp + r"bus: virtual \(bus\.virtual\)", text, re.MULTILINE)
+    assert re.search(stamp + r"model: dahl, 3 pulleys", text, re.MULTILINE)
+    assert re.search(stamp + r"loop: period 1 ms, .*real-time scheduling", text, re.MULTILINE)
+    assert re.search(stamp + r"connected to the PLC at virtual", text, re.MULTILINE)
+
+
+@pytest.mark.slow
+def test_demo_offline_corrected_beats_raw(capsys):
+    assert main(["demo", "--offline", "--stand-in", "--seconds", "2"]) == 0
+    out, err = capsys.readouterr()
+    assert "demo (offline):" in err  # progress lines
+    mean = re.search(r"mean\s+([\d.]+)\s+([\d.]+)", out)
+    assert mean, out
+    raw, corrected = float(mean.group(1)), float(mean.group(2))
+    assert corrected < 0.25 * raw
+    assert re.search(r"cycles\s+\d+", out) and "jitter p50 / p99" in out
+
+
+@pytest.mark.slow
+def test_demo_offline_with_the_plant(capsys):
+    assert main(["demo", "--offline", "--seconds", "2"]) == 0
+    out = capsys.readouterr().out
+    mean = re.search(r"mean\s+([\d.]+)\s+([\d.]+)", out)
+    assert mean, out
+    assert float(mean.group(2)) < 0.5 * float(mean.group(1))
+    assert "plant in process" in out
+    assert re.search(r"truth samples\s+\d+ read in the cycle", out), out
+    assert re.search(r"noise floor 0\.500 N .* corrected RMSE [\d.]+x the floor", out), out
+
+
+# --- the demo's scoring off the cycle (issue 12) ------------------------------------------
+def fake_cycle(cables: int, hb: int, value: float) -> tuple[Inputs, SimpleNamespace]:
+    inputs = Inputs.allocate(cables)
+    inputs.plc_heartbeat = hb
+    comp = SimpleNamespace(
+        raw_n=np.full(cables, value + 10.0),
+        corrected_n=np.full(cables, value),
+        status=np.zeros(cables, dtype=np.uint16),
+    )
+    return inputs, comp
+
+
+def filled_ring(cables: int, hbs: range, t0: float = 100.0) -> CycleRing:
+    """A ring past its warm-up holding cycles that read ``hbs`` (corrected = hb N)."""
+    ring = CycleRing(cables, size=64)
+    inputs, comp = fake_cycle(cables, 0, 0.0)
+    ring(inputs, comp, t0 - SCORE_AFTER_S - 1.0)  # starts the warm-up clock
+    for hb in hbs:
+        inputs.plc_heartbeat = hb
+        comp.corrected_n[:] = hb
+        comp.raw_n[:] = hb + 10.0
+        ring(inputs, comp, time.monotonic())
+    return ring
+
+
+def test_cycle_ring_observer_allocates_nothing():
+    cables = 8
+    ring = CycleRing(cables, size=256)
+    inputs, comp = fake_cycle(cables, 0, 1.0)
+    now = 0.0
+    for _ in range(600):  # warm-up passes, every slot written once
+        now += 0.001
+        inputs.plc_heartbeat = (inputs.plc_heartbeat + 1) & 0xFFFF
+        ring(inputs, comp, now)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(2000):
+            now += 0.001
+            inputs.plc_heartbeat = (inputs.plc_heartbeat + 1) & 0xFFFF
+            ring(inputs, comp, now)
+        grown = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert ring.copied == 2600 - 500  # the first SCORE_AFTER_S (500 cycles) not copied
+    assert grown < 512, grown
+
+
+def test_truth_is_matched_to_the_cycle_of_the_same_plant_step():
+    cables = 4
+    ring = filled_ring(cables, range(1000, 1040))
+    truth_hb = {"hb": 1017}
+
+    def source(truth: np.ndarray) -> int:
+        truth[:] = truth_hb["hb"]  # the true tension equals that cycle's corrected value
+        return truth_hb["hb"]
+
+    matcher = TruthMatcher(ring, source, cables)
+    for hb in (1017, 1020, 1039):
+        truth_hb["hb"] = hb
+        matcher.poll()
+    raw, corrected = matcher.score.rmse()
+    assert (matcher.read, matcher.matched, matcher.unmatched) == (3, 3, 0)
+    assert_allclose(corrected, 0.0, atol=1e-12)  # the very cycle, not a neighbour
+    assert_allclose(raw, 10.0, atol=1e-12)
+    truth_hb["hb"] = 2000  # a plant step no cycle read (waits WAIT_FOR_CYCLE_S, then gives up)
+    matcher.poll()
+    assert (matcher.matched, matcher.unmatched) == (3, 1)
+
+
+def test_an_old_lap_of_the_heartbeat_is_not_matched():
+    cables = 2
+    ring = filled_ring(cables, range(5, 9))
+    ring.when[:] -= 100.0  # the slots are 100 s old: heartbeat 7 now is another plant step
+    matcher = TruthMatcher(ring, lambda truth: 7, cables)
+    matcher.poll()
+    assert (matcher.matched, matcher.unmatched) == (0, 1)
+    assert matcher.score.samples.sum() == 0
+
+
+def test_failed_side_channel_reads_are_counted_not_scored():
+    ring = filled_ring(2, range(3))
+
+    def broken(truth: np.ndarray) -> int:
+        raise OSError("side channel closed")
+
+    matcher = TruthMatcher(ring, broken, 2)
+    matcher.poll()
+    assert (matcher.read, matcher.failed, matcher.matched) == (0, 1, 0)
+
+
+@pytest.mark.slow
+@pytest.mark.loopback
+def test_demo_against_the_soft_plc_explains_its_counts(capsys):
+    assert main(["demo", "--seconds", "2"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"real-time gateway: (applied|off)", out), out
+    assert re.search(r"real-time soft PLC: applied", out), out  # started with --realtime
+    assert re.search(r"real-time truth reader: SCHED_FIFO priority 1 (applied|refused)", out)
+    for row in ("cycles", "written", "failed", "overruns", "cycles skipped"):
+        assert re.search(rf"^  {row}\s+\d+", out, re.MULTILINE), (row, out)
+    truth = re.search(r"truth samples\s+(\d+) read .* (\d+) matched by the PLC heartbeat", out)
+    assert truth, out
+    assert 0 < int(truth.group(2)) <= int(truth.group(1))
+    mean = re.search(r"mean\s+([\d.]+)\s+([\d.]+)", out)
+    assert mean, out
+    assert float(mean.group(2)) < 0.5 * float(mean.group(1))
+    assert re.search(r"corrected RMSE [\d.]+x the floor", out)
