@@ -51,7 +51,11 @@ from numba import njit
 from gateway.model.fastcall import entry_point
 from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step, dahl_step_slope
 
-MODEL_CODES = {"none": 0, "coulomb": 1, "dahl": 2}
+LAWS = {"none": 0, "coulomb": 1, "dahl": 2}
+"""The law table: a friction law's name -> its code in the compiled pulley step
+(:func:`_pulley` dispatches on it). A new chain-side law is one row here and its branch
+there; the effects that switch a chain to it say so in their module."""
+LAW_NONE, LAW_COULOMB, LAW_DAHL = LAWS["none"], LAWS["coulomb"], LAWS["dahl"]
 ModelName = Literal["none", "coulomb", "dahl"]
 
 
@@ -68,8 +72,11 @@ def _per_cable(value: float | np.ndarray, cables: int, name: str) -> np.ndarray:
 class ChainParams:
     """Friction parameters of ``m`` cable chains of ``n`` pulleys each.
 
-    Arrays: ``wrap_rad`` (n,); ``mu`` (m, n); ``sigma_n_m``, ``f0_n``, ``stribeck_k``,
-    ``stribeck_v_m_s``, ``viscous_ns_m`` (m,). ``beta``: Dahl shape exponent.
+    ``model``: the friction law (a key of :data:`LAWS`). Arrays: ``wrap_rad`` (n,);
+    ``mu`` (m, n) the bearing coefficient paying out (v > 0), ``mu_in`` (m, n) hauling in
+    (v < 0; the same as ``mu`` unless a direction-dependent effect sets it);
+    ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,).
+    ``beta``: Dahl shape exponent.
     """
 
     model: ModelName
@@ -81,6 +88,7 @@ class ChainParams:
     stribeck_k: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stribeck_v_m_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     viscous_ns_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    mu_in: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @staticmethod
     def build(
@@ -88,6 +96,8 @@ class ChainParams:
         cables: int,
         wrap_rad: np.ndarray | tuple[float, ...],
         mu: float | np.ndarray | tuple[float, ...],
+        *,
+        mu_in: float | np.ndarray | tuple[float, ...] | None = None,
         sigma_n_m: float | np.ndarray = 500.0,
         beta: float = 1.0,
         f0_n: float | np.ndarray = 0.0,
@@ -95,11 +105,15 @@ class ChainParams:
         stribeck_v_m_s: float | np.ndarray = 0.01,
         viscous_ns_m: float | np.ndarray = 0.0,
     ) -> ChainParams:
-        """Broadcast scalars and per-pulley (n,) or per-cable-per-pulley (m, n) ``mu``."""
-        if model not in MODEL_CODES:
-            raise ValueError(f"model must be one of {sorted(MODEL_CODES)}, got {model!r}")
+        """Broadcast scalars and per-pulley (n,) or per-cable-per-pulley (m, n) ``mu``
+        (``mu_in`` None: the same as ``mu``)."""
+        if model not in LAWS:
+            raise ValueError(f"model must be one of {sorted(LAWS)}, got {model!r}")
         wrap = np.asarray(wrap_rad, dtype=float).reshape(-1)
-        mu_arr = np.broadcast_to(np.asarray(mu, dtype=float), (cables, wrap.size)).copy()
+        shape = (cables, wrap.size)
+        mu_arr = np.broadcast_to(np.asarray(mu, dtype=float), shape).copy()
+        mu_in_arr = mu_arr.copy() if mu_in is None else np.broadcast_to(
+            np.asarray(mu_in, dtype=float), shape).copy()  # fmt: skip
         vs = _per_cable(stribeck_v_m_s, cables, "stribeck_v_m_s")
         if np.any(vs <= 0):
             raise ValueError("stribeck_v_m_s must be > 0")
@@ -107,6 +121,7 @@ class ChainParams:
             model=model,
             wrap_rad=wrap,
             mu=mu_arr,
+            mu_in=mu_in_arr,
             sigma_n_m=_per_cable(sigma_n_m, cables, "sigma_n_m"),
             beta=float(beta),
             f0_n=_per_cable(f0_n, cables, "f0_n"),
@@ -154,8 +169,8 @@ class KernelParams(NamedTuple):
     """What the compiled kernels read, as one numba-compatible structure.
 
     ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0;
-    ``f0``, ``strib_k``, ``strib_v``, ``viscous``, ``sigma`` (m,); ``beta``; ``model``
-    (:data:`MODEL_CODES`); Newton's ``tol`` (N^2 on the squared step) and ``max_iter``.
+    ``f0``, ``strib_k``, ``strib_v``, ``viscous``, ``sigma`` (m,); ``beta``; ``law``
+    (:data:`LAWS`); Newton's ``tol`` (N^2 on the squared step) and ``max_iter``.
     """
 
     lam_pos: np.ndarray
@@ -166,7 +181,7 @@ class KernelParams(NamedTuple):
     viscous: np.ndarray
     sigma: np.ndarray
     beta: float
-    model: int
+    law: int
     tol: float
     max_iter: int
 
@@ -175,31 +190,44 @@ def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20)
     """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
     lam_pos, lam_neg = coulomb_coefficients(params)
     return KernelParams(
-        lam_pos, lam_neg, params.f0_n, params.stribeck_k, params.stribeck_v_m_s,
-        params.viscous_ns_m, params.sigma_n_m, float(params.beta), MODEL_CODES[params.model],
-        float(tol_n), int(max_iter),
-    )  # fmt: skip
+        lam_pos=lam_pos,
+        lam_neg=lam_neg,
+        f0=params.f0_n,
+        strib_k=params.stribeck_k,
+        strib_v=params.stribeck_v_m_s,
+        viscous=params.viscous_ns_m,
+        sigma=params.sigma_n_m,
+        beta=float(params.beta),
+        law=LAWS[params.model],
+        tol=float(tol_n),
+        max_iter=int(max_iter),
+    )
 
 
 @njit(cache=True, inline="always")
-def _pulley(t_b, lam, f0p, strib, f_old, dx, sigma, beta, model):
-    """Friction force of one pulley whose platform-side tension is ``t_b``, and dF/dt_b.
+def _pulley(p, i, j, t_b, f_old, dx, strib):
+    """Friction force of pulley ``j`` of cable ``i`` whose platform-side tension is
+    ``t_b``, and dF/dt_b, by the chain's law (:data:`LAWS`).
 
     ``dx``: the step's cable travel (Dahl) or, for Coulomb, anything with the sign of
-    the sample's velocity (only its sign is read)."""
+    the sample's velocity (only its sign is read); ``strib``: the Stribeck factor."""
+    law = p.law
     if dx == 0.0:
-        return (0.0 if model == 1 else f_old), 0.0
+        return (0.0 if law == LAW_COULOMB else f_old), 0.0
     s = 1.0 if dx > 0.0 else -1.0
-    fr = (lam * abs(t_b) + f0p) * strib
+    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
+    fr = (lam * abs(t_b) + p.f0[i] / p.lam_pos.shape[1]) * strib
     dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
-    if model == 1:
+    if law == LAW_COULOMB:
         return s * fr, s * dfr
+    # LAW_DAHL
     if fr <= FR_FLOOR_N:
         return 0.0, 0.0
-    if beta == 1.0:
+    sigma = p.sigma[i]
+    if p.beta == 1.0:
         f_new, slope = dahl_step_slope(f_old, fr, dx, sigma)
         return f_new, slope * dfr
-    f_new = dahl_step(f_old, fr, dx, sigma, beta)
+    f_new = dahl_step(f_old, fr, dx, sigma, p.beta)
     return f_new, s * (1.0 - math.exp(-sigma * abs(dx) / fr)) * dfr  # quasi-Newton slope
 
 
@@ -223,9 +251,9 @@ def travel_into(vel, dt, v_prev, dx):
 
 
 @njit(cache=True, inline="always")
-def _direction(model, v, dx):
+def _direction(law, v, dx):
     """What sets the pulley's direction: the velocity for Coulomb, the travel for Dahl."""
-    return v if model == 1 else dx
+    return v if law == LAW_COULOMB else dx
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
@@ -240,21 +268,17 @@ def compensate_kernel(p, t_in, vel, dx_all, f_state, out):
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            dx = _direction(p.model, v, dx_all[k, i])
+            dx = _direction(p.law, v, dx_all[k, i])
             t_a = t_in[k, i]
-            if p.model != 0:
+            if p.law != LAW_NONE:
                 strib = _stribeck(p, i, v)
-                f0p = p.f0[i] / n
                 for j in range(n):
-                    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
                     f_old = f_state[i, j]
                     t_b = t_a + f_old
                     it = 0
                     while it < p.max_iter:
                         it += 1
-                        f_new, d_b = _pulley(
-                            t_b, lam, f0p, strib, f_old, dx, p.sigma[i], p.beta, p.model
-                        )
+                        f_new, d_b = _pulley(p, i, j, t_b, f_old, dx, strib)
                         step = (t_b - t_a - f_new) / (1.0 - d_b)
                         t_b -= step
                         if step * step * _NEWTON_CURVATURE <= p.tol:
@@ -275,16 +299,12 @@ def simulate_kernel(p, t_in, vel, dx_all, f_state, out):
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            dx = _direction(p.model, v, dx_all[k, i])
+            dx = _direction(p.law, v, dx_all[k, i])
             t_b = t_in[k, i] - p.viscous[i] * v
-            if p.model != 0:
+            if p.law != LAW_NONE:
                 strib = _stribeck(p, i, v)
-                f0p = p.f0[i] / n
                 for j in range(n - 1, -1, -1):
-                    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
-                    f_new, _ = _pulley(
-                        t_b, lam, f0p, strib, f_state[i, j], dx, p.sigma[i], p.beta, p.model
-                    )
+                    f_new, _ = _pulley(p, i, j, t_b, f_state[i, j], dx, strib)
                     f_state[i, j] = f_new
                     t_b -= f_new
             out[k, i] = t_b
@@ -296,13 +316,16 @@ def coulomb_coefficients(params: ChainParams) -> tuple[np.ndarray, np.ndarray]:
 
     At sliding, ``T_j - T_{j-1} = s lambda_j T_j`` with ``n_j = 1 - s lambda_j`` the exact
     root of the Coulomb quadratic (:func:`friction.coulomb_ratio_exact`), so
-    ``lambda = 1 - n(+)`` paying out and ``n(-) - 1`` reeling in.
+    ``lambda = 1 - n(+)`` paying out (with ``mu``) and ``n(-) - 1`` reeling in (with
+    ``mu_in``).
     """
+    mu_in = params.mu_in if params.mu_in.shape == params.mu.shape else params.mu
     lam_pos = np.empty_like(params.mu)
     lam_neg = np.empty_like(params.mu)
     for (i, j), mu in np.ndenumerate(params.mu):
-        lam_pos[i, j] = 1.0 - coulomb_ratio_exact(float(mu), float(params.wrap_rad[j]), 1.0)
-        lam_neg[i, j] = coulomb_ratio_exact(float(mu), float(params.wrap_rad[j]), -1.0) - 1.0
+        wrap = float(params.wrap_rad[j])
+        lam_pos[i, j] = 1.0 - coulomb_ratio_exact(float(mu), wrap, 1.0)
+        lam_neg[i, j] = coulomb_ratio_exact(float(mu_in[i, j]), wrap, -1.0) - 1.0
     return lam_pos, lam_neg
 
 

@@ -251,7 +251,7 @@ def test_generator_dahl_with_f0_agrees_with_the_model_chain():
     wrap = np.radians([p[0] for p in fo.pulleys])
     mu = np.array([p[1] for p in fo.pulleys])
     gen = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, 3.0, fo.sigma_n_m, True)
-    params = ChainParams.build("dahl", 1, wrap, mu, fo.sigma_n_m, f0_n=3.0)
+    params = ChainParams.build("dahl", 1, wrap, mu, sigma_n_m=fo.sigma_n_m, f0_n=3.0)
     diff = gen - simulate(params, tp[:, None], v[:, None], fine)[:, 0]
     still = v == 0
     assert still.sum() > 1000 and (~still).sum() > 1000
