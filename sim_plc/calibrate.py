@@ -200,7 +200,7 @@ def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path,
     if reference_mode(rec) != "wrench":
         raise GatewayError(f"{recording}: no pose and mass columns: no wrench reference")
     model_friction = load_friction(model)
-    rec, friction = relative_to_model(rec, model_friction)
+    rec, friction = relative_to_model(rec, model_friction, cfg)
     diag = diagnose_wrench(rec, friction, cfg, None, progress=say)
     try:
         report.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")

@@ -26,7 +26,7 @@ import numpy as np
 from gateway.core.config import Config, FrictionConfig, TensionConfig
 from gateway.core.configtypes import convert, require
 from gateway.errors import ConfigError
-from gateway.model.effects import Effects, effect_values
+from gateway.model.effects import REGISTRY, Effects, effect_values
 from sim_plc.distribution import DistributionConfig
 
 PerCable = float | tuple[float, ...]
@@ -153,9 +153,10 @@ def _effects(raw: dict[str, Any], cables: int, radius: float, src: str) -> Effec
     except ValueError as exc:
         raise ConfigError(f"{src}: {exc}") from None
     for name, params in values.items():  # the truth keeps physical signs
-        for p in ("mu", "c_ns_m", "m_eff_kg"):
-            if p in params and np.any(params[p] < 0):
-                raise ConfigError(f"{src}: sim_plc.effects.{name}.{p}: must be >= 0")
+        for prm in REGISTRY[name].params:
+            low = prm.truth_low
+            if low is not None and np.any(params[prm.name] < low):
+                raise ConfigError(f"{src}: sim_plc.effects.{name}.{prm.name}: must be >= {low:g}")
     return EffectsConfig(declared, values)
 
 

@@ -10,18 +10,17 @@ One pipeline, written once with :mod:`gateway.model` (run the other way round):
    distribution (eq. 18, 19) with the plant's limits, or the controller's own
    (``sim_plc.distribution``: :mod:`sim_plc.distribution`).
 3. the pulley chain run backwards, platform -> sensor (``chain.simulate``; Dahl by
-   default; the chain-side effects ``coulomb`` mu/f0, ``presliding`` sigma, ``viscous``,
-   ``stribeck`` are :class:`ChainParams`), then the path effects ``inertia`` and
-   ``eccentricity`` and the sensor effects ``gain``, ``offset``, ``drift``, ``lowpass``,
-   ``delay`` (``effects``).
+   default, with the hidden chain-side effects in its :class:`ChainParams`), then the
+   hidden path and sensor effects in their order (:func:`gateway.model.effects.forward`).
 4. Gaussian noise (std per cable), the sensor's analog output limit ``saturation_n``,
    and the A/D converter in the S7 analog format: ``0..27648`` = ``0..range``; counts
    above the overrange limit 32511 read 32767 (overflow), below the underrange limit
    -4864 read -32768 (underflow); both scale back to NaN (no value).
 
-``mass_change`` (q kg/s) is a *hidden* mass change: the truth uses ``m(t) + q t``; the
-recorded ``mass`` and ``tension_platform`` are what the controller believes (without it),
-so a diagnosis can find it. Without ``mass_change`` ``tension_platform`` is the truth.
+A hidden statics effect (a platform mass the controller does not know,
+:func:`gateway.model.effects.mass_delta`) changes the truth only: the recorded ``mass`` and
+``tension_platform`` are what the controller believes (without it), so a diagnosis can find
+it. Without one ``tension_platform`` is the truth.
 
 Two forms over the same code: :func:`make_recording` (batch, vectorised) and
 :meth:`Plant.step` (one period into a :class:`ProcessImage`; setpoints and statics are
@@ -32,7 +31,6 @@ PLC runs that stepping in a worker process and only replays its samples
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -68,7 +66,7 @@ def counts_to_newton(counts: np.ndarray, range_n: float, full_scale: int) -> np.
 class Setpoints:
     """Kinematics and statics at N times. Shapes: t, mass (N,); pose (N, 6); the rest
     (N, m) except ``a_mat`` (N, 6, m) and the wrenches (N, 6). ``mass``, ``*_recorded``:
-    as recorded; ``*_true``: the truth (they differ only with ``mass_change``)."""
+    as recorded; ``*_true``: the truth (they differ only with a hidden mass change)."""
 
     t: np.ndarray
     pose: np.ndarray
@@ -88,11 +86,6 @@ def chain_params(sim: SimPlcConfig, cables: int) -> chain.ChainParams:
     return effects.chain_params(sim.friction, sim.effects.values, cables)
 
 
-def path_sensor_effects(sim: SimPlcConfig, cables: int) -> effects.PathSensorEffects:
-    """Per-cable (m,) parameters of the effects outside the chain (0 when off)."""
-    return effects.path_sensor(sim.effects.values, cables, sim.friction.pulley_radius_m)
-
-
 class PlantModel:
     """Everything fixed of the plant: geometry, trajectory, chain and effect parameters."""
 
@@ -107,10 +100,9 @@ class PlantModel:
             self.sim.trajectory, np.asarray(geo.home_pose), self.sim.base_dir
         )
         self.params = chain_params(self.sim, self.cables)
-        self.effects = path_sensor_effects(self.sim, self.cables)
+        self.effects = self.sim.effects.values  # hidden, as per-cable arrays
         self.noise_std = per_cable(self.sim.noise_std_n, self.cables)
-        mc = self.sim.effects.values.get("mass_change")
-        self.hidden_q = 0.0 if mc is None else float(mc["q_kg_s"][0])
+        self.hides_mass = effects.mass_delta(self.effects, np.zeros(1), 0.0) is not None
         lim = self.sim.tension  # the controller's distribution (sim_plc.distribution)
         self.distribute = Distributor(self.sim.distribution, lim.min_n, lim.max_n)
 
@@ -151,8 +143,9 @@ class PlantModel:
         acc = s.acceleration[:, :3]
         w_rec = self.wrench(mass, s.pose, acc)
         w_true = w_rec
-        if self.hidden_q != 0.0:
-            w_true = self.wrench(mass + self.hidden_q * t, s.pose, acc)
+        hidden = effects.mass_delta(self.effects, t, 0.0)
+        if hidden is not None:
+            w_true = self.wrench(mass + hidden, s.pose, acc)
         nan = np.full((t.size, self.cables), np.nan)
         return Setpoints(t, s.pose, length, vel, a_mat, mass, w_true, w_rec, nan, nan.copy())
 
@@ -184,21 +177,29 @@ class PlantModel:
         return counts_to_newton(counts, sensor.range_n, sensor.adc_full_scale)
 
 
+def _series(sp: Setpoints, cols: slice = slice(None)) -> effects.SeriesData:
+    """The forms' view of the setpoints (``cols``: some cables): ``x`` the cable length,
+    ``a`` by second-order differences (computed when an effect reads it)."""
+    v = sp.velocity[:, cols]
+    t0 = float(sp.t[0]) if sp.t.size else 0.0
+    return effects.SeriesData(
+        sp.t, v, sp.length[:, cols], lambda: effects.acceleration(sp.t, v), t0
+    )
+
+
 def sensor_batch(model: PlantModel, sp: Setpoints, noise: np.ndarray) -> np.ndarray:
     """Analog sensor output (N, m) before the A/D: chain, path/sensor effects, noise."""
     ts = chain.simulate(model.params, sp.tension_true, sp.velocity, sp.t)
-    ts = effects.apply_path_effects(sp.t, sp.velocity, ts, model.effects, sp.length)
-    ts = effects.apply_sensor_effects(sp.t, ts, model.effects)
+    ts = effects.forward(_series(sp), ts, model.effects)
     return ts + noise * model.noise_std
 
 
-def _cable_effects(eff: effects.PathSensorEffects, i: int, m: int) -> effects.PathSensorEffects:
-    """Cable ``i``'s parameters of ``eff`` (each field (1,))."""
-    values = {
-        f.name: np.broadcast_to(np.asarray(getattr(eff, f.name), dtype=float), (m,))[i : i + 1]
-        for f in dataclasses.fields(eff)
+def _cable_effects(eff: effects.Effects, i: int) -> effects.Effects:
+    """Cable ``i``'s parameters of ``eff`` (each per-cable field (1,))."""
+    return {
+        name: {p: (v[i : i + 1] if effects.REGISTRY[name].per_cable else v) for p, v in ps.items()}
+        for name, ps in eff.items()
     }
-    return effects.PathSensorEffects(**values)
 
 
 def reading_batch(model: PlantModel, sp: Setpoints, rng: np.random.Generator) -> np.ndarray:
@@ -210,12 +211,8 @@ def reading_batch(model: PlantModel, sp: Setpoints, rng: np.random.Generator) ->
     ts = chain.simulate(model.params, sp.tension_true, sp.velocity, sp.t)
     m = ts.shape[1]
     for i in range(m):
-        eff = _cable_effects(model.effects, i, m)
         col = slice(i, i + 1)
-        path = effects.apply_path_effects(
-            sp.t, sp.velocity[:, col], ts[:, col], eff, sp.length[:, col]
-        )
-        ts[:, col] = effects.apply_sensor_effects(sp.t, path, eff)
+        ts[:, col] = effects.forward(_series(sp, col), ts[:, col], _cable_effects(model.effects, i))
     for start in range(0, ts.shape[0], RECORD_CHUNK):
         rows = ts[start : start + RECORD_CHUNK]
         rows += rng.standard_normal(rows.shape) * model.noise_std
@@ -241,7 +238,7 @@ def _metadata(model: PlantModel, seconds: float) -> dict[str, str]:
         "noise_std_n": str(model.sim.noise_std_n),
         "extrusion_kg_s": f"{model.sim.extrusion_kg_s:g}",
         "tension_platform": "statics with the recorded mass"
-        + (" (mass_change hidden)" if "mass_change" in active else " (truth)"),
+        + (" (a mass change hidden)" if model.hides_mass else " (truth)"),
         "tension_sensor": "S7 counts scaled back to N (empty: overflow/underflow)",
     }
 
@@ -255,7 +252,7 @@ def _recording_setpoints(model: PlantModel, t: np.ndarray, progress: Progress | 
     wrenches of one chunk at a time, never of the whole run (10 min: 1 GB -> < 400 MB)."""
     n, m = t.size, model.cables
     # without a hidden mass change the truth is what is recorded: one array for both
-    hidden = model.hidden_q != 0.0
+    hidden = model.hides_mass
     keep = ("pose", "length", "velocity", "mass", "tension_recorded") + (
         ("tension_true",) if hidden else ())  # fmt: skip
     out = {"pose": np.empty((n, 6)), "mass": np.empty(n)}
@@ -399,8 +396,7 @@ class Plant:
         self._t3[1:], self._v3[1], self._v3[2] = (t, nxt_t), v, nxt_v
         # no travel at the first sample (as in the batch form); then a period's
         self.stepper.step(tp, v, self._ts, 0.0 if self.k == 0 else -1.0)
-        ts = self.fx.path(self.k, self._t3, self._v3, cur.length[i], self._ts)
-        ts = self.fx.sensor(self.k, t, ts)
+        ts = self.fx.step(effects.Sample(self.k, t, self._t3, self._v3, cur.length[i]), self._ts)
         self.analog = ts + self.rng.standard_normal(m.cables) * m.noise_std
         self.counts = m.adc(self.analog)
         if image is not None:

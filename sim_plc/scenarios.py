@@ -119,15 +119,11 @@ def _truth_chain(sc: Scenario, m: int) -> ChainParams:
     return fx.chain_params(sc.nominal(), _effects(sc, m), m)
 
 
-def _path_sensor(sc: Scenario, m: int) -> fx.PathSensorEffects:
-    return fx.path_sensor(_effects(sc, m), m, sc.nominal().pulley_radius_m)
-
-
 def plant_config(sc: Scenario) -> Config:
     """Full config (default geometry, nominal friction) whose ``sim_plc`` section is ``sc``.
 
-    Random 6-DOF motion (many reversals), no extrusion (the mass is constant unless the
-    hidden ``mass_change`` is on), the scenario's noise, seed and effects.
+    Random 6-DOF motion (many reversals), no extrusion (the mass is constant unless a
+    hidden mass change is on), the scenario's noise, seed and effects.
     """
     data = read_yaml(DEFAULT_CONFIG_PATH)
     nom = sc.nominal()
@@ -156,8 +152,9 @@ def make_recording(sc: Scenario) -> Recording:
     t, v, tp = motion(sc)
     m = v.shape[1]
     ts = simulate(_truth_chain(sc, m), tp, v, t)
-    eff = _path_sensor(sc, m)
-    ts = fx.apply_sensor_effects(t, fx.apply_path_effects(t, v, ts, eff), eff)
+    series = fx.SeriesData(t, v, lambda: fx.displacement(t, v), lambda: fx.acceleration(t, v),
+                           float(t[0]))  # fmt: skip
+    ts = fx.forward(series, ts, _effects(sc, m))
     rng = np.random.default_rng(sc.seed + 1000)
     ts = ts + rng.normal(0.0, sc.noise_n, ts.shape)
     step = RANGE_N / ADC_FULL_SCALE
@@ -171,109 +168,50 @@ def make_recording(sc: Scenario) -> Recording:
     )
 
 
-def _s(name: str, effects: dict | None = None, **kw) -> Scenario:
-    return Scenario(name, effects or {}, **kw)
+SUITE_FILE = Path(__file__).with_name("scenarios.yaml")
+
+
+def _load_suite() -> tuple[list[Scenario], dict[str, dict[str, tuple[str, float]]]]:
+    """The suite and the tolerances of ``scenarios.yaml`` (data: which effects, how large)."""
+    data = read_yaml(SUITE_FILE)
+    scenarios = []
+    for row in data["scenarios"]:
+        row = dict(row)
+        effects = {
+            name: {k: (tuple(v) if isinstance(v, list) else v) for k, v in (ps or {}).items()}
+            for name, ps in (row.pop("effects", None) or {}).items()
+        }
+        scenarios.append(Scenario(row.pop("name"), effects, **row))
+    tolerance = {
+        effect: {name: (str(kind), float(value)) for name, (kind, value) in params.items()}
+        for effect, params in data["tolerance"].items()
+    }
+    return scenarios, tolerance
 
 
 def suite() -> list[Scenario]:
-    """The scenario suite: every effect concealed, pairs, confusable pairs, clean ones.
+    """The scenario suite (``sim_plc/scenarios.yaml``): every effect concealed, pairs,
+    confusable pairs, clean ones.
 
     Sizes with the 0.4 N sensor noise and 5-10 N of nominal friction (180 N load): each
     effect is at or below the noise in the raw residual, or confined to reversals.
     """
-    ecc = {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7}
-    single = [
-        _s("coulomb", {"coulomb": {"mu": 0.0165, "f0_n": 0.3}}),
-        _s("presliding", {"presliding": {"sigma_n_m": 300.0}}, nominal_model="coulomb"),
-        _s("viscous", {"viscous": {"c_ns_m": 6.0}}),
-        _s("stribeck", {"stribeck": {"k": 0.5, "v_s_m_s": 0.004}}),
-        _s("inertia", {"inertia": {"m_eff_kg": 2.0}}),
-        _s("delay", {"delay": {"d_s": 0.004}}),
-        _s("lowpass", {"lowpass": {"tau_s": 0.004}}),
-        _s("gain", {"gain": {"g": 0.002}}),
-        _s("offset", {"offset": {"c_n": 0.25}}),
-        _s("drift", {"drift": {"k_n_s": 0.012}}),
-        _s("eccentricity", {"eccentricity": ecc}),
-        _s("offset_per_cable", {"offset": {"c_n": (0.3, -0.2)}}),
-        _s("eccentricity_cable2", {"eccentricity": {**ecc, "a_n": (0.0, 0.4)}}),
-    ]
-    pairs = [
-        _s("viscous+offset", {"viscous": {"c_ns_m": 6.0}, "offset": {"c_n": 0.25}}),
-        _s("gain+eccentricity", {"gain": {"g": 0.002}, "eccentricity": ecc}),
-        _s("delay+drift", {"delay": {"d_s": 0.004}, "drift": {"k_n_s": 0.012}}),
-        _s(
-            "stribeck+inertia",
-            {"stribeck": {"k": 0.5, "v_s_m_s": 0.004}, "inertia": {"m_eff_kg": 2.0}},
-        ),
-        _s("lowpass+inertia", {"lowpass": {"tau_s": 0.004}, "inertia": {"m_eff_kg": 2.0}}),
-        _s("offset+drift", {"offset": {"c_n": 0.25}, "drift": {"k_n_s": 0.012}}),
-        _s("gain+coulomb", {"gain": {"g": 0.002}, "coulomb": {"mu": 0.0165, "f0_n": 0.0}}),
-    ]
-    special = [
-        _s("rig_viscous", {"viscous": {"c_ns_m": 6.0}}, rig=True),
-        _s("rig_gain", {"gain": {"g": 0.003}}, rig=True),
-        _s("uneven_delay", {"delay": {"d_s": 0.004}}, uneven=True),
-        _s("uneven_viscous", {"viscous": {"c_ns_m": 6.0}}, uneven=True),
-    ]
-    clean = [_s(f"clean_seed{k}", seed=k) for k in (1, 2, 3)]
-    clean += [
-        _s("clean_rig", rig=True, seed=4),
-        _s("clean_uneven", uneven=True, seed=5),
-        _s("clean_coulomb_nominal", nominal_model="coulomb", seed=6),
-        _s("clean_8_cables", cables=8, seconds=20.0, seed=7, slow=True),
-        _s("plant_clean", plant=True, cables=8, seconds=20.0, seed=8, slow=True),
-    ]
-    plant = [
-        _s(
-            "plant_mass_change",
-            {"mass_change": {"q_kg_s": 0.01}},
-            plant=True,
-            cables=8,
-            seconds=20.0,
-            slow=True,
-        ),
-        _s(
-            "plant_viscous",
-            {"viscous": {"c_ns_m": 6.0}},
-            plant=True,
-            cables=8,
-            seconds=20.0,
-            slow=True,
-        ),
-    ]
-    return single + pairs + special + plant + clean
+    return _load_suite()[0]
 
 
-# Tolerance per reported parameter: (kind, value). "rel": |fit - true| / |true|;
-# "abs": |fit - true|; "change": relative to the change from the nominal value.
-TOLERANCE: dict[str, tuple[str, float]] = {
-    "mu": ("change", 0.3),
-    "f0_n": ("abs", 0.15),
-    "sigma_n_m": ("rel", 0.35),
-    "c_ns_m": ("rel", 0.15),
-    "k": ("rel", 0.35),
-    "v_s_m_s": ("rel", 0.35),
-    "m_eff_kg": ("rel", 0.25),
-    "d_s": ("rel", 0.2),
-    "tau_s": ("rel", 0.2),
-    "g": ("rel", 0.2),
-    "c_n": ("rel", 0.2),
-    "k_n_s": ("rel", 0.2),
-    "a_n": ("rel", 0.2),
-    "r_m": ("rel", 0.05),
-    "phi_rad": ("abs", 0.3),
-    "q_kg_s": ("rel", 0.2),
-}
+def tolerance(effect: str, param: str) -> tuple[str, float] | None:
+    """How close a fitted parameter must come: ``(kind, value)``; ``rel``: |fit - true| /
+    |true|, ``abs``: |fit - true|, ``change``: relative to the change from the nominal."""
+    return _load_suite()[1].get(effect, {}).get(param)
 
 
 def expected_cables(sc: Scenario, effect: str) -> list[int]:
-    """Cables (1-based) on which ``effect`` is present (its first parameter non-zero)."""
+    """Cables (1-based) on which ``effect`` is present: some parameter differs from its
+    neutral value (the nominal model's)."""
     m = 1 if sc.rig else sc.cables
-    first = next(iter(sc.effects[effect].values()))
-    vals = np.broadcast_to(np.asarray(first, dtype=float), (m,))
-    if effect in ("coulomb", "presliding", "stribeck"):
-        return list(range(1, m + 1))
-    return [i + 1 for i in range(m) if vals[i] != 0.0]
+    present = fx.REGISTRY[effect].present(_effects(sc, m)[effect], sc.nominal())
+    present = np.broadcast_to(present, (m,))  # a platform effect: every cable
+    return [i + 1 for i in range(m) if present[i]]
 
 
 def parameter_errors(sc: Scenario, finding: dict) -> dict[str, float]:
@@ -283,14 +221,15 @@ def parameter_errors(sc: Scenario, finding: dict) -> dict[str, float]:
     out = {}
     for name, fitted in finding["parameters"].items():
         true_all = np.broadcast_to(np.asarray(sc.effects[effect].get(name, np.nan), float), (m,))
-        if name not in TOLERANCE or np.isnan(true_all).all():
+        tol_of = tolerance(effect, name)
+        if tol_of is None or np.isnan(true_all).all():
             continue
-        kind, tol = TOLERANCE[name]
+        kind, tol = tol_of
         worst = 0.0
         for cable, value in zip(finding["cables"], fitted, strict=True):
             truth = float(true_all[cable - 1])
             err = abs(value - truth)
-            if name == "phi_rad":
+            if kind == "angle":
                 err = abs((value - truth + math.pi) % (2 * math.pi) - math.pi)
             if kind == "rel":
                 err /= max(abs(truth), 1e-12)
@@ -371,7 +310,7 @@ def write_table(path: Path, results: list[dict]) -> None:
         f"Recordings: {Scenario.seconds:.0f} s at 1 kHz unless stated, sensor noise "
         f"{NOISE_N} N, S7 quantisation; every effect concealed (at or below the noise, or "
         "confined to reversals). `param err`: worst parameter error as a fraction of its "
-        "tolerance (<= 1 passes; tolerances in `sim_plc/scenarios.py` TOLERANCE). RMSE in N; "
+        "tolerance (<= 1 passes; tolerances in `sim_plc/scenarios.yaml`). RMSE in N; "
         "validation: a second recording (other seed) of the same machine, never fitted.",
         "",
         f"**Named correctly: {n_ok}/{n_eff}. False findings on {len(clean)} clean "

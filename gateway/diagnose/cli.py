@@ -69,13 +69,15 @@ def _tensions(rec: Recording, cfg: Config | None, say):
     return tp, platform.mass_sensitivity(rec, cfg, say)
 
 
-def _read(path: Path, friction: FrictionConfig) -> tuple[Recording, FrictionConfig]:
+def _read(
+    path: Path, friction: FrictionConfig, cfg: Config | None = None
+) -> tuple[Recording, FrictionConfig]:
     """A recording relative to the model's fitted effects (``friction.effects``) and the
     nominal friction (:func:`relative_to_model`). Without effects, only the first row of
     the cable lengths is read: the diagnosis reads none of them, the model writer the
     first (the eccentricity's phase); undoing effects needs all of them."""
     first_only = () if friction.effects else ("length",)
-    return relative_to_model(read_recording(path, first_row_only=first_only), friction)
+    return relative_to_model(read_recording(path, first_row_only=first_only), friction, cfg)
 
 
 def _unchanged(rec: Recording) -> Recording:
@@ -112,7 +114,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if args.write_model is not None:
         output_path(args.write_model, "--write-model")
     model_friction, cfg = load_model(args.model)
-    rec, nominal = _read(args.recording, model_friction)  # type: ignore[arg-type]
+    rec, nominal = _read(args.recording, model_friction, cfg)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
@@ -123,7 +125,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
-        wrec = None if args.validate is None else _read(args.validate, model_friction)[0]  # type: ignore[arg-type]
+        wrec = None if args.validate is None else _read(args.validate, model_friction, cfg)[0]  # type: ignore[arg-type]
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
         rec, keep_for_model = _slim(rec)
@@ -131,7 +133,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         rec = _without_pose(rec)
         validation = None
         if args.validate is not None:
-            vrec = dataclasses.replace(_read(args.validate, model_friction)[0], length=None)  # type: ignore[arg-type]
+            vrec = dataclasses.replace(_read(args.validate, model_friction, cfg)[0], length=None)  # type: ignore[arg-type]
             vtp, vdm = _tensions(vrec, cfg, say)
             validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]

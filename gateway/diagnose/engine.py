@@ -8,7 +8,6 @@ much held-out residual energy they explain together (drop-one from the final mod
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -30,6 +29,7 @@ from gateway.diagnose.prepare import (  # noqa: F401 - re-exported
 from gateway.diagnose.report import Diagnosis, build_report, validation_forwards
 from gateway.diagnose.select import CableOutcome, CableSelector, Thresholds, drop_unvalidated
 from gateway.errors import RecordingError
+from gateway.model import effects as fx
 from gateway.model.chain import coulomb_coefficients
 from gateway.recordings.reader import Recording
 
@@ -127,21 +127,19 @@ def refit_full(fw: Forward, outcome: CableOutcome, train: np.ndarray) -> CableOu
 
 
 def candidates_for(has_mass: bool) -> list[str]:
-    """Effects the recording's columns allow (mass_change needs pose and mass)."""
-    return [e for e in ALL_EFFECTS if has_mass or e != "mass_change"]
+    """Effects the recording's columns allow (a platform effect needs pose and mass)."""
+    return [e for e in ALL_EFFECTS if has_mass or not fx.REGISTRY[e].needs_mass]
 
 
 def cable_candidates(cands: list[str], d: CableData, nom: Nominal) -> list[str]:
-    """Drop what this cable's motion cannot show: eccentricity needs at least half a turn
-    of the nominal pulley of travel (else it is an offset); motion effects need motion."""
+    """Drop what this cable's motion cannot show: an effect that needs motion on a cable
+    that never moves, one whose module says the motion cannot show it (e.g. a periodic
+    effect over less than half a period of travel: that is an offset)."""
     moving = bool(np.any(d.v != 0))
-    span = float(np.ptp(d.x)) if d.x.size else 0.0
-    still = ("coulomb", "presliding", "viscous", "stribeck", "inertia")
     return [
         c
         for c in cands
-        if (c != "eccentricity" or span >= math.pi * nom.pulley_radius_m)
-        and (moving or c not in still)
+        if (moving or not fx.REGISTRY[c].needs_motion) and fx.REGISTRY[c].applicable(d, nom)
     ]
 
 

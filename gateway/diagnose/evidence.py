@@ -6,29 +6,7 @@ import numpy as np
 
 from gateway.diagnose.forward import report_stderr, to_report
 from gateway.diagnose.select import CableOutcome
-
-LOOK = {
-    "coulomb": "the residual flips sign with the direction of motion and scales with the "
-    "load (plot residual against sgn(v) T)",
-    "presliding": "the residual is concentrated just after each reversal, over a few mm of "
-    "travel (plot residual against travel since the last reversal)",
-    "viscous": "the residual grows in proportion to the cable speed, opposite to v "
-    "(plot residual against v)",
-    "stribeck": "the residual is largest at low speed on either side of a reversal and "
-    "fades with speed (plot residual against v near zero)",
-    "inertia": "the residual follows the cable acceleration without lag (plot residual against a)",
-    "delay": "the measurement lags the model by a fixed time, visible at every fast edge "
-    "(overlay the two around a reversal)",
-    "lowpass": "the measurement rounds off every fast edge of the model exponentially "
-    "(overlay the two around a reversal)",
-    "gain": "the residual is proportional to the tension whatever the direction "
-    "(plot residual against T)",
-    "offset": "the residual has a constant non-zero mean over the whole recording",
-    "drift": "the mean residual grows linearly with time (plot residual against t)",
-    "eccentricity": "the residual is periodic in cable travel (plot residual against x)",
-    "mass_change": "the residual grows with time in proportion to the cables' share of "
-    "the platform weight",
-}
+from gateway.model import effects as fx
 
 
 def _summary(effect: str, outcomes: list[CableOutcome]) -> str:
@@ -105,7 +83,7 @@ def evidence(
     cables = [str(i + 1) for i, o in enumerate(outcomes) if effect in o.theta]
     pct = 100.0 * (1.0 - holdout_after / holdout_before) if holdout_before > 0 else 0.0
     return (
-        f"On cable{'s' if len(cables) > 1 else ''} {', '.join(cables)} {LOOK[effect]}; "
+        f"On cable{'s' if len(cables) > 1 else ''} {', '.join(cables)} {fx.REGISTRY[effect].look}; "
         f"fitted {_summary(effect, outcomes)}{pooled(effect, outcomes)}, "
         f"it lowers the held-out RMSE from "
         f"{holdout_before:.3g} N to {holdout_after:.3g} N ({pct:.1f} %)"

@@ -1,8 +1,9 @@
 """Fitting candidate effects to one cable: starting values, joint least squares, scores.
 
-Each candidate has a neutral parameter vector (the nominal model), bounds, the indices of
-its (nearly) linear parameters, and a few starting points for its nonlinear ones (grids,
-or a periodogram for the eccentricity radius). At each start the linear parameters are
+Each candidate's module gives its :class:`~gateway.model.effects.Spec`: a neutral parameter
+vector (the nominal model), bounds, the indices of its (nearly) linear parameters, and a
+few starting points for its nonlinear ones (grids, or a periodogram). At each start the
+linear parameters are
 solved by one Gauss-Newton step from finite-difference signatures; the best start is
 refined together with every effect already kept by bounded nonlinear least squares
 (:func:`scipy.optimize.least_squares`, trust region reflective) on the training samples.
@@ -17,140 +18,14 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from gateway.diagnose.forward import CableData, Forward, Nominal
-
-INF = np.inf
-
-
-@dataclass(frozen=True)
-class Spec:
-    """How to fit one effect: neutral vector, bounds, linear indices, FD steps."""
-
-    neutral: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    linear: tuple[int, ...]
-    step: np.ndarray
-    starts: tuple[np.ndarray, ...]
-
-
-def _speeds(d: CableData) -> tuple[float, float]:
-    """95th percentile of |v| (m/s) and the median sample period (s)."""
-    v95 = float(np.percentile(np.abs(d.v), 95)) or 1e-3
-    dt = float(np.median(np.diff(d.t))) if d.t.size > 1 else 1e-3
-    return v95, dt
-
-
-KAPPA_BATCH = 16
-"""Wave numbers per batch of the periodogram: six (20000, 16) float64 temporaries, 15 MB."""
-
-
-def eccentricity_kappas(
-    d: CableData, resid: np.ndarray, mask: np.ndarray, r_nom: float, top: int = 3
-) -> list[float]:
-    """Wave numbers ``1/r`` (rad/m) where the residual is most periodic in cable travel.
-
-    A least-squares periodogram of ``resid`` against the displacement ``x`` on a grid of
-    wave numbers from 2 turns over the travelled span up to 1/(2 mm), on at most 20000
-    training samples; ``1/r_nom`` (the model's pulley radius) is always among them.
-    """
-    idx = np.nonzero(mask)[0]
-    if idx.size > 20000:
-        idx = idx[:: math.ceil(idx.size / 20000)]
-    x, r = d.x[idx], resid[idx] - resid[idx].mean()
-    span = float(np.ptp(d.x)) if d.x.size else 0.0
-    if span <= 0:
-        return [1.0 / r_nom]
-    k_lo, k_hi = 4 * math.pi / span, 500.0
-    if k_lo >= k_hi:
-        return [1.0 / r_nom]
-    n_grid = int(min(3000, max(200, (k_hi - k_lo) * span / (0.5 * math.pi))))
-    kappas = np.linspace(k_lo, k_hi, n_grid)
-    power = np.empty(n_grid)
-    for lo in range(0, n_grid, KAPPA_BATCH):
-        kk = kappas[lo : lo + KAPPA_BATCH]
-        ph = np.outer(x, kk)
-        s, c = np.sin(ph), np.cos(ph)
-        ss, cc, sc = (s * s).sum(0), (c * c).sum(0), (s * c).sum(0)
-        rs, rc = r @ s, r @ c
-        det = np.maximum(ss * cc - sc**2, 1e-300)
-        power[lo : lo + KAPPA_BATCH] = (cc * rs**2 - 2 * sc * rs * rc + ss * rc**2) / det
-    order = np.argsort(power)[::-1]
-    chosen: list[float] = []
-    for j in order:
-        if all(abs(kappas[j] - c) > 2 * (kappas[1] - kappas[0]) for c in chosen):
-            chosen.append(float(kappas[j]))
-        if len(chosen) >= top:
-            break
-    return [*chosen, 1.0 / r_nom]
+from gateway.model import effects as fx
+from gateway.model.effects import Spec
 
 
 def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: np.ndarray) -> Spec:
-    """The fitting recipe of ``effect`` for this cable (``resid``: current residual)."""
-    v95, dt = _speeds(d)
-    a = np.asarray
-
-    def lin(neutral: float, step: float, lo: float = -INF, hi: float = INF) -> Spec:
-        return Spec(a([neutral]), a([lo]), a([hi]), (0,), a([step]), (a([neutral]),))
-
-    if effect == "coulomb":
-        mu0 = nom.mu_mean if nom.model != "none" else 0.0
-        # no wrap anywhere (a rig without pulleys): only f0 acts, mu is held at 0
-        mu_hi = 0.5 if np.any(nom.wrap_rad > 0) else 1e-6
-        lin_idx = (0, 1) if mu_hi > 1e-3 else (1,)
-        # f0 >= 0: seals, brushes and preload only ever add friction (nominal f0 is 0)
-        return Spec(
-            a([mu0, 0.0]), a([0.0, 0.0]), a([mu_hi, INF]), lin_idx, a([1e-3, 0.1]), (a([mu0, 0.0]),)
-        )
-    if effect == "presliding":
-        s0 = math.log10(nom.sigma_n_m) if nom.model == "dahl" else 7.0
-        starts = tuple(a([s]) for s in (1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0))
-        return Spec(a([s0]), a([0.5]), a([7.5]), (), a([0.05]), starts)
-    if effect == "viscous":  # physical bound: the total viscous coefficient is >= 0
-        return lin(0.0, 1.0, lo=-nom.viscous_ns_m)
-    if effect == "stribeck":
-        lv = math.log10(v95)
-        starts = tuple(a([0.0, lv + o]) for o in (-2.5, -2.0, -1.5, -1.0))
-        # v_s at most 1/8 of the typical speed: above that it would mimic a Coulomb change
-        return Spec(
-            a([0.0, lv - 1.5]),
-            a([0.0, lv - 4.0]),
-            a([20.0, lv - 0.9]),
-            (0,),
-            a([0.05, 0.05]),
-            starts,
-        )
-    if effect == "inertia":  # a rotating mass is >= 0 (a negative one is a model-form error)
-        return lin(0.0, 1.0, lo=0.0)
-    if effect in ("delay", "lowpass"):
-        grid = (1, 2, 3, 5, 8, 13, 20, 35, 60, 100, 200)
-        return Spec(
-            a([0.0]),
-            a([0.0]),
-            a([max(1.0, 300 * dt)]),
-            (),
-            a([dt / 4]),
-            tuple(a([g * dt]) for g in grid),
-        )
-    if effect == "gain":  # the reading keeps its sign: 1 + g > 0
-        return lin(0.0, 1e-3, lo=-0.9)
-    if effect == "offset":
-        return lin(0.0, 1.0)
-    if effect == "drift":
-        return lin(0.0, 1e-3)
-    if effect == "eccentricity":
-        kap = eccentricity_kappas(d, resid, mask, nom.pulley_radius_m)
-        span = max(float(np.ptp(d.x)), 1e-6)
-        return Spec(
-            a([0.0, 0.0, kap[-1]]),
-            a([-INF, -INF, 2 * math.pi / span]),
-            a([INF, INF, 1e3]),
-            (0, 1),
-            a([0.1, 0.1, 0.01]),
-            tuple(a([0.0, 0.0, k]) for k in kap),
-        )
-    if effect == "mass_change":
-        return lin(0.0, 1e-3)
-    raise ValueError(f"unknown effect {effect!r}")
+    """The fitting recipe of ``effect`` for this cable (``resid``: current residual;
+    ``mask``: the training samples): the effect module's :meth:`~Effect.spec`."""
+    return fx.REGISTRY[effect].spec(d, nom, resid, mask)
 
 
 @dataclass

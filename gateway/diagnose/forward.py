@@ -1,24 +1,19 @@
-"""Forward models of the candidate effects (physics.md sec. 5) for one cable.
+"""Forward models of the candidate effects (docs/physics.md sec. 4) for one cable.
 
-Every candidate is a set of parameters acting on the nominal chain: the friction-side ones
-(``coulomb``, ``presliding``, ``viscous``, ``stribeck``) change the
-:class:`gateway.model.chain.ChainParams` that :func:`gateway.model.chain.simulate` runs;
-``inertia`` and ``eccentricity`` act on the path, ``gain``, ``offset``, ``drift``,
-``lowpass`` and ``delay`` on the sensor, in the order of
-:func:`gateway.model.effects.apply_path_effects` then
-:func:`gateway.model.effects.apply_sensor_effects` (gain, offset, drift, filter, delay).
-``mass_change`` changes the platform tension through the statics (``dTp_dm`` below).
+Every candidate is a set of parameters acting on the nominal model, by its stage: a
+statics effect changes the platform tension through the statics (``dTp_dm`` below), a
+chain-side one the :class:`gateway.model.chain.ChainParams` that
+:func:`gateway.model.chain.simulate` runs, the path and sensor ones act on the chain's
+output in their order (:func:`gateway.model.effects.forward`).
 
 Internal parameter vectors (what the fit varies) and reported parameters
-(docs/recording-format.md) differ only where a transform helps the fit: ``presliding`` and
-``stribeck`` fit ``log10`` of sigma and v_s; ``eccentricity`` fits
-``(A cos phi, A sin phi, 1/r)`` so that amplitude and phase are linear.
+(docs/recording-format.md) differ only where a transform helps the fit (each effect's
+``internal`` / ``report``, e.g. a stiffness fitted as its ``log10``).
 Everything is one cable: arrays (N,), parameters scalars.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -27,7 +22,7 @@ import numpy as np
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate
 
-CHAIN_EFFECTS = (*fx.CHAIN_EFFECTS, "mass_change")
+CHAIN_EFFECTS = (*fx.stage_of("statics"), *fx.stage_of("chain"))
 """Effects that change the chain simulation (the cache key of :class:`Forward`)."""
 ALL_EFFECTS = fx.EFFECT_NAMES
 
@@ -123,57 +118,23 @@ class Nominal:
 
 def to_report(effect: str, theta: np.ndarray) -> dict[str, float]:
     """Internal parameter vector -> reported parameters (names and units of recording.md)."""
-    p = [float(v) for v in theta]
-    if effect == "coulomb":
-        return {"mu": p[0], "f0_n": p[1]}
-    if effect == "presliding":
-        return {"sigma_n_m": 10 ** p[0]}
-    if effect == "viscous":
-        return {"c_ns_m": p[0]}
-    if effect == "stribeck":
-        return {"k": p[0], "v_s_m_s": 10 ** p[1]}
-    if effect == "eccentricity":
-        amp = math.hypot(p[0], p[1])
-        return {"a_n": amp, "r_m": 1.0 / p[2], "phi_rad": math.atan2(p[1], p[0])}
-    (name,) = fx.REGISTRY[effect].param_names
-    return {name: p[0]}
+    return fx.REGISTRY[effect].report(np.asarray(theta, dtype=float))
 
 
 def report_stderr(effect: str, theta: np.ndarray, se: np.ndarray) -> dict[str, float]:
     """Standard errors of the reported parameters (delta method for the transforms)."""
-    p, s = [float(v) for v in theta], [float(v) for v in se]
-    ln10 = math.log(10.0)
-    if effect == "presliding":
-        return {"sigma_n_m": 10 ** p[0] * ln10 * s[0]}
-    if effect == "stribeck":
-        return {"k": s[0], "v_s_m_s": 10 ** p[1] * ln10 * s[1]}
-    if effect == "eccentricity":
-        amp = max(math.hypot(p[0], p[1]), 1e-300)
-        return {
-            "a_n": math.hypot(p[0] * s[0], p[1] * s[1]) / amp,
-            "r_m": s[2] / p[2] ** 2,
-            "phi_rad": math.hypot(p[1] * s[0], p[0] * s[1]) / amp**2,
-        }
-    names = list(to_report(effect, theta))
-    return dict(zip(names, s, strict=True))
+    return fx.REGISTRY[effect].report_stderr(np.asarray(theta, dtype=float), np.asarray(se))
+
+
+def report_values(eff: dict[str, np.ndarray], *stages: str) -> fx.Effects:
+    """Internal vectors of the effects of ``stages`` -> report values as (1,) arrays."""
+    return {e.name: e.report_arrays(eff[e.name]) for e in fx.ordered(eff, *stages)}
 
 
 def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
-    """One cable's ChainParams with the friction-side effects in ``eff`` (internal
-    parameter vectors) applied by the registry's :func:`gateway.model.effects.chain_params`:
-    ``coulomb`` mu is absolute, the same for every pulley (negative fits clamp to 0)."""
-    values: fx.Effects = {}
-    if "coulomb" in eff:
-        mu, f0 = float(eff["coulomb"][0]), float(eff["coulomb"][1])
-        values["coulomb"] = {"mu": np.array([max(mu, 0.0)]), "f0_n": np.array([f0])}
-    if "presliding" in eff:
-        values["presliding"] = {"sigma_n_m": np.array([10 ** float(eff["presliding"][0])])}
-    if "viscous" in eff:
-        values["viscous"] = {"c_ns_m": np.array([float(eff["viscous"][0])])}
-    if "stribeck" in eff:
-        k, v_s = float(eff["stribeck"][0]), 10 ** float(eff["stribeck"][1])
-        values["stribeck"] = {"k": np.array([k]), "v_s_m_s": np.array([v_s])}
-    return fx.chain_params(nom, values, 1)
+    """One cable's ChainParams with the chain-side effects in ``eff`` (internal parameter
+    vectors) applied by the registry's :func:`gateway.model.effects.chain_params`."""
+    return fx.chain_params(nom, report_values(eff, "chain"), 1)
 
 
 CACHE_BYTES = 10 << 20
@@ -209,8 +170,9 @@ class Forward:
             return hit
         d = self.data
         tp = d.tp
-        if "mass_change" in eff and d.dtp_dm is not None:
-            tp = tp + float(eff["mass_change"][0]) * (d.t - d.t0) * d.dtp_dm
+        delta = fx.mass_delta(report_values(eff, "statics"), d.t, d.t0)
+        if delta is not None and d.dtp_dm is not None:
+            tp = tp + delta * d.dtp_dm
         out = simulate(chain_params(self.nom, eff), tp[:, None], d.v[:, None], d.t)[:, 0]
         self.simulations += 1
         if len(self._cache) >= self._cache_size:
@@ -220,21 +182,4 @@ class Forward:
 
     def predict(self, eff: dict[str, np.ndarray]) -> np.ndarray:
         """The sensor reading (N,) the nominal model plus ``eff`` predicts (N)."""
-        d = self.data
-        y = self.chain(eff)
-        if "inertia" in eff:
-            y = y - float(eff["inertia"][0]) * d.a
-        if "eccentricity" in eff:
-            a_s, a_c, kappa = (float(v) for v in eff["eccentricity"])
-            y = y + a_s * np.sin(kappa * d.x) + a_c * np.cos(kappa * d.x)
-        if "gain" in eff:
-            y = (1.0 + float(eff["gain"][0])) * y
-        if "offset" in eff:
-            y = y + float(eff["offset"][0])
-        if "drift" in eff:
-            y = y + float(eff["drift"][0]) * (d.t - d.t0)
-        if "lowpass" in eff and eff["lowpass"][0] > 0:
-            y = fx.lowpass(d.t, y, float(eff["lowpass"][0]))
-        if "delay" in eff and eff["delay"][0] != 0:
-            y = fx.delay(d.t, y, float(eff["delay"][0]))
-        return y
+        return fx.forward(self.data, self.chain(eff), report_values(eff, "path", "sensor"))

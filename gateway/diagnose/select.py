@@ -14,15 +14,16 @@ the best one only if
 * after a joint refit of every kept effect with it, its parameters differ from the
   nominal (neutral) values by at least ``z_min`` standard errors.
 
-Confusable effects (delay / lowpass / inertia, gain / coulomb, drift / offset) are then
-each swapped for their rivals and refitted jointly; the held-out comparison says whether
-the data can tell them apart.
+Confusable effects (the effects of one group, :func:`rivals`: e.g. delay / lowpass /
+inertia) are then each swapped for their rivals and refitted jointly; the held-out
+comparison says whether the data can tell them apart.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,6 +38,7 @@ from gateway.diagnose.fit import (
     spec_for,
 )
 from gateway.diagnose.forward import Forward
+from gateway.model import effects as fx
 
 ROUNDS = 3
 PAIR_POOL = 4
@@ -48,15 +50,24 @@ SUBSET_EXTRA = 3
 """Effects besides the kept ones on the best-subset search's short list."""
 FAR_ABOVE_NOISE = 3.0
 """Held-out RMSE over white noise above which the selection looks further (subsets)."""
-RIVALS: dict[str, tuple[str, ...]] = {
-    "delay": ("lowpass", "inertia"),
-    "lowpass": ("delay", "inertia"),
-    "inertia": ("delay", "lowpass"),
-    "gain": ("coulomb",),
-    "coulomb": ("gain",),
-    "drift": ("offset",),
-    "offset": ("drift",),
-}
+
+
+def overlaps(effect: str, kept: Iterable[str]) -> bool:
+    """``effect`` nests a kept effect or is nested by one (``Effect.nests``): together they
+    would hold the same parameters twice."""
+    mine = fx.REGISTRY[effect]
+    return any(
+        fx.REGISTRY[k] in mine.nests or mine in fx.REGISTRY[k].nests for k in kept if k != effect
+    )
+
+
+def rivals(effect: str) -> tuple[str, ...]:
+    """The effects of ``effect``'s group (:attr:`~gateway.model.effects.Effect.group`):
+    they explain much the same residual."""
+    group = fx.REGISTRY[effect].group
+    if not group:
+        return ()
+    return tuple(n for n, e in fx.REGISTRY.items() if n != effect and e.group == group)
 
 
 @dataclass(frozen=True)
@@ -120,15 +131,9 @@ def holdout_z(sse_a: np.ndarray, sse_b: np.ndarray, cross: np.ndarray) -> float:
 
 
 def significance(spec: Spec, theta: np.ndarray, se: np.ndarray, effect: str) -> float:
-    """Largest |parameter - neutral| / stderr of an effect (amplitude for eccentricity)."""
-    if effect == "eccentricity":
-        amp = math.hypot(theta[0], theta[1])
-        se_amp = math.hypot(theta[0] * se[0], theta[1] * se[1]) / max(amp, 1e-300)
-        return amp / se_amp if se_amp > 0 else 0.0
-    dev = np.abs(theta - spec.neutral)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(se > 0, dev / se, 0.0)
-    return float(np.nanmax(z)) if z.size else 0.0
+    """How many standard errors an effect's parameters lie from the nominal model (the
+    effect module's :meth:`~gateway.model.effects.Effect.significance`)."""
+    return fx.REGISTRY[effect].significance(theta, se, spec.neutral)
 
 
 class CableSelector:
@@ -208,6 +213,7 @@ class CableSelector:
                 break  # nothing new: the swaps and the check of the last round stand
             model = self._backward(self._swap(model))
         model, order = self._look_further(model, order)
+        model, order = self._prefer_nested(model, order)
         order = [e for e in order if e in model.kept] + [e for e in model.kept if e not in order]
         out = CableOutcome(order, model.kept, model.stderr, model.specs)
         out.rivals = self._rivals(model.kept, model.specs, model.pred)
@@ -248,7 +254,8 @@ class CableSelector:
         order = list(order)
         while len(model.kept) < self.th.max_effects:
             ranked = []
-            for effect in (c for c in self.candidates if c not in model.kept):
+            for effect in (c for c in self.candidates if c not in model.kept
+                           and not overlaps(c, model.kept)):  # fmt: skip
                 spec, fit = self._screen(model.kept, effect, model.pred, model.specs)
                 ranked.append((float(self._test_sse(fit.pred).sum()), effect, spec, fit))
             ranked.sort(key=lambda row: row[0])
@@ -312,6 +319,24 @@ class CableSelector:
                 break
         return model, order
 
+    def _prefer_nested(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
+        """A kept effect that reduces to a simpler one (``Effect.nests``) stays only if it
+        passes the strict test against the model with the simpler one in its place: its
+        extra parameters must lower the held-out error beyond chance."""
+        for effect in list(model.kept):
+            for simpler in fx.REGISTRY[effect].nests:
+                if effect not in model.kept or simpler.name in model.kept:
+                    continue
+                rest = {k: v for k, v in model.kept.items() if k != effect}
+                rest_specs = {k: model.specs[k] for k in rest}
+                spec, fit = self._screen(rest, simpler.name, self.fw.predict(rest), rest_specs)
+                trial = self._fit({**rest, simpler.name: fit.theta[simpler.name]},
+                                  {**rest_specs, simpler.name: spec})  # fmt: skip
+                if not self._accept(trial.pred, model.pred, self.th.z_holdout):
+                    model = trial
+                    order = [simpler.name if e == effect else e for e in order]
+        return model, order
+
     def _subsets(self, model: Model) -> Model:
         """Best subset, by held-out SSE, of a short list: the kept effects and the
         ``SUBSET_EXTRA`` best-screened others, every subset of up to ``len(kept) + 2``
@@ -333,7 +358,7 @@ class CableSelector:
         top = min(len(short), len(model.kept) + 2, self.th.max_effects)
         for size in range(1, top + 1):
             for combo in itertools.combinations(short, size):
-                if set(combo) == set(model.kept):
+                if set(combo) == set(model.kept) or any(overlaps(e, combo) for e in combo):
                     continue
                 trial = self._fit({e: starts[e] for e in combo}, {e: specs[e] for e in combo}, 30)
                 sse = float(self._test_sse(trial.pred).sum())
@@ -377,7 +402,8 @@ class CableSelector:
             rest = {k: v for k, v in model.kept.items() if k != effect}
             rest_specs = {k: model.specs[k] for k in rest}
             screened = []
-            for cand in (c for c in self.candidates if c not in model.kept):
+            for cand in (c for c in self.candidates if c not in model.kept
+                         and not overlaps(c, rest)):  # fmt: skip
                 spec, fit = self._screen(rest, cand, self.fw.predict(rest), rest_specs)
                 screened.append((float(self._test_sse(fit.pred).sum()), cand, spec, fit))
             screened.sort(key=lambda row: row[0])
@@ -395,7 +421,7 @@ class CableSelector:
         result: dict[str, list[Rival]] = {}
         for effect in kept:
             rows = []
-            for rival in RIVALS.get(effect, ()):
+            for rival in rivals(effect):
                 if rival in kept or rival not in self.candidates:
                     continue
                 rest = {k: v for k, v in kept.items() if k != effect}

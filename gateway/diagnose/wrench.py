@@ -20,12 +20,12 @@ residual (:class:`WrenchModel`), the sensitivity Jacobian of the residual with r
 to every candidate's per-cable parameters and the identifiability read from it
 (:func:`identifiability`). Selection and report: :mod:`.wrench_select`.
 
-Candidates (ids of physics.md sec. 5) and their per-cable parameters, applied in the
-inverse order of the plant (undo the sensor, then the path, then compensate the chain):
-``offset`` c, ``drift`` k, ``gain`` g (``T = (T_s - c - k t) / (1 + g)``), ``inertia``
-m_eff (``+ m_eff a``), then the chain with ``coulomb`` (mu, f0) and ``viscous`` c;
-``mass_change`` q is one platform parameter (``m(t) = m_rec + q t``). Presliding,
-Stribeck, delay, low-pass and eccentricity are not candidates in this mode yet.
+Candidates: the effects whose module says the wrench balance identifies them
+(``Effect.wrench``), each with its parameters per cable (a platform effect: one value),
+applied in the inverse order of the plant: the path and sensor effects undone in reverse
+acting order (:func:`gateway.model.effects.inverse`), then the chain with the chain-side
+ones compensated; a statics effect changes the mass in the balance
+(:func:`gateway.model.effects.mass_delta`). The others are not candidates in this mode.
 """
 
 from __future__ import annotations
@@ -42,21 +42,12 @@ from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.platform import require_geometry
 from gateway.errors import RecordingError
 from gateway.model import chain, kinematics, statics
+from gateway.model import effects as fx
 from gateway.recordings.reader import Recording
 
-PER_CABLE = ("coulomb", "viscous", "inertia", "gain", "offset", "drift")
-WRENCH_EFFECTS = (*PER_CABLE, "mass_change")
-SUBPARAMS: dict[str, tuple[str, ...]] = {
-    "coulomb": ("mu", "f0_n"),
-    "viscous": ("c_ns_m",),
-    "inertia": ("m_eff_kg",),
-    "gain": ("g",),
-    "offset": ("c_n",),
-    "drift": ("k_n_s",),
-    "mass_change": ("q_kg_s",),
-}
-STEP = {"mu": 1e-3, "f0_n": 0.1, "c_ns_m": 1.0, "m_eff_kg": 0.1, "g": 1e-3, "c_n": 0.1,
-        "k_n_s": 1e-3, "q_kg_s": 1e-3}  # fmt: skip
+WRENCH_EFFECTS = tuple(n for n, e in fx.REGISTRY.items() if e.wrench)
+PER_CABLE = tuple(n for n in WRENCH_EFFECTS if fx.REGISTRY[n].per_cable)
+SUBPARAMS: dict[str, tuple[str, ...]] = {n: fx.REGISTRY[n].param_names for n in WRENCH_EFFECTS}
 FIT_BUDGET = 25_000
 """Samples the selection and the fit use at most (memory: ~48 columns x 6 rows each)."""
 INSTRUMENT_S = 0.05
@@ -179,14 +170,24 @@ def _window(t: np.ndarray, seconds: float = INSTRUMENT_S) -> int:
 
 
 def neutral(effect: str, nom: Nominal, m: int) -> np.ndarray:
-    """Parameters (k, m) of ``effect`` at the nominal model (k sub-parameters; (1, 1) for
-    ``mass_change``)."""
-    if effect == "mass_change":
-        return np.zeros((1, 1))
-    out = np.zeros((len(SUBPARAMS[effect]), m))
-    if effect == "coulomb":
-        out[0] = nom.mu_mean if nom.model != "none" else 0.0
-    return out
+    """Parameters (k, m) of ``effect`` at the nominal model (k parameters; (k, 1) for a
+    platform effect)."""
+    e = fx.REGISTRY[effect]
+    values = e.neutral(nom)
+    return np.array([[values[p]] * (m if e.per_cable else 1) for p in e.param_names])
+
+
+def step(effect: str, j: int) -> float:
+    """The finite-difference step of ``effect``'s parameter ``j`` (its typical size)."""
+    return fx.REGISTRY[effect].params[j].step
+
+
+def values_of(theta: dict[str, np.ndarray], *stages: str) -> fx.Effects:
+    """``theta`` (effect -> (k, m)) as report values by parameter name, of ``stages``."""
+    return {
+        e.name: dict(zip(e.param_names, np.asarray(theta[e.name], dtype=float), strict=True))
+        for e in fx.ordered(theta, *stages)
+    }
 
 
 class WrenchModel:
@@ -198,28 +199,12 @@ class WrenchModel:
     def __init__(self, data: WrenchData, nom: Nominal) -> None:
         self.data, self.nom = data, nom
         self.t0 = float(data.t[0])
+        self.series = fx.SeriesData(
+            data.t, data.v, lambda: fx.displacement(data.t, data.v), data.a, self.t0
+        )
 
     def chain_params(self, theta: dict[str, np.ndarray]) -> chain.ChainParams:
-        nom, m = self.nom, self.data.cables
-        model = nom.model
-        mu = np.broadcast_to(nom.mu, (m, nom.mu.size)).copy()
-        f0 = np.zeros(m)
-        if "coulomb" in theta:
-            mu_new, f0 = theta["coulomb"][0], theta["coulomb"][1]
-            scale = nom.mu / nom.mu_mean if nom.mu_mean > 0 else np.ones_like(nom.mu)
-            mu = np.maximum(np.outer(mu_new, scale), 0.0)
-            model = "coulomb" if model == "none" else model
-        visc = nom.viscous_ns_m + (theta["viscous"][0] if "viscous" in theta else np.zeros(m))
-        return chain.ChainParams.build(
-            model=model,  # type: ignore[arg-type]
-            cables=m,
-            wrap_rad=nom.wrap_rad,
-            mu=mu,
-            sigma_n_m=nom.sigma_n_m,
-            beta=nom.beta,
-            f0_n=f0,
-            viscous_ns_m=visc,
-        )
+        return fx.chain_params(self.nom, values_of(theta, "chain"), self.data.cables)
 
     def platform_tension(
         self, theta: dict[str, np.ndarray], ts: np.ndarray | None = None
@@ -228,15 +213,7 @@ class WrenchModel:
         effects undone, compensated through the chain."""
         d = self.data
         y = d.ts if ts is None else ts
-        tt = (d.t - self.t0)[:, None]
-        if "offset" in theta:
-            y = y - theta["offset"][0]
-        if "drift" in theta:
-            y = y - theta["drift"][0] * tt
-        if "gain" in theta:
-            y = y / (1.0 + theta["gain"][0])
-        if "inertia" in theta:
-            y = y + theta["inertia"][0] * d.a
+        y = fx.inverse(self.series, y, values_of(theta, "path", "sensor"))
         return chain.compensate(self.chain_params(theta), y, d.v, d.t)
 
     def residual(self, theta: dict[str, np.ndarray], tp: np.ndarray | None = None) -> np.ndarray:
@@ -244,15 +221,16 @@ class WrenchModel:
         d = self.data
         tp = self.platform_tension(theta) if tp is None else tp
         r = np.einsum("nim,nm->ni", d.a_mat, tp) + d.w0
-        if "mass_change" in theta:
-            r = r + (float(theta["mass_change"][0, 0]) * (d.t - self.t0))[:, None] * d.dw_dm
+        delta = fx.mass_delta(values_of(theta, "statics"), d.t, self.t0)
+        if delta is not None:
+            r = r + delta[:, None] * d.dw_dm
         return r
 
     def jacobian(
         self, theta: dict[str, np.ndarray], effect: str, rows: np.ndarray | None = None
     ) -> list[np.ndarray]:
         """Per sub-parameter of ``effect``, d residual / d parameter at the samples ``rows``
-        (default all): (n, 6, m) (one column per cable; (n, 6, 1) for mass_change), by
+        (default all): (n, 6, m) (one column per cable; (n, 6, 1) for a platform effect), by
         forward differences (the chain itself runs over every sample).
 
         The chains of the cables are independent, so one perturbed run of all cables at
@@ -265,17 +243,25 @@ class WrenchModel:
         """
         d = self.data
         rows = np.arange(d.t.size) if rows is None else rows
-        if effect == "mass_change":
-            return [((d.t[rows] - self.t0)[:, None] * d.dw_dm[rows])[:, :, None]]
         base_theta = {**theta}
         base_theta.setdefault(effect, neutral(effect, self.nom, d.cables))
-        tp0 = self.platform_tension(base_theta, d.ts_smooth)
         out = []
-        for j, name in enumerate(SUBPARAMS[effect]):
+        if fx.REGISTRY[effect].stage == "statics":  # through the mass: linear in dw_dm
+            base = fx.mass_delta(values_of(base_theta, "statics"), d.t[rows], self.t0)
+            for j in range(len(SUBPARAMS[effect])):
+                pert = base_theta[effect].copy()
+                pert[j] += step(effect, j)
+                moved = fx.mass_delta(values_of({**base_theta, effect: pert}, "statics"),
+                                      d.t[rows], self.t0)  # fmt: skip
+                dm = (moved - base) / step(effect, j)  # type: ignore[operator]
+                out.append((dm[:, None] * d.dw_dm[rows])[:, :, None])
+            return out
+        tp0 = self.platform_tension(base_theta, d.ts_smooth)
+        for j in range(len(SUBPARAMS[effect])):
             pert = base_theta[effect].copy()
-            pert[j] += STEP[name]
+            pert[j] += step(effect, j)
             tp1 = self.platform_tension({**base_theta, effect: pert}, d.ts_smooth)
-            dtp = (tp1[rows] - tp0[rows]) / STEP[name]
+            dtp = (tp1[rows] - tp0[rows]) / step(effect, j)
             out.append(d.a_mat[rows] * dtp[:, None, :])
         return out
 

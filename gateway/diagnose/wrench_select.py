@@ -31,7 +31,7 @@ from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
-from gateway.diagnose.select import Thresholds, holdout_z
+from gateway.diagnose.select import Thresholds, holdout_z, overlaps
 from gateway.diagnose.wrench import (
     PER_CABLE,
     SUBPARAMS,
@@ -45,11 +45,12 @@ from gateway.diagnose.wrench import (
     prepare,
     wrench_data,
 )
+from gateway.model import effects as fx
 from gateway.recordings.reader import Recording
 
 ROUNDS = 3
 GN_ITERATIONS = 3
-NOT_CANDIDATES = ("presliding", "stribeck", "delay", "lowpass", "eccentricity")
+NOT_CANDIDATES = tuple(n for n in fx.EFFECT_NAMES if n not in WRENCH_EFFECTS)
 
 Col = tuple[int, int]  # (sub-parameter index, cable)
 SIGNATURE_POINTS = 20000
@@ -154,6 +155,20 @@ class WrenchSelector:
             kept = self._backward(kept)
             if kept == before:
                 break
+        return self._prefer_nested(kept)
+
+    def _prefer_nested(self, kept: list[str]) -> list[str]:
+        """A kept effect that reduces to a simpler one (``Effect.nests``) stays only if it
+        passes the strict test against the model with the simpler one in its place."""
+        for effect in list(kept):
+            for simpler in fx.REGISTRY[effect].nests:
+                if simpler.name in kept or simpler.name not in self.candidates:
+                    continue
+                trial = [simpler.name if e == effect else e for e in kept]
+                _, _, full = self.fit(kept)
+                _, _, reduced = self.fit(trial)
+                if not self.accept(reduced, full, self.th.z_holdout):
+                    kept = trial
         return kept
 
     def _forward(self, kept: list[str]) -> list[str]:
@@ -161,7 +176,7 @@ class WrenchSelector:
         while len(kept) < self.th.max_effects:
             _, _, base = self.fit(kept)
             best = None
-            for e in (c for c in self.candidates if c not in kept):
+            for e in (c for c in self.candidates if c not in kept and not overlaps(c, kept)):
                 _, _, r = self.fit([*kept, e])
                 sse = float(self._block_sse(r).sum())
                 if self.accept(base, r, self.th.z_screen) and (best is None or sse < best[1]):
@@ -230,15 +245,19 @@ def force_rms(resid: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float(math.sqrt(np.mean(f**2))) if f.size else 0.0
 
 
+def _per_cable(effect: str) -> bool:
+    return fx.REGISTRY[effect].per_cable
+
+
 def _report_values(effect: str, theta: np.ndarray, cables: list[int]) -> dict[str, list[float]]:
     out: dict[str, list[float]] = {}
     for j, name in enumerate(SUBPARAMS[effect]):
-        out[name] = [float(theta[j, 0 if effect == "mass_change" else i]) for i in cables]
+        out[name] = [float(theta[j, i if _per_cable(effect) else 0]) for i in cables]
     return out
 
 
 def _fitted_cables(sel: WrenchSelector, effect: str) -> list[int]:
-    if effect == "mass_change":
+    if not _per_cable(effect):
         return list(range(sel.model.data.cables))
     return sorted({i for _, i in sel.cols[effect]})
 
@@ -247,8 +266,7 @@ def _stderr_values(sel: WrenchSelector, effect: str, se: np.ndarray, cables: lis
     table = {(j, i): float(s) for (j, i), s in zip(sel.cols[effect], se, strict=True)}
     out: dict[str, list[float]] = {}
     for j, name in enumerate(SUBPARAMS[effect]):
-        key = (lambda i, j=j: (j, 0)) if effect == "mass_change" else (lambda i, j=j: (j, i))
-        out[name] = [table.get(key(i), -1.0) for i in cables]
+        out[name] = [table.get((j, i if _per_cable(effect) else 0), -1.0) for i in cables]
     return out
 
 
@@ -257,7 +275,7 @@ def _identifiability(sel: WrenchSelector) -> dict:
     every sub-parameter), the others, the inflations and the block's condition number."""
     out: dict[str, dict] = {}
     for e, blocks in sel.ident.items():
-        if e == "mass_change":
+        if not _per_cable(e):
             out[e] = {"identifiable": bool(blocks[0]["live"][0]), "platform": True}
             continue
         ok = sorted(set.intersection(*(set(identifiable_cables(b)) for b in blocks)))
@@ -295,7 +313,7 @@ def _evidence(effect: str, cables: list[int], values: dict, before: float, after
     )
     where = (
         "the platform (one value for the whole recording)"
-        if effect == "mass_change"
+        if not _per_cable(effect)
         else f"cable{'s' if len(cables) > 1 else ''} {', '.join(str(c + 1) for c in cables)}"
     )
     return (

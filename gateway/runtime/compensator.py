@@ -26,19 +26,20 @@ a made-up number as if it were good, and a PLC that ignores the status word sees
 plausible value. The Dahl model keeps stepping on invalid channels with the last good value
 (or 0 N if none) so its state stays finite and follows the setpoint motion.
 
-Then the fitted effects of the config's ``friction.effects`` that a causal per-cycle model
-can undo are removed (:func:`gateway.model.effects.online_inputs_into`: offset and gain,
-inertia from the backward difference of the setpoint velocity over the time since the last
-step, eccentricity from the setpoint length), and the chain (``ChainStepper``, sensor ->
-platform; nominal friction plus the fitted Coulomb ``mu``/``f0``, pre-sliding, viscous and
-Stribeck via :func:`gateway.model.effects.chain_params`) with the setpoint velocities gives
-the corrected platform tensions ``T_p``. Delay, low-pass and drift are not compensated
-(docs/physics.md says why). :attr:`Compensator.friction_n` is ``T_p`` minus the sensor value
-fed to the model (the whole correction); the platform wrench is ``w = -A(pose) T_p``
+Then the fitted path and sensor effects of the config's ``friction.effects`` that a causal
+per-cycle model can undo are removed (:class:`gateway.model.effects.OnlineInverse`: each
+effect's compiled per-cycle inverse, e.g. an acceleration from the backward difference of
+the setpoint velocity over the time since the last new sample, a pulley phase from the
+setpoint length), and the chain (``ChainStepper``, sensor -> platform; the nominal friction
+with the fitted chain-side effects, :func:`gateway.model.effects.chain_params`) with the
+setpoint velocities gives the corrected platform tensions ``T_p``. An effect that cannot be
+undone causally is not compensated (each effect's ``online`` says why; docs/physics.md).
+:attr:`Compensator.friction_n` is ``T_p`` minus the sensor value fed to the model (the
+whole correction); the platform wrench is ``w = -A(pose) T_p``
 (forward statics, docs/physics.md sec. 1) at the pose setpoint.
 
-The kernels take structured state (:class:`Limits`, :class:`ChannelState`,
-``OnlineEffects``, ``KernelParams``) and are called through their compiled entry points
+The kernels take structured state (:class:`Limits`, :class:`ChannelState`, the online
+effects' parameter rows, ``KernelParams``) and are called through their compiled entry points
 (:mod:`gateway.model.fastcall`) on the compensator's own buffers.
 """
 
@@ -178,7 +179,6 @@ class Compensator:
         self.cables = m
         values = fr.effect_values(m)
         self.params = fx.chain_params(fr, values, m)
-        self.online = fx.online_effects(values, m, fr.pulley_radius_m)
         self.stepper = ChainStepper(
             self.params, lp.period_s, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter
         )
@@ -217,10 +217,9 @@ class Compensator:
         self._validate = entry_point(
             _validate, self.limits, self.channels, self.raw_n, self._velocity_in, 0.0, False
         )
-        self._online = entry_point(
-            fx.online_inputs_into, self.online, self.used_n, self.velocity_m_s,
-            self._velocity_prev, 0.0, self._length_in, self.model_in_n,
-        )  # fmt: skip
+        self._online = fx.OnlineInverse(
+            values, m, self.model_in_n, self.velocity_m_s, self._velocity_prev, self._length_in
+        )
         self._finish = entry_point(
             _finish, self.corrected_n, self.used_n, self.status, self.friction_n
         )
@@ -277,7 +276,7 @@ class Compensator:
         out.wrench[:] = self.wrench
 
     def _online_inputs(self, now: float, heartbeat: int) -> None:
-        """Gain, offset, inertia, eccentricity removed. The inertia's acceleration is the
+        """The online path and sensor effects removed. An acceleration (inertia) is the
         backward difference between *new* PLC samples (a new heartbeat or a new setpoint
         velocity); a cycle that reads the same sample again holds it (a difference of 0
         over one cycle, then of two samples over the next, would swing the inertia term
@@ -299,16 +298,16 @@ class Compensator:
                 self._plc_period_s = est
                 dt = steps * est
             self._online(
-                self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
-                self._length_in, self.model_in_n,
+                self.used_n, self.model_in_n, self.velocity_m_s, self._velocity_prev, dt,
+                self._length_in,
             )  # fmt: skip
             self._velocity_hold[:] = self._velocity_prev
             self._velocity_prev[:] = self.velocity_m_s
             self._sample_at, self._sample_dt = now, dt
         else:  # the same sample again: the same acceleration
             self._online(
-                self.online, self.used_n, self._velocity_prev, self._velocity_hold,
-                self._sample_dt, self._length_in, self.model_in_n,
+                self.used_n, self.model_in_n, self._velocity_prev, self._velocity_hold,
+                self._sample_dt, self._length_in,
             )  # fmt: skip
 
     def mark_unread(self, now_s: float) -> None:

@@ -32,18 +32,21 @@ def test_forward_matches_effects_module():
     nom = nominal_from(fr)
     params = ChainParams.from_friction(fr, 1)
     ts = simulate(params, tp[:, None], v[:, None], t)
-    eff = fx.PathSensorEffects(
-        inertia_kg=1.5,
-        eccentricity_a_n=0.3,
-        eccentricity_r_m=0.04,
-        eccentricity_phi_rad=0.5,
-        gain=0.01,
-        offset_n=0.2,
-        drift_n_s=0.05,
-        lowpass_tau_s=0.003,
-        delay_s=0.002,
+    eff = fx.effect_values(
+        {
+            "inertia": {"m_eff_kg": 1.5},
+            "eccentricity": {"a_n": 0.3, "r_m": 0.04, "phi_rad": 0.5},
+            "gain": {"g": 0.01},
+            "offset": {"c_n": 0.2},
+            "drift": {"k_n_s": 0.05},
+            "lowpass": {"tau_s": 0.003},
+            "delay": {"d_s": 0.002},
+        },
+        1,
     )
-    truth = fx.apply_sensor_effects(t, fx.apply_path_effects(t, v[:, None], ts, eff), eff)[:, 0]
+    vv = v[:, None]
+    s = fx.SeriesData(t, vv, fx.displacement(t, vv), fx.acceleration(t, vv), float(t[0]))
+    truth = fx.forward(s, ts, eff)[:, 0]
     fw = Forward(CableData(t, v, tp, truth, float(t[0])), nom)
     ecc = np.array([0.3 * math.cos(0.5), 0.3 * math.sin(0.5), 1 / 0.04])
     theta = {

@@ -7,12 +7,12 @@ import math
 
 import numpy as np
 import pytest
-from tests.canopen_helpers import CanopenRig, canopen_config, fill_image, rig  # noqa: F401
 
 import drivers.canopen as co
 from drivers.base import ChannelStatus, DriverState, make_driver
 from drivers.s7 import S7Analog
 from gateway.errors import DriverInitError, DriverTimeoutError
+from tests.canopen_helpers import CanopenRig, canopen_config, fill_image, rig  # noqa: F401
 
 EDS_FILES = {
     "config/analog_in_401.eds": 0x10,

@@ -1,19 +1,19 @@
-"""Path and sensor effects against closed forms."""
+"""The effects of the catalogue: forms against closed forms, the registry, the gateway's
+per-cycle inverse against the batch forms, the plant's per-sample forms."""
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.testing import assert_allclose
 
-from gateway.model.effects import (
-    PathSensorEffects,
-    acceleration,
-    apply_path_effects,
-    apply_sensor_effects,
-    delay,
-    displacement,
-    lowpass,
-)
+from gateway.model.effects import SeriesData, acceleration, displacement, effect_values
+from gateway.model.effects import forward as apply_forward
+from gateway.model.effects.forms import delay, lowpass
+
+
+def series(t: np.ndarray, v: np.ndarray, x: np.ndarray | None = None) -> SeriesData:
+    """The plant's view: ``x`` the cable length (default the travel), ``a`` look-ahead."""
+    return SeriesData(t, v, displacement(t, v) if x is None else x, acceleration(t, v), t[0])
 
 
 def test_displacement_and_acceleration() -> None:
@@ -43,18 +43,19 @@ def test_lowpass_step_and_ramp_responses_are_exact() -> None:
 def test_sensor_and_path_effect_signs() -> None:
     t = np.arange(1000) * 1e-3
     ts = np.full((1000, 2), 100.0)
-    eff = PathSensorEffects(gain=np.array([0.01, 0.0]), offset_n=2.0, drift_n_s=0.5)
-    out = apply_sensor_effects(t, ts, eff)
+    eff = effect_values(
+        {"gain": {"g": [0.01, 0.0]}, "offset": {"c_n": 2.0}, "drift": {"k_n_s": 0.5}}, 2
+    )
+    out = apply_forward(series(t, np.zeros((1000, 2))), ts, eff)
     assert_allclose(out[:, 0], 101.0 + 2.0 + 0.5 * t)
     assert_allclose(out[:, 1], 100.0 + 2.0 + 0.5 * t)
     v = np.outer(t, [1.0, 1.0])  # a = 1 m/s^2
-    path = apply_path_effects(t, v, ts, PathSensorEffects(inertia_kg=0.3))
+    path = apply_forward(series(t, v), ts, effect_values({"inertia": {"m_eff_kg": 0.3}}, 2))
     assert_allclose(path, 100.0 - 0.3, atol=1e-9)  # the sensor reads T_p - m_eff a
-    ecc = apply_path_effects(
-        t,
-        np.full((1000, 2), 0.1),
+    ecc = apply_forward(
+        series(t, np.full((1000, 2), 0.1)),
         ts,
-        PathSensorEffects(eccentricity_a_n=1.5, eccentricity_r_m=0.05),
+        effect_values({"eccentricity": {"a_n": 1.5, "r_m": 0.05}}, 2),
     )
     assert_allclose(ecc[:, 0], 100.0 + 1.5 * np.sin(0.1 * t / 0.05), atol=1e-9)
 
@@ -72,10 +73,12 @@ from gateway.core.config import FrictionConfig, PulleyConfig, load_config, load_
 from gateway.diagnose import forward  # noqa: E402
 from gateway.model import effects as fx  # noqa: E402
 from gateway.model.chain import ChainParams, coulomb_coefficients, simulate  # noqa: E402
+from gateway.model.effects.eccentricity import phase_at_length  # noqa: E402
 from gateway.runtime.compensator import Compensator  # noqa: E402
 
 REPORT_NAMES = {
     "coulomb": {"mu": "1", "f0_n": "N"},
+    "coulomb_directional": {"mu_out": "1", "mu_in": "1", "f0_n": "N"},
     "presliding": {"sigma_n_m": "N/m"},
     "viscous": {"c_ns_m": "N s/m"},
     "stribeck": {"k": "1", "v_s_m_s": "m/s"},
@@ -95,8 +98,8 @@ def test_registry_holds_the_catalogue_with_report_names_and_units() -> None:
     for name, params in REPORT_NAMES.items():
         assert {p.name: p.unit for p in fx.REGISTRY[name].params} == params
     assert set(fx.ONLINE_EFFECTS) == {
-        "coulomb", "presliding", "viscous", "stribeck", "inertia", "gain", "offset",
-        "eccentricity",
+        "coulomb", "coulomb_directional", "presliding", "viscous", "stribeck", "inertia",
+        "gain", "offset", "eccentricity",
     }  # fmt: skip
 
 
@@ -227,7 +230,7 @@ def test_dahl_level_falls_over_travel_not_at_once() -> None:
 def test_eccentricity_phase_from_travel_to_length() -> None:
     r, l0, phi = 0.03, 2.345, 0.7
     length = l0 + np.linspace(0, 0.5, 50)
-    phi_abs = fx.eccentricity_phase_at_length(phi, r, l0)
+    phi_abs = phase_at_length(phi, r, l0)
     assert_allclose(np.sin(length / r + phi_abs), np.sin((length - l0) / r + phi), atol=1e-12)
 
 
@@ -236,6 +239,8 @@ def test_eccentricity_phase_from_travel_to_length() -> None:
 ONLINE_CASES = {
     "coulomb": {"coulomb": {"mu": [0.02, 0.01, 0.03, 0.02, 0.015, 0.02, 0.025, 0.01],
                             "f0_n": 0.8}},
+    "coulomb_directional": {"coulomb_directional": {"mu_out": 0.025, "mu_in": 0.01,
+                                                    "f0_n": 0.3}},
     "presliding": {"presliding": {"sigma_n_m": 300.0}},
     "viscous": {"viscous": {"c_ns_m": [6.0, 2.0, 0.0, 1.0, 3.0, 4.0, 5.0, 0.5]}},
     "stribeck": {"stribeck": {"k": 0.5, "v_s_m_s": 0.004}},
@@ -281,35 +286,43 @@ def test_compensator_per_cycle_equals_the_batch_form(case: str) -> None:
         got[k] = out.tension_corrected_n
     values = cfg.friction.effect_values(m)
     params = fx.chain_params(cfg.friction, values, m)
-    online = fx.online_effects(values, m, cfg.friction.pulley_radius_m)
-    expected = fx.compensate_online(params, online, t, reading, v, length)
+    expected = fx.compensate_online(params, values, t, reading, v, length)
     assert_allclose(got, expected, rtol=0, atol=1e-9)
     nominal = fx.compensate_online(
-        ChainParams.from_friction(base.friction, m), fx.online_effects({}, m), t, reading, v,
-        length,
-    )  # fmt: skip
+        ChainParams.from_friction(base.friction, m), {}, t, reading, v, length
+    )
     assert np.max(np.abs(expected - nominal)) > 0.05  # the effect changes the result
 
 
-def test_online_inputs_per_cycle_equals_batch() -> None:
+def test_online_inverse_per_cycle_equals_batch() -> None:
     m, n = 3, 400
     t, v, length, reading = _online_signals(n, m)
-    online = fx.OnlineEffects(
-        np.array([0.01, -0.02, 0.0]), np.array([0.5, 0.0, -1.0]), np.array([2.0, 0.0, 1.0]),
-        np.array([0.3, 0.2, 0.0]), np.array([0.03, 0.05, 0.05]), np.array([0.1, 0.2, 0.0]),
+    values = fx.effect_values(
+        {
+            "gain": {"g": [0.01, -0.02, 0.0]}, "offset": {"c_n": [0.5, 0.0, -1.0]},
+            "inertia": {"m_eff_kg": [2.0, 0.0, 1.0]},
+            "eccentricity": {"a_n": [0.3, 0.2, 0.0], "r_m": [0.03, 0.05, 0.05],
+                             "phi_rad": [0.1, 0.2, 0.0]},
+            "drift": {"k_n_s": 0.3},  # not online: the per-cycle form leaves it
+        },
+        m,
     )  # fmt: skip
-    batch = fx.remove_path_effects(
-        fx.remove_sensor_effects(reading, online), fx.causal_acceleration(t, v), length, online
-    )
-    out, prev = np.empty(m), np.zeros(m)
+    s = SeriesData(t, v, length, fx.causal_acceleration(t, v), t[0])
+    batch = fx.inverse(s, reading, values, online_only=True)
+    out, prev, vel, pos = np.empty(m), np.zeros(m), np.zeros(m), np.zeros(m)
+    inv = fx.OnlineInverse(values, m, out, vel, prev, pos)
+    assert inv.names == ("offset", "gain", "eccentricity", "inertia")
     for k in range(n):
         dt = t[k] - t[k - 1] if k else 0.0
-        fx.online_inputs_into(online, reading[k], v[k], prev, dt, length[k], out)
+        vel[:], pos[:] = v[k], length[k]
+        inv(reading[k], out, vel, prev, dt, pos)
         prev[:] = v[k]
         assert_allclose(out, batch[k], rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("case", ["gain", "offset", "eccentricity", "viscous", "coulomb", "all"])
+@pytest.mark.parametrize(
+    "case", ["gain", "offset", "eccentricity", "viscous", "coulomb", "coulomb_directional", "all"]
+)
 def test_compensation_removes_what_the_truth_adds(case: str) -> None:
     """Forward (the plant's batch forms, ``x`` the length) then the gateway's inverse gives
     the platform tension back; inertia within the difference of the two accelerations."""
@@ -319,10 +332,9 @@ def test_compensation_removes_what_the_truth_adds(case: str) -> None:
     fr = load_config().friction
     values = fx.effect_values(ONLINE_CASES[case], m, fr.pulley_radius_m)
     params = fx.chain_params(fr, values, m)
-    ps = fx.path_sensor(values, m, fr.pulley_radius_m)
     ts = simulate(params, tp, v, t)
-    reading = fx.apply_sensor_effects(t, fx.apply_path_effects(t, v, ts, ps, length), ps)
-    back = fx.compensate_online(params, fx.online_effects(values, m), t, reading, v, length)
+    reading = fx.forward(series(t, v, length), ts, values)
+    back = fx.compensate_online(params, values, t, reading, v, length)
     tol = 0.05 if "inertia" in values else 1e-8  # central vs backward difference of v
     # the first cycle knows no acceleration yet (the truth's np.gradient looks ahead)
     assert_allclose(back[1:], tp[1:], rtol=0, atol=tol)
@@ -357,6 +369,10 @@ def test_gateway_with_the_plants_hidden_effects_recovers_the_platform_tension(
 
     hidden = {
         "coulomb": {"mu": [0.02, 0.015, 0.01, 0.015, 0.025, 0.015, 0.015, 0.02], "f0_n": 1.0},
+        "coulomb_directional": {
+            "mu_out": [0.03, 0.015, 0.01, 0.02, 0.025, 0.015, 0.015, 0.02],
+            "mu_in": 0.012,
+        },
         "viscous": {"c_ns_m": 4.0},
         "stribeck": {"k": 0.4, "v_s_m_s": 0.01},
         "inertia": {"m_eff_kg": 3.0},
@@ -374,8 +390,7 @@ def test_gateway_with_the_plants_hidden_effects_recovers_the_platform_tension(
     gw = dataclasses.replace(cfg.friction, effects=hidden)
     values = gw.effect_values(8)
     params = fx.chain_params(gw, values, 8)
-    online = fx.online_effects(values, 8, gw.pulley_radius_m)
-    back = fx.compensate_online(params, online, t, reading, sp.velocity, sp.length)
+    back = fx.compensate_online(params, values, t, reading, sp.velocity, sp.length)
     raw_err = np.max(np.abs(reading - sp.tension_true)[1:])
     err = np.max(np.abs(back - sp.tension_true)[1:])
     assert raw_err > 5.0  # the effects are large
@@ -394,17 +409,20 @@ def test_forward_per_sample_form_equals_the_batch_form() -> None:
     v = 0.05 * np.sin(3.0 * t[:, None] + np.arange(m))
     length = 2.0 + np.cumsum(v, axis=0) * dt
     ts = 200.0 + 30.0 * np.sin(5.0 * t[:, None] + np.arange(m))
-    eff = fx.PathSensorEffects(
-        inertia_kg=np.array([2.0, 0.0, 1.0]), eccentricity_a_n=0.4, eccentricity_r_m=0.03,
-        eccentricity_phi_rad=0.2, gain=np.array([0.01, 0.0, -0.02]), offset_n=0.5,
-        drift_n_s=0.3, lowpass_tau_s=np.array([0.004, 0.0, 0.01]),
-        delay_s=np.array([0.0025, 0.004, 0.0]),
+    eff = fx.effect_values(
+        {
+            "inertia": {"m_eff_kg": [2.0, 0.0, 1.0]},
+            "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.2},
+            "gain": {"g": [0.01, 0.0, -0.02]}, "offset": {"c_n": 0.5}, "drift": {"k_n_s": 0.3},
+            "lowpass": {"tau_s": [0.004, 0.0, 0.01]}, "delay": {"d_s": [0.0025, 0.004, 0.0]},
+        },
+        m,
     )  # fmt: skip
-    batch = fx.apply_sensor_effects(t, fx.apply_path_effects(t, v, ts, eff, length), eff)
+    batch = fx.forward(series(t, v, length), ts, eff)
     step = fx.ForwardStepper(eff, m, dt)
     t3, v3 = np.zeros(3), np.zeros((3, m))
     for k in range(n - 1):
         t3[:2], v3[:2] = t3[1:], v3[1:]
         t3[1:], v3[1], v3[2] = (t[k], t[k + 1]), v[k], v[k + 1]
-        got = step.sensor(k, t[k], step.path(k, t3, v3, length[k], ts[k]))
+        got = step.step(fx.Sample(k, t[k], t3, v3, length[k]), ts[k])
         assert_allclose(got, batch[k], rtol=0, atol=1e-9, err_msg=f"sample {k}")

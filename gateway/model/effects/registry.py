@@ -1,158 +1,89 @@
-"""The catalogue of effects (physics.md sec. 5): names, parameters, units, meanings.
+"""The catalogue (docs/physics.md sec. 4): every effect module collected, and the forms that
+serve all of them by looping over it.
 
-One entry per effect id. Each parameter has the name the diagnosis report, the plant's
-``sim_plc.effects`` and a model file's ``friction.effects`` all use (recording.md), its
-unit and its value when the effect is absent. :func:`effect_values` validates a mapping
-``{effect: {parameter: scalar or per-cable list}}`` into per-cable arrays, naming the
-offending key on error; :func:`chain_params` folds the friction-side effects into one
-:class:`gateway.model.chain.ChainParams` for every user (plant, scenarios, diagnosis,
-gateway).
-
-Meanings (the one reading every user shares):
-
-* ``coulomb.mu``: the bearing coefficient of *every* pulley of that cable, absolute (it
-  replaces the nominal per-pulley ``mu``; NaN or absent: keep the nominal);
-  ``coulomb.f0_n``: load-independent Coulomb level of the whole chain (N), split evenly
-  over the pulleys and added to each pulley's Coulomb level ``F_R``, so under Dahl it
-  shares the pre-sliding dynamics (``F_R = lambda T + f0 / n``).
-* ``presliding.sigma_n_m``: Dahl stiffness; switches the chain to Dahl.
-* ``viscous.c_ns_m``: added to the nominal ``viscous_ns_m`` (N s/m, summed over pulleys).
-* ``stribeck``: ``F_R`` times ``1 + k exp(-(v / v_s)^2)``.
-* ``eccentricity``: ``+ a sin(x / r + phi)`` with ``x`` the cable length (m) where it is
-  known (plant, gateway: the setpoint length), else the travel since the first sample.
+* :data:`REGISTRY`: effect name -> its :class:`~.base.Effect` (one module each), in the
+  catalogue's order; :func:`ordered` gives the effects of a set in the order they act.
+* :func:`effect_values` validates ``{effect: {parameter: scalar | per-cable list}}`` into
+  per-cable arrays, naming the offending key; :func:`to_mapping` writes them back.
+* :func:`chain_params`: the nominal chain with the chain-side effects applied (the plant,
+  the scenarios, the diagnosis, the wrench reference and the gateway all call it, so a
+  parameter means the same everywhere).
+* :func:`forward` / :func:`inverse`: the path and sensor effects in batch form, in their
+  order (and reversed); :class:`ForwardStepper`: per sample (the plant);
+  :class:`OnlineInverse`: the gateway's per-cycle inverse of the online ones;
+  :func:`compensate_online`: its batch form.
+* :func:`mass_delta`: the platform mass the statics effects hide.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any, Literal
+from collections.abc import Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
-Stage = Literal["chain", "path", "sensor", "statics"]
-Effects = dict[str, dict[str, np.ndarray]]
-"""Validated effect values: ``{effect: {parameter: (m,) array}}`` (``q_kg_s``: (1,))."""
-
-
-@dataclass(frozen=True)
-class Param:
-    """One parameter: report name, unit, value when absent, admissible range."""
-
-    name: str
-    unit: str
-    default: float
-    low: float = -math.inf
-    low_open: bool = False
-    doc: str = ""
-
-    def check(self, value: np.ndarray) -> str | None:
-        """None when every finite value is admissible, else the reason."""
-        v = value[np.isfinite(value)]
-        if self.low_open and np.any(v <= self.low):
-            return f"must be > {self.low:g}"
-        if not self.low_open and np.any(v < self.low):
-            return f"must be >= {self.low:g}"
-        return None
-
-
-@dataclass(frozen=True)
-class Effect:
-    """An effect of the catalogue: where it acts, its parameters, its physics."""
-
-    name: str
-    stage: Stage
-    params: tuple[Param, ...]
-    physics: str
-    online: str
-    per_cable: bool = True
-
-    @property
-    def param_names(self) -> tuple[str, ...]:
-        return tuple(p.name for p in self.params)
-
-
-def _p(name: str, unit: str, default: float, low: float = -math.inf, open_: bool = False) -> Param:
-    return Param(name, unit, default, low, open_)
-
-
-REGISTRY: dict[str, Effect] = {
-    e.name: e
-    for e in (
-        Effect(
-            "coulomb",
-            "chain",
-            (_p("mu", "1", math.nan, 0.0), _p("f0_n", "N", 0.0, 0.0)),
-            "- sgn(v) (lambda T + f0): per-pulley mu (absolute), load-independent f0",
-            "yes: the chain's Coulomb level",
-        ),
-        Effect(
-            "presliding",
-            "chain",
-            (_p("sigma_n_m", "N/m", 500.0, 0.0, True),),
-            "Dahl pre-sliding with stiffness sigma instead of the Coulomb chain",
-            "yes: the chain runs Dahl",
-        ),
-        Effect(
-            "viscous",
-            "chain",
-            (_p("c_ns_m", "N s/m", 0.0),),
-            "- c v (added to the nominal viscous_ns_m)",
-            "yes: + c v_set",
-        ),
-        Effect(
-            "stribeck",
-            "chain",
-            (_p("k", "1", 0.0, 0.0), _p("v_s_m_s", "m/s", 0.01, 0.0, True)),
-            "Coulomb level times 1 + k exp(-(v / v_s)^2)",
-            "yes: with v_set",
-        ),
-        Effect(
-            "inertia",
-            "path",
-            (_p("m_eff_kg", "kg", 0.0),),
-            "- m_eff a",
-            "yes: a from the setpoint velocity, backward difference over the cycle's dt",
-        ),
-        Effect("delay", "sensor", (_p("d_s", "s", 0.0, 0.0),), "reading T_s(t - d)", "no"),
-        Effect(
-            "lowpass", "sensor", (_p("tau_s", "s", 0.0, 0.0),), "reading 1/(tau s + 1) T_s", "no"
-        ),
-        Effect(
-            "gain",
-            "sensor",
-            (_p("g", "1", 0.0, -1.0, True),),
-            "(1 + g) T_s",
-            "yes: divide by 1 + g",
-        ),
-        Effect("offset", "sensor", (_p("c_n", "N", 0.0),), "+ c", "yes: subtract c"),
-        Effect("drift", "sensor", (_p("k_n_s", "N/s", 0.0),), "+ k t", "no"),
-        Effect(
-            "eccentricity",
-            "path",
-            (_p("a_n", "N", 0.0), _p("r_m", "m", 0.05, 0.0, True), _p("phi_rad", "rad", 0.0)),
-            "+ a sin(x / r + phi), x the cable length",
-            "yes: x the setpoint length",
-        ),
-        Effect(
-            "mass_change",
-            "statics",
-            (_p("q_kg_s", "kg/s", 0.0),),
-            "platform mass m_0 + q t in the statics",
-            "no (a platform effect: the gateway corrects tensions, not the mass)",
-            per_cable=False,
-        ),
-    )
-}
-EFFECT_NAMES: tuple[str, ...] = tuple(REGISTRY)
-CHAIN_EFFECTS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.stage == "chain")
-ONLINE_EFFECTS: tuple[str, ...] = tuple(
-    n for n, e in REGISTRY.items() if e.online.startswith("yes")
+from gateway.model.chain import ChainParams, ModelName, compensate
+from gateway.model.effects import (
+    coulomb,
+    coulomb_directional,
+    delay,
+    drift,
+    eccentricity,
+    gain,
+    inertia,
+    lowpass,
+    mass_change,
+    offset,
+    presliding,
+    stribeck,
+    viscous,
 )
+from gateway.model.effects.base import (
+    STAGES,
+    ChainDraft,
+    Effect,
+    Effects,
+    NominalChain,
+    Sample,
+    Series,
+    SeriesData,
+    Values,
+)
+from gateway.model.effects.forms import causal_acceleration
+from gateway.model.fastcall import entry_point
+
+MODULES = (
+    coulomb, coulomb_directional, presliding, viscous, stribeck, inertia, delay, lowpass,
+    gain, offset, drift, eccentricity, mass_change,
+)  # fmt: skip
+"""The catalogue's order (reports and the model file list effects in it)."""
+REGISTRY: dict[str, Effect] = {mod.EFFECT.name: mod.EFFECT for mod in MODULES}
+EFFECT_NAMES: tuple[str, ...] = tuple(REGISTRY)
+ONLINE_EFFECTS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.online.compensable)
 """Effects the gateway's per-cycle compensation applies."""
 
 
+def _rank(e: Effect) -> tuple[int, int]:
+    return STAGES.index(e.stage), e.order
+
+
+ACTING = sorted(REGISTRY.values(), key=_rank)
+"""Every effect in the order it acts from the platform to the reading."""
+
+
+def ordered(names: Iterable[str], *stages: str) -> list[Effect]:
+    """The effects of ``names`` (of the given stages; all if none given) in acting order."""
+    wanted = set(names)
+    return [e for e in ACTING if e.name in wanted and (not stages or e.stage in stages)]
+
+
+def stage_of(stage: str) -> tuple[str, ...]:
+    """The names of the effects acting at ``stage``."""
+    return tuple(e.name for e in ACTING if e.stage == stage)
+
+
+# ---- values -------------------------------------------------------------------------------
 def _values(raw: Any, size: int, key: str) -> np.ndarray:
     if isinstance(raw, bool):
         raise ValueError(f"{key}: expected a number or a list of numbers, got {raw!r}")
@@ -176,9 +107,12 @@ def effect_values(
     """Validate ``{effect: {param: scalar | per-cable list}}``; missing params get defaults.
 
     Errors are ``ValueError`` whose message starts with the dotted key (``where.effect.p``).
-    ``eccentricity.r_m`` defaults to ``pulley_radius_m``. ``mass_change.q_kg_s`` is one
-    platform value (shape (1,)).
+    A parameter whose absent value is its nominal (:attr:`~.base.Param.nominal`) takes
+    the nominal ``pulley_radius_m`` when it names it, else stays NaN (the nominal, e.g.
+    ``coulomb.mu``: the pulleys keep theirs); only such a parameter may be NaN. A
+    platform effect has one value (shape (1,)).
     """
+    nominals = {"pulley_radius_m": float(pulley_radius_m)}
     out: Effects = {}
     for name, params in (raw or {}).items():
         key = f"{where}.{name}"
@@ -195,10 +129,14 @@ def effect_values(
         size = cables if eff.per_cable else 1
         vals = {}
         for prm in eff.params:
-            default = pulley_radius_m if prm.name == "r_m" else prm.default
+            default = prm.default
+            substituted = math.isnan(default) and prm.nominal in nominals
+            if substituted:
+                default = nominals[str(prm.nominal)]
             given = params.get(prm.name)  # absent or null: the default
             v = _values(default if given is None else given, size, f"{key}.{prm.name}")
-            if prm.name != "mu" and not np.all(np.isfinite(v)):
+            nan_means_nominal = math.isnan(prm.default) and not substituted
+            if not nan_means_nominal and not np.all(np.isfinite(v)):
                 raise ValueError(f"{key}.{prm.name}: values must be finite")
             reason = prm.check(v)
             if reason:
@@ -209,17 +147,15 @@ def effect_values(
 
 
 def to_mapping(eff: Effects) -> dict[str, dict[str, float | list[float]]]:
-    """Plain YAML-ready form of validated values: a scalar where all cables agree.
-
-    ``coulomb.mu`` that is NaN everywhere (keep the nominal) is left out.
-    """
+    """Plain YAML-ready form of validated values: a scalar where all cables agree; a
+    parameter that is NaN everywhere (the nominal) is left out."""
     out: dict[str, dict[str, float | list[float]]] = {}
     for name in EFFECT_NAMES:
         if name not in eff:
             continue
         params: dict[str, float | list[float]] = {}
         for p, v in eff[name].items():
-            if p == "mu" and np.all(np.isnan(v)):
+            if np.all(np.isnan(v)):
                 continue
             same = v.size == 1 or bool(np.all(v == v[0]))
             params[p] = float(v[0]) if same else [float(x) for x in v]
@@ -227,9 +163,142 @@ def to_mapping(eff: Effects) -> dict[str, dict[str, float | list[float]]]:
     return out
 
 
-def eccentricity_phase_at_length(phi_rad: float, r_m: float, length0_m: float) -> float:
-    """Phase for ``x`` = cable length, from a phase fitted with ``x`` = travel since a
-    sample whose length was ``length0_m``: ``a sin((L - L0)/r + phi) = a sin(L/r + phi')``.
-    Wrapped to (-pi, pi]."""
-    phi = phi_rad - length0_m / r_m
-    return math.atan2(math.sin(phi), math.cos(phi))
+# ---- the chain ----------------------------------------------------------------------------
+def chain_params(nominal: NominalChain, eff: Effects, cables: int) -> ChainParams:
+    """The nominal chain with the chain-side effects of ``eff`` applied, ``cables`` wide.
+
+    ``nominal.mu``: per pulley (n,) or (m, n); each chain-side effect edits the chain in
+    the catalogue's order (:meth:`~.base.Effect.apply_chain`).
+    """
+    wrap = np.asarray(nominal.wrap_rad, dtype=float).reshape(-1)
+    mu = np.broadcast_to(np.asarray(nominal.mu, dtype=float), (cables, wrap.size)).copy()
+    draft = ChainDraft(
+        law=nominal.model,
+        wrap_rad=wrap,
+        mu_out=mu,
+        mu_in=mu.copy(),
+        sigma_n_m=np.broadcast_to(np.asarray(nominal.sigma_n_m, dtype=float), (cables,)).copy(),
+        beta=float(nominal.beta),
+        f0_n=np.zeros(cables),
+        stribeck_k=np.zeros(cables),
+        stribeck_v_m_s=np.full(cables, 0.01),
+        viscous_ns_m=np.broadcast_to(
+            np.asarray(nominal.viscous_ns_m, dtype=float), (cables,)).copy(),
+    )  # fmt: skip
+    for e in ordered(eff, "chain"):
+        e.apply_chain(draft, eff[e.name])
+    law: ModelName = draft.law  # type: ignore[assignment]
+    return ChainParams.build(
+        law,
+        cables,
+        wrap,
+        draft.mu_out,
+        mu_in=draft.mu_in,
+        sigma_n_m=draft.sigma_n_m,
+        beta=draft.beta,
+        f0_n=draft.f0_n,
+        stribeck_k=draft.stribeck_k,
+        stribeck_v_m_s=draft.stribeck_v_m_s,
+        viscous_ns_m=draft.viscous_ns_m,
+    )
+
+
+def mass_delta(eff: Effects, t: np.ndarray, t0: float) -> np.ndarray | None:
+    """The platform mass (kg, (N,)) the statics effects of ``eff`` add to the recorded one,
+    or None when there are none."""
+    out = None
+    for e in ordered(eff, "statics"):
+        d = e.mass_delta(t, t0, eff[e.name])
+        out = d if out is None else out + d
+    return out
+
+
+# ---- path and sensor forms ----------------------------------------------------------------
+def forward(s: Series, y: np.ndarray, eff: Effects) -> np.ndarray:
+    """The reading with the path and sensor effects of ``eff``, in acting order (batch)."""
+    for e in ordered(eff, "path", "sensor"):
+        y = e.forward(s, y, eff[e.name])
+    return y
+
+
+def inverse(s: Series, y: np.ndarray, eff: Effects, online_only: bool = False) -> np.ndarray:
+    """:func:`forward` undone, effect by effect in reverse order (only the ones the gateway
+    removes online with ``online_only``)."""
+    for e in reversed(ordered(eff, "path", "sensor")):
+        if online_only and not e.online.compensable:
+            continue
+        y = e.inverse(s, y, eff[e.name])
+    return y
+
+
+class ForwardStepper:
+    """Per-sample form of :func:`forward` (the soft PLC's plant runs it cycle by cycle):
+    each effect's :meth:`~.base.Effect.stepper` in acting order. Not causal (the truth
+    may look one sample ahead); the gateway's causal form is :class:`OnlineInverse`."""
+
+    def __init__(self, eff: Effects, cables: int, period_s: float) -> None:
+        self.steppers = [
+            e.stepper(eff[e.name], cables, period_s) for e in ordered(eff, "path", "sensor")
+        ]
+
+    def step(self, s: Sample, y: np.ndarray) -> np.ndarray:
+        for st in self.steppers:
+            y = st.step(s, y)
+        return y
+
+
+def online_params(e: Effect, values: Values, cables: int) -> np.ndarray:
+    """An online kernel's parameters: (k, m), one row per parameter of ``e``."""
+    rows = [np.broadcast_to(np.asarray(values[n], dtype=float), (cables,)) for n in e.param_names]
+    return np.ascontiguousarray(np.stack(rows))
+
+
+class OnlineInverse:
+    """The gateway's per-cycle inverse of the online path and sensor effects of ``eff``:
+    each effect's compiled :attr:`~.base.Effect.online_kernel`, in reverse acting order,
+    called on the caller's own buffers (compiled entries, no type dispatch, no allocation).
+
+    ``y_in``, ``out`` (m,): the validated reading and the chain's sensor-side input;
+    ``v``, ``v_prev`` (m,): this and the previous PLC sample's setpoint velocity; ``length``
+    (m,): the setpoint cable length; ``dt``: the time between the two samples (s; <= 0 on
+    the first).
+    """
+
+    def __init__(self, eff: Effects, cables: int, out: np.ndarray, v: np.ndarray,
+                 v_prev: np.ndarray, length: np.ndarray) -> None:  # fmt: skip
+        self.steps = []
+        for e in reversed(ordered(eff, "path", "sensor")):
+            if not e.online.compensable or e.online_kernel is None:
+                continue
+            p = online_params(e, eff[e.name], cables)
+            entry = entry_point(e.online_kernel, p, out, v, v_prev, 0.0, length)
+            self.steps.append((entry, p))
+        self.names = tuple(e.name for e in reversed(ordered(eff, "path", "sensor"))
+                           if e.online.compensable and e.online_kernel is not None)  # fmt: skip
+
+    def __call__(self, y_in: np.ndarray, out: np.ndarray, v: np.ndarray, v_prev: np.ndarray,
+                 dt: float, length: np.ndarray) -> None:  # fmt: skip
+        out[:] = y_in
+        for entry, p in self.steps:
+            entry(p, out, v, v_prev, dt, length)
+
+
+def compensate_online(
+    params: ChainParams,
+    eff: Effects,
+    t: np.ndarray,
+    reading: np.ndarray,
+    velocity: np.ndarray,
+    length: np.ndarray,
+) -> np.ndarray:
+    """Batch form of the gateway's compensation: reading (N, m) -> platform tension (N, m).
+
+    The online path and sensor effects undone in reverse order (the acceleration the
+    backward difference of the setpoint velocity, ``x`` the setpoint ``length``), then the
+    chain (sensor -> platform) with ``dt`` from ``t``.
+    """
+    t = np.asarray(t, dtype=float)
+    s = SeriesData(t, velocity, np.asarray(length, dtype=float),
+                   causal_acceleration(t, velocity), float(t[0]) if t.size else 0.0)  # fmt: skip
+    ts = inverse(s, np.asarray(reading, dtype=float), eff, online_only=True)
+    return compensate(params, ts, velocity, t)
