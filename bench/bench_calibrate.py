@@ -1,7 +1,7 @@
 """``cdpr-gateway calibrate`` over every example of ``config/calibrate/`` (issue 10's table).
 
-Each example hides one effect (viscous, offset, gain, load-independent Coulomb f0, inertia,
-mass_change at 2-5x the 0.5 N sensor noise) in a soft PLC whose controller distributes
+Each example (every file of ``config/calibrate/``) hides one effect at 2-5x the 0.5 N
+sensor noise in a soft PLC whose controller distributes
 tensions by the closed form (not the gateway's statics). Per example: the finding, the
 corrected-tension RMSE against the plant's truth before and after calibration, the noise
 floor (the same plant without the effect, nominal model), after / floor (goal <= 1.15) and
@@ -20,18 +20,26 @@ import tempfile
 import time
 from pathlib import Path
 
+from gateway.core.configtypes import read_yaml
 from sim_plc.calibrate import calibrate
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "config" / "calibrate"
-ORDER = ("viscous", "offset", "gain", "coulomb_f0", "inertia", "mass_change")
-EXPECTED = {"coulomb_f0": "coulomb"}  # example -> the effect the diagnosis should name
 GOAL = 1.15
+
+
+def examples() -> dict[str, str]:
+    """Example name -> the effect it hides (its one ``sim_plc.effects`` entry)."""
+    out = {}
+    for path in sorted(EXAMPLES.glob("*.yaml")):
+        (effect,) = read_yaml(path)["sim_plc"]["effects"]
+        out[path.stem] = effect
+    return out
 
 
 def _row(name: str, res: dict) -> str:
     floor = res["noise_floor_n"]
     ratio = res["after"]["rmse_n"] / floor
-    want = EXPECTED.get(name, name)
+    want = examples()[name]
     found = ", ".join(res["findings"]) or "none"
     ok = "ok" if want in res["findings"] and ratio <= GOAL else "FAIL"
     cycles = "/".join(str(res[k]["cycles"]) for k in ("noise_floor", "before", "after"))
@@ -44,7 +52,7 @@ def _row(name: str, res: dict) -> str:
 def run() -> None:
     seconds = float(os.environ.get("CALIBRATE_SECONDS", "30"))
     only = [n for n in os.environ.get("CALIBRATE_ONLY", "").split(",") if n]
-    names = [n for n in ORDER if not only or n in only]
+    names = [n for n in examples() if not only or n in only]
     keep = os.environ.get("CALIBRATE_OUT")
     tmp = None if keep else tempfile.TemporaryDirectory(prefix="bench-calibrate-")
     base = Path(keep) if keep else Path(tmp.name)  # type: ignore[union-attr]
