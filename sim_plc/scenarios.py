@@ -260,7 +260,7 @@ def evaluate(sc: Scenario) -> dict:
         rec,
         sc.nominal(),
         dtp_dm=dm,
-        validation=(val, val.tension_platform, vdm),  # type: ignore[arg-type]
+        validation=(val, val.tension_platform, vdm),
     ).report
     seconds = time.perf_counter() - start
     found = [f["effect"] for f in report["findings"]]

@@ -19,7 +19,9 @@ from gateway.diagnose.engine import (
 )
 from gateway.diagnose.fit import spec_for
 from gateway.diagnose.forward import CableData, Forward
-from gateway.diagnose.select import CableOutcome, Thresholds, drop_unvalidated
+from gateway.diagnose.reference import CableUnit, validate
+from gateway.diagnose.select import Selector, Thresholds
+from gateway.diagnose.stats import white_noise
 from tests.diagnose_helpers import Foreign, generate, recording_of, run_foreign
 from tests.foreign_cases import P5_MIXED, RIG_AXIS
 
@@ -110,14 +112,13 @@ def test_validation_drops_an_effect_that_does_not_generalise():
     train = blocks % 2 == 0
     specs = {e: spec_for(e, d, nom, d.ts, train) for e in ("viscous", "offset")}
     theta = {"viscous": np.array([80.0]), "offset": np.array([-0.02])}
-    stderr = {e: np.array([0.01]) for e in theta}
-    outcome = CableOutcome(["viscous", "offset"], theta, stderr, specs)
-    out, dropped = drop_unvalidated(
-        fw, vfw, np.ones(vd.t.size, bool), *time_blocks(vrec.t), outcome, train, Thresholds()
-    )
+    sel = Selector(CableUnit(fw, blocks, int(blocks.max()) + 1, ["viscous", "offset"]),
+                   Thresholds())  # fmt: skip
+    model = sel.unit.evaluate(theta, specs)
+    out, dropped = validate(sel, model, vfw, np.ones(vd.t.size, bool), Thresholds())
     assert dropped == ["offset"]
-    assert out.kept == ["viscous"]
-    assert out.theta["viscous"][0] == pytest.approx(80.0, rel=0.1)
+    assert list(out.kept) == ["viscous"]
+    assert out.kept["viscous"][0] == pytest.approx(80.0, rel=0.1)
 
 
 def test_physical_bounds_on_inertia_viscous_and_gain():
@@ -215,7 +216,6 @@ def test_subset_search_undoes_a_stand_in():
     holds the viscous force at the typical speed), the best-subset search reaches the
     joint optimum of the four terms."""
     from gateway.diagnose.engine import cable_candidates, candidates_for
-    from gateway.diagnose.select import CableSelector
 
     fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
                  vmax=0.13, seconds=16.0, rate_hz=250.0, effects=RIG_AXIS)  # fmt: skip
@@ -224,13 +224,15 @@ def test_subset_search_undoes_a_stand_in():
     d = cable_data(rec, rec.tension_platform, None)[0]
     fw = Forward(d, nom)
     blocks, nb = time_blocks(rec.t)
-    sel = CableSelector(fw, blocks, nb, cable_candidates(candidates_for(False), d, nom),
-                        Thresholds())  # fmt: skip
-    specs = {e: spec_for(e, d, nom, d.ts, sel.train) for e in ("inertia", "coulomb")}
-    stand_in = sel._fit({"inertia": np.array([95.0]), "coulomb": np.array([0.0, 36.0])}, specs)
-    assert sel._far_above_noise(stand_in)
+    unit = CableUnit(fw, blocks, nb, cable_candidates(candidates_for(False), d, nom))
+    sel = Selector(unit, Thresholds())
+    specs = {e: spec_for(e, d, nom, d.ts, unit.train) for e in ("inertia", "coulomb")}
+    stand_in = sel.fit({"inertia": np.array([95.0]), "coulomb": np.array([0.0, 36.0])}, specs)
+    assert sel.left(stand_in)
     out, _ = sel._look_further(stand_in, ["inertia", "coulomb"])
     assert set(out.kept) == {"inertia", "viscous", "coulomb", "offset"}
     assert out.kept["viscous"][0] == pytest.approx(200.0, rel=0.05)
     assert out.kept["coulomb"][1] == pytest.approx(20.0, rel=0.05)
-    assert not sel._far_above_noise(out)
+    held = out.resid[unit.test]
+    # no longer far above the noise (the stand-in left 3x it; no warm-up mask here)
+    assert np.sqrt(np.mean(held**2)) < 3.0 * white_noise(out.resid[unit.train])

@@ -12,7 +12,7 @@ from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.engine import nominal_from, time_blocks
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
-from gateway.diagnose.select import holdout_z
+from gateway.diagnose.stats import holdout_z
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate
 
