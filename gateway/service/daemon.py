@@ -12,7 +12,8 @@ Logging: ``TIME LEVEL LOGGER: message`` on stderr; a start-up banner (version, c
 file, bus, model, real-time settings); the loop logs each state change once (connected,
 active, disconnected/fault with the cause, recovered). Foreign libraries' loggers
 (canopen, can, pymodbus) are quieted to WARNING unless ``--log-level DEBUG``. Under systemd
-(``NOTIFY_SOCKET`` set) the loop sends READY=1 once active and WATCHDOG=1 while it cycles.
+(``NOTIFY_SOCKET`` set) the loop sends READY=1 once configured (before the PLC answers: it
+retries) and WATCHDOG=1 while it cycles, retries included.
 """
 
 from __future__ import annotations
