@@ -4,8 +4,10 @@
 Each command lives in its own module, imported only when that command is chosen. A command
 module provides ``configure_parser(command, parser)`` and ``run_command(command, args)``
 returning the exit status. Errors of the project (:class:`GatewayError`) end the program
-with status 2 and one clear line on stderr, and so do bad command-line arguments; anything
-else is a bug and shows a traceback. The soft PLC's commands (``demo``, ``sim-plc``,
+with status 2 and one clear line on stderr, and so do bad command-line arguments: what a
+restart cannot fix. A :class:`TemporaryError` (a port another process holds) exits 75
+(EX_TEMPFAIL), which a service manager may retry. Anything else is a bug and shows a
+traceback. The soft PLC's commands (``demo``, ``sim-plc``,
 ``record``, ``replicate``, ``calibrate``) live in ``sim_plc`` and are imported only when
 chosen: the daemon's modules never import ``sim_plc``.
 """
@@ -19,7 +21,9 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from gateway import __version__
-from gateway.errors import GatewayError
+from gateway.errors import GatewayError, TemporaryError
+
+EX_TEMPFAIL = 75  # sysexits.h: a temporary failure, a retry may succeed
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("gateway.service.daemon", "run the gateway daemon against the PLC in the config"),
@@ -71,6 +75,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv[1:])
     try:
         return int(module.run_command(command, args) or 0)
+    except TemporaryError as exc:
+        print(f"cdpr-gateway {command}: error: {exc} (temporary: try again)", file=sys.stderr)
+        return EX_TEMPFAIL
     except GatewayError as exc:
         print(f"cdpr-gateway {command}: error: {exc}", file=sys.stderr)
         return 2

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -53,7 +54,10 @@ def start_run(config: Path, env_extra: dict[str, str] | None = None, *args: str)
     )  # fmt: skip
 
 
-def finish(proc: subprocess.Popen) -> tuple[int, str]:
+def finish(proc: subprocess.Popen, exits_by_itself: bool = False) -> tuple[int, str]:
+    if exits_by_itself:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=60)
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
     try:
@@ -108,7 +112,7 @@ def test_metrics_port_in_use_is_a_temporary_failure_not_a_config_error(tmp_path)
     port = holder.getsockname()[1]
     try:
         proc = start_run(write_config(tmp_path, metrics__port=port))
-        rc, err = finish(proc)
+        rc, err = finish(proc, exits_by_itself=True)
     finally:
         holder.close()
     lines = err.strip().splitlines()
@@ -117,9 +121,16 @@ def test_metrics_port_in_use_is_a_temporary_failure_not_a_config_error(tmp_path)
     assert "Traceback" not in err
 
 
+def test_the_unit_restarts_a_temporary_failure_but_not_a_config_error():
+    unit = (ROOT / "deploy" / "cdpr-gateway.service").read_text().splitlines()
+    settings = dict(line.split("=", 1) for line in unit if "=" in line and line[0] != "#")
+    assert settings["Restart"] == "on-failure"  # restarts any non-zero exit ...
+    assert settings["RestartPreventExitStatus"].split() == ["2"]  # ... but the config's
+
+
 def test_the_banner_tells_the_truth_about_real_time(tmp_path):
     proc = start_run(write_config(tmp_path), None, "--seconds", "1")
-    rc, err = finish(proc)
+    rc, err = finish(proc, exits_by_itself=True)
     assert rc == 0, err
     assert "not configured" not in err
     rt = [line for line in err.splitlines() if " real-time: " in line]
@@ -132,7 +143,7 @@ def test_the_banner_tells_the_truth_about_real_time(tmp_path):
 def test_real_time_off_when_the_config_says_so(tmp_path):
     proc = start_run(write_config(tmp_path, loop__realtime={"enabled": False}), None,
                      "--seconds", "1")  # fmt: skip
-    rc, err = finish(proc)
+    rc, err = finish(proc, exits_by_itself=True)
     assert rc == 0, err
     assert "real-time: off (loop.realtime.enabled is false)" in err
     assert "real-time: applied" not in err

@@ -10,7 +10,7 @@ import pytest
 from drivers.virtual import VirtualDriver, VirtualFaults
 from gateway import __version__
 from gateway.core.config import MetricsConfig
-from gateway.errors import ConfigError
+from gateway.errors import ConfigError, TemporaryError
 from gateway.runtime.loop import CyclicService
 from gateway.service.metrics import MetricsServer, make_registry
 from tests.loop_helpers import FakeClock, config, live_image
@@ -108,7 +108,8 @@ def test_http_exporter_serves_on_loopback_and_reports_a_busy_port():
             body = reply.read().decode()
         assert 'cdpr_gateway_cycle_seconds_bucket{le="+Inf"} 10.0' in body
         assert "cdpr_gateway_tension_corrected_newtons" in body
-        with pytest.raises(ConfigError, match=r"metrics\.port"):
+        # a busy port may free up: a temporary error (exit 75), not a config error (exit 2)
+        with pytest.raises(TemporaryError, match=r"x\.yaml: metrics\.port: .*in use"):
             MetricsServer(MetricsConfig(host="127.0.0.1", port=server.port), reg, "x.yaml")
     finally:
         server.close()
