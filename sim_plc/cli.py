@@ -6,8 +6,9 @@
   stepped in real time at the config's period and served on the bus until SIGINT or
   SIGTERM; prints ``sim-plc: serving modbus_tcp on HOST:PORT`` once listening. The plant's
   chunks are prepared by a worker process (``sim_plc.prepare``) so the serving process
-  never stalls on them; ``--realtime`` (or ``loop.realtime.enabled``) applies the
-  config's real-time settings to the PLC's threads, reported in one line on stderr.
+  never stalls on them; ``--realtime`` applies the config's real-time settings
+  (``loop.realtime``, which ``run`` applies by default) to the PLC's threads, reported in
+  one line on stderr.
 """
 
 from __future__ import annotations
@@ -57,8 +58,8 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument(
             "--realtime",
             action="store_true",
-            help="apply the config's loop.realtime settings (SCHED_FIFO, mlockall, ...) "
-            "even when loop.realtime.enabled is false",
+            help="apply the config's loop.realtime settings (SCHED_FIFO, mlockall, ...) to "
+            "the soft PLC (default: not applied; the demo passes it)",
         )
         parser.add_argument(
             "--chunks-in-process",
@@ -180,7 +181,10 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
     runtime = PlcRuntime(plant, image, plant.period_s)
     done = threading.Event()
     # before the runtime and server threads start: they inherit the policy and affinity
-    rt = realtime.apply(cfg.loop.realtime, force=bool(getattr(args, "realtime", False)))
+    # the config's loop.realtime is the gateway's (on by default): the soft PLC applies
+    # those settings only when asked to
+    wanted = bool(getattr(args, "realtime", False))
+    rt = realtime.apply(dataclasses.replace(cfg.loop.realtime, enabled=wanted))
     if chunks is not None and rt.old_policy is not None and cfg.loop.realtime.policy != "other":
         ok, what = chunks.lowest_realtime()  # background, above normal tasks
         (rt.applied if ok else rt.refused).append(what)

@@ -8,8 +8,12 @@ terminating signal (SIGTERM, SIGINT, SIGHUP, SIGQUIT, SIGUSR1, SIGUSR2, SIGALRM)
 start is not fatal: the loop retries with backoff and says why. Configuration problems end
 the program with one line naming the file and the key (exit 2).
 
+Real time: ``loop.realtime`` (on by default) is applied to the thread that runs the cycle
+just before it starts, and one line says what was applied and what was refused (never
+fatal); ``enabled: false`` leaves the process as started.
+
 Logging: ``TIME LEVEL LOGGER: message`` on stderr; a start-up banner (version, config
-file, bus, model, real-time settings); the loop logs each state change once (connected,
+file, bus, model, whether real time is tried); the loop logs each state change once (connected,
 active, disconnected/fault with the cause, recovered). Foreign libraries' loggers
 (canopen, can, pymodbus) are quieted to WARNING unless ``--log-level DEBUG``. Under systemd
 (``NOTIFY_SOCKET`` set) the loop sends READY=1 once configured (before the PLC answers: it
@@ -131,8 +135,12 @@ def banner(cfg: Config) -> list[str]:
         f"bus: {describe_bus(cfg)} (bus.{cfg.bus.driver})",
         f"model: {describe_model(cfg)}",
         f"loop: period {lp.period_s * 1e3:g} ms, busy-wait {lp.busy_wait_s * 1e6:g} us, "
-        f"PLC heartbeat timeout {lp.heartbeat_timeout_s:g} s; real-time scheduling: "
-        "not configured (default scheduler)",
+        f"PLC heartbeat timeout {lp.heartbeat_timeout_s:g} s; real-time: "
+        + (
+            "tried (loop.realtime; the real-time line says what was applied and refused)"
+            if lp.realtime.enabled
+            else "off (loop.realtime.enabled: false)"
+        ),
     ]
 
 
@@ -198,6 +206,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             log.warning("%s", exposed)
     previous = service.install_signal_handlers()
     timer = None
+    rt: realtime.RealtimeReport | None = None
     try:
         service.recorder = start_recorder(cfg, args.record)
         if args.seconds is not None:
@@ -209,6 +218,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         (log.warning if rt.refused else log.info)("%s", rt.line())
         service.run(args.cycles)
     finally:
+        if rt is not None:  # in-process callers (tests, tools) get their process back
+            realtime.undo(rt)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if timer is not None:
