@@ -129,12 +129,7 @@ def _server(
         plc = CanopenPlc(cfg, image)
         plc.start(realtime=True)
         return plc, f"canopen on {cfg.bus.canopen.interface}:{cfg.bus.canopen.channel}"
-    try:
-        from sim_plc.modbus_server import ModbusPlcServer  # lazy: needs pymodbus
-    except ImportError as exc:
-        raise ConfigError(
-            f"bus modbus_tcp: the soft PLC's Modbus server is missing: {exc}"
-        ) from exc
+    from sim_plc.modbus_server import ModbusPlcServer
 
     mb = cfg.bus.modbus_tcp
     host = mb.host if host is None else host
