@@ -50,7 +50,9 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     else:
         parser.add_argument("--host", default=None, help="address to listen on")
         parser.add_argument("--port", type=int, default=None, help="TCP port (0: any free)")
-        parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None)
+        parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None,
+                            help="the bus to serve (default: the config's bus.driver if "
+                            "canopen, else modbus_tcp)")  # fmt: skip
         parser.add_argument("--seconds", type=float, default=None, help="stop after (s)")
         parser.add_argument("--tls-cert", help="Modbus/TCP Security: server certificate (PEM)")
         parser.add_argument("--tls-key", help="Modbus/TCP Security: server private key (PEM)")

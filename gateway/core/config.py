@@ -358,7 +358,7 @@ class Config:
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
-    source: str = ""
+    source: str = field(default="", metadata={"file": False})  # the file's path, not a key
 
     def __post_init__(self) -> None:
         fr = self.friction

@@ -46,7 +46,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
-from prometheus_client import CollectorRegistry
+from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
@@ -159,7 +159,10 @@ def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, floa
 
 
 def make_registry(service: CyclicService, bus: str | None = None) -> CollectorRegistry:
-    """A fresh registry holding only the gateway collector."""
+    """A fresh registry holding the gateway collector and prometheus_client's process
+    collector (``process_resident_memory_bytes``, ``process_cpu_seconds_total``,
+    ``process_open_fds``, ...: read from /proc at scrape time, nothing in the cycle)."""
     registry = CollectorRegistry()
     registry.register(GatewayCollector(service, bus))
+    ProcessCollector(registry=registry)
     return registry

@@ -56,7 +56,25 @@ def label_names(metric) -> set[str]:
 def test_names_types_and_labels_are_exactly_the_design_table():
     registry = make_registry(ran_service())
     found = {m.name: (m.type, label_names(m)) for m in registry.collect()}
-    assert found == DESIGN_TABLE
+    assert {k: v for k, v in found.items() if k.startswith("cdpr_")} == DESIGN_TABLE
+    assert {k for k in found if not k.startswith("cdpr_")} == PROCESS_METRICS
+
+
+# the process collector (docs/realtime.md watches process_resident_memory_bytes)
+PROCESS_METRICS = {
+    "process_virtual_memory_bytes", "process_resident_memory_bytes", "process_start_time_seconds",
+    "process_cpu_seconds", "process_open_fds", "process_max_fds",
+}  # fmt: skip
+
+
+def test_process_metrics_are_this_process():
+    import resource
+
+    registry = make_registry(ran_service(5))
+    rss = registry.get_sample_value("process_resident_memory_bytes")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    assert rss is not None and 10e6 < rss <= peak * 1.01
+    assert registry.get_sample_value("process_open_fds") >= 3
 
 
 def test_values_come_from_the_loop_statistics():
