@@ -15,12 +15,15 @@ chosen: the daemon's modules never import ``sim_plc``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import NoReturn
 
 from gateway import __version__
+from gateway.core.cliopts import add_common_options, resolve_log_level, setup_logging
 from gateway.errors import GatewayError, TemporaryError
 
 EX_TEMPFAIL = 75  # sysexits.h: a temporary failure, a retry may succeed
@@ -60,6 +63,17 @@ def _top_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def _quiet(quiet: bool) -> Iterator[None]:
+    """With ``--quiet``, what a command prints on stderr (progress) goes nowhere; the log
+    handler keeps the real stderr (warnings), and errors are printed after this ends."""
+    if not quiet:
+        yield
+        return
+    with open(os.devnull, "w", encoding="utf-8") as devnull, contextlib.redirect_stderr(devnull):
+        yield
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in COMMANDS:
@@ -72,9 +86,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     module = importlib.import_module(module_name)
     parser = _OneLineParser(prog=f"cdpr-gateway {command}", description=help_text)
     module.configure_parser(command, parser)
+    add_common_options(parser)  # --log-level, --quiet: the same on every command
     args = parser.parse_args(argv[1:])
+    setup_logging(resolve_log_level(args))
     try:
-        return int(module.run_command(command, args) or 0)
+        with _quiet(args.quiet):
+            return int(module.run_command(command, args) or 0)
     except TemporaryError as exc:
         print(f"cdpr-gateway {command}: error: {exc} (temporary: try again)", file=sys.stderr)
         return EX_TEMPFAIL

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from gateway.core.cliopts import add_config_option
 from gateway.core.config import Config, load_config, load_friction
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose.engine import reference_mode
@@ -70,7 +71,11 @@ class RunScore:
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True, help="SIM.yaml: a config with a sim_plc: plant")
+    add_config_option(
+        parser,
+        why="SIM.yaml, a config whose sim_plc: section hides an "
+        "effect: 'cdpr-gateway examples' copies one per effect (calibrate/)",
+    )
     parser.add_argument("--seconds", type=float, default=30.0, help="length of each gateway run")
     parser.add_argument("--out", type=Path, required=True, help="directory for the results")
 

@@ -21,6 +21,7 @@ import threading
 import time
 from typing import Any
 
+from gateway.core.cliopts import add_config_option
 from gateway.core.config import (
     DEFAULT_CONFIG_PATH,
     Config,
@@ -35,11 +36,10 @@ from sim_plc.config import load_sim_config
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="config file (YAML)")
+    add_config_option(parser, DEFAULT_CONFIG_PATH)
     if command == "record":
         parser.add_argument("--seconds", type=float, required=True, help="duration (s)")
         parser.add_argument("--out", required=True, help="recording to write (.csv or .csv.gz)")
-        parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
         parser.add_argument(
             "--seed",
             type=int,

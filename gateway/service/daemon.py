@@ -32,8 +32,15 @@ from typing import Any
 
 from drivers.base import Driver, Lifecycle, make_driver
 from gateway import __version__
+from gateway.core.cliopts import (  # noqa: F401 - re-exported: their old home
+    FOREIGN_LOGGERS,
+    LOG_FORMAT,
+    LOG_LEVELS,
+    add_config_option,
+    log_level,
+    setup_logging,
+)
 from gateway.core.config import (
-    DEFAULT_CONFIG_PATH,
     Config,
     config_warnings,
     exposure_warning,
@@ -48,39 +55,11 @@ from gateway.service.recorder import Recorder
 
 log = logging.getLogger("cdpr_gateway")
 
-LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
-LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
-FOREIGN_LOGGERS = ("canopen", "can", "pymodbus")
-
-
-def log_level(text: str) -> str:
-    """argparse type for ``--log-level``: one of :data:`LOG_LEVELS`, any case."""
-    level = text.upper()
-    if level not in LOG_LEVELS:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a log level (choose from {', '.join(LOG_LEVELS)})"
-        )
-    return level
-
-
-def add_log_level(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--log-level", type=log_level, default="INFO",
-                        help="DEBUG, INFO, WARNING, ERROR or CRITICAL (default INFO)")  # fmt: skip
-
-
-def setup_logging(level: str) -> None:
-    """The project's log format on stderr; foreign loggers at WARNING unless DEBUG."""
-    logging.basicConfig(stream=sys.stderr, format=LOG_FORMAT)  # no-op if already set up
-    logging.getLogger().setLevel(level)
-    foreign = logging.DEBUG if level == "DEBUG" else logging.WARNING
-    for name in FOREIGN_LOGGERS:
-        logging.getLogger(name).setLevel(foreign)
-
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
+    add_config_option(parser, why="the PLC to serve; a bundled default would quietly target "
+                      "127.0.0.1 ('cdpr-gateway examples' shows the reference config)")  # fmt: skip
     parser.add_argument("--cycles", type=int, default=None, help="stop after N cycles")
-    add_log_level(parser)
     parser.add_argument("--seconds", type=float, default=None, help="stop after N seconds")
     parser.add_argument(
         "--record", default=None, help="record what the gateway sees (CSV, .csv.gz); "

@@ -92,7 +92,7 @@ def test_replicate_exits_1_naming_a_missed_goal(monkeypatch, capsys, tmp_path):
     }
     monkeypatch.setattr(replicate, "replicate", lambda *a, **k: {"goals": goals})
     args = argparse.Namespace(config=str(DEFAULT_CONFIG_PATH), out=str(tmp_path),
-                              seconds_limit=1.0, no_plots=True)  # fmt: skip
+                              seconds=1.0, no_plots=True)  # fmt: skip
     assert replicate.run_command("replicate", args) == 1
     err = capsys.readouterr().err
     assert "goal missed: hysteresis_after_at_most_2n" in err
