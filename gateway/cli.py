@@ -1,5 +1,5 @@
 """``cdpr-gateway`` command line: ``run | check | demo | sim-plc | record | replicate | diagnose
-| calibrate``.
+| calibrate | examples``.
 
 Each command lives in its own module, imported only when that command is chosen. A command
 module provides ``configure_parser(command, parser)`` and ``run_command(command, args)``
@@ -40,6 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replicate": ("sim_plc.replicate", "reproduce the paper's experiment (JSON, markdown, PNG)"),
     "diagnose": ("gateway.diagnose.cli", "find and model the physics a recording shows"),
     "calibrate": ("sim_plc.calibrate", "soft PLC loop: record, diagnose, write the model, rerun"),
+    "examples": ("gateway.service.examples", "list the bundled configs, or copy them into DIR"),
 }
 
 
