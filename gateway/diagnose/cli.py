@@ -22,7 +22,7 @@ from gateway.core.config import (
     output_path,
 )
 from gateway.core.configtypes import read_yaml
-from gateway.diagnose import platform
+from gateway.diagnose import heldout, platform, warmup
 from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
@@ -140,6 +140,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             vtp, vdm = _tensions(vrec, cfg, say)
             validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
+    warmup.annotate(diag.report, rec, nominal)  # the start-up transient, said as such
     if args.json is not None:
         try:
             args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
@@ -156,6 +157,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     if args.write_model is not None:
+        refused = heldout.refusal(diag.report, heldout.motion(rec.t, rec.velocity))
+        if refused is not None:
+            raise GatewayError(f"--write-model {args.write_model}: {refused}")
         write_model(args.write_model, args.model, model_friction, diag.report, keep_for_model(rec))  # type: ignore[arg-type]
         say(f"fitted model in {args.write_model}")
     rep = diag.report

@@ -233,6 +233,12 @@ def summary(diag: Diagnosis, source: str) -> str:
             "constant, slowly varying or speed-proportional one is; nothing is shaded.",
         ]
     lines += [region_line(r) for r in rep["mismatch"][:8]]
+    warm = rep.get("warmup") or {}
+    if warm.get("samples"):
+        lines += ["", f"The first {warm['seconds']:.2f} s (to {warm['until_s']:.2f} s) are the "
+                  "diagnosis' warm-up: "
+                  f"{warm['treatment']}; {len(warm['regions'])} region(s) inside it are not "
+                  "listed above."]  # fmt: skip
     lines += ["", "![residual](residual.png)", "", "![overlay](overlay.png)", ""]
     return "\n".join(lines)
 
