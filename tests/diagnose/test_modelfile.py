@@ -74,7 +74,7 @@ def same(a, b) -> bool:
     return math.isclose(a, b) if isinstance(a, float) else a == b
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=25, deadline=None)
 @given(old=effects_st, new=effects_st, comment=st.sampled_from(["note", "x: y # z", "é"]),
        notes=st.lists(st.sampled_from(["clamped: a", "folded: b"]), max_size=2))  # fmt: skip
 def test_only_friction_effects_changes(old, new, comment, notes) -> None:
