@@ -185,7 +185,8 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
     if chunks is not None and rt.old_policy is not None and cfg.loop.realtime.policy != "other":
         ok, what = chunks.lowest_realtime()  # background, above normal tasks
         (rt.applied if ok else rt.refused).append(what)
-    print(rt.line("sim-plc: real-time"), file=sys.stderr, flush=True)
+    line = rt.line("sim-plc: real-time") if wanted else "sim-plc: real-time: off (no --realtime)"
+    print(line, file=sys.stderr, flush=True)
 
     def on_signal(signum: int, frame: object) -> None:
         done.set()
