@@ -8,12 +8,12 @@ does not name gets the effect's neutral value (a parameter whose absent value is
 nominal's, e.g. a bearing coefficient, gets the nominal pulleys' mean where some cables
 have a fitted value; it is left out when none has). The file is the ``--model`` file byte
 for byte except its ``friction.effects`` entry (:mod:`gateway.diagnose.modelfile`:
-comments, layout and every other key kept). Effects the model already carried are composed with the new findings (each
-effect's ``compose``): the diagnosis ran relative to them (below), so a finding is a
-correction on top. What an effect needs done to a fitted value before it goes into a file
-(a phase fitted against the travel converted to the cable length, a negative level folded
-into its coefficient) is its ``to_model``; values outside what a file admits are clamped;
-both are named in comments above that entry.
+comments, layout and every other key kept). Effects the model already carried are
+composed with the new findings (each effect's ``compose``): the diagnosis ran relative to
+them (below), so a finding is a correction on top. What an effect needs done to a fitted
+value before it goes into a file (a phase fitted against the travel converted to the cable
+length, a negative level folded into its coefficient) is its ``to_model``; values outside
+what a file admits are clamped; both are named in comments above that entry.
 
 **Reading back** (:func:`relative_to_model`): the diagnosis fits candidates on a nominal
 chain. A model file with ``friction.effects`` is honoured by diagnosing an equivalent
