@@ -52,6 +52,7 @@ from typing import IO, Any, TextIO
 import numpy as np
 
 from drivers.s7 import S7Analog
+from gateway.core.cliopts import add_config_option
 from gateway.core.config import DEFAULT_CONFIG_PATH, Config, RealtimeConfig, load_config
 from gateway.errors import GatewayError
 from gateway.model.chain import ChainParams, ChainStepper
@@ -84,7 +85,7 @@ STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first sta
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to run")
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
+    add_config_option(parser, DEFAULT_CONFIG_PATH)
     parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None,
                         help="fieldbus (default: bus.driver of the config)")  # fmt: skip
     parser.add_argument("--offline", action="store_true",

@@ -49,7 +49,7 @@ def write_config(tmp_path, edit=None) -> str:
 
 
 def test_check_accepts_the_default_config(capsys) -> None:
-    assert main(["check"]) == 0
+    assert main(["check", "--config", str(DEFAULT_CONFIG_PATH)]) == 0
     out = capsys.readouterr().out
     assert "valid; 8 cables" in out and "plausible setpoints" in out
 
@@ -121,7 +121,7 @@ def test_impossible_values_are_refused_in_one_line(tmp_path, capsys, section, ke
 
 def test_bad_log_level_is_one_line_and_status_2(capsys) -> None:
     with pytest.raises(SystemExit) as exc:
-        main(["run", "--log-level", "LOUD"])
+        main(["run", "--config", str(DEFAULT_CONFIG_PATH), "--log-level", "LOUD"])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'LOUD' is not a log level" in err[0]

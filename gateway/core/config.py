@@ -174,10 +174,12 @@ class FrictionConfig:
 
 @dataclass(frozen=True)
 class RealtimeConfig:
-    """``loop.realtime``: real-time settings applied at start where the process may
-    (:mod:`gateway.runtime.realtime`); what is refused is logged, never fatal."""
+    """``loop.realtime``: real-time settings ``run`` applies to its loop at start where the
+    process may (:mod:`gateway.runtime.realtime`); what is refused is logged in one line,
+    never fatal. On by default (a 1 kHz service); ``enabled: false`` leaves the process
+    as it was started."""
 
-    enabled: bool = False
+    enabled: bool = True
     policy: Literal["fifo", "rr", "other"] = "fifo"  # SCHED_FIFO, SCHED_RR, SCHED_OTHER
     priority: int = 50  # 1..99 for fifo and rr
     cpus: tuple[int, ...] = ()  # CPU affinity of the cycle's thread; () leaves it as is
@@ -356,7 +358,7 @@ class Config:
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
-    source: str = ""
+    source: str = field(default="", metadata={"file": False})  # the file's path, not a key
 
     def __post_init__(self) -> None:
         fr = self.friction

@@ -165,8 +165,8 @@ def convert(cls: type[T], data: Any, key: str = "", source: str = "") -> T:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = [k for k in data if k not in fields]
-    if unknown:
-        known = ", ".join(sorted(fields))
+    if unknown:  # a field with metadata {"file": False} is filled in by the loader
+        known = ", ".join(sorted(n for n, f in fields.items() if f.metadata.get("file", True)))
         raise _fail(source, _join(key, str(unknown[0])), f"unknown key (known here: {known})")
     kwargs: dict[str, Any] = {}
     for name, field in fields.items():

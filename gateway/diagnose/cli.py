@@ -1,4 +1,4 @@
-"""``cdpr-gateway diagnose RECORDING --model MODEL.yaml --json REPORT.json [--report DIR]
+"""``cdpr-gateway diagnose RECORDING --model MODEL.yaml [--json REPORT.json] [--report DIR]
 [--validate OTHER] [--write-model FITTED.yaml]``: see spec/recording.md,
 :mod:`gateway.diagnose.engine` and (the model file's fitted effects)
 :mod:`gateway.diagnose.writemodel`."""
@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from gateway.core.cliopts import output_dir
 from gateway.core.config import (
     Config,
     FrictionConfig,
@@ -21,7 +22,7 @@ from gateway.core.config import (
     output_path,
 )
 from gateway.core.configtypes import read_yaml
-from gateway.diagnose import platform
+from gateway.diagnose import heldout, platform, warmup
 from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
@@ -36,7 +37,7 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         required=True,
         help="nominal model YAML: a friction: mapping, or a full config",
     )
-    parser.add_argument("--json", type=Path, required=True, help="write the JSON report here")
+    parser.add_argument("--json", type=Path, help="write the JSON report here")
     parser.add_argument("--report", type=Path, help="write PNG pictures and summary.md here")
     parser.add_argument(
         "--validate",
@@ -48,7 +49,6 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         type=Path,
         help="write the model plus every fitted effect here (friction.effects)",
     )
-    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def load_model(path: Path) -> tuple[object, Config | None]:
@@ -110,9 +110,12 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    output_path(args.json, "--json")  # before the work; never creates directories
+    if args.json is not None:  # before the work; never creates directories
+        output_path(args.json, "--json")
     if args.write_model is not None:
         output_path(args.write_model, "--write-model")
+    if args.report is not None:  # a directory: one level is created, now, not after the work
+        output_dir(args.report, "--report")
     model_friction, cfg = load_model(args.model)
     rec, nominal = _read(args.recording, model_friction, cfg)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
@@ -137,11 +140,13 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             vtp, vdm = _tensions(vrec, cfg, say)
             validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
-    try:
-        args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
-    except OSError as exc:
-        raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
-    say(f"report in {args.json}")
+    warmup.annotate(diag.report, rec, nominal)  # the start-up transient, said as such
+    if args.json is not None:
+        try:
+            args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
+        except OSError as exc:
+            raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
+        say(f"report in {args.json}")
     if args.report is not None:
         from gateway.diagnose.plots import write_report
         from gateway.diagnose.wrench_plots import write_report as write_wrench_report
@@ -152,6 +157,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     if args.write_model is not None:
+        refused = heldout.refusal(diag.report, heldout.motion(rec.t, rec.velocity))
+        if refused is not None:
+            raise GatewayError(f"--write-model {args.write_model}: {refused}")
         write_model(args.write_model, args.model, model_friction, diag.report, keep_for_model(rec))  # type: ignore[arg-type]
         say(f"fitted model in {args.write_model}")
     rep = diag.report

@@ -292,13 +292,23 @@ def summary(diag: Diagnosis, source: str) -> str:
             "residual energy): the mismatch is spread over the whole recording, as a "
             "constant, slowly varying or speed-proportional one is; nothing is shaded.",
         ]
-    for r in rep["mismatch"][:8]:
-        lines.append(
-            f"- cable {r['cable']}, {r['start_s']:.2f}-{r['end_s']:.2f} s, "
-            f"{r['regime']}: {r['share']:.1%} of the residual energy"
-        )
+    lines += [region_line(r) for r in rep["mismatch"][:8]]
+    warm = rep.get("warmup") or {}
+    if warm.get("samples"):
+        lines += ["", f"The first {warm['seconds']:.2f} s (to {warm['until_s']:.2f} s) are the "
+                  "diagnosis' warm-up: "
+                  f"{warm['treatment']}; {len(warm['regions'])} region(s) inside it are not "
+                  "listed above."]  # fmt: skip
     lines += ["", "![residual](residual.png)", "", "![overlay](overlay.png)", ""]
     return "\n".join(lines)
+
+
+def region_line(r: dict[str, Any]) -> str:
+    """One mismatch region for summary.md; cable 0 is the platform (the wrench reference
+    locates regions in the platform's force balance, not on one cable)."""
+    who = "the platform (wrench balance, all cables)" if r["cable"] == 0 else f"cable {r['cable']}"
+    return (f"- {who}, {r['start_s']:.2f}-{r['end_s']:.2f} s, {r['regime']}: "
+            f"{r['share']:.1%} of the residual energy")  # fmt: skip
 
 
 def write_files(

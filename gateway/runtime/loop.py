@@ -176,6 +176,7 @@ class CyclicService:
         """Run ``cycles`` cycles (``None``: until :meth:`stop`); then write STOPPED."""
         if not self._configured:
             self.configure()
+        self._reporter.ready()  # configured: ready, whether or not the PLC answers yet
         gc.collect()
         gc.freeze()  # everything allocated so far is permanent: no GC pauses scanning it
         # Another thread (metrics scrape, an in-process PLC) holds the GIL for up to the
@@ -434,9 +435,14 @@ class _Reporter:
             else:
                 log.info("connected to the PLC at %s; active, writing corrected tensions", where)
             self._status("active")
-            if svc.notifier is not None and not self.ready_sent:
-                self.ready_sent = True
-                svc.notifier.notify("READY=1")
+
+    def ready(self) -> None:
+        """READY=1 once, when the service is configured: a PLC that does not answer yet
+        is retried by the loop (the README's 'ready once configured'), so systemd's start
+        does not wait for it (TimeoutStartSec)."""
+        if self.svc.notifier is not None and not self.ready_sent:
+            self.ready_sent = True
+            self.svc.notifier.notify("READY=1")
 
     def _status(self, line: str) -> None:
         if self.svc.notifier is not None:

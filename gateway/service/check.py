@@ -26,7 +26,6 @@ import numpy as np
 
 from drivers.base import Driver, Inputs
 from gateway.core.config import (
-    DEFAULT_CONFIG_PATH,
     Config,
     config_warnings,
     exposure_warning,
@@ -35,14 +34,13 @@ from gateway.core.config import (
 from gateway.errors import DriverError, GatewayError
 from gateway.runtime.loop import describe_bus
 from gateway.runtime.plausibility import Plausibility
-from gateway.service.daemon import add_log_level, build_driver, setup_logging
+from gateway.service.daemon import add_config_option, build_driver, setup_logging
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
+    add_config_option(parser, why="the file to check")
     parser.add_argument("--connect", action="store_true",
                         help="also read once from the PLC (writes nothing)")  # fmt: skip
-    add_log_level(parser)
 
 
 def file_problems(cfg: Config) -> list[str]:

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
 from gateway.core.config import MetricsConfig
-from gateway.errors import ConfigError
+from gateway.errors import ConfigError, TemporaryError
 from gateway.runtime import realtime
 
 log = logging.getLogger("cdpr_gateway.exporter")
@@ -179,7 +179,9 @@ class MetricsServer:
             self._listener.setblocking(False)
         except OSError as exc:
             self._listener.close()
-            raise ConfigError(
+            # a port in use may be free after a restart; anything else is the config's
+            error = TemporaryError if exc.errno == errno.EADDRINUSE else ConfigError
+            raise error(
                 f"{where}metrics.port: cannot serve metrics on {cfg.host}:{cfg.port}: {exc}"
             ) from exc
         self.host = cfg.host

@@ -31,7 +31,11 @@ writing), 2 active, 3 fault. The two ages are NaN until the first reading.
 Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`;
 ``MetricsServer`` is re-exported here for the daemon.
 
-Cables are labelled 1..m. ``errors_total{kind="invalid_value"}`` counts channels going
+Cables are labelled 1..m. The tension and friction gauges of a channel whose status is 2
+(invalid; every channel during a PLC heartbeat fault) are NaN, never its last good value:
+the series stays (Prometheus' "avoid missing metrics": a series that comes and goes breaks
+``rate``, ``for:`` and dashboards) but carries no number that could pass for a reading, as
+the PLC's registers hold NaN. ``errors_total{kind="invalid_value"}`` counts channels going
 from good to flagged (events, not flagged cycles). Every label value of ``kind`` is
 always present (0 until it happens) so dashboards and alerts see a stable set.
 """
@@ -41,7 +45,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Any
 
-from prometheus_client import CollectorRegistry
+import numpy as np
+from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
@@ -50,6 +55,7 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 
+from drivers.base import ChannelStatus
 from gateway import __version__
 from gateway.runtime.loop import CyclicService
 from gateway.runtime.stats import Histogram
@@ -100,13 +106,16 @@ class GatewayCollector(Collector):
                         "bus", {bus: svc.reconnects})  # fmt: skip
         yield _labelled(GaugeMetricFamily, "connected", "1 while the bus is up.",
                         "bus", {bus: 1.0 if svc.bus_up else 0.0})  # fmt: skip
+        status, invalid = channel_status(svc)
         comp = svc.comp
         per_cable = (
-            ("tension_raw_newtons", "Scaled sensor reading.", comp.raw_n),
-            ("tension_corrected_newtons", "Compensated platform tension.", comp.corrected_n),
-            ("friction_newtons", "Estimated friction between sensor and platform.",
-             comp.friction_n),
-            ("channel_status", "0 good, 1 substituted, 2 invalid.", comp.status),
+            ("tension_raw_newtons", "Scaled sensor reading (NaN while invalid).",
+             np.where(invalid, np.nan, comp.raw_n)),
+            ("tension_corrected_newtons", "Compensated platform tension (NaN while invalid).",
+             np.where(invalid, np.nan, comp.corrected_n)),
+            ("friction_newtons", "Estimated friction between sensor and platform (NaN while "
+             "invalid).", np.where(invalid, np.nan, comp.friction_n)),
+            ("channel_status", "0 good, 1 substituted, 2 invalid.", status),
         )  # fmt: skip
         for name, doc, values in per_cable:
             yield _labelled(GaugeMetricFamily, name, doc, "cable",
@@ -133,6 +142,15 @@ class GatewayCollector(Collector):
         )
 
 
+def channel_status(svc: CyclicService) -> tuple[np.ndarray, np.ndarray]:
+    """(status per cable as the PLC was last told it, True where invalid). A heartbeat
+    fault invalidates every channel (the fault frame), whatever the readings were."""
+    status = np.asarray(svc.comp.status, dtype=float).copy()
+    if svc.heartbeat_fault:
+        status[:] = int(ChannelStatus.INVALID)
+    return status, status == int(ChannelStatus.INVALID)
+
+
 def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, float]) -> Metric:
     family = kind(f"{PREFIX}_{name}", doc, labels=[label])
     for value_label, value in values.items():
@@ -141,7 +159,10 @@ def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, floa
 
 
 def make_registry(service: CyclicService, bus: str | None = None) -> CollectorRegistry:
-    """A fresh registry holding only the gateway collector."""
+    """A fresh registry holding the gateway collector and prometheus_client's process
+    collector (``process_resident_memory_bytes``, ``process_cpu_seconds_total``,
+    ``process_open_fds``, ...: read from /proc at scrape time, nothing in the cycle)."""
     registry = CollectorRegistry()
     registry.register(GatewayCollector(service, bus))
+    ProcessCollector(registry=registry)
     return registry

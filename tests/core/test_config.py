@@ -91,3 +91,13 @@ def test_listeners_beyond_loopback_are_called_out() -> None:
     assert exposure_warning("metrics.host", "127.0.0.1", 9109) is None
     line = exposure_warning("metrics.host", "0.0.0.0", 9109, "site.yaml")
     assert line is not None and "metrics.host in site.yaml binds 0.0.0.0:9109" in line
+
+
+def test_unknown_key_lists_only_keys_a_file_may_hold(tmp_path):
+    """'source' is filled in by the loader; the error must not offer it (issue 22.12)."""
+    path = tmp_path / "c.yaml"
+    path.write_text(DEFAULT_CONFIG_PATH.read_text() + "\nsauce: 1\n")
+    with pytest.raises(ConfigError, match=r"sauce: unknown key \(known here: ") as exc:
+        load_config(path)
+    known = str(exc.value).split("known here: ")[1].rstrip(")").split(", ")
+    assert "source" not in known and "geometry" in known and "sim_plc" in known

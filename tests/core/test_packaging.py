@@ -92,9 +92,52 @@ def test_replicate_exits_1_naming_a_missed_goal(monkeypatch, capsys, tmp_path):
     }
     monkeypatch.setattr(replicate, "replicate", lambda *a, **k: {"goals": goals})
     args = argparse.Namespace(config=str(DEFAULT_CONFIG_PATH), out=str(tmp_path),
-                              seconds_limit=1.0, no_plots=True)  # fmt: skip
+                              seconds=1.0, no_plots=True)  # fmt: skip
     assert replicate.run_command("replicate", args) == 1
     err = capsys.readouterr().err
     assert "goal missed: hysteresis_after_at_most_2n" in err
     goals["hysteresis_after_at_most_2n"]["met"] = True
     assert replicate.run_command("replicate", args) == 0
+
+
+def test_building_the_package_warns_about_nothing(tmp_path):
+    """A wheel built from setup.py's package map: no 'Package ... is absent' (the 40-line
+    warning every fresh install printed for gateway.data.calibrate), and every shipped
+    config lands under gateway/data/, the calibrate examples included."""
+    import zipfile
+
+    res = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-w", str(tmp_path), str(ROOT)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    out = res.stdout + res.stderr
+    assert "is absent" not in out and "would be ignored" not in out, out
+    (wheel,) = tmp_path.glob("cdpr_gateway-*.whl")
+    prefix = "gateway/data/"
+    built = {n[len(prefix) :] for n in zipfile.ZipFile(wheel).namelist() if n.startswith(prefix)}
+    shipped = {p.relative_to(ROOT / "config").as_posix()
+               for p in (ROOT / "config").rglob("*") if p.is_file()}  # fmt: skip
+    assert shipped <= built, shipped - built
+
+
+def test_every_runtime_dependency_is_imported_by_the_shipped_code():
+    """[project] dependencies hold what the installed package imports (gateway, drivers,
+    sim_plc); a library only the tests use (pymodbus' client) belongs to ``dev``."""
+    import ast
+    import re
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    names = {re.split(r"[<>=!~ \[;]", d, maxsplit=1)[0].lower() for d in deps}
+    module_of = {"pyyaml": "yaml", "python-can": "can", "prometheus-client": "prometheus_client"}
+    imported: set[str] = set()
+    for package in ("gateway", "drivers", "sim_plc"):
+        for path in (ROOT / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.Import):
+                    imported |= {a.name.split(".")[0] for a in node.names}
+                elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                    imported.add(node.module.split(".")[0])
+    unused = sorted(n for n in names if module_of.get(n, n.replace("-", "_")) not in imported)
+    assert unused == [], f"runtime dependencies nothing shipped imports: {unused}"

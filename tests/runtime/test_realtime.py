@@ -63,15 +63,17 @@ def test_bad_realtime_config_names_the_key(data: dict, message: str) -> None:
         convert(LoopConfig, {"realtime": data}, "loop", "f.yaml")
 
 
-def test_config_defaults_off_and_other_policy_takes_priority_zero() -> None:
+def test_config_defaults_on_and_other_policy_takes_priority_zero() -> None:
     loop = convert(LoopConfig, {"realtime": {"policy": "other", "priority": 0}}, "loop")
     assert loop.realtime.policy == "other"
-    assert LoopConfig().realtime.enabled is False
+    assert LoopConfig().realtime.enabled is True  # a 1 kHz service tries it by default
+    off = convert(LoopConfig, {"realtime": {"enabled": False}}, "loop")
+    assert off.realtime.enabled is False
 
 
 def test_disabled_applies_nothing() -> None:
     ops = FakeOps()
-    report = realtime.apply(RealtimeConfig(), ops)
+    report = realtime.apply(RealtimeConfig(enabled=False), ops)
     assert ops.calls == [] and not report.enabled
     assert "off" in report.line()
 

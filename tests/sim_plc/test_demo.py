@@ -95,7 +95,8 @@ def test_run_sigterm_stops_cleanly(tmp_path):
                      re.MULTILINE), text  # fmt: skip
     assert re.search(stamp + r"bus: virtual \(bus\.virtual\)", text, re.MULTILINE)
     assert re.search(stamp + r"model: dahl, 3 pulleys", text, re.MULTILINE)
-    assert re.search(stamp + r"loop: period 1 ms, .*real-time scheduling", text, re.MULTILINE)
+    assert re.search(stamp + r"loop: period 1 ms, .*real-time: tried", text, re.MULTILINE)
+    assert re.search(stamp + r"real-time: applied .*; refused ", text, re.MULTILINE)
     assert re.search(stamp + r"connected to the PLC at virtual", text, re.MULTILINE)
 
 
