@@ -33,7 +33,15 @@ The contract a loop relies on is declared here, with defaults, and nowhere else:
   :meth:`poll_connect` (non-blocking drivers implement ``_open_begin``/``_open_advance``);
 * one cycle's transfer as one explicit :meth:`exchange` (``outputs`` written and
   ``inputs`` read in one transaction where the bus can: Modbus function 23, see
-  :attr:`Driver.combines_write_and_read`); :meth:`write_from` always sends at once.
+  :attr:`Driver.combines_write_and_read`); :meth:`write_from` always sends at once;
+* every frame passes the output gate (:func:`drivers.gate.gate_frame`) in
+  :meth:`exchange` and :meth:`write_from`, at :attr:`Driver.clock`'s time of sending, just
+  before the hook encodes it: a value the PLC may use is finite, fits its register, was
+  computed from data no older than ``loop.max_input_age_s`` while the PLC heartbeat
+  watchdog was armed; anything else goes out invalid (counted in :attr:`Driver.gated`);
+* the time of the data: :attr:`Inputs.read_time_s` is the driver clock when the data was
+  requested (or, on a paced bus, when its SYNC came): an upper bound of its age. The loop
+  sets :attr:`Driver.clock` to its own clock.
 
 Only this class changes :attr:`Driver.state`.
 """
@@ -50,6 +58,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from drivers import gate
 from gateway.errors import DriverError, DriverInitError
 
 DRIVERS: dict[str, str] = {
@@ -97,8 +106,8 @@ class Inputs:
     velocity_m_s: np.ndarray  # setpoint cable velocities
     length_m: np.ndarray  # setpoint cable lengths
     pose: np.ndarray  # (6,) x, y, z m; rx, ry, rz rad
-    plc_heartbeat: int = 0
-    read_time_s: float = 0.0  # time.monotonic() when the reply arrived
+    plc_heartbeat: int | float = 0  # float when its register is float32 (NaN: no value)
+    read_time_s: float = 0.0  # driver clock when the data was requested (its age's bound)
     platform_mass_kg: float = float("nan")  # when the register map has platform_mass
 
     @staticmethod
@@ -120,6 +129,14 @@ class Outputs:
     wrench: np.ndarray  # (6,) N, N m
     gateway_heartbeat: int = 0
     gateway_state: int = int(Lifecycle.CONNECTED)
+    data_at: float = math.nan  # read_time_s of the inputs the frame was computed from
+    heartbeat_at: float = -math.inf  # when the PLC heartbeat last changed (-inf: never seen)
+
+    def stamp(self, data_at: float, heartbeat_at: float) -> Outputs:
+        """Say when the frame's data was requested and when the PLC heartbeat last
+        changed (driver clock): the output gate sends nothing good without both."""
+        self.data_at, self.heartbeat_at = float(data_at), float(heartbeat_at)
+        return self
 
     @staticmethod
     def allocate(cables: int) -> Outputs:
@@ -190,6 +207,8 @@ class Driver(ABC):
     paced_by_bus: ClassVar[bool] = False
     #: The budget (s) :meth:`open` gives each ``_open_advance`` call while it blocks.
     OPEN_POLL_S: ClassVar[float] = 0.05
+    #: What :attr:`gated` counts, by index (``cdpr_gateway_gated_total{reason}``).
+    GATE_REASONS: ClassVar[tuple[str, ...]] = gate.REASONS
 
     def __init__(self, config: Any) -> None:
         self.config = config
@@ -205,6 +224,33 @@ class Driver(ABC):
         self._closed = False
         self._connecting = False
         self._ever_connected = False
+        self.clock = time.monotonic  # the loop replaces it with its own clock
+        self.gated = np.zeros(len(gate.REASONS), dtype=np.int64)  # values the gate stopped
+        self.plc_heartbeat_modulus = 1 << 16  # the PLC heartbeat's wrap (0: a float)
+        self._gate_limits: gate.GateLimits | None = None
+
+    def output_bands(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """(corrected tension, wrench) values the written registers can carry."""
+        f32 = float(np.finfo(np.float32).max)
+        return (-f32, f32), (-f32, f32)
+
+    @property
+    def gate_limits(self) -> gate.GateLimits:
+        if self._gate_limits is None:
+            lp = self.config.loop
+            tension, wrench = self.output_bands()
+            age = lp.max_input_age_s if lp.max_input_age_s is not None else 2 * lp.period_s
+            self._gate_limits = gate.limits(tension, wrench, age, lp.heartbeat_timeout_s)
+        return self._gate_limits
+
+    def _gate(self, outputs: Outputs) -> None:
+        """The output gate at this moment (module doc of :mod:`drivers.gate`)."""
+        o = outputs
+        now = self.clock()
+        tension, status, wrench = o.tension_corrected_n, o.channel_status, o.wrench
+        gate.gate_frame(
+            self.gate_limits, now, o.data_at, o.heartbeat_at, tension, status, wrench, self.gated
+        )
 
     @property
     def combines_write_and_read(self) -> bool:
@@ -284,6 +330,9 @@ class Driver(ABC):
         """One cycle's transfer: write ``outputs`` (None: nothing to write) and read
         ``inputs``, in one transaction where the bus can (Modbus function 23), else write
         then read. A normal return is a good data reply: the reconnect backoff resets."""
+        if outputs is not None:
+            self._gate(outputs)
+        inputs.read_time_s = self.clock()  # a driver that knows better overwrites it
         start = time.perf_counter()
         try:
             self._exchange(outputs, inputs)
@@ -291,7 +340,6 @@ class Driver(ABC):
             self.state = DriverState.FAULT
             raise
         self.roundtrip_s.add(time.perf_counter() - start)
-        inputs.read_time_s = time.monotonic()
         self.backoff.reset()
         if outputs is not None:
             self.state = DriverState.ACTIVE
@@ -299,7 +347,8 @@ class Driver(ABC):
             self.state = DriverState.CONNECTED
 
     def write_from(self, outputs: Outputs) -> None:
-        """Send ``outputs`` now."""
+        """Send ``outputs`` now (through the output gate)."""
+        self._gate(outputs)
         try:
             self._write(outputs)
         except DriverError:

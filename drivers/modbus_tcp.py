@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Backoff, Driver, Inputs, Outputs
-from drivers.registers import FieldCodec, FieldGroup, Span, layout_map
+from drivers.registers import FieldCodec, FieldGroup, Span, check_outputs, layout_map, value_band
 from gateway.core.config import ModbusTcpConfig
 from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError
 
@@ -94,6 +94,7 @@ class ModbusTcpDriver(Driver):
         self.where = f"modbus_tcp {self.mb.host}:{self.mb.port} unit {self.mb.unit_id}"
         self.layout = layout_map(self.mb.registers)
         self._check_counts()
+        check_outputs(self.mb.registers, config.sensor)
         try:
             self._ssl = _tls_context(self.mb)
         except (OSError, ssl.SSLError) as exc:
@@ -107,6 +108,13 @@ class ModbusTcpDriver(Driver):
         self._timeouts_in_a_row = 0
         self.foreign_unit_replies = 0  # replies from another unit id (also dropped_replies)
         self._build_frames(config)
+        self.plc_heartbeat_modulus = {"float32": 0, "int32": 2**32, "uint32": 2**32}.get(
+            self.mb.registers.plc_heartbeat.type, 2**16
+        )
+
+    def output_bands(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        r = self.mb.registers
+        return value_band(r.corrected_tensions), value_band(r.wrench)
 
     @property
     def combines_write_and_read(self) -> bool:
@@ -161,13 +169,13 @@ class ModbusTcpDriver(Driver):
         self._mass = inp(r.platform_mass) if r.platform_mass is not None else None
         self._mass_value = np.zeros(1)
 
-        def outp(f: Any) -> FieldCodec:
-            return FieldCodec(f, self._wdata, ws.start, 0, sensor)
+        def outp(f: Any, wrap: bool = False) -> FieldCodec:
+            return FieldCodec(f, self._wdata, ws.start, 0, sensor, wrap=wrap)
 
         self._out = (
             outp(r.corrected_tensions),
             outp(r.channel_status),
-            outp(r.gateway_heartbeat),
+            outp(r.gateway_heartbeat, wrap=True),
             outp(r.gateway_state),
             outp(r.wrench),
         )
@@ -178,6 +186,7 @@ class ModbusTcpDriver(Driver):
             (self._raw, self._vel, self._len, self._pose, self._hb), raw=(False,) * 4 + (True,)
         )
         self._hb_value = np.zeros(1)
+        self._hb_int = r.plc_heartbeat.type != "float32"
         self._out_group = FieldGroup(self._out)
         self._decode(Inputs.allocate(self.cables))
         self._encode(Outputs.allocate(self.cables))
@@ -341,19 +350,23 @@ class ModbusTcpDriver(Driver):
         self._tid = (self._tid + 1) & 0xFFFF
         struct.pack_into(">H", frame, 0, self._tid)
         deadline = time.perf_counter() + self.mb.timeout_s
+        late = False
         try:
             if self._sock_timeout < 0.5 * self.mb.timeout_s:
                 sock.settimeout(self.mb.timeout_s)
                 self._sock_timeout = self.mb.timeout_s
             sock.sendall(frame)
             n = self._receive(sock, self._tid, deadline)
+            if time.perf_counter() > deadline:  # read late (this process was held up):
+                late = True  # the reply is dropped, its data is no good
+                raise TimeoutError
         except TimeoutError as exc:
             self._timeouts_in_a_row += 1
             if self._timeouts_in_a_row >= MAX_TIMEOUTS_IN_A_ROW:
                 self._drop()
+            what = "reply read after its deadline" if late else "no reply within"
             raise DriverTimeoutError(
-                f"{self.where}: function {fc} at register {address}: no reply within "
-                f"{self.mb.timeout_s} s"
+                f"{self.where}: function {fc} at register {address}: {what} {self.mb.timeout_s} s"
             ) from exc
         except (OSError, ssl.SSLError) as exc:
             self._drop()
@@ -405,16 +418,14 @@ class ModbusTcpDriver(Driver):
         hb = self._hb_value
         i = inputs
         self._in_group.decode((i.tension_raw_n, i.velocity_m_s, i.length_m, i.pose, hb))
-        inputs.plc_heartbeat = int(hb[0])
+        inputs.plc_heartbeat = int(hb[0]) if self._hb_int else float(hb[0])
         if self._mass is not None:
             inputs.platform_mass_kg = float(self._mass.decode(self._mass_value)[0])
 
     def _encode(self, outputs: Outputs) -> None:
         o = outputs
-        self._out_group.encode(
-            (o.tension_corrected_n, o.channel_status, int(o.gateway_heartbeat) & 0xFFFF,
-             int(o.gateway_state), o.wrench)
-        )  # fmt: skip
+        hb, state = int(o.gateway_heartbeat), int(o.gateway_state)
+        self._out_group.encode((o.tension_corrected_n, o.channel_status, hb, state, o.wrench))
 
     def _write(self, outputs: Outputs) -> None:
         self._encode(outputs)

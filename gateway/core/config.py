@@ -208,6 +208,9 @@ class LoopConfig:
     stuck_after_s: float = 0.5  # a channel that does not change for this long is stuck
     stale_after_s: float = 0.01  # no fresh read for this long: channels are stale
     heartbeat_timeout_s: float = 0.1  # PLC heartbeat unchanged this long: stop writing, fault
+    # a value goes out good only if computed from PLC data this young when sent (the
+    # output gate, drivers/gate.py); None: 2 periods
+    max_input_age_s: float | None = None
     fixed_point_tol_n: float = 1e-9
     fixed_point_max_iter: int = 8
     overrun_warning_interval_s: float = 10.0
@@ -220,6 +223,10 @@ class LoopConfig:
         require(self.stuck_after_s > 0, "stuck_after_s must be > 0")
         require(self.stale_after_s > 0, "stale_after_s must be > 0")
         require(self.heartbeat_timeout_s > 0, "heartbeat_timeout_s must be > 0")
+        require(
+            self.max_input_age_s is None or self.period_s <= self.max_input_age_s <= 10.0,
+            "max_input_age_s must be in period_s..10",
+        )
         require(self.overrun_warning_interval_s > 0, "overrun_warning_interval_s must be > 0")
         require(0 <= self.busy_wait_s < self.period_s, "busy_wait_s must be in 0..period_s")
         require(self.fixed_point_max_iter >= 1, "fixed_point_max_iter must be >= 1")

@@ -204,7 +204,8 @@ class Compensator:
         self._velocity_hold = np.zeros(m)  # the one before it (a repeated sample: hold a)
         self._sample_at = math.nan  # when the last new PLC sample arrived
         self._sample_dt = 0.0  # time between the last two new PLC samples
-        self._heartbeat = -1
+        self._heartbeat = math.nan  # the last finite PLC heartbeat
+        self.heartbeat_modulus = 1 << 16  # its register's wrap (0: float32), set by the loop
         self._plc_period_s = math.nan  # the PLC's sample spacing, averaged over samples
         self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
         self._length_in = np.zeros(m)
@@ -261,7 +262,7 @@ class Compensator:
         dt = now - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
         dt = dt if dt > 0.0 else 0.0
         self._stepped_at = now
-        self._online_inputs(now, int(inputs.plc_heartbeat))
+        self._online_inputs(now, float(inputs.plc_heartbeat))
         self.stepper.step(
             self.model_in_n, self.velocity_m_s, self.corrected_n, min(dt, self.max_step_s)
         )
@@ -276,7 +277,24 @@ class Compensator:
         out.channel_status[:] = self.status
         out.wrench[:] = self.wrench
 
-    def _online_inputs(self, now: float, heartbeat: int) -> None:
+    def _heartbeat_steps(self, heartbeat: float) -> int:
+        """PLC samples since the last one by its heartbeat (modulo its register; a float
+        heartbeat by its difference); 0 for the same value, NaN or the first one, and
+        ``MAX_STEP_PERIODS + 1`` for a difference that is no count of samples."""
+        prev = self._heartbeat
+        if not math.isfinite(heartbeat):
+            return 0
+        self._heartbeat = heartbeat
+        if prev != prev:
+            return 0
+        d = heartbeat - prev
+        if self.heartbeat_modulus:
+            return int(d) % self.heartbeat_modulus
+        if d == 0.0:
+            return 0
+        return int(d) if d == int(d) and 0 < d <= MAX_STEP_PERIODS else MAX_STEP_PERIODS + 1
+
+    def _online_inputs(self, now: float, heartbeat: float) -> None:
         """Gain, offset, inertia, eccentricity removed. The inertia's acceleration is the
         backward difference between *new* PLC samples (a new heartbeat or a new setpoint
         velocity); a cycle that reads the same sample again holds it (a difference of 0
@@ -286,9 +304,8 @@ class Compensator:
         (``PLC_PERIOD_GAIN``): single arrival times carry the bus jitter, which the
         difference quotient would amplify. Without a counting heartbeat, or across a gap
         of more than ``MAX_STEP_PERIODS`` samples, the arrival times are used."""
-        steps = (heartbeat - self._heartbeat) & 0xFFFF if self._heartbeat >= 0 else 0
+        steps = self._heartbeat_steps(heartbeat)
         new = steps != 0 or _differs(self.velocity_m_s, self._velocity_prev)
-        self._heartbeat = heartbeat
         if new:
             dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
             dt = dt if dt > 0.0 else 0.0

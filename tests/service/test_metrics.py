@@ -23,6 +23,7 @@ DESIGN_TABLE = {
     "cdpr_gateway_record_dropped": ("counter", set()),  # gateway.service.recorder
     "cdpr_gateway_bus_roundtrip_seconds": ("histogram", {"bus"}),
     "cdpr_gateway_errors": ("counter", {"kind"}),
+    "cdpr_gateway_gated": ("counter", {"reason"}),  # the output gate (drivers/gate.py)
     "cdpr_gateway_reconnects": ("counter", {"bus"}),
     "cdpr_gateway_connected": ("gauge", {"bus"}),
     "cdpr_gateway_tension_raw_newtons": ("gauge", {"cable"}),

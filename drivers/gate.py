@@ -1,0 +1,122 @@
+"""The output gate: the one function every frame to the PLC passes, last before encoding.
+
+A PLC trusts a channel whose status word says good (0) or substituted (1). The gate is
+the contract that trust relies on, enforced once at the boundary: :class:`drivers.base.Driver`
+calls :func:`gate_frame` in :meth:`~drivers.base.Driver.exchange` and
+:meth:`~drivers.base.Driver.write_from`, with the driver's clock read at that moment, right
+before the driver's hook encodes and sends the frame. A channel keeps a status other than
+invalid only if, at the moment of sending,
+
+* ``heartbeat``: the PLC heartbeat has been seen changing, and its last change is no older
+  than ``loop.heartbeat_timeout_s`` (the watchdog is armed and not expired);
+* ``age``: the frame was computed from PLC data no older than ``loop.max_input_age_s``
+  (the data's time is when it was requested, or the SYNC it belongs to: an upper bound of
+  its age);
+* ``non_finite``: its value is finite;
+* ``range``: its value lies in what the register type and scale can carry without
+  clipping or colliding with the sentinel (:func:`drivers.registers.value_band`; CANopen:
+  the PDO's +-655.32 N).
+
+Any other channel is written invalid (status 2) with NaN, which the codec writes as the
+register's "no value" (NaN for float32, the integer sentinel otherwise). The wrench is
+written only when every channel is good or substituted and each component is finite and
+in range; else every component is NaN. Each channel stopped (and each wrench stopped on
+its own) is counted once, under the first reason in :data:`REASONS` that applies:
+``cdpr_gateway_gated_total{reason}``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+REASONS = ("heartbeat", "age", "non_finite", "range")
+_HEARTBEAT, _AGE, _NON_FINITE, _RANGE = range(4)
+INVALID = 2  # drivers.base.ChannelStatus.INVALID (base imports this module)
+
+
+class GateLimits(NamedTuple):
+    """What a good value must satisfy: the register bands and the two time limits."""
+
+    tension_lo: float
+    tension_hi: float
+    wrench_lo: float
+    wrench_hi: float
+    max_input_age_s: float
+    heartbeat_timeout_s: float
+
+
+@njit(cache=True)
+def _gate(lim, now, data_at, heartbeat_at, tension, status, wrench, counts):
+    frame = -1  # a reason that stops the whole frame
+    if not 0.0 <= now - heartbeat_at <= lim.heartbeat_timeout_s:  # NaN, -inf: not armed
+        frame = _HEARTBEAT
+    elif not 0.0 <= now - data_at <= lim.max_input_age_s:  # a time to come is no time
+        frame = _AGE
+    every_channel = True
+    for i in range(tension.size):
+        if status[i] >= INVALID:
+            status[i] = INVALID
+            tension[i] = np.nan
+            every_channel = False
+            continue
+        x = tension[i]
+        reason = frame
+        if reason < 0:
+            if not math.isfinite(x):
+                reason = _NON_FINITE
+            elif x < lim.tension_lo or x > lim.tension_hi:
+                reason = _RANGE
+        if reason >= 0:
+            counts[reason] += 1
+            status[i] = INVALID
+            tension[i] = np.nan
+            every_channel = False
+    if not every_channel:
+        wrench[:] = np.nan
+        return
+    reason = -1
+    for k in range(wrench.size):
+        w = wrench[k]
+        if not math.isfinite(w):
+            reason = _NON_FINITE
+            break
+        if w < lim.wrench_lo or w > lim.wrench_hi:
+            reason = _RANGE
+    if reason >= 0:
+        counts[reason] += 1
+        wrench[:] = np.nan
+
+
+def gate_frame(
+    lim: GateLimits,
+    now: float,
+    data_at: float,
+    heartbeat_at: float,
+    tension: np.ndarray,
+    status: np.ndarray,
+    wrench: np.ndarray,
+    counts: np.ndarray,
+) -> None:
+    """Invalidate, in place, every value of the frame that breaks the contract (module
+    doc) at time ``now``; ``counts`` (len(REASONS),) int64 counts what was stopped."""
+    _gate(lim, float(now), float(data_at), float(heartbeat_at), tension, status, wrench, counts)
+
+
+def limits(
+    tension_band: tuple[float, float],
+    wrench_band: tuple[float, float],
+    max_input_age_s: float,
+    heartbeat_timeout_s: float,
+) -> GateLimits:
+    return GateLimits(
+        float(tension_band[0]),
+        float(tension_band[1]),
+        float(wrench_band[0]),
+        float(wrench_band[1]),
+        float(max_input_age_s),
+        float(heartbeat_timeout_s),
+    )
