@@ -13,7 +13,8 @@ An implausible velocity or length makes that cable's setpoint velocity NaN, so t
 compensator flags the channel (substituted, then invalid). An implausible pose makes the
 pose NaN (the wrench becomes NaN) and every cable's velocity NaN: every channel is flagged,
 because a PLC that sends an impossible pose cannot be trusted for the rest of the frame.
-A non-finite value is left to the compensator's own NaN check (it flags it the same way).
+A non-finite velocity, length or pose is implausible too (every comparison is written so
+that NaN fails it: a NaN cable length once passed and poisoned a fitted eccentricity).
 The loop counts the cycles with an implausible value in ``errors_total{kind="implausible"}``.
 """
 
@@ -35,9 +36,9 @@ def _check(velocity, length, pose, box, speed_max, length_max, rot_max):
     bad = 0
     pose_bad = False
     for k in range(3):
-        if pose[k] < box[0, k] or pose[k] > box[1, k]:
+        if not box[0, k] <= pose[k] <= box[1, k]:
             pose_bad = True
-        if abs(pose[3 + k]) > rot_max:
+        if not abs(pose[3 + k]) <= rot_max:
             pose_bad = True
     if pose_bad:
         bad += 1
@@ -45,7 +46,7 @@ def _check(velocity, length, pose, box, speed_max, length_max, rot_max):
             pose[k] = np.nan
     for i in range(velocity.size):
         v, lng = velocity[i], length[i]
-        if abs(v) > speed_max or lng < 0.0 or lng > length_max:
+        if not abs(v) <= speed_max or not 0.0 <= lng <= length_max:
             bad += 1
             velocity[i] = np.nan
         elif pose_bad:

@@ -11,11 +11,11 @@ from collections.abc import Iterator
 
 import can
 import pytest
-from tests.canopen_helpers import canopen_config
 
 from drivers.base import Inputs, Outputs
 from drivers.canopen import CanopenDriver
 from gateway.errors import DriverTimeoutError
+from tests.canopen_helpers import canopen_config
 
 GW = 0x20
 HEARTBEAT_COB = 0x700 + GW
