@@ -229,6 +229,11 @@ class Driver(ABC):
         self.plc_heartbeat_modulus = 1 << 16  # the PLC heartbeat's wrap (0: a float)
         self._gate_limits: gate.GateLimits | None = None
 
+    def write_blocked(self) -> str:
+        """Why the bus does not take a frame now ("" when it does), e.g. a CANopen node
+        an NMT master stopped: the loop then writes nothing and reports CONNECTED."""
+        return ""
+
     def output_bands(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """(corrected tension, wrench) values the written registers can carry."""
         f32 = float(np.finfo(np.float32).max)

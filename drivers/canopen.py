@@ -180,6 +180,14 @@ class CanopenDriver(Driver):
         self._node: canopen.LocalNode | None = None
         self._sdo_rx = -1
 
+    def write_blocked(self) -> str:
+        """No PDOs unless the node is operational (CiA 301): stopped or pre-operational
+        by the NMT master, the gateway writes nothing and says so."""
+        state = self.nmt_state if self._node is not None else "OPERATIONAL"
+        if state == "OPERATIONAL":
+            return ""
+        return f"canopen node {self.can_cfg.gateway_node_id:#04x}: NMT state {state}"
+
     def output_bands(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """The corrected-tension PDO's counts (0x7FFF is "no value"); no wrench on CANopen."""
         return (TENSION_MIN_N, TENSION_MAX_N), (-math.inf, math.inf)

@@ -141,6 +141,7 @@ class CyclicService:
         self._got_data = False
         self._ever_connected = False
         self.last_connect_error = ""  # the cause of the last failed connection attempt
+        self.write_blocked = ""  # why the bus takes no frame now (CANopen NMT), else ""
         self._open = False
         self._failures = 0
         self._pending: Outputs | None = None  # written with the next read (function 23)
@@ -273,6 +274,10 @@ class CyclicService:
 
     def _write(self) -> None:
         out = self.outputs
+        self.write_blocked = self.driver.write_blocked()
+        if self.write_blocked:  # e.g. stopped by the NMT master: connected, not writing
+            self.state = Lifecycle.CONNECTED
+            return
         if self.heartbeat_fault:
             if self._fault_written:
                 return
@@ -400,6 +405,7 @@ class _Reporter:
         self.fault_since = math.nan  # loop clock when the current outage began
         self.cause = ""  # the last fault line of the current outage
         self.ready_sent = False
+        self.write_blocked = ""
         notifier = service.notifier
         self.watchdog_s = notifier.watchdog_interval_s if notifier is not None else math.inf
         self.next_watchdog = -math.inf
@@ -408,6 +414,13 @@ class _Reporter:
         svc = self.svc
         if svc.state is not self.state or svc.heartbeat_fault is not self.heartbeat_fault:
             self._state_changed(now)
+        if svc.write_blocked != self.write_blocked:
+            if svc.write_blocked:
+                log.warning("not writing: %s; writing resumes when operational", svc.write_blocked)
+                self._status(f"not writing: {svc.write_blocked}")
+            else:
+                log.warning("writing again: %s is operational", self.write_blocked.split(":")[0])
+            self.write_blocked = svc.write_blocked
         if svc.notifier is not None and now >= self.next_watchdog:
             self.next_watchdog = now + self.watchdog_s
             svc.notifier.notify("WATCHDOG=1")

@@ -107,3 +107,60 @@ def test_gateway_over_canopen_virtual_bus_compensates():
     raw, corrected = scorer.score.rmse()
     assert corrected.mean() < 0.5 * raw.mean(), (raw, corrected)
     assert service.stats.jitter.count > 1000  # lateness after SYNC was measured
+
+
+def test_nmt_stop_of_the_gateway_node_shows_in_the_state_and_the_log(caplog):
+    """Issue 20 #9: an NMT stop of the gateway's node (no PDOs go out) left the state at
+    2 (active) and the connection at 1, and nothing was logged (5 of 5)."""
+    import can
+
+    from gateway.service.metrics import make_registry
+
+    cfg = virtual_canopen_config()
+    image = ProcessImage(cfg.cables)
+    plant = StandInPlant(cfg, image)
+    plant.step()
+    plc = CanopenPlc(cfg, image)
+    service = CyclicService(cfg, CanopenDriver(cfg))
+    registry = make_registry(service)
+    master = can.Bus(interface="virtual", channel=cfg.bus.canopen.channel)
+    node = cfg.bus.canopen.gateway_node_id
+
+    def nmt(command: int) -> None:
+        master.send(
+            can.Message(arbitration_id=0, data=bytes((command, node)), is_extended_id=False)
+        )
+
+    def wait(predicate, seconds: float = 20.0) -> bool:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not predicate():
+            time.sleep(0.02)
+        return predicate()
+
+    def state() -> float | None:
+        return registry.get_sample_value("cdpr_gateway_state")
+
+    with PlantThread(plant, cfg.loop.period_s), caplog.at_level("INFO"):
+        plc.start(realtime=True)
+        worker = threading.Thread(target=service.run, daemon=True)
+        try:
+            worker.start()
+            assert wait(lambda: state() == Lifecycle.ACTIVE and image.gateway_writes > 200)
+            nmt(0x02)  # stop
+            assert wait(lambda: state() == Lifecycle.CONNECTED)
+            with image.lock:
+                writes = image.gateway_writes
+            time.sleep(0.3)
+            with image.lock:
+                assert image.gateway_writes == writes  # no PDOs while stopped
+            nmt(0x01)  # start
+            assert wait(lambda: state() == Lifecycle.ACTIVE)
+            assert wait(lambda: image.gateway_writes > writes + 50)
+        finally:
+            service.stop()
+            worker.join(timeout=30)
+            plc.stop()
+            master.shutdown()
+    text = caplog.text
+    assert "NMT state STOPPED" in text and "not writing" in text
+    assert "writing again" in text
