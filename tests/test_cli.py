@@ -101,9 +101,9 @@ def test_check_warns_about_max_tension_above_the_sensor_range(tmp_path, capsys) 
 @pytest.mark.parametrize(
     ("section", "key", "value", "message"),
     [
-        ("loop", "stale_after_s", -1, r"loop.stale_after_s: must be > 0"),
+        ("loop", "stale_after_s", -1, r"loop.stale_after_s: must be in 0.0001..60, got -1"),
         ("metrics", "port", 99999, r"metrics.port: must be in 0..65535"),
-        ("limits", "max_cable_speed_m_s", 0, r"limits.max_cable_speed_m_s: must be > 0"),
+        ("limits", "max_cable_speed_m_s", 0, r"limits.max_cable_speed_m_s: must be in 1e-06"),
     ],
 )
 def test_impossible_values_are_refused_in_one_line(tmp_path, capsys, section, key, value,

@@ -7,7 +7,7 @@ type, word order and scaling. Also importable from :mod:`gateway.core.config`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 from gateway.core.configtypes import require
 
@@ -31,6 +31,12 @@ class RegisterField:
     scale: float = 1.0
     format: Literal["plain", "s7_analog"] = "plain"
     invalid: int | None = None
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "address": (0, 65535),
+        "count": (1, 125),
+        "scale": (-1e9, 1e9),
+        "invalid": (-(2**31), 2**32 - 1),
+    }
 
     def __post_init__(self) -> None:
         require(0 <= self.address <= 65535, "address must be in 0..65535")
