@@ -85,6 +85,7 @@ from drivers.canopen_pdo import (  # noqa: F401 - re-exported: drivers.canopen i
     PdoLayout,
     decode_tension,
     encode_tension,
+    import_eds,
     load_pdo_layouts,
     new_slots,
     pack_pdo,
@@ -236,7 +237,7 @@ class CanopenDriver(Driver):
         cfg = self.can_cfg
         path = resolve_path(cfg.gateway_eds)
         try:
-            od = canopen.import_od(str(path), cfg.gateway_node_id)
+            od = import_eds(path, cfg.gateway_node_id)
         except Exception as exc:
             raise DriverInitError(f"{path}: cannot load EDS: {exc}") from exc
         network = canopen.Network()

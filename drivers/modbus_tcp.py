@@ -128,7 +128,10 @@ class ModbusTcpDriver(Driver):
             "setpoint_velocities": (r.setpoint_velocities, self.cables),
             "setpoint_lengths": (r.setpoint_lengths, self.cables),
             "pose": (r.pose, 6),
+            "plc_heartbeat": (r.plc_heartbeat, 1),
             "corrected_tensions": (r.corrected_tensions, self.cables),
+            "gateway_heartbeat": (r.gateway_heartbeat, 1),
+            "gateway_state": (r.gateway_state, 1),
             "channel_status": (r.channel_status, self.cables),
             "wrench": (r.wrench, 6),
         }
