@@ -164,3 +164,62 @@ def test_nmt_stop_of_the_gateway_node_shows_in_the_state_and_the_log(caplog):
     text = caplog.text
     assert "NMT state STOPPED" in text and "not writing" in text
     assert "writing again" in text
+
+
+def test_sync_timeouts_do_not_reset_the_heartbeat_watchdog():
+    """Issue 20 #2 over CANopen: SYNC timeouts while the PLC heartbeat was silent re-armed
+    the watchdog (243 and 328 active sets, one run with no fault frame in 1 s, the age
+    metric at 0.008 s after 1 s of silence). Now: the fault comes, nothing good after it,
+    and the age grows through the timeouts."""
+    from gateway.service.metrics import make_registry
+
+    cfg = virtual_canopen_config()
+    image = ProcessImage(cfg.cables)
+    plant = StandInPlant(cfg, image)
+    plant.step()
+    plc = CanopenPlc(cfg, image)
+    service = CyclicService(cfg, CanopenDriver(cfg))
+    registry = make_registry(service)
+    frozen = threading.Event()
+
+    class Freezer(PlantThread):
+        def _run(self) -> None:  # the plant moves; its heartbeat stops when frozen is set
+            while not self.stop_event.wait(self.period_s):
+                hb = image.plc_heartbeat
+                self.plant.step()
+                if frozen.is_set():
+                    with image.lock:
+                        image.plc_heartbeat = hb
+
+    seen: list[tuple[float, int, bool]] = []
+    with Freezer(plant, cfg.loop.period_s):
+        plc.start(realtime=True)
+        worker = threading.Thread(target=service.run, daemon=True)
+        try:
+            worker.start()
+            end = time.monotonic() + 30
+            while time.monotonic() < end and service.stats.written < 300:
+                time.sleep(0.01)
+            frozen.set()
+            frozen_at = time.monotonic()
+            for k in range(60):  # 1.2 s: SYNC off 30 ms of every 60 ms (timeouts)
+                plc.sync_enabled = k % 2 == 1
+                t_end = time.monotonic() + 0.03
+                while time.monotonic() < t_end:
+                    with image.lock:
+                        good = bool(np.any(image.channel_status <= 1))
+                        seen.append((time.monotonic(), image.gateway_writes, good))
+                    time.sleep(0.002)
+            plc.sync_enabled = True
+            age = registry.get_sample_value("cdpr_gateway_plc_heartbeat_age_seconds")
+            elapsed = time.monotonic() - frozen_at
+        finally:
+            service.stop()
+            worker.join(timeout=30)
+            plc.stop()
+    limit = frozen_at + cfg.loop.heartbeat_timeout_s + 0.05
+    late_writes = {w for t, w, good in seen if t > limit and good}
+    assert not late_writes, f"good frames after the timeout: {sorted(late_writes)[:5]}"
+    assert service.stats.errors["heartbeat"] >= 1
+    assert service.stats.errors["timeout"] >= 5  # the SYNC gaps were timeouts
+    assert age is not None and age >= elapsed - 0.1, (age, elapsed)
