@@ -34,7 +34,7 @@ The contract a loop relies on is declared here, with defaults, and nowhere else:
 * one cycle's transfer as one explicit :meth:`exchange` (``outputs`` written and
   ``inputs`` read in one transaction where the bus can: Modbus function 23, see
   :attr:`Driver.combines_write_and_read`); :meth:`write_from` always sends at once;
-* every frame passes the output gate (:func:`drivers.gate.gate_frame`) in
+* every frame passes the output gate (:class:`drivers.gate.Gate`) in
   :meth:`exchange` and :meth:`write_from`, at :attr:`Driver.clock`'s time of sending, just
   before the hook encodes it: a value the PLC may use is finite, fits its register, was
   computed from data no older than ``loop.max_input_age_s`` while the PLC heartbeat
@@ -225,9 +225,8 @@ class Driver(ABC):
         self._connecting = False
         self._ever_connected = False
         self.clock = time.monotonic  # the loop replaces it with its own clock
-        self.gated = np.zeros(len(gate.REASONS), dtype=np.int64)  # values the gate stopped
         self.plc_heartbeat_modulus = 1 << 16  # the PLC heartbeat's wrap (0: a float)
-        self._gate_limits: gate.GateLimits | None = None
+        self._gate: gate.Gate | None = None
 
     def write_blocked(self) -> str:
         """Why the bus does not take a frame now ("" when it does), e.g. a CANopen node
@@ -240,21 +239,31 @@ class Driver(ABC):
         return (-f32, f32), (-f32, f32)
 
     @property
-    def gate_limits(self) -> gate.GateLimits:
-        if self._gate_limits is None:
+    def output_gate(self) -> gate.Gate:
+        """The output gate of this driver's frames (built once, on first use)."""
+        if self._gate is None:
             lp = self.config.loop
             tension, wrench = self.output_bands()
             age = lp.max_input_age_s if lp.max_input_age_s is not None else 2 * lp.period_s
-            self._gate_limits = gate.limits(tension, wrench, age, lp.heartbeat_timeout_s)
-        return self._gate_limits
+            limits = gate.limits(tension, wrench, age, lp.heartbeat_timeout_s)
+            self._gate = gate.Gate(limits, self.cables)
+        return self._gate
 
-    def _gate(self, outputs: Outputs) -> None:
+    @property
+    def gated(self) -> np.ndarray:
+        """Values the gate wrote invalid, by reason (:attr:`GATE_REASONS`)."""
+        return self.output_gate.counts
+
+    def _gate_frame(self, outputs: Outputs) -> None:
         """The output gate at this moment (module doc of :mod:`drivers.gate`)."""
         o = outputs
-        now = self.clock()
-        tension, status, wrench = o.tension_corrected_n, o.channel_status, o.wrench
-        gate.gate_frame(
-            self.gate_limits, now, o.data_at, o.heartbeat_at, tension, status, wrench, self.gated
+        self.output_gate(
+            self.clock(),
+            o.data_at,
+            o.heartbeat_at,
+            o.tension_corrected_n,
+            o.channel_status,
+            o.wrench,
         )
 
     @property
@@ -319,6 +328,7 @@ class Driver(ABC):
             raise DriverInitError(f"{self.name}: cannot open: {exc}") from exc
 
     def _opened(self) -> None:
+        self.output_gate  # noqa: B018 - built (compiled) now, not on the first frame
         self._connecting = False
         if self._ever_connected:
             self.reconnects += 1
@@ -336,7 +346,7 @@ class Driver(ABC):
         ``inputs``, in one transaction where the bus can (Modbus function 23), else write
         then read. A normal return is a good data reply: the reconnect backoff resets."""
         if outputs is not None:
-            self._gate(outputs)
+            self._gate_frame(outputs)
         inputs.read_time_s = self.clock()  # a driver that knows better overwrites it
         start = time.perf_counter()
         try:
@@ -353,7 +363,7 @@ class Driver(ABC):
 
     def write_from(self, outputs: Outputs) -> None:
         """Send ``outputs`` now (through the output gate)."""
-        self._gate(outputs)
+        self._gate_frame(outputs)
         try:
             self._write(outputs)
         except DriverError:

@@ -111,15 +111,31 @@ def value_band(field: RegisterField) -> tuple[float, float]:
     return min(a, b), max(a, b)
 
 
-def _plan_row(field: RegisterField, start: int, swap: bool, mode: int, analog: S7Analog):
+def _plan_row(
+    field: RegisterField, start: int, swap: bool, mode: int, analog: S7Analog
+) -> tuple[Any, ...]:
+    """The :data:`PLAN` record of one field, its columns given by name."""
     kind = _KINDS[field.type]
     type_lo, type_hi = _TYPE_RANGE.get(kind, (0, 0))
     good_lo, good_hi = good_raw_band(field)
-    return (
-        start, field.count, kind, swap, field.format == "s7_analog", mode, field.scale,
-        analog.newtons_per_count, analog.min_counts, analog.max_counts, type_lo, type_hi,
-        good_lo, good_hi, invalid_raw(field),
-    )  # fmt: skip
+    row = {
+        "start": start,
+        "count": field.count,
+        "kind": kind,
+        "swap": swap,
+        "s7": field.format == "s7_analog",
+        "mode": mode,
+        "scale": field.scale,
+        "npc": analog.newtons_per_count,
+        "s7_lo": analog.min_counts,
+        "s7_hi": analog.max_counts,
+        "type_lo": type_lo,
+        "type_hi": type_hi,
+        "good_lo": good_lo,
+        "good_hi": good_hi,
+        "invalid": invalid_raw(field),
+    }
+    return tuple(row[name] for name in PLAN.names or ())
 
 
 def _size(value):  # untyped: the overload must have the same signature

@@ -108,10 +108,15 @@ class ChannelState(NamedTuple):
     @staticmethod
     def allocate(cables: int) -> ChannelState:
         return ChannelState(
-            np.full(cables, np.nan), np.zeros(cables), np.full(cables, np.nan),
-            np.full(cables, -np.inf), np.zeros(cables, dtype=np.uint8),
-            np.full(cables, INVALID, dtype=np.uint16), np.zeros(cables), np.zeros(cables),
-        )  # fmt: skip
+            np.full(cables, np.nan),
+            np.zeros(cables),
+            np.full(cables, np.nan),
+            np.full(cables, -np.inf),
+            np.zeros(cables, dtype=np.uint8),
+            np.full(cables, INVALID, dtype=np.uint16),
+            np.zeros(cables),
+            np.zeros(cables),
+        )
 
 
 @njit(cache=True)
@@ -147,14 +152,15 @@ def _validate(lim, st, raw, vel, now, stale):
 
 
 @njit(cache=True)
-def _mark_stale(now, substitute_max, good_at, flags, status):
+def _mark_stale(lim, st, now):
     """A cycle without a fresh read: every channel stale, substituted or invalid."""
     newly = 0
-    for i in range(flags.size):
-        if flags[i] == 0:
+    for i in range(st.flags.size):
+        if st.flags[i] == 0:
             newly += 1
-        flags[i] |= FLAG_STALE
-        status[i] = SUBSTITUTED if now - good_at[i] <= substitute_max else INVALID
+        st.flags[i] |= FLAG_STALE
+        fresh_enough = now - st.good_at[i] <= lim.substitute_max_s
+        st.status[i] = SUBSTITUTED if fresh_enough else INVALID
     return newly
 
 
@@ -219,9 +225,11 @@ class Compensator:
             self.params, lp.period_s, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter
         )
         self.limits = Limits(
-            -RANGE_MARGIN * cfg.sensor.range_n, float(cfg.sensor.range_n), lp.stuck_after_s,
+            -RANGE_MARGIN * cfg.sensor.range_n,
+            float(cfg.sensor.range_n),
+            lp.stuck_after_s,
             lp.substitute_max_s,
-        )  # fmt: skip
+        )
         self.stale_after_s = lp.stale_after_s
         self.max_step_s = MAX_STEP_PERIODS * lp.period_s
         self.frame_anchors = np.array(cfg.geometry.frame_anchors_m, dtype=float)
@@ -257,16 +265,26 @@ class Compensator:
             _validate, self.limits, self.channels, self.raw_n, self._velocity_in, 0.0, False
         )
         self._online = entry_point(
-            fx.online_inputs_into, self.online, self.used_n, self.velocity_m_s,
-            self._velocity_prev, 0.0, self._length_in, self.model_in_n,
-        )  # fmt: skip
+            fx.online_inputs_into,
+            self.online,
+            self.used_n,
+            self.velocity_m_s,
+            self._velocity_prev,
+            0.0,
+            self._length_in,
+            self.model_in_n,
+        )
         self._finish = entry_point(
             _finish, self.corrected_n, self.used_n, self.status, self.friction_n
         )
         self._wrench = entry_point(
-            wrench_into, self.frame_anchors, self.platform_anchors, self._pose_in,
-            self.corrected_n, self.wrench,
-        )  # fmt: skip
+            wrench_into,
+            self.frame_anchors,
+            self.platform_anchors,
+            self._pose_in,
+            self.corrected_n,
+            self.wrench,
+        )
 
     @property
     def stuck_after_s(self) -> float:
@@ -311,9 +329,12 @@ class Compensator:
             self.wrench[:] = np.nan
         else:
             self._wrench(
-                self.frame_anchors, self.platform_anchors, self._pose_in, self.corrected_n,
+                self.frame_anchors,
+                self.platform_anchors,
+                self._pose_in,
+                self.corrected_n,
                 self.wrench,
-            )  # fmt: skip
+            )
         out.tension_corrected_n[:] = self.corrected_n
         out.channel_status[:] = self.status
         out.wrench[:] = self.wrench
@@ -358,17 +379,27 @@ class Compensator:
                 self._plc_period_s = est = self._spacing(dt / steps)
                 dt = steps * est
             self._online(
-                self.online, self.used_n, self.velocity_m_s, self._velocity_prev, dt,
-                self._length_in, self.model_in_n,
-            )  # fmt: skip
+                self.online,
+                self.used_n,
+                self.velocity_m_s,
+                self._velocity_prev,
+                dt,
+                self._length_in,
+                self.model_in_n,
+            )
             self._velocity_hold[:] = self._velocity_prev
             self._velocity_prev[:] = self.velocity_m_s
             self._sample_at, self._sample_dt = now, dt
         else:  # the same sample again: the same acceleration
             self._online(
-                self.online, self.used_n, self._velocity_prev, self._velocity_hold,
-                self._sample_dt, self._length_in, self.model_in_n,
-            )  # fmt: skip
+                self.online,
+                self.used_n,
+                self._velocity_prev,
+                self._velocity_hold,
+                self._sample_dt,
+                self._length_in,
+                self.model_in_n,
+            )
 
     def _spacing(self, spacing: float) -> float:
         """The PLC's averaged sample spacing after one more ``spacing`` (outliers held)."""
@@ -384,9 +415,7 @@ class Compensator:
 
     def mark_unread(self, now_s: float) -> None:
         """A cycle whose read failed: flag every channel stale; the model is not stepped."""
-        self.flag_events += _mark_stale(
-            now_s, self.limits.substitute_max_s, self.channels.good_at, self.flags, self.status
-        )
+        self.flag_events += _mark_stale(self.limits, self.channels, float(now_s))
 
     def invalidate_outputs(self, out: Outputs) -> None:
         """Fill ``out`` with 'no value': NaN tensions and wrench, every channel invalid."""
