@@ -143,8 +143,8 @@ def test_tolerated_fault_keeps_values_good(
     during = rig.oracle.all_good_writes
     aged = rig.metric("cdpr_gateway_gated_total", reason="age") - aged0
     rig.proxy.clear()
-    if good:
-        assert during >= writes0 + 50
+    if good:  # frames keep coming: good, or (a late cycle on a loaded machine) stopped by
+        assert during - writes0 + aged / 8 >= 50  # the gate for age alone, never bad
     else:
         assert aged >= 8 * 50  # whole frames of 8 channels
     assert wait_for(lambda: rig.oracle.all_good_writes >= during + 50, WAIT_S)
