@@ -107,6 +107,7 @@ class Gate:
         self.limits = lim
         self.counts = np.zeros(len(REASONS), dtype=np.int64)
         self._stamp = np.zeros(3)
+        self._checked: tuple[object, ...] = (None, None, None)  # arrays found to fit the entry
         tension, status = np.zeros(cables), np.zeros(cables, dtype=np.uint16)
         self._entry = entry_point(
             _gate, lim, self._stamp, tension, status, np.zeros(6), self.counts
@@ -125,10 +126,21 @@ class Gate:
         (module doc) at time ``now``; count what was stopped by reason."""
         stamp = self._stamp
         stamp[NOW], stamp[DATA_AT], stamp[HEARTBEAT_AT] = now, data_at, heartbeat_at
-        if status.dtype != np.uint16 or tension.dtype != np.float64:  # not the cycle's
-            _gate(self.limits, stamp, tension, status, wrench, self.counts)
+        c = self._checked
+        same = tension is c[0] and status is c[1] and wrench is c[2]
+        if not same and not self._fits(tension, status, wrench):
+            _gate(self.limits, stamp, tension, status, wrench, self.counts)  # any arrays
             return
         self._entry(self.limits, stamp, tension, status, wrench, self.counts)
+
+    def _fits(self, tension: np.ndarray, status: np.ndarray, wrench: np.ndarray) -> bool:
+        """True (and remembered) when the arrays have the compiled entry's types."""
+        usual = status.dtype == np.uint16 and tension.dtype == wrench.dtype == np.float64
+        contiguous = tension.flags.c_contiguous and status.flags.c_contiguous
+        if usual and contiguous and wrench.flags.c_contiguous:
+            self._checked = (tension, status, wrench)
+            return True
+        return False
 
 
 def limits(
