@@ -254,10 +254,11 @@ class Driver(ABC):
         """Values the gate wrote invalid, by reason (:attr:`GATE_REASONS`)."""
         return self.output_gate.counts
 
-    def _gate_frame(self, outputs: Outputs) -> None:
-        """The output gate at this moment (module doc of :mod:`drivers.gate`)."""
+    def _gate_frame(self, outputs: Outputs) -> int:
+        """The output gate at this moment (module doc of :mod:`drivers.gate`); the number
+        of values it stopped. A driver may call it again right before sending."""
         o = outputs
-        self.output_gate(
+        return self.output_gate(
             self.clock(),
             o.data_at,
             o.heartbeat_at,

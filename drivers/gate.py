@@ -65,6 +65,7 @@ def _gate(lim, stamp, tension, status, wrench, counts):
     elif not 0.0 <= now - stamp[DATA_AT] <= lim.max_input_age_s:  # no time to come
         frame = _AGE
     every_channel = True
+    stopped = 0
     for i in range(tension.size):
         if status[i] >= INVALID:
             status[i] = INVALID
@@ -80,12 +81,13 @@ def _gate(lim, stamp, tension, status, wrench, counts):
                 reason = _RANGE
         if reason >= 0:
             counts[reason] += 1
+            stopped += 1
             status[i] = INVALID
             tension[i] = np.nan
             every_channel = False
     if not every_channel:
         wrench[:] = np.nan
-        return
+        return stopped
     reason = -1
     for k in range(wrench.size):
         w = wrench[k]
@@ -96,7 +98,9 @@ def _gate(lim, stamp, tension, status, wrench, counts):
             reason = _RANGE
     if reason >= 0:
         counts[reason] += 1
+        stopped += 1
         wrench[:] = np.nan
+    return stopped
 
 
 class Gate:
@@ -121,17 +125,17 @@ class Gate:
         tension: np.ndarray,
         status: np.ndarray,
         wrench: np.ndarray,
-    ) -> None:
+    ) -> int:
         """Invalidate, in place, every value of the frame that breaks the contract
-        (module doc) at time ``now``; count what was stopped by reason."""
+        (module doc) at time ``now``; count what was stopped by reason; return how many
+        values were stopped."""
         stamp = self._stamp
         stamp[NOW], stamp[DATA_AT], stamp[HEARTBEAT_AT] = now, data_at, heartbeat_at
         c = self._checked
         same = tension is c[0] and status is c[1] and wrench is c[2]
         if not same and not self._fits(tension, status, wrench):
-            _gate(self.limits, stamp, tension, status, wrench, self.counts)  # any arrays
-            return
-        self._entry(self.limits, stamp, tension, status, wrench, self.counts)
+            return int(_gate(self.limits, stamp, tension, status, wrench, self.counts))
+        return int(self._entry(self.limits, stamp, tension, status, wrench, self.counts))
 
     def _fits(self, tension: np.ndarray, status: np.ndarray, wrench: np.ndarray) -> bool:
         """True (and remembered) when the arrays have the compiled entry's types."""

@@ -106,6 +106,7 @@ class ModbusTcpDriver(Driver):
         self._connect_deadline = 0.0
         self._tid = 0
         self._timeouts_in_a_row = 0
+        self._outgoing: tuple[Outputs, int] | None = None  # the frame's outputs, while sent
         self.foreign_unit_replies = 0  # replies from another unit id (also dropped_replies)
         self._build_frames(config)
         self.plc_heartbeat_modulus = {"float32": 0, "int32": 2**32, "uint32": 2**32}.get(
@@ -358,6 +359,7 @@ class ModbusTcpDriver(Driver):
             if self._sock_timeout < 0.5 * self.mb.timeout_s:
                 sock.settimeout(self.mb.timeout_s)
                 self._sock_timeout = self.mb.timeout_s
+            self._last_look(frame)
             sock.sendall(frame)
             n = self._receive(sock, self._tid, deadline)
             if time.perf_counter() > deadline:  # read late (this process was held up):
@@ -379,6 +381,17 @@ class ModbusTcpDriver(Driver):
         self._timeouts_in_a_row = 0
         self._check_reply(fc, address, n)  # an exception reply is no good reply
         return n
+
+    def _last_look(self, frame: bytearray) -> None:
+        """The output gate once more right before the frame leaves: a frame that went
+        stale since it was encoded (this process held up in between) goes out invalid."""
+        outgoing = self._outgoing
+        if outgoing is None:
+            return
+        outputs, at = outgoing
+        if self._gate_frame(outputs):
+            self._encode(outputs)
+            frame[at:] = self._wdata
 
     def _check_reply(self, fc: int, address: int, n: int) -> None:
         rfc = self._rx[MBAP]
@@ -408,7 +421,11 @@ class ModbusTcpDriver(Driver):
         elif self.mb.use_fc23:
             self._encode(outputs)
             self._fc23[self._wdata_at23 :] = self._wdata
-            self._read_span(self._fc23, FC_READ_WRITE, self.layout.read_span)
+            self._outgoing = (outputs, self._wdata_at23)
+            try:
+                self._read_span(self._fc23, FC_READ_WRITE, self.layout.read_span)
+            finally:
+                self._outgoing = None
         else:  # the 3 + 16 fallback
             self._write(outputs)
             self._read_span(self._fc3, FC_READ, self.layout.read_span)
@@ -434,7 +451,11 @@ class ModbusTcpDriver(Driver):
         self._encode(outputs)
         self._fc16[self._wdata_at16 :] = self._wdata
         ws = self.layout.write_span
-        n = self._transact(self._fc16, FC_WRITE, ws.start)
+        self._outgoing = (outputs, self._wdata_at16)
+        try:
+            n = self._transact(self._fc16, FC_WRITE, ws.start)
+        finally:
+            self._outgoing = None
         if n != 5 or struct.unpack_from(">HH", self._rx, MBAP + 1) != (ws.start, ws.count):
             raise DriverIOError(f"{self.where}: function 16 at register {ws.start}: bad echo")
 

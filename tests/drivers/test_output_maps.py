@@ -159,3 +159,37 @@ def test_a_reply_read_after_its_deadline_is_a_timeout():
             mod.time = real_time
             drv.close()
         assert original == "drivers.modbus_tcp"
+
+
+def test_a_frame_held_up_after_encoding_is_gated_again_before_it_leaves():
+    """The driver re-checks right before sending: a frame encoded, then held up (this
+    process stopped between the gate and the send), goes out invalid."""
+
+    def reply(frame: bytes, k: int):
+        return [(0.0, fc3_reply(frame, regs={52: k + 1}))]
+
+    with FakeServer(reply) as server:
+        drv = ModbusTcpDriver(config_for(server.port, timeout_s=0.5))
+        drv.open()
+        offset = {"s": 0.0}
+        drv.clock = lambda: time.monotonic() + offset["s"]  # type: ignore[method-assign]
+        encode = drv._encode
+
+        def encode_then_stall(outputs):
+            encode(outputs)
+            offset["s"] += 0.05  # held up for 50 ms after encoding
+
+        drv._encode = encode_then_stall  # type: ignore[method-assign]
+        out = Outputs.allocate(8)
+        out.tension_corrected_n[:] = 200.0
+        out.channel_status[:] = int(ChannelStatus.GOOD)
+        now = drv.clock()
+        drv.exchange(out.stamp(now, now), Inputs.allocate(8))
+        drv.close()
+    request = server.requests[-1]
+    assert request[7] == 23
+    data = request[7 + 10 :]  # after function, addresses, counts, byte count
+    tension = struct.unpack(">8f", data[:32])
+    status = struct.unpack(">8H", data[32:48])
+    assert all(math.isnan(x) for x in tension) and set(status) == {2}
+    assert drv.gated[list(drv.GATE_REASONS).index("age")] == 8
