@@ -138,6 +138,7 @@ class CyclicService:
         self._last_hb: float | None = None  # the PLC heartbeat's last finite value
         self._hb_changed_at = -math.inf  # when it last changed (-inf: not seen changing)
         self._hb_watched_from = math.nan  # when it was first read
+        self._hb_seen_at = math.nan  # when the read that last showed _last_hb was requested
         self._data_at = math.nan  # loop clock of the last successful read
         self._got_data = False
         self._ever_connected = False
@@ -253,20 +254,25 @@ class CyclicService:
 
     def _watch_heartbeat(self, now: float) -> None:
         """Only a changed, finite heartbeat value resets the watchdog (module doc)."""
-        hb = self.inputs.plc_heartbeat
+        hb, seen_at = self.inputs.plc_heartbeat, self.inputs.read_time_s
         if self._hb_watched_from != self._hb_watched_from:
             self._hb_watched_from = now
         if not math.isfinite(hb):
             pass  # NaN / inf: no value, not a change
         elif self._last_hb is None:
-            self._last_hb = hb  # the first value read: the watch starts, nothing changed
+            self._last_hb, self._hb_seen_at = hb, seen_at  # the watch starts: no change yet
         elif hb != self._last_hb:
-            self._last_hb = hb
-            self._hb_changed_at = now
-            if self.heartbeat_fault:
+            # it changed after the old value was last read: date it then (the earliest it
+            # can have been), so a change seen across a stall is as old as the stall
+            self._last_hb, self._hb_changed_at = hb, self._hb_seen_at
+            self._hb_seen_at = seen_at
+            timeout = self.cfg.loop.heartbeat_timeout_s
+            if self.heartbeat_fault and now - self._hb_changed_at <= timeout:
                 self.heartbeat_fault = False
                 self._fault_written = False
             return
+        else:
+            self._hb_seen_at = seen_at
         if not self.heartbeat_fault and now - self._heartbeat_since() > (
             self.cfg.loop.heartbeat_timeout_s
         ):
