@@ -128,7 +128,7 @@ class CycleRing:
         if now - self._started < SCORE_AFTER_S:
             return
         hb = inputs.plc_heartbeat
-        slot = hb & self.mask
+        slot = int(hb) & self.mask
         raw, corrected, status = self._rows[slot]
         self.stamp[slot] = -1
         np.copyto(raw, comp.raw_n)

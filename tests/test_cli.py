@@ -101,9 +101,9 @@ def test_check_warns_about_max_tension_above_the_sensor_range(tmp_path, capsys) 
 @pytest.mark.parametrize(
     ("section", "key", "value", "message"),
     [
-        ("loop", "stale_after_s", -1, r"loop.stale_after_s: must be > 0"),
+        ("loop", "stale_after_s", -1, r"loop.stale_after_s: must be in 0.0001..60, got -1"),
         ("metrics", "port", 99999, r"metrics.port: must be in 0..65535"),
-        ("limits", "max_cable_speed_m_s", 0, r"limits.max_cable_speed_m_s: must be > 0"),
+        ("limits", "max_cable_speed_m_s", 0, r"limits.max_cable_speed_m_s: must be in 1e-06"),
     ],
 )
 def test_impossible_values_are_refused_in_one_line(tmp_path, capsys, section, key, value,
@@ -197,3 +197,27 @@ def test_the_daemons_modules_never_import_sim_plc() -> None:
                          cwd=root, timeout=120)  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "[]"
+
+
+def test_the_stopped_line_has_a_timestamp_like_every_log_line(tmp_path) -> None:
+    """Issue 20 #10: the final ``stopped: ...`` line was the one line without a time."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data["bus"]["driver"] = "virtual"
+    data["metrics"]["enabled"] = False
+    path = tmp_path / "virtual.yaml"
+    path.write_text(yaml.safe_dump(data))
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "run", "--config", str(path), "--cycles", "20"],
+        capture_output=True, text=True, timeout=120, cwd=root,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = [ln for ln in done.stderr.splitlines() if "stopped: cycles" in ln]
+    assert len(lines) == 1, done.stderr
+    stamp = r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} INFO cdpr_gateway: stopped: cycles 20"
+    assert re.match(stamp, lines[0]), lines[0]

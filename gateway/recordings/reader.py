@@ -6,8 +6,10 @@ required columns, text in a number field). A row with a missing required value i
 and counted (``Recording.skipped_rows``), never filled in; a missing optional value is NaN.
 
 Hostile input is bounded before anything is allocated for it: cable indices must be
-contiguous ``1..m`` with ``m <= MAX_CABLES``; a line longer than ``MAX_LINE_CHARS``, more
-than ``MAX_COLUMNS`` columns or ``MAX_METADATA_LINES`` metadata lines, a time step below
+contiguous ``1..m`` with ``m <= MAX_CABLES``, written in ASCII digits without leading
+zeros (``velocity_01``, ``velocity_١`` are refused, not read as cable 1); a line longer
+than ``MAX_LINE_CHARS``, more than ``MAX_COLUMNS`` columns, ``MAX_METADATA_LINES``
+metadata lines or ``MAX_METADATA_CHARS`` characters of metadata in all, a time step below
 ``MIN_STEP_S``, a value beyond ``MAX_ABS_VALUE`` (``MAX_ABS_TIME_S`` for ``t``), a
 non-finite value, fewer than ``min_samples`` kept rows or more than ``max_samples`` rows
 are refused. The body is parsed in chunks of ``CHUNK_ROWS`` lines, each straight into
@@ -38,13 +40,15 @@ from gateway.recordings.writer import RecordingWriter, format_rows  # noqa: F401
 
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
 CABLE_KINDS = ("velocity", "tension_sensor", "tension_platform", "length")
-_CABLE_COLUMN = re.compile(r"^(velocity|tension_sensor|tension_platform|length)_(\d+)$")
+_CABLE_COLUMN = re.compile(r"^(velocity|tension_sensor|tension_platform|length)_(.+)$")
+_CABLE_INDEX = re.compile(r"^[1-9][0-9]*$", re.ASCII)
 _REQUIRED_KINDS = ("velocity", "tension_sensor")
 
 MAX_CABLES = 1024  # cable indices 1..m, m at most this
 MAX_COLUMNS = 8192
 MAX_LINE_CHARS = 1 << 20  # 1 MiB per line (header included)
 MAX_METADATA_LINES = 1000
+MAX_METADATA_CHARS = 1 << 20  # all metadata lines together
 MIN_SAMPLES = 10  # fewer kept rows than this: "too short"
 DEFAULT_MAX_SAMPLES = 20_000_000  # 5.5 h at 1 kHz; read_recording(max_samples=...) to change
 MAX_VALUES = 250_000_000  # samples x columns: 8 bytes each = 2 GB at most
@@ -124,13 +128,18 @@ def _split_header(
 ) -> tuple[dict[str, str], int, list[str]]:
     """Metadata, 1-based line number of the header line, column names."""
     meta: dict[str, str] = {}
-    count = 0
+    count = chars = 0
     for number, text in lines:
         if text.startswith("#"):
             count += 1
+            chars += len(text)
             if count > MAX_METADATA_LINES:
                 raise RecordingError(
                     f"{path}:{number}: more than {MAX_METADATA_LINES} metadata lines"
+                )
+            if chars > MAX_METADATA_CHARS:
+                raise RecordingError(
+                    f"{path}:{number}: metadata of more than {MAX_METADATA_CHARS} characters"
                 )
             body = text[1:].strip()
             if ":" in body:
@@ -166,6 +175,11 @@ def _cable_indices(path: Path, line: int, names: list[str]) -> dict[str, dict[in
         if not match:
             continue
         digits = match.group(2)
+        if not _CABLE_INDEX.match(digits):
+            raise RecordingError(
+                f"{path}:{line}: column {name!r}: cable indices must be contiguous 1..m with "
+                f"m <= {MAX_CABLES}, in ASCII digits without leading zeros"
+            )
         index = int(digits) if len(digits) <= 6 else MAX_CABLES + 1
         if not 1 <= index <= MAX_CABLES:
             raise RecordingError(

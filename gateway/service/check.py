@@ -19,6 +19,7 @@ not be reached or read (the line says why).
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from gateway.errors import DriverError, GatewayError
 from gateway.runtime.loop import describe_bus
 from gateway.runtime.plausibility import Plausibility
 from gateway.service.daemon import add_config_option, build_driver, setup_logging
+from gateway.service.exporter import FD_RESERVE, MAX_CONNECTIONS, NOFILE_NEEDED, PROCESS_FDS
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
@@ -94,6 +96,19 @@ def _eds_problems(cfg: Config) -> list[str]:
     return problems
 
 
+def descriptor_warning() -> list[str]:
+    """The soft RLIMIT_NOFILE below what the gateway with its exporter needs."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= NOFILE_NEEDED:
+        return []
+    return [
+        f"RLIMIT_NOFILE: the soft limit {soft} is below the {NOFILE_NEEDED} descriptors the "
+        f"gateway needs ({MAX_CONNECTIONS} metrics connections, {FD_RESERVE} kept for the "
+        f"bus, ~{PROCESS_FDS} for the process): the metrics port would not answer; raise it "
+        "(ulimit -n, LimitNOFILE= in the unit)"
+    ]
+
+
 def pose_problems(cfg: Config, bounds: Plausibility) -> list[str]:
     inputs = Inputs.allocate(cfg.cables)
     inputs.pose[:] = cfg.geometry.home_pose
@@ -145,6 +160,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if cfg.metrics.enabled:
         exposed = exposure_warning("metrics.host", cfg.metrics.host, cfg.metrics.port, cfg.source)
         warnings += [exposed] if exposed else []
+        warnings += descriptor_warning()
     for line in warnings:
         print(f"warning: {line}", file=sys.stderr)
     for line in problems:

@@ -210,7 +210,13 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if service.recorder is not None:
             service.recorder.close()
     assert service.state is Lifecycle.STOPPED
-    print(f"stopped: {summary(service)}", file=sys.stderr, flush=True)
+    say(f"stopped: {summary(service)}")
     if service.recorder is not None:
-        print(summary_record(service.recorder), file=sys.stderr, flush=True)
+        say(summary_record(service.recorder))
     return 0
+
+
+def say(line: str) -> None:
+    """A closing line in the log's format (with its time) whatever the log level."""
+    record = log.makeRecord(log.name, logging.INFO, __file__, 0, line, (), None)
+    print(logging.Formatter(LOG_FORMAT).format(record), file=sys.stderr, flush=True)

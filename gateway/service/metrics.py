@@ -13,6 +13,7 @@ cdpr_gateway_overruns_total               counter                     cycles pas
 cdpr_gateway_record_dropped_total         counter                     samples not recorded
 cdpr_gateway_bus_roundtrip_seconds        histogram  bus              one transaction
 cdpr_gateway_errors_total                 counter    kind             see ``ERROR_KINDS``
+cdpr_gateway_gated_total                  counter    reason           values the gate wrote invalid
 cdpr_gateway_reconnects_total             counter    bus
 cdpr_gateway_connected                    gauge      bus              1 while the bus is up
 cdpr_gateway_tension_raw_newtons          gauge      cable            scaled reading
@@ -102,6 +103,14 @@ class GatewayCollector(Collector):
         for kind, count in stats.errors.items():
             errors.add_metric([kind], count)
         yield errors
+        gated = CounterMetricFamily(
+            f"{PREFIX}_gated_total",
+            "Values the output gate wrote invalid instead of good, by reason.",
+            labels=["reason"],
+        )
+        for reason, stopped in zip(svc.driver.GATE_REASONS, svc.driver.gated, strict=True):
+            gated.add_metric([reason], float(stopped))
+        yield gated
         yield _labelled(CounterMetricFamily, "reconnects_total", "Bus reconnections.",
                         "bus", {bus: svc.reconnects})  # fmt: skip
         yield _labelled(GaugeMetricFamily, "connected", "1 while the bus is up.",

@@ -39,7 +39,10 @@ def test_default_config_is_the_paper_stand_in() -> None:
         ("friction:\n  sigma: 5\n", r"cfg.yaml: friction.sigma: unknown key"),
         ("friction:\n  pulleys:\n    - {wrap_deg: 90, mu: 0.01, r: 1}\n", r"pulleys\[0\].r"),
         ("friction:\n  model: lugre\n", r"friction.model: 'lugre' is not one of"),
-        ("friction:\n  sigma_n_m: -1\n", r"friction\.sigma_n_m: must be > 0"),
+        (
+            "friction:\n  sigma_n_m: -1\n",
+            r"friction\.sigma_n_m: must be in 1e-06\.\.1e\+09, got -1",
+        ),
         ("loop:\n  period_s: fast\n", r"loop.period_s: expected a number, got 'fast'"),
         ("bus:\n  modbus_tcp:\n    port: 70000\n", r"bus\.modbus_tcp\.port: must be in 1\.\.65535"),
         ("metrics:\n  enabled: 1\n", r"metrics.enabled: expected true or false"),

@@ -19,6 +19,7 @@ from drivers.modbus_tcp import ModbusTcpDriver
 from gateway.core.config import TlsConfig, load_config
 from gateway.errors import DriverError
 from sim_plc.modbus_server import ModbusPlcServer
+from tests.loop_helpers import fresh
 from tests.modbus_helpers import LOCALHOST, config_for, filled_image
 
 pytestmark = [
@@ -79,7 +80,7 @@ def test_mutual_tls_round_trip(pki: Path, tls_server) -> None:
     outputs.channel_status[:] = 0
     with ModbusTcpDriver(cfg) as drv:
         drv.read_into(inputs)
-        drv.exchange(outputs, inputs)
+        drv.exchange(fresh(outputs, drv), inputs)
     assert inputs.plc_heartbeat == image.plc_heartbeat
     assert_allclose(inputs.velocity_m_s, image.velocity_m_s, rtol=1e-6)
     assert_allclose(image.corrected_n, np.arange(8) + 200.0, rtol=1e-6)

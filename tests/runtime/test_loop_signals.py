@@ -38,7 +38,7 @@ def test_signal_writes_the_stopped_frame(tmp_path: Path, sig: signal.Signals) ->
     with plc_server() as (server, img, _cfg):
         data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
         data["bus"]["modbus_tcp"]["port"] = server.port
-        data["loop"]["heartbeat_timeout_s"] = 60.0  # the test's PLC heartbeat stands still
+        data["loop"]["heartbeat_timeout_s"] = 60.0  # the test moves the PLC heartbeat slowly
         data["metrics"]["enabled"] = False
         path = tmp_path / "gw.yaml"
         path.write_text(yaml.safe_dump(data))
@@ -52,7 +52,9 @@ def test_signal_writes_the_stopped_frame(tmp_path: Path, sig: signal.Signals) ->
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and proc.poll() is None:
                 with img.lock:
-                    if img.gateway_state == Lifecycle.ACTIVE and img.gateway_writes > 20:
+                    img.plc_heartbeat = (img.plc_heartbeat + 1) & 0xFFFF  # a live PLC
+                    good = np.all(np.isfinite(img.corrected_n))
+                    if img.gateway_state == Lifecycle.ACTIVE and img.gateway_writes > 20 and good:
                         break
                 time.sleep(0.05)
             with img.lock:

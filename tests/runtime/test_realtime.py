@@ -53,7 +53,7 @@ def _gc_restored():
         ({"priority": 100}, r"loop\.realtime\.priority"),
         ({"policy": "deadline"}, r"loop\.realtime\.policy: 'deadline' is not one of"),
         ({"cpus": [0, 0]}, r"loop\.realtime\.cpus: must not repeat"),
-        ({"cpus": [-1]}, r"loop\.realtime\.cpus: must be CPU numbers"),
+        ({"cpus": [-1]}, r"loop\.realtime\.cpus\[0\]: must be in 0\.\.4095"),
         ({"mlock": True}, r"loop\.realtime\.mlock: unknown key"),
         ({"enabled": "yes"}, r"loop\.realtime\.enabled: expected true or false"),
     ],

@@ -23,6 +23,7 @@ DESIGN_TABLE = {
     "cdpr_gateway_record_dropped": ("counter", set()),  # gateway.service.recorder
     "cdpr_gateway_bus_roundtrip_seconds": ("histogram", {"bus"}),
     "cdpr_gateway_errors": ("counter", {"kind"}),
+    "cdpr_gateway_gated": ("counter", {"reason"}),  # the output gate (drivers/gate.py)
     "cdpr_gateway_reconnects": ("counter", {"bus"}),
     "cdpr_gateway_connected": ("gauge", {"bus"}),
     "cdpr_gateway_tension_raw_newtons": ("gauge", {"cable"}),
@@ -240,7 +241,8 @@ def test_state_and_ages_follow_the_loop():
     svc._loop(10)
     assert reg.get_sample_value("cdpr_gateway_state") == 2 == img.gateway_state
     assert reg.get_sample_value("cdpr_gateway_sample_age_seconds") < 0.001
-    assert reg.get_sample_value("cdpr_gateway_plc_heartbeat_age_seconds") < 0.001
+    # a change is dated at the read that last showed the old value: one period back
+    assert reg.get_sample_value("cdpr_gateway_plc_heartbeat_age_seconds") < 0.0015
     svc._loop(100)  # the heartbeat froze at read 20: ~90 ms ago, > 50 ms timeout
     assert reg.get_sample_value("cdpr_gateway_state") == 3 == img.gateway_state
     age = reg.get_sample_value("cdpr_gateway_plc_heartbeat_age_seconds")
