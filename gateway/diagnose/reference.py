@@ -32,7 +32,7 @@ from gateway.diagnose.prepare import (
     warmup_mask,
 )
 from gateway.diagnose.select import Model, Selector, Thresholds
-from gateway.diagnose.significance import Tested, decide, harmonize
+from gateway.diagnose.significance import Tested, decide, harmonize, retire, score
 from gateway.diagnose.stats import holdout_z
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
@@ -173,26 +173,31 @@ class PlatformReference:
         )  # fmt: skip
 
     def units(self, prep: PlatformPrepared, say) -> Iterator[tuple[int, CableUnit]]:
-        """One selection unit per cable, on the subset of a long recording; the cable's
+        """One selection unit per cable (on the subset of a long recording); the cable's
         cached simulations and computed series are freed when the caller moves on."""
         for i, d in enumerate(prep.datas):
-            cands = prep.candidates[i]
             where = "" if prep.subset is None else f" on {prep.subset[0].size} of {d.t.size}"
-            say(f"cable {i + 1}/{len(prep.datas)}: {len(cands)} candidate effects{where}")
-            if prep.subset is None:
-                fw = Forward(d, prep.nom)
-                yield i, CableUnit(fw, prep.blocks, prep.n_blocks, cands, prep.usable[:, i])
-                fw.clear_cache()
-            else:
-                idx, sub_blocks, use = prep.subset
-                sub = d.subset(idx)
-                # the subset's pieces join across gaps: the friction state warms up after
-                # each join as after the start (by travel, warmup_mask)
-                use = use & prep.usable[idx, i] & warmup_mask(sub, prep.nom)
-                fw = Forward(sub, prep.nom)
-                yield i, CableUnit(fw, sub_blocks, int(sub_blocks.max()) + 1, cands, use)
-                fw.clear_cache()  # the subset's own x and a stay (given): the tests use them
-                d.release()
+            say(f"cable {i + 1}/{len(prep.datas)}: {len(prep.candidates[i])} candidate "
+                f"effects{where}")  # fmt: skip
+            unit = self.unit(prep, i)
+            yield i, unit
+            unit.release()
+            d.release()
+
+    def unit(self, prep: PlatformPrepared, i: int) -> CableUnit:
+        """Cable ``i``'s selection unit: every sample, or the subset of a long recording
+        (whose pieces join across gaps: the friction state warms up after each join as
+        after the start, by travel)."""
+        d, cands = prep.datas[i], prep.candidates[i]
+        if prep.subset is None:
+            return CableUnit(Forward(d, prep.nom), prep.blocks, prep.n_blocks, cands,
+                             prep.usable[:, i])  # fmt: skip
+        idx, sub_blocks, use = prep.subset
+        sub = d.subset(idx)
+        d.release()
+        use = use & prep.usable[idx, i] & warmup_mask(sub, prep.nom)
+        return CableUnit(Forward(sub, prep.nom), sub_blocks, int(sub_blocks.max()) + 1, cands,
+                         use)  # fmt: skip
 
     def full_unit(self, prep: PlatformPrepared, i: int) -> CableUnit:
         """Cable ``i`` on every sample (thinned scoring in the fit of a long recording)."""
@@ -250,35 +255,44 @@ def locate_residual(prep: PlatformPrepared, thetas: list[dict[str, np.ndarray]])
 
 
 # ---- select and fit, unit by unit ----------------------------------------------------------
-def select_units(ref: PlatformReference, prep: PlatformPrepared, th: Thresholds, say) -> list:
-    """Stage 3: the selector over each cable (on the subset of a long recording)."""
+def select_units(ref: PlatformReference, prep: PlatformPrepared, th: Thresholds,
+                 say) -> list[Tested]:  # fmt: skip
+    """Stage 3, with the per-unit half of stage 4: the selector over each cable (on the
+    subset of a long recording), checked against the validation recording, then scored
+    (every candidate tested, block refits) while its data is at hand; then only its
+    numbers are kept (memory: one cable's series at a time)."""
     out = []
     for i, unit in ref.units(prep, say):
         sel = Selector(unit, th)
         outcome = sel.run()
         say(f"cable {i + 1}/{len(prep.datas)}: selected {', '.join(outcome.kept) or 'nothing'}")
-        out.append((i, sel, outcome))
-    return out
-
-
-def fit_units(ref: PlatformReference, prep: PlatformPrepared, selected: list, th: Thresholds,
-              say) -> list[Tested]:  # fmt: skip
-    """Stage 4: each cable's selection checked against the validation recording, the
-    significance stage over every cable and candidate, the survivors refitted on all
-    training samples. A long recording was selected on a subset of its training blocks
-    (each split in halves that train and test): the significance stage tests there too,
-    on samples the fits never saw, and the recording's own held-out blocks stay unseen for
-    the report's scores."""
-    tested = []
-    for i, sel, outcome in selected:
         model = sel.final
         if prep.validation is not None and model.kept:
             vfws, vvalid = prep.validation
             model, dropped = validate(sel, model, vfws[i], vvalid[:, i], th)
             if dropped:
                 say(f"cable {i + 1}: {', '.join(dropped)} did not lower the validation error")
-        tested.append(Tested(sel, model, outcome))
-    decide(tested, th, lambda msg: say(f"significance: {msg}"))
+        u = Tested(sel, model, outcome, index=i)
+        score(u)
+        retire(u)
+        out.append(u)
+    return out
+
+
+def fit_units(ref: PlatformReference, prep: PlatformPrepared, tested: list[Tested],
+              th: Thresholds, say) -> list[Tested]:  # fmt: skip
+    """Stage 4: the significance stage over every cable and candidate (q-values over all
+    of them; a cable whose finding fails is rebuilt, refitted and scored again), then the
+    survivors refitted on all training samples. A long recording was selected on a subset
+    of its training blocks (each split in halves that train and test): the significance
+    stage tests there too, on samples the fits never saw, and the recording's own
+    held-out blocks stay unseen for the report's scores."""
+
+    def rebuild(u: Tested) -> tuple[Selector, Model]:
+        unit = ref.unit(prep, u.index)
+        return Selector(unit, th), unit.evaluate(u.model.kept, u.model.specs)
+
+    decide(tested, th, lambda msg: say(f"significance: {msg}"), rebuild)
     harmonize(tested)
     if prep.subset is not None:
         for i, u in enumerate(tested):

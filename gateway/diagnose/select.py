@@ -165,8 +165,9 @@ class Selector:
     def __init__(self, unit: Unit, th: Thresholds) -> None:
         self.unit, self.th = unit, th
         self.candidates = unit.candidates
-        self.screened: tuple[Model | None, dict[str, Model]] = (None, {})
-        """The last forward step's screens and the model they were screened on top of."""
+        self.screened: tuple[Model | None, dict[str, dict[str, float]]] = (None, {})
+        """The last forward step's add-one tests (:meth:`test`) and the model they were
+        screened on top of (their numbers only: no residual is kept)."""
 
     # ---- held-out scores ----
     def test_sse(self, resid: np.ndarray) -> np.ndarray:
@@ -191,6 +192,13 @@ class Selector:
     def held_out_blocks(self) -> int:
         u = self.unit
         return int(np.unique(u.blocks[u.test]).size)
+
+    def test(self, a: Model, b: Model) -> dict[str, float]:
+        """The held-out test of B over A: ``z``, ``p`` and the relative held-out ``gain``."""
+        z = self.z(a, b)
+        before = float(self.test_sse(a.resid).sum())
+        gain = (before - float(self.test_sse(b.resid).sum())) / before if before > 0 else 0.0
+        return {"z": float(z), "p": p_value(z, self.held_out_blocks()), "gain": gain}
 
     def accept(self, a: Model, b: Model, z_min: float) -> bool:
         before, after = self.test_sse(a.resid), self.test_sse(b.resid)
@@ -268,7 +276,7 @@ class Selector:
                 screened = self.unit.screen(model, effect)
                 ranked.append((float(self.test_sse(screened.resid).sum()), effect, screened))
             ranked.sort(key=lambda row: row[0])
-            self.screened = (model, {e: s for _, e, s in ranked})
+            self.screened = (model, {e: self.test(model, s) for _, e, s in ranked})
             added = self._add_single(model, ranked)
             if added is None and len(model.kept) + 2 <= self.th.max_effects and self.left(model):
                 added = self._add_pair(model, ranked)

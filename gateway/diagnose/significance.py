@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.diagnose.select import Model, Outcome, Rival, Selector, overlaps
-from gateway.diagnose.stats import bh_qvalues, block_groups, jackknife_se, p_value
+from gateway.diagnose.stats import bh_qvalues, block_groups, jackknife_se
 
 ROUNDS = 3
 GROUPS = 8
@@ -40,36 +40,35 @@ GROUPS = 8
 
 @dataclass
 class Tested:
-    """One unit after the significance stage: its selector, final model and outcome."""
+    """One unit in the significance stage: its selector (None once retired: only its
+    numbers are kept), final model and outcome (its tests)."""
 
-    selector: Selector
+    selector: Selector | None
     model: Model
     outcome: Outcome
     dropped: list[str] = field(default_factory=list)
+    index: int = 0
 
 
 def candidate_tests(sel: Selector, model: Model) -> dict[str, dict[str, float]]:
     """Per candidate: held-out ``z``, ``p`` and the relative held-out ``gain`` of the model
     with it over the model without it (module docstring)."""
     out: dict[str, dict[str, float]] = {}
-    blocks = sel.held_out_blocks()
     for effect in model.kept:
         reduced = sel.fit(*model.without(effect), nfev=30)
-        out[effect] = _test(sel, reduced, model, blocks)
-    on, screens = sel.screened  # the last forward step screened on this very model: reuse
+        out[effect] = sel.test(reduced, model)
+    on, screened = sel.screened  # the last forward step screened on this very model: reuse
     for cand in sel.candidates:
         if cand in model.kept or overlaps(cand, model.kept):
             continue
-        s = screens[cand] if on is model and cand in screens else sel.unit.screen(model, cand)
-        out[cand] = _test(sel, model, s, blocks)
+        if on is model and cand in screened:
+            out[cand] = screened[cand]
+        else:
+            out[cand] = sel.test(model, sel.unit.screen(model, cand))
+    release = getattr(sel.unit, "release", None)
+    if release is not None:
+        release()
     return out
-
-
-def _test(sel: Selector, a: Model, b: Model, blocks: int) -> dict[str, float]:
-    z = sel.z(a, b)
-    before = float(sel.test_sse(a.resid).sum())
-    gain = (before - float(sel.test_sse(b.resid).sum())) / before if before > 0 else 0.0
-    return {"z": float(z), "p": p_value(z, blocks), "gain": gain}
 
 
 def block_refits(sel: Selector, model: Model) -> tuple[dict[str, np.ndarray], dict[str, float]]:
@@ -123,45 +122,70 @@ def param_z(sel: Selector, model: Model, effect: str, presence: float | None) ->
     return z if presence is None else min(z, presence)
 
 
-def _score(units: list[Tested], th) -> list[list[str]]:
-    """Tests, q-values over every unit and candidate, block standard errors and the
-    parameter test, stored in each outcome; the failing kept effects of each unit."""
-    tests = [candidate_tests(u.selector, u.model) for u in units]
-    flat = [(k, e) for k, t in enumerate(tests) for e in t]
-    q = bh_qvalues([tests[k][e]["p"] for k, e in flat])
+def score(u: Tested) -> None:
+    """One unit's tests (every candidate), block refits and parameter tests, in place;
+    the q-values come with :func:`decide`, over every unit."""
+    sel, model = u.selector, u.model
+    assert sel is not None
+    tests = candidate_tests(sel, model)
+    se_blocks, presence = block_refits(sel, model)
+    for e in model.kept:
+        tests[e]["param_z"] = param_z(sel, model, e, presence.get(e))
+    u.outcome.tests, u.outcome.stderr_blocks = tests, se_blocks
+
+
+def retire(u: Tested) -> None:
+    """Free what a scored unit holds beyond its numbers (its data, its residual); a later
+    round rebuilds it (:func:`decide`'s ``rebuild``)."""
+    u.selector = None
+    u.model = Model(u.model.kept, u.model.specs, u.model.stderr, np.zeros(0))
+
+
+def _fails(units: list[Tested], th) -> list[list[str]]:
+    """q-values over every unit and candidate (stored in each outcome's tests); the kept
+    effects of each unit that fail (module docstring)."""
+    flat = [(k, e) for k, u in enumerate(units) for e in u.outcome.tests]
+    q = bh_qvalues([units[k].outcome.tests[e]["p"] for k, e in flat])
     for (k, e), qv in zip(flat, q, strict=True):
-        tests[k][e]["q"] = float(qv)
-    fails = []
-    for u, t in zip(units, tests, strict=True):
-        se_blocks, presence = block_refits(u.selector, u.model)
-        fail = []
-        for e in u.model.kept:
-            t[e]["param_z"] = param_z(u.selector, u.model, e, presence.get(e))
-            if t[e]["q"] > th.fdr or t[e]["gain"] < th.rel_min or t[e]["param_z"] < th.z_min:
-                fail.append(e)
-        u.outcome.tests, u.outcome.stderr_blocks = t, se_blocks
-        fails.append(fail)
-    return fails
+        units[k].outcome.tests[e]["q"] = float(qv)
+    out = []
+    for u in units:
+        t = u.outcome.tests
+        out.append([
+            e for e in u.model.kept
+            if t[e]["q"] > th.fdr or t[e]["gain"] < th.rel_min or t[e]["param_z"] < th.z_min
+        ])  # fmt: skip
+    return out
 
 
-def decide(units: list[Tested], th, say=lambda _m: None) -> None:
-    """The significance stage over every unit, in place (module docstring): tests, q-values,
-    the parameter test with block standard errors; failing findings dropped and the unit
-    refitted, until none fails (then the tests of the final models stand)."""
+def decide(units: list[Tested], th, say=lambda _m: None, rebuild=None) -> None:
+    """The significance stage over every unit, in place (module docstring): q-values over
+    every unit's tests (each unit scored by :func:`score` when it is not yet), failing
+    findings dropped and the unit refitted and scored again, until none fails.
+    ``rebuild(u)``: a retired unit's selector again (its model re-evaluated at its
+    values)."""
+    for u in units:
+        if u.outcome.tests == {} and u.selector is not None:
+            score(u)
     for _ in range(ROUNDS):
-        fails = _score(units, th)
+        fails = _fails(units, th)
         if not any(fails):
             break
         for u, fail in zip(units, fails, strict=True):
             if not fail:
                 continue
             say(f"{', '.join(fail)} not significant ({_why(u.outcome.tests, fail)})")
+            if u.selector is None:
+                u.selector, u.model = rebuild(u)
             u.dropped += fail
             keep = {e: v for e, v in u.model.kept.items() if e not in fail}
             specs = {e: u.model.specs[e] for e in keep}
             u.model = u.selector.fit(keep, specs) if keep else u.selector.unit.empty()
+            score(u)
+            if rebuild is not None:
+                retire(u)
     else:
-        _score(units, th)
+        _fails(units, th)
     for u in units:
         o = u.outcome
         o.kept = [e for e in o.kept if e in u.model.kept] + [
