@@ -37,7 +37,9 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="config file (YAML)")
     if command == "record":
         parser.add_argument("--seconds", type=float, required=True, help="duration (s)")
-        parser.add_argument("--out", required=True, help="recording to write (.csv or .csv.gz)")
+        parser.add_argument(
+            "--out", required=True, help="recording to write (.csv, .csv.gz or .parquet)"
+        )
         parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
         parser.add_argument(
             "--seed",
