@@ -11,9 +11,9 @@ is encoded by pyarrow as a file of its own in memory, and its data pages plus a 
 every row group so far (the row group's offsets moved to where its pages land,
 :mod:`gateway.recordings.thrift`) are written over the previous footer in one ``write``:
 after each row group the file on disk is a complete Parquet file (a kill inside that one
-``write`` can still cut it; a power loss is not covered: no fsync). A write that fails (a full disk) puts the previous footer
-back, so the file keeps every earlier row group. The file is valid from the start (a
-footer with the schema and no row group).
+``write`` can still cut it; a power loss is not covered: no fsync). A write that fails (a
+full disk) puts the previous footer back, so the file keeps every earlier row group. The
+file is valid from the start (a footer with the schema and no row group).
 
 Reading (:func:`read_parquet`): the footer is checked before anything is allocated (its
 size, the number of rows and columns, every column a number), then each row group is read
