@@ -520,6 +520,22 @@ def _assemble(path: Path, meta: dict[str, str], out: dict[str, np.ndarray], skip
     )
 
 
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The metadata of a recording alone: the ``# key: value`` lines of a CSV (read up to
+    the header) or the key-value metadata of a Parquet file's footer."""
+    path = Path(path)
+    try:
+        if path.suffix == ".parquet":
+            from gateway.recordings import parquet
+
+            pf, _ = parquet.open_checked(path, MAX_COLUMNS)
+            return parquet.parquet_metadata(path, pf, MAX_METADATA_LINES, MAX_LINE_CHARS)
+        with _open_text(path) as fh:
+            return _split_header(path, _lines(path, fh))[0]
+    except (OSError, EOFError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{path}: cannot read: {exc}") from exc
+
+
 # --- writing ------------------------------------------------------------------------------
 def recording_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
     """(name, column array) of ``rec`` in the order written."""
