@@ -128,7 +128,8 @@ def test_an_agent_forwards_two_gateways_to_the_central_prometheus(tmp_path):
     site = tmp_path / "site"
     shutil.copytree(SITE, site)
     shutil.copy(DEPLOY / "alerts.yml", tmp_path)
-    gateways = [{"targets": [f"127.0.0.1:{e.port}"], "labels": {"robot": f"r-{i}", "cell": "cell-a"}}
+    gateways = [{"targets": [f"127.0.0.1:{e.port}"],
+                 "labels": {"robot": f"r-{i}", "cell": "cell-a"}}
                 for i, e in enumerate(exporters)]  # fmt: skip
     gateways.append({"targets": ["127.0.0.1:9"], "labels": {"robot": "other", "cell": "cell-b"}})
     (site / "gateways.yml").write_text(yaml.safe_dump(gateways))
@@ -139,7 +140,8 @@ def test_an_agent_forwards_two_gateways_to_the_central_prometheus(tmp_path):
     (site / "prometheus-cell-a.yml").write_text(agent_cfg)
     procs = [
         _start_prometheus(binary, [
-            f"--config.file={site / 'prometheus-central.yml'}", "--web.enable-remote-write-receiver",
+            f"--config.file={site / 'prometheus-central.yml'}",
+            "--web.enable-remote-write-receiver",
             f"--storage.tsdb.path={tmp_path / 'central'}",
             f"--web.listen-address=127.0.0.1:{central_port}"], tmp_path / "central.log"),
         _start_prometheus(binary, [
