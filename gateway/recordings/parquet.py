@@ -146,16 +146,17 @@ class ParquetRecordingWriter:
         self._groups: list[bytes] = []  # each row group's encoding, offsets in this file
         _, self._template = _split(_standalone(self.schema.empty_table()))
         self._end = 4  # where the next row group's pages go: after the magic
-        self._tail = self._footer()  # what follows the pages: footer, its length, magic
+        self._tail = self._footer(0)  # what follows the pages: footer, its length, magic
         self._raw.write(MAGIC + self._tail)
         self._raw.flush()
         self.bytes = self._end + len(self._tail)
 
-    def _footer(self) -> bytes:
+    def _footer(self, rows: int) -> bytes:
+        """Footer, its length and the magic for the row groups so far, ``rows`` in all."""
         fields = []
         for f in self._template:
             if f.id == _FMD_NUM_ROWS:
-                f = Field(f.id, I64, self.rows_on_disk)
+                f = Field(f.id, I64, rows)
             elif f.id == _FMD_ROW_GROUPS:
                 f = Field(f.id, thrift.LIST, Raw(len(self._groups), b"".join(self._groups)))
             fields.append(f)
@@ -217,7 +218,7 @@ class ParquetRecordingWriter:
         assert groups is not None and len(groups.value.items) == 1
         self._groups.append(_moved(groups.value.items[0], self._end - 4, len(self._groups)))
         try:
-            self._put(pages, rows, self._footer())
+            self._put(pages, rows, self._footer(self.rows_on_disk + rows))
         except BaseException:
             self._groups.pop()
             raise
@@ -291,6 +292,8 @@ def iter_row_groups(path: Path, pf: pq.ParquetFile, names: list[str]):
     first = 1
     for i in range(md.num_row_groups):
         group = md.row_group(i)
+        if first - 1 + group.num_rows > md.num_rows:  # checked against the limit before
+            raise RecordingError(f"{path}: row group {i}: more rows than the file says it has")
         if group.total_byte_size > MAX_ROW_GROUP_BYTES:
             raise RecordingError(
                 f"{path}: row group {i}: {group.total_byte_size} bytes (limit "

@@ -66,6 +66,8 @@ def test_every_row_group_leaves_a_complete_file_with_the_values_written(
         # after each batch: exactly the full row groups so far, each value as written
         every = np.concatenate(written)
         assert_array_equal(on_disk(path), every[: w.rows_on_disk])
+        md = pq.ParquetFile(path).metadata
+        assert md.num_rows == sum(md.row_group(i).num_rows for i in range(md.num_row_groups))
         assert w.rows_on_disk == start - start % group  # whole row groups, the rest held
         assert path.stat().st_size == w.bytes
     w.close()
