@@ -229,3 +229,30 @@ def test_a_killed_writer_leaves_a_readable_file(tmp_path: Path) -> None:
     assert_array_equal(back.t, expected[: back.samples, 0])
     assert_array_equal(back.tension_sensor[:, 0], expected[: back.samples, 2])
     assert back.metadata == {"robot": "k"}
+
+
+@pytest.mark.long  # two diagnoses: ~5-9 s
+def test_diagnose_reads_parquet_as_it_reads_the_csv_and_refuses_a_bad_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The same values as CSV.gz and as Parquet (the CSV's values written to Parquet):
+    the two reports are byte for byte the same; a malformed Parquet is one line, status 2."""
+    from gateway.cli import main
+
+    cfg = ROOT / "config" / "calibrate" / "offset.yaml"
+    csv = tmp_path / "r.csv.gz"
+    assert main(["record", "--config", str(cfg), "--seconds", "4", "--out", str(csv),
+                 "--quiet"]) == 0  # fmt: skip
+    write_recording(tmp_path / "r.parquet", read_recording(csv))
+    model = ROOT / "config" / "default.yaml"
+    for name in ("r.csv.gz", "r.parquet"):
+        assert main(["diagnose", str(tmp_path / name), "--model", str(model), "--json",
+                     str(tmp_path / f"{name}.json"), "--quiet"]) == 0  # fmt: skip
+    assert (tmp_path / "r.csv.gz.json").read_bytes() == (tmp_path / "r.parquet.json").read_bytes()
+    capsys.readouterr()
+    _write_table(tmp_path / "bad.parquet", {**GOOD, "t": np.r_[T[:5], T[3], T[6:]]})
+    code = main(["diagnose", str(tmp_path / "bad.parquet"), "--model", str(model), "--json",
+                 str(tmp_path / "bad.json")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "bad.parquet: row 6: column 't'" in err and not (tmp_path / "bad.json").exists()
