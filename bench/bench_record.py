@@ -15,7 +15,8 @@ recording: rows written, samples dropped, file size, the extra CPU (in the gatew
 process, and in the recorder's writer process). Then each file read in a fresh process
 as ``diagnose`` reads it (time, peak RSS from ``wait4``), and a ``record`` of the same
 length (config/calibrate/viscous.yaml) written as CSV.gz and as Parquet and diagnosed:
-time, peak RSS, verdict. Figures only: nothing asserts on time.
+time, peak RSS (the process's own VmHWM), verdict (``BENCH_RECORD_ONLY=diagnose``: this
+part alone). Figures only: nothing asserts on time.
 """
 
 from __future__ import annotations
@@ -134,33 +135,42 @@ class _Plc:
         stop_process(self.proc, timeout_s=10)
 
 
-def _child(cmd: list[str]) -> tuple[str, float, float]:
-    """Run ``cmd``: (its stdout, wall s, its own peak RSS in MB from wait4)."""
+_PEAK = (
+    "import atexit, sys\n"
+    "def _peak():\n"
+    "    with open('/proc/self/status') as f:\n"
+    "        hwm = next(x for x in f if x.startswith('VmHWM:')).split()[1]\n"
+    "    print(f'PEAK_KB {hwm}', file=sys.stderr)\n"
+    "atexit.register(_peak)\n"
+)  # the peak of this process's own memory (ru_maxrss would carry the forking parent's)
+
+
+def _child(code: str, *args: str) -> tuple[str, float, float]:
+    """Run Python ``code`` with ``args`` in a fresh process: (its stdout, wall s, its own
+    peak RSS in MB, VmHWM)."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=_env())
-    assert proc.stdout is not None
-    out = proc.stdout.read()
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    proc.stdout.close()
-    if proc.returncode != 0:
-        raise RuntimeError(f"{cmd}: exit status {proc.returncode}")
-    return out, time.perf_counter() - t0, usage.ru_maxrss / 1024
+    res = subprocess.run([sys.executable, "-c", _PEAK + code, *args], capture_output=True,
+                         text=True, env=_env())  # fmt: skip
+    if res.returncode != 0:
+        raise RuntimeError(f"{args}: exit status {res.returncode}: {res.stderr[-500:]}")
+    peak = next(x for x in res.stderr.splitlines() if x.startswith("PEAK_KB"))
+    return res.stdout, time.perf_counter() - t0, int(peak.split()[1]) / 1024
 
 
 def _child_read(path: Path) -> tuple[float, float, float, int]:
     """Read ``path`` as ``diagnose`` does (lengths: first row only) in a fresh process:
     (seconds to read, peak RSS MB, RSS MB after the imports, samples)."""
     code = (
-        "import resource, sys, time\n"
+        "import sys, time\n"
         "from gateway.recordings.reader import read_recording\n"
         "import gateway.recordings.parquet\n"
-        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+        "before = int(next(x for x in open('/proc/self/status') if x.startswith('VmRSS:'))"
+        ".split()[1])\n"
         "t0 = time.perf_counter()\n"
         "rec = read_recording(sys.argv[1], first_row_only=('length',))\n"
         "print(time.perf_counter() - t0, before, rec.samples)\n"
     )
-    out, _, peak = _child([sys.executable, "-c", code, str(path)])
+    out, _, peak = _child(code, str(path))
     took, before, samples = out.split()
     return float(took), peak, float(before) / 1024, int(samples)
 
@@ -168,9 +178,10 @@ def _child_read(path: Path) -> tuple[float, float, float, int]:
 def _child_diagnose(path: Path) -> tuple[float, float, str]:
     """``cdpr-gateway diagnose PATH --model config/default.yaml --json`` in a fresh
     process: (wall s, peak RSS MB, verdict line)."""
-    cmd = [sys.executable, "-m", "gateway.cli", "diagnose", str(path), "--model",
-           str(DEFAULT_CONFIG_PATH), "--json", str(path) + ".json", "--quiet"]  # fmt: skip
-    out, wall, peak = _child(cmd)
+    code = "import sys\nfrom gateway.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+    args = ["diagnose", str(path), "--model", str(DEFAULT_CONFIG_PATH), "--json",
+            str(path) + ".json", "--quiet"]  # fmt: skip
+    out, wall, peak = _child(code, *args)
     return wall, peak, out.strip()
 
 
@@ -201,11 +212,11 @@ def _diagnose_figures(tmp: Path, seconds: float) -> None:
                         "--seconds", f"{seconds:g}", "--out", str(path), "--quiet"],
                        check=True, env=_env())  # fmt: skip
         made = time.perf_counter() - t0
-        took = _child_read(path)[0]
+        took, read_peak, before, _ = _child_read(path)
         wall, rss, verdict = _child_diagnose(path)
         print(f"    {suffix:8s} {path.stat().st_size / 1e6:6.1f} MB (record {made:.0f} s): "
-              f"read {took:.1f} s; diagnose {wall:.1f} s, peak RSS {rss:.0f} MB; "
-              f"{verdict}")  # fmt: skip
+              f"read {took:.1f} s, peak RSS {read_peak:.0f} MB (imports {before:.0f} MB); "
+              f"diagnose {wall:.1f} s, peak RSS {rss:.0f} MB; {verdict}")  # fmt: skip
 
 
 KINDS = (("csv.gz", "bench.csv.gz"), ("parquet", "bench.parquet"))
@@ -213,6 +224,11 @@ KINDS = (("csv.gz", "bench.csv.gz"), ("parquet", "bench.parquet"))
 
 def run() -> None:
     seconds = float(os.environ.get("BENCH_SECONDS", "600"))
+    if os.environ.get("BENCH_RECORD_ONLY") == "diagnose":  # the files and diagnose alone
+        with tempfile.TemporaryDirectory(prefix="bench-record-") as name:
+            _diagnose_figures(Path(name), seconds)
+        print(f"  load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        return
     rt = os.environ.get("BENCH_RT", "0") == "1"
     cfg = load_config()
     if rt:

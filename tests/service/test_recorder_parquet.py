@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from pathlib import Path
 
 import duckdb
@@ -35,9 +36,9 @@ NO_PYARROW = textwrap.dedent(
     from tests.service.test_recorder import M, push_many
 
     rec = Recorder(RecordConfig(path=sys.argv[1], batch_s=0.01), M, with_mass=True,
-                   period_s=0.001)
+                   period_s=0.01)  # row groups of 500 rows
     rec.start()
-    push_many(rec, 0, 12000)
+    push_many(rec, 0, 1200)
     rec.close()
     print(rec.rows_written, rec.dropped, "pyarrow" in sys.modules, flush=True)
     """
@@ -51,8 +52,8 @@ def test_the_gateways_process_records_parquet_without_importing_pyarrow(tmp_path
     assert proc.returncode == 0, proc.stderr
     written, dropped, imported = proc.stdout.split()
     assert imported == "False"  # the writer process imported it, not this one
-    assert int(written) + int(dropped) == 12000 and int(written) > 0
-    assert pq.ParquetFile(path).metadata.num_row_groups >= 2  # 5 s at 1 kHz each
+    assert int(written) + int(dropped) == 1200 and int(written) > 0
+    assert pq.ParquetFile(path).metadata.num_row_groups == 3  # 500, 500, the last 200
     back = read_recording(path)
     assert back.samples == int(written)
     assert_array_equal(back.tension_sensor[:, 0], 100.0 + np.arange(back.samples))
@@ -82,7 +83,7 @@ def test_the_hive_layout_rotates_into_a_tree_duckdb_reads_as_one_table(tmp_path:
     rec.start()
     for k in range(0, 3000, 250):
         push_many(rec, k, 250)
-        wait_for(lambda k=k: rec.rows_written >= k, 5)
+        time.sleep(0.05)  # the writer drains each batch on its own: files rotate between
     rec.close()
     assert rec.dropped == 0 and len(rec.files) >= 3
     parts = sorted((tmp_path / "tree").glob("robot=cell-3/date=*/part-*.parquet"))
@@ -125,6 +126,7 @@ def _soft_plc() -> tuple[subprocess.Popen[str], int, threading.Thread]:
             return proc, int(line.rsplit(":", 1)[1]), reader
 
 
+@pytest.mark.long  # the soft PLC and the gateway as processes: ~8 s
 def test_run_record_writes_a_tree_pyarrow_duckdb_and_the_reader_agree_on(tmp_path: Path) -> None:
     plc, port, reader = _soft_plc()
     try:
