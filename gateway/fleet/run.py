@@ -6,7 +6,10 @@ over its memory limit, a lost worker) becomes an error of that recording, never 
 of the job. Workers run one task at a time (``threads_per_worker=1``; the diagnosis is
 numpy and numba, one core each), so a worker's memory limit is one recording's figure
 plus the worker's own: :data:`TASK_MEMORY_BYTES` (``diagnose`` of 10 min x 1 kHz x 8
-cables peaks at ~380 MiB, docs/recording-format.md) + :data:`WORKER_BASE_BYTES`.
+cables peaks at 373 MB from CSV.gz, 422 MB from Parquet with pyarrow loaded,
+docs/recording-format.md "Memory") + :data:`WORKER_BASE_BYTES` (a worker with the
+libraries loaded; a worker over 95 % of its limit is restarted by Dask and that
+recording is listed as failed).
 """
 
 from __future__ import annotations

@@ -247,8 +247,9 @@ def _open(path: Path) -> pq.ParquetFile:
         raise RecordingError(f"{path}: Parquet footer of {footer} bytes (limit {MAX_FOOTER_BYTES})")
     try:
         return pq.ParquetFile(
-            path, thrift_string_size_limit=MAX_FOOTER_BYTES, thrift_container_size_limit=1 << 20
-        )
+            path, pre_buffer=False, thrift_string_size_limit=MAX_FOOTER_BYTES,
+            thrift_container_size_limit=1 << 20,
+        )  # fmt: skip
     except (pa.ArrowException, OSError) as exc:
         raise RecordingError(f"{path}: not a readable Parquet file: {exc}") from exc
 
@@ -302,7 +303,7 @@ def iter_row_groups(path: Path, pf: pq.ParquetFile, names: list[str]):
         block = np.empty((group.num_rows, len(names)))
         for c, name in enumerate(names):
             try:
-                col = pf.read_row_group(i, columns=[name]).column(0)
+                col = pf.read_row_group(i, columns=[name], use_threads=False).column(0)
             except (pa.ArrowException, OSError) as exc:
                 raise RecordingError(
                     f"{path}: row {first}: column {name!r}: cannot read: {exc}"
