@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import signal
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from gateway.core.cliopts import add_config_option
@@ -39,7 +41,12 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     add_config_option(parser, DEFAULT_CONFIG_PATH)
     if command == "record":
         parser.add_argument("--seconds", type=float, required=True, help="duration (s)")
-        parser.add_argument("--out", required=True, help="recording to write (.csv or .csv.gz)")
+        parser.add_argument(
+            "--out", required=True, help="recording to write (.csv, .csv.gz or .parquet)"
+        )
+        parser.add_argument(
+            "--robot", help="the robot's name in the metadata (default: the config's name)"
+        )
         parser.add_argument(
             "--seed",
             type=int,
@@ -107,8 +114,10 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
             sim, seed=args.seed, trajectory=dataclasses.replace(traj, random=motion)
         )
     t0 = time.perf_counter()
+    started = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     rec = make_recording(cfg, sim, args.seconds, _ProgressBar("record", args.quiet))
-    write_recording(out, rec)
+    robot = args.robot or (Path(cfg.source).stem if cfg.source else "sim")
+    write_recording(out, rec, {"robot": robot, "started": started})
     if not args.quiet:
         took = time.perf_counter() - t0
         print(f"record: {rec.samples} samples x {rec.cables} cables -> {out} ({took:.1f} s)",

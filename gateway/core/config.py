@@ -13,6 +13,7 @@ import dataclasses
 import ipaddress
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -404,6 +405,8 @@ class RecordConfig:
     columns: tuple[str, ...] = RECORD_KINDS
     buffer_rows: int = 65536  # ring size: 65 s at 1 kHz of disk stall before drops
     batch_s: float = 0.1  # the writer drains the ring this often
+    layout: str = "files"  # or "hive": path is a folder of robot=R/date=D/part-N.parquet
+    robot: str | None = None  # the robot's name in the metadata (and the tree); None: host
     RANGES: ClassVar[Ranges] = {
         "rotate_bytes": (4096, 1 << 40),
         "rotate_s": (1.0, 1e7),
@@ -412,6 +415,12 @@ class RecordConfig:
     }
 
     def __post_init__(self) -> None:
+        require(self.layout in ("files", "hive"), "layout must be 'files' or 'hive'")
+        require(
+            self.robot is None
+            or re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", self.robot) is not None,
+            "robot must be 1..64 letters, digits, '_', '.', '-' (a folder name of the tree)",
+        )
         require(
             self.rotate_bytes is None or self.rotate_bytes >= 4096, "rotate_bytes must be >= 4096"
         )

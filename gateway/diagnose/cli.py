@@ -30,7 +30,7 @@ from gateway.recordings.reader import Recording, read_recording
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recording", type=Path, help="recording CSV (.csv or .csv.gz)")
+    parser.add_argument("recording", type=Path, help="recording (.csv, .csv.gz or .parquet)")
     parser.add_argument(
         "--model",
         type=Path,
@@ -103,6 +103,68 @@ def _without_pose(rec: Recording) -> Recording:
     return dataclasses.replace(rec, pose=None, mass=None)
 
 
+@dataclasses.dataclass
+class _Run:
+    """One diagnosis of a file: the result and what the model writer needs of it."""
+
+    diag: Diagnosis
+    rec: Recording
+    keep_for_model: Callable[[Recording], Recording]
+    model_friction: object
+
+
+def _diagnose_file(
+    recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
+) -> _Run:
+    model_friction, cfg = load_model(model)
+    rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
+    friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
+    say(
+        f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
+        + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
+    )
+
+    keep_for_model: Callable[[Recording], Recording] = _unchanged
+    if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
+        from gateway.diagnose.wrench_select import diagnose_wrench
+
+        wrec = None if validate is None else _read(validate, model_friction, cfg)[0]  # type: ignore[arg-type]
+        diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
+    else:
+        rec, keep_for_model = _slim(rec)
+        tp, dm = _tensions(rec, cfg, say)
+        rec = _without_pose(rec)
+        validation = None
+        if validate is not None:
+            vrec = dataclasses.replace(_read(validate, model_friction, cfg)[0], length=None)  # type: ignore[arg-type]
+            vtp, vdm = _tensions(vrec, cfg, say)
+            validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
+        diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
+    warmup.annotate(diag.report, rec, nominal)  # the start-up transient, said as such
+    return _Run(diag, rec, keep_for_model, model_friction)
+
+
+def report_json(report: dict) -> str:
+    """The text of ``--json REPORT.json``."""
+    return json.dumps(report, indent=1)
+
+
+def diagnose_report(
+    recording: Path,
+    model: Path,
+    validate: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """The report ``diagnose RECORDING --model MODEL [--validate OTHER]`` writes, as a dict
+    (:func:`report_json` gives its text); bad input raises :class:`GatewayError`. The one
+    entry point for a caller that diagnoses files (``cdpr-gateway fleet``)."""
+    return _diagnose_file(Path(recording), Path(model), validate, progress or _silent).diag.report
+
+
+def _silent(msg: str) -> None:
+    pass
+
+
 def run_command(command: str, args: argparse.Namespace) -> int:
     start = time.perf_counter()
 
@@ -116,34 +178,11 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         output_path(args.write_model, "--write-model")
     if args.report is not None:  # a directory: one level is created, now, not after the work
         output_dir(args.report, "--report")
-    model_friction, cfg = load_model(args.model)
-    rec, nominal = _read(args.recording, model_friction, cfg)  # type: ignore[arg-type]
-    friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
-    say(
-        f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
-        + (f", {rec.skipped_rows} rows skipped (missing values)" if rec.skipped_rows else "")
-    )
-
-    keep_for_model: Callable[[Recording], Recording] = _unchanged
-    if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
-        from gateway.diagnose.wrench_select import diagnose_wrench
-
-        wrec = None if args.validate is None else _read(args.validate, model_friction, cfg)[0]  # type: ignore[arg-type]
-        diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
-    else:
-        rec, keep_for_model = _slim(rec)
-        tp, dm = _tensions(rec, cfg, say)
-        rec = _without_pose(rec)
-        validation = None
-        if args.validate is not None:
-            vrec = dataclasses.replace(_read(args.validate, model_friction, cfg)[0], length=None)  # type: ignore[arg-type]
-            vtp, vdm = _tensions(vrec, cfg, say)
-            validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
-        diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
-    warmup.annotate(diag.report, rec, nominal)  # the start-up transient, said as such
+    run = _diagnose_file(args.recording, args.model, args.validate, say)
+    diag, rec = run.diag, run.rec
     if args.json is not None:
         try:
-            args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
+            args.json.write_text(report_json(diag.report), encoding="utf-8")
         except OSError as exc:
             raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
         say(f"report in {args.json}")
@@ -160,7 +199,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         refused = heldout.refusal(diag.report, heldout.motion(rec.t, rec.velocity))
         if refused is not None:
             raise GatewayError(f"--write-model {args.write_model}: {refused}")
-        write_model(args.write_model, args.model, model_friction, diag.report, keep_for_model(rec))  # type: ignore[arg-type]
+        fitted_from = run.keep_for_model(rec)
+        write_model(args.write_model, args.model, run.model_friction, diag.report, fitted_from)  # type: ignore[arg-type]
         say(f"fitted model in {args.write_model}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"

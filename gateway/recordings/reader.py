@@ -36,7 +36,11 @@ import numpy as np
 
 from gateway.core.heap import return_large_frees
 from gateway.errors import RecordingError
-from gateway.recordings.writer import RecordingWriter, format_rows  # noqa: F401 - re-exported
+from gateway.recordings.writer import (  # noqa: F401 - re-exported
+    RecordingWriter,
+    format_rows,
+    open_writer,
+)
 
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
 CABLE_KINDS = ("velocity", "tension_sensor", "tension_platform", "length")
@@ -270,9 +274,16 @@ class _Reader:
     """Chunk by chunk checks that need the previous chunk (time steps, counts)."""
 
     def __init__(
-        self, path: Path, names: list[str], required: list[int], max_samples: int, sink: _Columns
+        self,
+        path: Path,
+        names: list[str],
+        required: list[int],
+        max_samples: int,
+        sink: _Columns,
+        where: str = "{path}:{line}",
     ):
         self.path, self.names, self.required = path, names, required
+        self.where = where  # the place of an error: file and line (CSV), or row (Parquet)
         self.t_col = names.index("t")
         self.max_samples = min(max_samples, MAX_VALUES // len(names))
         self.sink = sink
@@ -284,19 +295,25 @@ class _Reader:
         self.limits = limits
 
     def add(self, body: list[str], line_of: list[int]) -> None:
-        data = _parse_chunk(self.path, body, line_of, self.names)
+        self.add_rows(_parse_chunk(self.path, body, line_of, self.names), line_of)
+
+    def at(self, line: int) -> str:
+        return self.where.format(path=self.path, line=line)
+
+    def add_rows(self, data: np.ndarray, line_of: list[int]) -> None:
+        """Check and keep parsed rows (rows, columns); ``line_of`` their line numbers."""
         self._check_values(data, line_of)
         keep = ~np.isnan(data[:, self.required]).any(axis=1)
         rows = np.nonzero(keep)[0]
-        self.skipped += len(body) - rows.size
+        self.skipped += len(data) - rows.size
         if rows.size == 0:
             return
-        kept = data[rows] if rows.size != len(body) else data
+        kept = data[rows] if rows.size != len(data) else data
         self._check_time(kept[:, self.t_col], [line_of[r] for r in rows])
         self.kept += rows.size
         if self.kept > self.max_samples:
             raise RecordingError(
-                f"{self.path}:{line_of[rows[-1]]}: more than {self.max_samples} samples "
+                f"{self.at(line_of[rows[-1]])}: more than {self.max_samples} samples "
                 f"of {len(self.names)} columns (the reader's limits: max_samples, and "
                 f"{MAX_VALUES:.1e} values = {8 * MAX_VALUES / 1e9:.0f} GB to read)"
             )
@@ -313,7 +330,7 @@ class _Reader:
                 if not np.isfinite(value)
                 else (f"{value!r} exceeds the limit {self.limits[c]:g}")
             )
-            raise RecordingError(f"{self.path}:{line_of[r]}: column {self.names[c]!r}: {why}")
+            raise RecordingError(f"{self.at(line_of[r])}: column {self.names[c]!r}: {why}")
 
     def _check_time(self, t: np.ndarray, lines: list[int]) -> None:
         prev = np.concatenate(([self.last_t], t[:-1])) if self.last_t is not None else t[:-1]
@@ -325,11 +342,11 @@ class _Reader:
             r = int(bad[0])
             if steps[r] <= 0:
                 raise RecordingError(
-                    f"{self.path}:{lines[r]}: column 't': {float(cur[r])!r} does not increase "
+                    f"{self.at(lines[r])}: column 't': {float(cur[r])!r} does not increase "
                     f"(previous {float(prev[r])!r})"
                 )
             raise RecordingError(
-                f"{self.path}:{lines[r]}: column 't': time step {float(steps[r]):.3g} s is "
+                f"{self.at(lines[r])}: column 't': time step {float(steps[r]):.3g} s is "
                 f"below the minimum {MIN_STEP_S:g} s"
             )
         self.last_t = float(t[-1])
@@ -360,6 +377,8 @@ def read_recording(
     if not set(first_row_only) <= set(FIRST_ROW_ONLY):
         raise ValueError(f"first_row_only: only {FIRST_ROW_ONLY}, not {first_row_only!r}")
     return_large_frees()  # the result arrays grow by realloc: mremap, not copies
+    if path.suffix == ".parquet":
+        return _read_parquet(path, min_samples, max_samples, first_row_only)
     try:
         with _open_text(path) as fh:
             lines = _lines(path, fh)
@@ -381,6 +400,10 @@ def read_recording(
                 reader.add(body, line_of)
     except (OSError, EOFError, UnicodeDecodeError) as exc:
         raise RecordingError(f"{path}: cannot read: {exc}") from exc
+    return _finish(path, meta, sink, reader, min_samples)
+
+
+def _finish(path: Path, meta: dict[str, str], sink: _Columns, reader: _Reader, min_samples: int):
     if reader.kept == 0:
         raise RecordingError(
             f"{path}: no data rows" if reader.skipped == 0
@@ -391,6 +414,34 @@ def read_recording(
             f"{path}: too short: {reader.kept} samples, at least {min_samples} are needed"
         )
     return _assemble(path, meta, sink.finish(), reader.skipped)
+
+
+def _read_parquet(
+    path: Path, min_samples: int, max_samples: int, first_row_only: Collection[str]
+) -> Recording:
+    """A Parquet recording (:mod:`gateway.recordings.parquet`, imported only here: the
+    gateway's cycle process never loads pyarrow): the same layout rules, checks and limits
+    as a CSV, the schema standing for the header and rows numbered from 1."""
+    from gateway.recordings import parquet
+
+    pf, names = parquet.open_checked(path, MAX_COLUMNS)
+    max_rows = min(max_samples, MAX_VALUES // max(len(names), 1))
+    if pf.metadata.num_rows > max_rows:
+        raise RecordingError(f"{path}: {pf.metadata.num_rows} rows of {len(names)} columns "
+                             f"exceed the reader's limit of {max_rows} samples")  # fmt: skip
+    meta = parquet.parquet_metadata(path, pf, MAX_METADATA_LINES, MAX_LINE_CHARS)
+    try:
+        cables, cols = _layout(path, 0, names)
+    except RecordingError as exc:  # the schema is no line of text
+        raise RecordingError(str(exc).replace(f"{path}:0:", f"{path}: schema:", 1)) from None
+    sink = _Columns(_targets(names, cables, cols), first_row_only)
+    where = "{path}: row {line}"
+    reader = _Reader(path, names, _required_columns(names, cols), max_samples, sink, where)
+    for first, block in parquet.iter_row_groups(path, pf, names):
+        for start in range(0, block.shape[0], 8 * CHUNK_ROWS):
+            part = block[start : start + 8 * CHUNK_ROWS]
+            reader.add_rows(part, list(range(first + start, first + start + len(part))))
+    return _finish(path, meta, sink, reader, min_samples)
 
 
 class _Columns:
@@ -483,6 +534,22 @@ def _assemble(path: Path, meta: dict[str, str], out: dict[str, np.ndarray], skip
     )
 
 
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The metadata of a recording alone: the ``# key: value`` lines of a CSV (read up to
+    the header) or the key-value metadata of a Parquet file's footer."""
+    path = Path(path)
+    try:
+        if path.suffix == ".parquet":
+            from gateway.recordings import parquet
+
+            pf, _ = parquet.open_checked(path, MAX_COLUMNS)
+            return parquet.parquet_metadata(path, pf, MAX_METADATA_LINES, MAX_LINE_CHARS)
+        with _open_text(path) as fh:
+            return _split_header(path, _lines(path, fh))[0]
+    except (OSError, EOFError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{path}: cannot read: {exc}") from exc
+
+
 # --- writing ------------------------------------------------------------------------------
 def recording_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
     """(name, column array) of ``rec`` in the order written."""
@@ -503,9 +570,10 @@ def recording_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
 
 
 def write_recording(path: str | Path, rec: Recording, metadata: dict[str, str] | None = None):
-    """Write ``rec`` as CSV (gzip when the name ends in .gz), ``CHUNK_ROWS`` rows at a time."""
+    """Write ``rec`` as CSV (gzip when the name ends in .gz) or Parquet (``.parquet``),
+    ``CHUNK_ROWS`` rows at a time."""
     columns = recording_columns(rec)
-    writer = RecordingWriter(path, [n for n, _ in columns], {**rec.metadata, **(metadata or {})})
+    writer = open_writer(path, [n for n, _ in columns], {**rec.metadata, **(metadata or {})})
     try:
         chunk = np.empty((min(CHUNK_ROWS, rec.samples), len(columns)))
         for start in range(0, rec.samples, CHUNK_ROWS):

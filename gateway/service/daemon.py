@@ -1,4 +1,4 @@
-"""``cdpr-gateway run --config FILE [--cycles N] [--seconds N] [--record OUT.csv.gz]
+"""``cdpr-gateway run --config FILE [--cycles N] [--seconds N] [--record OUT.csv.gz|.parquet]
 [--log-level LEVEL]``: the gateway daemon.
 
 Loads and validates the config, builds the driver named in ``bus.driver``, serves the
@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import Any
 
 from drivers.base import Driver, Lifecycle, make_driver
@@ -62,8 +64,8 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cycles", type=int, default=None, help="stop after N cycles")
     parser.add_argument("--seconds", type=float, default=None, help="stop after N seconds")
     parser.add_argument(
-        "--record", default=None, help="record what the gateway sees (CSV, .csv.gz); "
-        "overrides record.path",
+        "--record", default=None, help="record what the gateway sees (.csv, .csv.gz or "
+        ".parquet: the name chooses; with record.layout hive a folder); overrides record.path",
     )  # fmt: skip
 
 
@@ -147,7 +149,10 @@ def start_recorder(cfg: Config, override: str | None) -> Recorder | None:
         "friction": f"{cfg.friction.model}, {len(cfg.friction.pulleys)} pulleys",
         "period_s": repr(cfg.loop.period_s),
     }
-    recorder = Recorder(rc, cfg.cables, with_mass=with_mass, metadata=meta)
+    if cfg.source and Path(cfg.source).is_file():
+        meta["config_sha256"] = hashlib.sha256(Path(cfg.source).read_bytes()).hexdigest()
+    recorder = Recorder(rc, cfg.cables, with_mass=with_mass, metadata=meta,
+                        period_s=cfg.loop.period_s)  # fmt: skip
     try:
         recorder.start()
     except OSError as exc:
