@@ -59,6 +59,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from drivers import gate
+from gateway.core.ring import Ring
 from gateway.errors import DriverError, DriverInitError
 
 DRIVERS: dict[str, str] = {
@@ -179,23 +180,7 @@ class Backoff:
         self.next_at = -math.inf
 
 
-@dataclass
-class RoundtripRing:
-    """Last ``size`` transaction durations (s); written in the cycle, read at scrape time."""
-
-    size: int = 4096
-    values: np.ndarray = field(init=False)
-    count: int = 0
-
-    def __post_init__(self) -> None:
-        self.values = np.zeros(self.size)
-
-    def add(self, seconds: float) -> None:
-        self.values[self.count % self.size] = seconds
-        self.count += 1
-
-    def recent(self) -> np.ndarray:
-        return self.values[: min(self.count, self.size)]
+ROUNDTRIP_HISTORY = 4096
 
 
 class Driver(ABC):
@@ -214,7 +199,7 @@ class Driver(ABC):
         self.config = config
         self.cables: int = config.cables
         self.state = DriverState.UNCONFIGURED
-        self.roundtrip_s = RoundtripRing()
+        self.roundtrip_s = Ring(ROUNDTRIP_HISTORY)  # transaction durations (s)
         self.backoff = Backoff()
         self.reconnects = 0  # connections re-established after one was up
         self.reconnect_attempts = 0  # connection attempts, first one included

@@ -17,6 +17,7 @@ ALLOWED_PROJECT_IMPORTS = (
     "gateway.core.config",
     "gateway.core.resources",
     "gateway.core.files",
+    "gateway.core.ring",
 )
 PROJECT_PACKAGES = ("drivers", "gateway", "sim_plc", "tests", "bench")
 DRIVER_FILES = sorted(Path(drivers.__file__).parent.glob("*.py"))
