@@ -64,6 +64,7 @@ from sim_plc.modbus_server import TRUTH_ADDRESS
 from sim_plc.truth import (
     SCORE_AFTER_S,
     TRUTH_EVERY_CYCLES,
+    ChainWarmup,
     CycleRing,
     TruthChannel,
     TruthMatcher,
@@ -73,9 +74,9 @@ from sim_plc.truth import (
 )
 
 __all__ = [
-    "SCORE_AFTER_S", "TRUTH_EVERY_CYCLES", "CycleRing", "DemoRun", "InProcessCanopenPlc",
-    "SoftPlc", "StandInPlant", "TruthChannel", "TruthMatcher", "TruthScore", "TruthScorer",
-    "run_command", "table", "with_port",
+    "SCORE_AFTER_S", "TRUTH_EVERY_CYCLES", "ChainWarmup", "CycleRing", "DemoRun",
+    "InProcessCanopenPlc", "SoftPlc", "StandInPlant", "TruthChannel", "TruthMatcher",
+    "TruthScore", "TruthScorer", "run_command", "table", "with_port",
 ]  # fmt: skip
 
 NO_REALTIME = "real-time: off (--no-realtime): loop.realtime not applied"
@@ -403,7 +404,7 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> DemoRun:
 
     driver = VirtualDriver(cfg, image=image, step=step)
     service = CyclicService(cfg, driver)
-    scorer = TruthScorer(cfg.cables, truth)
+    scorer = TruthScorer(cfg.cables, truth, warmup=ChainWarmup(cfg))
     service.add_observer(scorer)
     run_timed(service, seconds, "demo (offline)", sys.stderr)
     n = int(scorer.score.samples.max()) if scorer.score.samples.size else 0
@@ -412,13 +413,13 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> DemoRun:
     return DemoRun(service, scorer.score, how, noise_n=noise)
 
 
-def _off_cycle(service: CyclicService, cables: int, source: TruthSource, rt: bool) -> TruthMatcher:
+def _off_cycle(service: CyclicService, cfg: Config, source: TruthSource, rt: bool) -> TruthMatcher:
     """The ring observer on ``service`` and the matcher's thread, started (with ``rt`` at
     SCHED_FIFO 1, below the loop: measured, a normal-priority thread that holds the GIL
     when other processes preempt it makes the loop overrun -- 1.9 % vs 0.03-0.05 %)."""
-    ring = CycleRing(cables)
+    ring = CycleRing(cfg.cables, warmup=ChainWarmup(cfg))
     service.add_observer(ring)
-    matcher = TruthMatcher(ring, source, cables)
+    matcher = TruthMatcher(ring, source, cfg.cables)
     if rt:
         matcher.set_realtime()
     matcher.start()
@@ -439,7 +440,7 @@ def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> Demo
         print(f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
               file=sys.stderr)  # fmt: skip
         service = CyclicService(plc.cfg, build_driver(plc.cfg))
-        matcher = _off_cycle(service, cfg.cables, plc.truth, rt)
+        matcher = _off_cycle(service, cfg, plc.truth, rt)
         report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
         if matcher is not None:
@@ -464,7 +465,7 @@ def run_online(cfg: Config, config_path: str, bus: str, seconds: float,
         if bus == "modbus_tcp":
             mb = live.bus.modbus_tcp
             channel = TruthChannel(mb.host, mb.port, mb.unit_id, cfg.cables)
-            matcher = _off_cycle(service, cfg.cables, channel, rt)
+            matcher = _off_cycle(service, cfg, channel, rt)
         report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
         if matcher is not None:
