@@ -13,7 +13,7 @@ setup(
     package_dir={"gateway.data": "config"},
     package_data={
         "gateway": ["py.typed"],
-        "sim_plc": ["scenarios.yaml"],
+        "sim_plc": ["scenarios.yaml", "scenarios_sealed.yaml"],
         "gateway.data": ["*.yaml", "*.eds", "calibrate/*.yaml"],
     },
 )
