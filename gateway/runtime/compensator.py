@@ -214,6 +214,7 @@ class Compensator:
         self._heartbeat = -1
         self._plc_period_s = math.nan  # the PLC's sample spacing, averaged over samples
         self._outliers = 0  # spacings in a row too far off the average to move it
+        self._spacings = 0  # spacings averaged so far (a running mean until 1 / gain)
         self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
         self._length_in = np.zeros(m)
         self._pose_in = np.zeros(6)
@@ -325,19 +326,24 @@ class Compensator:
         return dt
 
     def _spacing(self, spacing: float) -> float:
-        """The PLC's averaged sample spacing after one more ``spacing``. A spacing off the
-        average by more than a factor ``SPACING_OUTLIER`` (the PLC held its samples, or
-        this process stalled) does not move it; ``SPACING_OUTLIER_RUN`` of them in a row
-        restart it (the PLC's period changed)."""
+        """The PLC's averaged sample spacing after one more ``spacing``: the running mean
+        of the first ``1 / PLC_PERIOD_GAIN`` spacings, then an exponential average (a start
+        from one jittered spacing took ~100 samples to settle, and the chain's travel was
+        off by that much meanwhile). A spacing off the average by more than a factor
+        ``SPACING_OUTLIER`` (the PLC held its samples, or this process stalled) does not
+        move it; ``SPACING_OUTLIER_RUN`` of them in a row restart it (the PLC's period
+        changed)."""
         est = self._plc_period_s
         if est != est or self._outliers >= SPACING_OUTLIER_RUN:
             self._outliers = 0
+            self._spacings = 1
             return spacing
         if not est / SPACING_OUTLIER <= spacing <= est * SPACING_OUTLIER:
             self._outliers += 1
             return est
         self._outliers = 0
-        return est + PLC_PERIOD_GAIN * (spacing - est)
+        self._spacings += 1
+        return est + max(PLC_PERIOD_GAIN, 1.0 / self._spacings) * (spacing - est)
 
     def mark_unread(self, now_s: float) -> None:
         """A cycle whose read failed: flag every channel stale; the model is not stepped."""

@@ -23,8 +23,8 @@ from hypothesis import strategies as st
 from drivers.base import Inputs, Outputs
 from gateway.core.config import Config
 from gateway.model import effects as fx
-from gateway.model.chain import simulate
-from gateway.runtime.compensator import Compensator
+from gateway.model.chain import ChainStepper, simulate
+from gateway.runtime.compensator import MAX_GAP_PERIODS, Compensator
 from tests.loop_helpers import config
 
 PERIOD = 1e-3
@@ -126,18 +126,41 @@ def test_a_sample_read_again_gives_the_same_tensions():
 SYNC = np.arange(int(SECONDS / PERIOD))
 
 
+def _in_step(plant: Plant, samples: np.ndarray) -> np.ndarray:
+    """An ideal reader of the same samples: the chain stepped once per new sample over the
+    PLC's exact time since the previous one, bounded as the gateway's (a sample read again
+    repeats its result)."""
+    comp = Compensator(plant.cfg)
+    lp = plant.cfg.loop
+    chain = ChainStepper(comp.params, PERIOD, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter)
+    out = np.empty((samples.size, CABLES))
+    prev = -1
+    for j, k in enumerate(samples):
+        if k == prev:
+            out[j] = out[j - 1]
+            continue
+        dt = 0.0 if prev < 0 else min(k - prev, MAX_GAP_PERIODS) * PERIOD  # the same bound
+        chain.step(plant.ts[k], plant.v[k], out[j], dt)
+        prev = k
+    return out
+
+
 @settings(max_examples=10, deadline=None)
 @given(read_patterns())
-def test_the_chain_does_not_depend_on_how_the_samples_were_read(pattern):
-    """Whatever the read pattern, the Dahl chain's corrected tensions stay as close to the
-    plant's truth as when every sample is read once (the model is exact and the plant
-    noise-free: that error is the discretisation only, ~0; 0.1 N is a fifth of the
-    calibrate examples' sensor noise). Stepped on the gateway's clock it was up to 1.3 N."""
+def test_the_chain_depends_on_the_samples_not_on_when_they_were_read(pattern):
+    """Whatever the read pattern, the Dahl chain's corrected tensions are those of an ideal
+    reader of the same samples on the PLC's exact clock (within what the averaged spacing's
+    1-2 % leaves: 0.06 N; measured 0.02-0.05 N); stepped on the gateway's own clock they were
+    up to 1.3 N off the plant's truth (the model exact, the plant noise-free). What a gap
+    loses (the samples in it) is the same for both and not measured here."""
     plant = PLANTS["chain"]
-    sync = _rmse(plant, SYNC, _read(plant, SYNC, SYNC * PERIOD + 100.0)[0])
     samples, times = pattern
-    rmse = _rmse(plant, samples, _read(plant, samples, times)[0])
-    assert rmse <= sync + 0.1, f"{rmse:.3f} N against {sync:.3f} N read in step"
+    got, _ = _read(plant, samples, times)
+    ideal = _in_step(plant, samples)
+    late = samples >= int(1.0 / PERIOD)  # the averaged spacing settled, its start forgotten
+    np.testing.assert_allclose(got[late], ideal[late], rtol=0, atol=0.06)
+    sync = _rmse(plant, SYNC, _read(plant, SYNC, SYNC * PERIOD + 100.0)[0])
+    assert _rmse(plant, samples, got) <= sync + 0.25  # and near the truth: gaps cost little
 
 
 @settings(max_examples=10, deadline=None)
