@@ -17,7 +17,7 @@ setup(
     package_dir=DATA,
     package_data={
         "gateway": ["py.typed"],
-        "sim_plc": ["scenarios.yaml"],
+        "sim_plc": ["scenarios.yaml", "scenarios_sealed.yaml"],
         "gateway.data": ["*.yaml", "*.eds"],
         "gateway.data.calibrate": ["*.yaml"],
     },

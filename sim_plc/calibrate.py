@@ -138,7 +138,9 @@ def run_scored(plant: Path | str, cfg: Config, seconds: float, label: str,
             service.recorder = recorder
         mb = live.bus.modbus_tcp
         channel = demo.TruthChannel(mb.host, mb.port, mb.unit_id, cfg.cables)
-        scorer = demo.TruthScorer(cfg.cables, channel, demo.TRUTH_EVERY_CYCLES)
+        scorer = demo.TruthScorer(
+            cfg.cables, channel, demo.TRUTH_EVERY_CYCLES, demo.ChainWarmup(cfg)
+        )
         service.add_observer(scorer)
         demo.run_timed(service, seconds, label, sys.stderr)
     finally:

@@ -65,6 +65,7 @@ from sim_plc.modbus_server import TRUTH_ADDRESS
 from sim_plc.truth import (
     SCORE_AFTER_S,
     TRUTH_EVERY_CYCLES,
+    ChainWarmup,
     CycleRing,
     TruthChannel,
     TruthMatcher,
@@ -74,9 +75,9 @@ from sim_plc.truth import (
 )
 
 __all__ = [
-    "SCORE_AFTER_S", "TRUTH_EVERY_CYCLES", "CycleRing", "DemoRun", "InProcessCanopenPlc",
-    "SoftPlc", "StandInPlant", "TruthChannel", "TruthMatcher", "TruthScore", "TruthScorer",
-    "run_command", "table", "with_port",
+    "SCORE_AFTER_S", "TRUTH_EVERY_CYCLES", "ChainWarmup", "CycleRing", "DemoRun",
+    "InProcessCanopenPlc", "SoftPlc", "StandInPlant", "TruthChannel", "TruthMatcher",
+    "TruthScore", "TruthScorer", "run_command", "table", "with_port",
 ]  # fmt: skip
 
 NO_REALTIME = "real-time: off (--no-realtime): loop.realtime not applied"
@@ -367,13 +368,17 @@ def table(run: DemoRun, title: str) -> str:
     if score is not None and score.samples.any():
         raw, corrected = score.rmse()
         rows += ["", "  cable  RMSE raw N  RMSE corrected N  samples"]
+        scored = score.samples > 0  # a cable whose chain never warmed up has none
         for i in range(raw.size):
             rows.append(
                 f"  {i + 1:>5}  {raw[i]:10.3f}  {corrected[i]:16.3f}  {score.samples[i]:7d}"
+                if scored[i]
+                else f"  {i + 1:>5}  not scored: its chain has not warmed up"
             )
-        rows.append(f"  {'mean':>5}  {raw.mean():10.3f}  {corrected.mean():16.3f}")
+        raw_mean, corrected_mean = raw[scored].mean(), corrected[scored].mean()
+        rows.append(f"  {'mean':>5}  {raw_mean:10.3f}  {corrected_mean:16.3f}")
         if run.noise_n is not None:
-            ratio = corrected.mean() / run.noise_n if run.noise_n > 0 else math.nan
+            ratio = corrected_mean / run.noise_n if run.noise_n > 0 else math.nan
             rows.append(
                 f"  noise floor {run.noise_n:.3f} N (sim_plc.noise_std_n, mean over cables): "
                 f"corrected RMSE {ratio:.2f}x the floor"
@@ -404,7 +409,7 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> DemoRun:
 
     driver = VirtualDriver(cfg, image=image, step=step)
     service = CyclicService(cfg, driver)
-    scorer = TruthScorer(cfg.cables, truth)
+    scorer = TruthScorer(cfg.cables, truth)  # plant and gateway start together: no warm-up
     service.add_observer(scorer)
     run_timed(service, seconds, "demo (offline)", sys.stderr)
     n = int(scorer.score.samples.max()) if scorer.score.samples.size else 0
@@ -413,13 +418,13 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> DemoRun:
     return DemoRun(service, scorer.score, how, noise_n=noise)
 
 
-def _off_cycle(service: CyclicService, cables: int, source: TruthSource, rt: bool) -> TruthMatcher:
+def _off_cycle(service: CyclicService, cfg: Config, source: TruthSource, rt: bool) -> TruthMatcher:
     """The ring observer on ``service`` and the matcher's thread, started (with ``rt`` at
     SCHED_FIFO 1, below the loop: measured, a normal-priority thread that holds the GIL
     when other processes preempt it makes the loop overrun -- 1.9 % vs 0.03-0.05 %)."""
-    ring = CycleRing(cables)
+    ring = CycleRing(cfg.cables, warmup=ChainWarmup(cfg))
     service.add_observer(ring)
-    matcher = TruthMatcher(ring, source, cables)
+    matcher = TruthMatcher(ring, source, cfg.cables)
     if rt:
         matcher.set_realtime()
     matcher.start()
@@ -440,7 +445,7 @@ def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> Demo
         print(f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
               file=sys.stderr)  # fmt: skip
         service = CyclicService(plc.cfg, build_driver(plc.cfg))
-        matcher = _off_cycle(service, cfg.cables, plc.truth, rt)
+        matcher = _off_cycle(service, cfg, plc.truth, rt)
         report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
         if matcher is not None:
@@ -465,7 +470,7 @@ def run_online(cfg: Config, config_path: str, bus: str, seconds: float,
         if bus == "modbus_tcp":
             mb = live.bus.modbus_tcp
             channel = TruthChannel(mb.host, mb.port, mb.unit_id, cfg.cables)
-            matcher = _off_cycle(service, cfg.cables, channel, rt)
+            matcher = _off_cycle(service, cfg, channel, rt)
         report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
         if matcher is not None:

@@ -25,8 +25,11 @@ AFTER_MAX = 1.15  # issue 10: the after RMSE within 1.15x the noise floor
 
 def test_examples_hide_one_effect_each_behind_the_closed_form():
     names = {p.stem for p in EXAMPLES.glob("*.yaml")}
-    assert names == {"viscous", "offset", "gain", "coulomb_f0", "coulomb_directional", "inertia",
-                     "mass_change"}  # fmt: skip
+    small = {"viscous", "offset", "gain", "coulomb_f0", "coulomb_directional", "inertia",
+             "mass_change"}  # fmt: skip
+    large = {"viscous_60", "offset_large", "gain_large", "coulomb_f0_large", "inertia_large",
+             "mass_change_large"}  # fmt: skip
+    assert names == small | large
     for path in EXAMPLES.glob("*.yaml"):
         sim = read_yaml(path)["sim_plc"]
         assert sim["distribution"]["method"] == "closed_form"
