@@ -1,4 +1,4 @@
-"""``cdpr-gateway calibrate`` over every example of ``config/calibrate/`` (issue 10's table).
+"""``cdpr-gateway calibrate`` over every example of ``config/calibrate/``.
 
 Each example (every file of ``config/calibrate/``) hides one effect at 2-5x the 0.5 N
 sensor noise (``viscous_60`` and the ``*_large`` ones at 7-12x) in a soft PLC whose

@@ -17,7 +17,7 @@ Reported, each as p50 / p99 / p99.9 in microseconds over ``BENCH_CYCLES`` cycles
 
 * ``cycle``: one whole loop iteration without the wait (``_cycle`` + pacing
   ``finish`` + the reporter), back to back: the gateway's compute per cycle with warm
-  caches (issue 12 goal: p99 <= 20 us on the 2-core machine);
+  caches (goal: p99 <= 20 us on the 2-core machine);
 * ``cycle after sleep``: the same, each cycle after sleeping ``period - busy_wait_s``
   as the real loop does (at most 3000 cycles): on a shared machine whatever runs on the
   core meanwhile evicts the caches, and the same code takes several times longer;

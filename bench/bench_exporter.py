@@ -1,4 +1,4 @@
-"""The metrics exporter under hostile scrapers (issue 13 item 2): fds, threads, latency, overruns.
+"""The metrics exporter under hostile scrapers: fds, threads, latency, overruns.
 
 ``python -m bench exporter``. The gateway daemon (``cdpr-gateway run``) runs as a child
 process at 1 kHz against the soft PLC (``cdpr-gateway sim-plc``, another child) on

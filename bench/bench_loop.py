@@ -33,7 +33,7 @@ major page faults of this process during the run (``getrusage``); CPU and peak R
 Then the floor (a bare socket doing the same function-23 transaction) and, unless
 disabled, CANopen on python-can's virtual bus.
 
-Goals (issue 12, 2-core machine): overruns <= 0.05 % with RT, <= 0.3 % without;
+Goals (2-core machine): overruns <= 0.05 % with RT, <= 0.3 % without;
 lateness p99.9 <= 150 us with RT; gateway compute p99 <= 20 us. Figures only: nothing
 here asserts on time. The loop's per-phase timings are read from ``service.stats``
 (rings ``jitter_ring``, ``cycle_ring``, ``read_ring``, ``compensate_ring``,

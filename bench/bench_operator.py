@@ -7,7 +7,7 @@ same file with ``realtime: {enabled: false}``, alternating.
 default 2 pairs). Per run, from the gateway's own metrics scraped 1 s before it ends and
 its stop line: cycles with data (``cycle_seconds_count``), overruns and their share, the
 cycle-start lateness p99.9 as a bucket bound (``jitter_seconds``), and the gateway's RSS
-(``process_resident_memory_bytes``) with its real-time line. Goals (issue 22): overruns
+(``process_resident_memory_bytes``) with its real-time line. Goals: overruns
 <= 0.1 % and lateness p99.9 <= 200 us with the defaults, <= 0.05 % with the real-time
 settings; RSS <= 200 MB. Figures only: nothing here asserts on time.
 """

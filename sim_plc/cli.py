@@ -1,7 +1,7 @@
 """``cdpr-gateway record`` and ``cdpr-gateway sim-plc``.
 
 * ``record --config FILE --seconds N --out FILE.csv[.gz]``: the plant in batch mode,
-  written as a recording (spec/recording.md); progress on stderr.
+  written as a recording (docs/recording-format.md); progress on stderr.
 * ``sim-plc --config FILE [--host H] [--port P] [--bus modbus_tcp|canopen]``: the plant
   stepped in real time at the config's period and served on the bus until SIGINT or
   SIGTERM; prints ``sim-plc: serving modbus_tcp on HOST:PORT`` once listening. The plant's

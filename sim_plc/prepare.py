@@ -3,7 +3,7 @@
 :class:`sim_plc.plant.Plant` in its own process would hold the GIL for every step (the
 chain, the effects, the noise and the A/D: 20-60 us, over 100 us one step in ten on a
 busy machine) and, every 250th step, for the statics of the next chunk (1.4-2.1 ms): the
-Modbus server thread, which needs the same GIL, stalled that long (issue 12).
+Modbus server thread, which needs the same GIL, stalled that long.
 
 :class:`ChunkWorker` runs the plant itself, a whole :class:`~sim_plc.plant.Plant` stepped
 sample by sample in a separate process (``spawn``: no threads or locks of the parent are

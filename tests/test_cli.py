@@ -200,7 +200,7 @@ def test_the_daemons_modules_never_import_sim_plc() -> None:
 
 
 def test_the_stopped_line_has_a_timestamp_like_every_log_line(tmp_path) -> None:
-    """Issue 20 #10: the final ``stopped: ...`` line was the one line without a time."""
+    """The final ``stopped: ...`` line was the one line without a time."""
     import re
     import subprocess
     import sys

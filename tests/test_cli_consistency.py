@@ -1,4 +1,4 @@
-"""One command line (issue 22.12, 22.10): every command takes --log-level and --quiet,
+"""One command line: every command takes --log-level and --quiet,
 --config is required where a bundled default would point at the wrong machine and says
 its default elsewhere, and bad output paths fail up front in one line, never a traceback."""
 

@@ -1,5 +1,5 @@
 """``cdpr-gateway diagnose RECORDING --model MODEL.yaml [--json REPORT.json] [--report DIR]
-[--validate OTHER] [--write-model FITTED.yaml]``: see spec/recording.md,
+[--validate OTHER] [--write-model FITTED.yaml]``: see docs/recording-format.md,
 :mod:`gateway.diagnose.engine` and (the model file's fitted effects)
 :mod:`gateway.diagnose.writemodel`."""
 

@@ -1,6 +1,6 @@
 """Plausibility of the PLC's setpoints, bounded by the robot's geometry and ``limits:``.
 
-A setpoint the robot cannot have is not passed on as good (issue: a pose of 1e20 m gave a
+A setpoint the robot cannot have is not passed on as good (a pose of 1e20 m gave a
 wrench of 1549.6 N written with every channel good). Per cycle, before compensation:
 
 * cable velocity ``|v_i| <= limits.max_cable_speed_m_s``;

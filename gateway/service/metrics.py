@@ -1,4 +1,4 @@
-"""Prometheus metrics, read from the loop's statistics at scrape time (design.md table).
+"""Prometheus metrics, read from the loop's statistics at scrape time (the README's metrics table).
 
 :class:`GatewayCollector` is a custom collector (prometheus_client): it allocates nothing
 in the loop; each scrape turns :class:`gateway.runtime.loop.LoopStats`, the compensator's arrays
@@ -75,7 +75,7 @@ def _histogram(name: str, doc: str, hist: Histogram, labels: dict[str, str] | No
 
 
 class GatewayCollector(Collector):
-    """Yields the design.md metric families from a running :class:`CyclicService`."""
+    """Yields the metric families of the README's table from a running :class:`CyclicService`."""
 
     def __init__(self, service: CyclicService, bus: str | None = None) -> None:
         self.service = service

@@ -1,5 +1,5 @@
 """``check`` answers every config with exit 0 or one line per problem and exit 2, never a
-traceback (issue 20 #10: ``plc_heartbeat`` with count 2 gave one), and files it is told to
+traceback (``plc_heartbeat`` with count 2 gave one), and files it is told to
 read must be regular and bounded (``check --config /dev/zero``, an EDS symlinked to
 /dev/zero, ``diagnose --model /dev/zero`` were read until killed at 1.5 GB; a FIFO hung).
 """

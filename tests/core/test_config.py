@@ -97,7 +97,7 @@ def test_listeners_beyond_loopback_are_called_out() -> None:
 
 
 def test_unknown_key_lists_only_keys_a_file_may_hold(tmp_path):
-    """'source' is filled in by the loader; the error must not offer it (issue 22.12)."""
+    """'source' is filled in by the loader; the error must not offer it."""
     path = tmp_path / "c.yaml"
     path.write_text(DEFAULT_CONFIG_PATH.read_text() + "\nsauce: 1\n")
     with pytest.raises(ConfigError, match=r"sauce: unknown key \(known here: ") as exc:

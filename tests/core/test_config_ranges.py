@@ -1,5 +1,5 @@
 """Every numeric key of the config has a range, and a value outside it is refused with one
-line naming the file and the key (issue 20 #10: ``reconnect_min_s: -1``, ``timeout_s: 1e9``,
+line naming the file and the key (``reconnect_min_s: -1``, ``timeout_s: 1e9``,
 ``connect_timeout_s: -1``, ``sync_period_s: 1e-9``, ``range_n: 1e300`` were accepted).
 
 The test is structural: it walks every dataclass of :class:`gateway.core.config.Config`,

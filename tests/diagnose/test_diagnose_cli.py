@@ -104,7 +104,7 @@ def test_cli_needs_geometry_without_platform_tensions(tmp_path, capsys):
 
 
 def test_cli_requires_model(tmp_path):
-    # --json is optional (issue 22.12): the verdict is printed, --report may be all one wants
+    # --json is optional: the verdict is printed, --report may be all one wants
     with pytest.raises(SystemExit):
         main(["diagnose", "x.csv", "--json", "r.json"])
 

@@ -1,4 +1,4 @@
-"""Regression cases of issue 11 (diagnosis on recordings it has never seen), each made by
+"""Regression cases of the diagnosis on recordings it has never seen, each made by
 the independent generator (:mod:`tests.diagnose_helpers`), short recordings."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""A fitted model is written only if it lowers the error on data it was not fitted on
-(issue 22.6): the rule as a property over reports, then ``diagnose --write-model`` and
-``calibrate`` refusing such a model in one line, with the motion the recording had."""
+"""A fitted model is written only if it lowers the error on data it was not fitted on: the
+rule as a property over reports, then ``diagnose --write-model`` and ``calibrate`` refusing
+such a model in one line, with the motion the recording had."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
-"""``--write-model`` keeps the model file byte for byte except ``friction.effects``
-(issue 22.9): a property over generated layouts (comments, flow and block friction, an
-effects entry already there or not, a friction-only file, no friction section) and
-generated effects."""
+"""``--write-model`` keeps the model file byte for byte except ``friction.effects``: a
+property over generated layouts (comments, flow and block friction, an effects entry already
+there or not, a friction-only file, no friction section) and generated effects."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The memory restructuring (issue 11) keeps every result: streamed forms equal the whole."""
+"""The memory restructuring keeps every result: streamed forms equal the whole."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""summary.md's region lines (issue 22.12): the wrench reference's regions are the
+"""summary.md's region lines: the wrench reference's regions are the
 platform's, listed as cable 0 in the report; the summary says so."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """A recording that starts in mid-motion (as ``run --record`` does) has a start-up transient
 that is the diagnosis' own warm-up; the report says so and lists no mismatch region
-inside it (issue 22.11)."""
+inside it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 10 part 2: the diagnosis from the wrench balance when there is no platform tension.
+"""The diagnosis from the wrench balance when there is no platform tension.
 
 Recordings come from the soft PLC's plant whose controller distributes tensions by Pott's
 closed form with its own limits (``sim_plc.distribution``), not by the gateway's statics;

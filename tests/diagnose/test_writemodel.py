@@ -1,5 +1,5 @@
 """``diagnose --write-model``: the fitted model file, read back by ``run`` and
-``diagnose --model`` (issue 10 part 3).
+``diagnose --model``.
 
 The self-consistency tests diagnose a recording, write FITTED.yaml, and diagnose the same
 recording with FITTED.yaml as the model: nothing is left to find (verdict ``none``), in

@@ -38,7 +38,7 @@ def _written(drv: ModbusTcpDriver, field: RegisterField) -> np.ndarray:
 
 
 def test_int16_tensions_at_a_scale_that_clips_the_sensor_range_are_refused():
-    """Issue 20 #4: int16 at scale 0.01 tops out at 327.67 N: 400 N was written as
+    """Int16 at scale 0.01 tops out at 327.67 N: 400 N was written as
     327.67 N with status 0. Refused at check and start, naming the key."""
     cfg = _with_map(corrected_tensions=RegisterField(100, 8, "int16", scale=0.01))
     with pytest.raises(ConfigError, match=r"registers\.corrected_tensions: .*500"):
@@ -46,7 +46,7 @@ def test_int16_tensions_at_a_scale_that_clips_the_sensor_range_are_refused():
 
 
 def test_integer_tensions_write_a_sentinel_for_no_value():
-    """Issue 20 #4: int16 at scale 0.1: an invalid channel (and the stopped frame) was
+    """Int16 at scale 0.1: an invalid channel (and the stopped frame) was
     written as 0.0 N, a plausible value. Now the map's sentinel (-32768 by default)."""
     field = RegisterField(100, 8, "int16", scale=0.1)
     drv = build_driver(_with_map(corrected_tensions=field))
@@ -76,7 +76,7 @@ def test_the_integer_sentinel_is_configurable_but_never_plausible():
 
 
 def test_canopen_refuses_a_sensor_range_its_pdo_cannot_carry():
-    """Issue 20 #5: range_n 1000 N over CANopen: 800 N went out as 655.32 N (the PDO's
+    """Range_n 1000 N over CANopen: 800 N went out as 655.32 N (the PDO's
     clamp) with status 0. Refused, naming sensor.range_n."""
     cfg = load_config()
     cfg = dataclasses.replace(
@@ -97,7 +97,7 @@ def test_canopen_refuses_a_sensor_range_its_pdo_cannot_carry():
     ],
 )
 def test_gateway_heartbeat_wraps_modulo_its_register(type_: str, expect: list[int]):
-    """Issue 20 #7: an int16 gateway heartbeat stuck at 32767 for half of every 65 s."""
+    """An int16 gateway heartbeat stuck at 32767 for half of every 65 s."""
     field = RegisterField(124, 1, type_)  # type: ignore[arg-type]
     regs = {"gateway_heartbeat": field}
     if type_ == "int32":  # two registers: move the state out of its way
@@ -113,7 +113,7 @@ def test_gateway_heartbeat_wraps_modulo_its_register(type_: str, expect: list[in
 
 
 def test_a_float_plc_heartbeat_may_be_nan():
-    """Issue 20 #7: a float32 PLC heartbeat carrying NaN: ``int(NaN)`` ended the gateway."""
+    """A float32 PLC heartbeat carrying NaN: ``int(NaN)`` ended the gateway."""
     field = RegisterField(55, 1, "float32")  # 53..54: the platform mass
     drv = build_driver(_with_map(plc_heartbeat=field))
     assert isinstance(drv, ModbusTcpDriver)
@@ -125,7 +125,7 @@ def test_a_float_plc_heartbeat_may_be_nan():
 
 
 def test_a_reply_read_after_its_deadline_is_a_timeout():
-    """Issue 20 #3: the receive path checked its deadline only before receiving, so a
+    """The receive path checked its deadline only before receiving, so a
     reply read 2 s late (the gateway stopped inside recv) was decoded as fresh data."""
 
     def reply(frame: bytes, k: int):

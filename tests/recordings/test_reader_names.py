@@ -1,4 +1,4 @@
-"""Regressions (issue 20 #10): recording headers that read as something else.
+"""Regressions: recording headers that read as something else.
 
 ``velocity_١`` (Arabic-Indic digit) and ``velocity_１`` (fullwidth) were read as cable 1,
 ``velocity_01`` next to ``velocity_1`` was accepted (one silently replaced the other), and

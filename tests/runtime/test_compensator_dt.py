@@ -1,5 +1,5 @@
 """The compensator steps the Dahl chain with the PLC's time between the samples it
-compensates: a deadline skipped after an overrun loses no cable travel (issue 12); the read
+compensates: a deadline skipped after an overrun loses no cable travel; the read
 patterns of a polled PLC are tested in test_compensator_samples.py."""
 
 from __future__ import annotations

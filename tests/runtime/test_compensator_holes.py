@@ -1,4 +1,4 @@
-"""Regressions of the compensation with fitted effects (issue 20 #1 and #6).
+"""Regressions of the compensation with fitted effects.
 
 #1: a single reply with ``length_1 = NaN`` under a fitted eccentricity left cable 1 at NaN
 with status 0 until restart (plausibility let NaN through, the Dahl state stayed NaN).

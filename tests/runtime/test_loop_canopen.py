@@ -110,7 +110,7 @@ def test_gateway_over_canopen_virtual_bus_compensates():
 
 
 def test_nmt_stop_of_the_gateway_node_shows_in_the_state_and_the_log(caplog):
-    """Issue 20 #9: an NMT stop of the gateway's node (no PDOs go out) left the state at
+    """An NMT stop of the gateway's node (no PDOs go out) left the state at
     2 (active) and the connection at 1, and nothing was logged (5 of 5)."""
     import can
 
@@ -170,7 +170,7 @@ def test_nmt_stop_of_the_gateway_node_shows_in_the_state_and_the_log(caplog):
 
 
 def test_sync_timeouts_do_not_reset_the_heartbeat_watchdog():
-    """Issue 20 #2 over CANopen: SYNC timeouts while the PLC heartbeat was silent re-armed
+    """Over CANopen: SYNC timeouts while the PLC heartbeat was silent re-armed
     the watchdog (243 and 328 active sets, one run with no fault frame in 1 s, the age
     metric at 0.008 s after 1 s of silence). Now: the fault comes, nothing good after it,
     and the age grows through the timeouts."""

@@ -1,4 +1,4 @@
-"""The operator's view of the loop (issue 14): log lines, systemd notifications."""
+"""The operator's view of the loop: log lines, systemd notifications."""
 
 from __future__ import annotations
 

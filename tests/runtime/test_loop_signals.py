@@ -1,4 +1,4 @@
-"""Every catchable terminating signal ends the daemon with the STOPPED frame (issue 13.5).
+"""Every catchable terminating signal ends the daemon with the STOPPED frame.
 
 A real ``cdpr-gateway run`` subprocess against the soft PLC's Modbus server (in this
 process, loopback): once the gateway writes ACTIVE, the signal is sent; the process exits

@@ -60,7 +60,7 @@ def _good_after(frames, t: float) -> list[float]:
 
 
 def test_bus_errors_do_not_reset_the_heartbeat_watchdog():
-    """Issue 20 #2: PLC heartbeat frozen, values live, one failed read every 40: the old
+    """PLC heartbeat frozen, values live, one failed read every 40: the old
     loop reset its heartbeat reference on each failure and wrote thousands of good
     frames; now the fault comes after the timeout and no good value follows it."""
     cfg = config(busy_wait_s=0.0, heartbeat_timeout_s=0.1)
@@ -84,7 +84,7 @@ def test_bus_errors_do_not_reset_the_heartbeat_watchdog():
 
 
 def test_reconnects_do_not_reset_the_heartbeat_watchdog():
-    """Issue 20 #2: the PLC drops the connection every 80 reads while its heartbeat is
+    """The PLC drops the connection every 80 reads while its heartbeat is
     frozen: the reconnect path must not re-arm the watchdog."""
     cfg = config(busy_wait_s=0.0, heartbeat_timeout_s=0.1)
     clock = FakeClock()
@@ -116,7 +116,7 @@ def test_reconnects_do_not_reset_the_heartbeat_watchdog():
 def test_a_stalled_gateway_never_sends_its_old_frame_as_good(
     stall_s: float, reason: str, frames: int
 ):
-    """Issue 20 #3: a frame computed before a 2-s stall (SIGSTOP, a swapped page) and sent
+    """a frame computed before a 2-s stall (SIGSTOP, a swapped page) and sent
     with the next read (function 23 pipelines it) went out with every status 0. A stall
     shorter than the heartbeat timeout is stopped by the data's age alone. After a stall
     longer than the timeout the first heartbeat change seen is dated before the stall
@@ -146,7 +146,7 @@ def test_a_stalled_gateway_never_sends_its_old_frame_as_good(
 
 
 def test_a_nan_float_plc_heartbeat_counts_as_unchanged():
-    """Issue 20 #7: a float PLC heartbeat carrying NaN crashed the gateway (int(NaN));
+    """a float PLC heartbeat carrying NaN crashed the gateway (int(NaN));
     NaN is "not changed": the watchdog faults after its timeout, nothing good after it."""
     cfg = config(busy_wait_s=0.0, heartbeat_timeout_s=0.05)
     clock = FakeClock()

@@ -1,4 +1,4 @@
-"""Timing is booked only for cycles that exchanged data with the PLC (issue 22.4).
+"""Timing is booked only for cycles that exchanged data with the PLC.
 
 With no PLC the loop still wakes every period to retry, and an attempt may take most of a
 period: those wake-ups are neither cycles (``cycle_seconds``), nor late (``jitter``), nor

@@ -1,4 +1,4 @@
-"""deploy/alertmanager.yml against a real Alertmanager on loopback (issue 22.7): one PLC
+"""deploy/alertmanager.yml against a real Alertmanager on loopback: one PLC
 outage's alerts arrive as one group per robot, and only the cause is left active."""
 
 from __future__ import annotations

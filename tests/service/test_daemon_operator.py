@@ -1,4 +1,4 @@
-"""``cdpr-gateway run`` as an operator meets it (issue 22): a real subprocess each time.
+"""``cdpr-gateway run`` as an operator meets it: a real subprocess each time.
 
 * under systemd (a fake ``NOTIFY_SOCKET``) it is ready once configured, with no PLC
   listening, and pings the watchdog while it retries;

@@ -185,7 +185,7 @@ def test_unit_is_hardened_and_runs_the_daemon():
     assert svc["LoadCredential"] == "tls:/etc/cdpr-gateway/tls"
     # room for the exporter's bounded connections plus its fd reserve for the bus
     assert int(svc["LimitNOFILE"]) >= 4096
-    # real time granted (issue 12)
+    # real time granted
     assert svc["CPUSchedulingPolicy"] == "fifo"
     assert int(svc["LimitRTPRIO"]) >= int(svc["CPUSchedulingPriority"]) > 0
     assert svc["LimitMEMLOCK"] == "infinity"

@@ -1,6 +1,6 @@
 """The bounded metrics exporter (gateway/service/exporter.py) under hostile clients, on loopback.
 
-Regression tests of issue 13 item 2: idle clients no longer cost a thread and an fd each,
+Regression tests: idle clients no longer cost a thread and an fd each,
 slow clients (TLS too) are dropped at a deadline, a burst of scrapes is served from one
 rendering, and the fd reserve stops accepting without spinning. Every load is bounded in
 count and time; speed itself is measured in bench/bench_exporter.py.
@@ -334,7 +334,7 @@ def _raw_get(port: int, headers: bytes = b"") -> bytes:
 @pytest.mark.parametrize(
     "credentials",
     [
-        "é:s3cret".encode(),  # issue 20 #8: TypeError in compare_digest killed the thread
+        "é:s3cret".encode(),  # TypeError in compare_digest killed the thread
         b"prom:\xff\xfe",  # not UTF-8
         "prom:sécret".encode("latin-1"),
         b"\x00:\x00",
@@ -406,7 +406,7 @@ def test_running_out_of_descriptors_is_logged_once(registry, caplog):
 
 
 def test_check_warns_when_the_descriptor_limit_is_too_low():
-    """Issue 20 #9: under ``prlimit --nofile=48`` the metrics port never answered and
+    """under ``prlimit --nofile=48`` the metrics port never answered and
     nothing said why; ``check`` now warns before the gateway runs."""
     import os
     import resource

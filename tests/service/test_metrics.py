@@ -1,4 +1,4 @@
-"""The collector yields exactly design.md's metric names, types and labels."""
+"""The collector yields exactly the README's metric names, types and labels."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from gateway.runtime.loop import CyclicService
 from gateway.service.metrics import MetricsServer, make_registry
 from tests.loop_helpers import FakeClock, config, live_image
 
-# design.md, "Metrics (Prometheus)": name -> (type, labels)
+# the README's metrics table: name -> (type, labels)
 DESIGN_TABLE = {
     "cdpr_gateway_cycle_seconds": ("histogram", set()),
     "cdpr_gateway_jitter_seconds": ("histogram", set()),
@@ -31,7 +31,7 @@ DESIGN_TABLE = {
     "cdpr_gateway_friction_newtons": ("gauge", {"cable"}),
     "cdpr_gateway_channel_status": ("gauge", {"cable"}),
     "cdpr_gateway_build_info": ("gauge", {"version", "bus"}),
-    # issue 14: the operator's view
+    # the operator's view
     "cdpr_gateway_state": ("gauge", set()),
     "cdpr_gateway_plc_heartbeat_age_seconds": ("gauge", set()),
     "cdpr_gateway_sample_age_seconds": ("gauge", set()),

@@ -89,7 +89,7 @@ def test_run_sigterm_stops_cleanly(tmp_path):
     text = "".join(lines)
     assert re.search(r"metrics on http://127\.0\.0\.1:\d+/metrics", text)
     assert "stopped: cycles" in text
-    # issue 14: timestamps and logger names, the start-up banner, the state change
+    # timestamps and logger names, the start-up banner, the state change
     stamp = r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} (INFO|WARNING) cdpr_gateway(\.loop)?: "
     assert re.search(stamp + r"cdpr-gateway \S+ starting; config " + re.escape(str(path)), text,
                      re.MULTILINE), text  # fmt: skip
@@ -124,7 +124,7 @@ def test_demo_offline_with_the_plant(capsys):
     assert re.search(r"noise floor 0\.500 N .* corrected RMSE [\d.]+x the floor", out), out
 
 
-# --- the demo's scoring off the cycle (issue 12) ------------------------------------------
+# --- the demo's scoring off the cycle ------------------------------------------
 def fake_cycle(cables: int, hb: int, value: float) -> tuple[Inputs, SimpleNamespace]:
     inputs = Inputs.allocate(cables)
     inputs.plc_heartbeat = hb

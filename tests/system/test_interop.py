@@ -1,4 +1,4 @@
-"""Interoperability with a Modbus TCP stack this project did not write (issue 20 item 8).
+"""Interoperability with a Modbus TCP stack this project did not write.
 
 The gateway's client (drivers/modbus_tcp.py) and the soft PLC's server are both
 hand-written here: a bug they share would pass every loopback test. pyModbusTCP's server

@@ -1,4 +1,4 @@
-"""A gauge of an invalid channel carries no value (issue 22.2): the PLC is killed, and at
+"""A gauge of an invalid channel carries no value: the PLC is killed, and at
 every scrape from then on each cable whose status is 2 (invalid) has NaN tension gauges.
 
 NaN rather than an absent series (Prometheus' instrumentation guide, "avoid missing

@@ -1,5 +1,5 @@
-"""The README's commands run as written from a wheel install in an empty directory (issue
-22.8): the wheel is built and installed into a fresh venv by .ci/wheel-check (the same
+"""The README's commands run as written from a wheel install in an empty directory: the
+wheel is built and installed into a fresh venv by .ci/wheel-check (the same
 machinery CI uses), then every ``cdpr-gateway ...`` line of the README's ``sh`` blocks runs,
 in order, in an empty directory with that venv first on PATH and no PYTHONPATH."""
 
