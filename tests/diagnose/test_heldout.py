@@ -61,7 +61,7 @@ def recording(tmp_path):
 
     out = tmp_path / "rec.csv"
     args = types.SimpleNamespace(config="config/default.yaml", seconds=2.0, out=str(out),
-                                 quiet=True, seed=None)  # fmt: skip
+                                 quiet=True, seed=None, robot=None)  # fmt: skip
     assert run_command("record", args) == 0
     return out
 

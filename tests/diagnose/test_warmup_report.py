@@ -19,7 +19,7 @@ def test_mid_motion_recording_reports_its_warm_up(tmp_path) -> None:
 
     whole = tmp_path / "whole.csv"
     args = types.SimpleNamespace(config="config/default.yaml", seconds=8.0, out=str(whole),
-                                 quiet=True, seed=None)  # fmt: skip
+                                 quiet=True, seed=None, robot=None)  # fmt: skip
     assert run_command("record", args) == 0
     rec = read_recording(whole)
     keep = rec.t >= rec.t[0] + 2.0  # join the machine 2 s in: friction state developed

@@ -420,7 +420,7 @@ def test_check_warns_when_the_descriptor_limit_is_too_low():
 
     env = {**os.environ, "PYTHONPATH": str(root)}
     done = subprocess.run(
-        [sys.executable, "-m", "gateway.cli", "check"],
+        [sys.executable, "-m", "gateway.cli", "check", "--config", "config/default.yaml"],
         capture_output=True, text=True, timeout=120, env=env, preexec_fn=low_limit, cwd=root,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
