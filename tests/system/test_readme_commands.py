@@ -19,22 +19,31 @@ pytestmark = [pytest.mark.long]
 
 
 def readme_commands(text: str) -> list[str]:
-    """Every ``cdpr-gateway`` command of the README's ``sh`` blocks, continuation lines
-    joined, comments dropped, in order."""
+    """Every ``cdpr-gateway`` command of the README's ``sh`` blocks, and every install of
+    an extra (``pip install 'cdpr-gateway[EXTRA]'``), continuation lines joined, comments
+    dropped, in order."""
     commands: list[str] = []
     for block in re.findall(r"```sh\n(.*?)```", text, re.S):
         joined = re.sub(r"\\\n\s*", " ", block)
         for line in joined.splitlines():
             line = line.split(" #", 1)[0].strip()
-            if line.startswith("cdpr-gateway "):
+            if line.startswith(("cdpr-gateway ", "pip install 'cdpr-gateway[")):
                 commands.append(line)
     return commands
+
+
+def extra_requirements(extra: str) -> list[str]:
+    """The requirements of an optional dependency group of pyproject.toml."""
+    import tomllib
+
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    return list(data["project"]["optional-dependencies"][extra])
 
 
 def test_the_readme_lists_the_commands_a_wheel_user_needs() -> None:
     commands = readme_commands((ROOT / "README.md").read_text())
     assert commands[0] == "cdpr-gateway examples config", commands  # before any --config
-    used = {c.split()[1] for c in commands}
+    used = {c.split()[1] for c in commands if c.startswith("cdpr-gateway ")}
     assert {"examples", "record", "diagnose", "calibrate"} <= used, commands
 
 
@@ -53,8 +62,14 @@ def test_readme_commands_run_from_a_wheel_in_an_empty_directory(tmp_path: Path) 
     env["PATH"] = f"{install / 'venv' / 'bin'}{os.pathsep}{env.get('PATH', '')}"
     for command in readme_commands((ROOT / "README.md").read_text()):
         print(f"README: {command}", flush=True)  # with -s: where a slow run is
-        run = subprocess.run(shlex.split(command), cwd=empty, env=env, capture_output=True,
-                             text=True, timeout=600)  # fmt: skip
+        argv = shlex.split(command)
+        if argv[0] == "pip":  # the extra's requirements into the wheel's venv (the wheel
+            # itself is not on the package index here)
+            extra = re.fullmatch(r"cdpr-gateway\[(\w+)\]", argv[2]).group(1)  # type: ignore[union-attr]
+            argv = [str(install / "venv" / "bin" / "python"), "-m", "pip", "install", "-q",
+                    *extra_requirements(extra)]  # fmt: skip
+        run = subprocess.run(argv, cwd=empty, env=env, capture_output=True, text=True,
+                             timeout=600)  # fmt: skip
         assert run.returncode == 0, f"{command}\n{run.stdout}\n{run.stderr}"
         assert "Traceback" not in run.stderr, command
         if command.startswith("cdpr-gateway diagnose"):

@@ -43,7 +43,7 @@ class Stribeck(Effect):
     )
     plot = "v"
     separate = "slow travel (below v_s) held for longer than a reversal"
-    example = {"k": 1.2, "v_s_m_s": 0.012}
+    example = {"k": 2.0, "v_s_m_s": 0.012}
 
     def apply_chain(self, draft: ChainDraft, p: Values) -> None:
         draft.stribeck_k = np.asarray(p["k"], dtype=float).copy()
