@@ -72,10 +72,14 @@ def run() -> None:
     finally:
         if tmp is not None:
             tmp.cleanup()
-    print(f"\ncalibrate, {seconds:g} s per run (before/after/floor: corrected-tension RMSE "
-          f"vs the plant's truth, N; ratio = after / floor, goal <= {GOAL})")  # fmt: skip
-    print("| effect      | finding            | before |  after |  floor | ratio |    | cycles "
-          "floor/before/after |")  # fmt: skip
+    print(
+        f"\ncalibrate, {seconds:g} s per run (before/after/floor: corrected-tension RMSE "
+        f"vs the plant's truth, N; ratio = after / floor, goal <= {GOAL})"
+    )
+    print(
+        "| effect      | finding            | before |  after |  floor | ratio |    | cycles "
+        "floor/before/after |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(r)

@@ -42,9 +42,24 @@ def _record(out: Path, count: int, seconds: float) -> list[Path]:
         cfg = configs[i % len(configs)]
         seed = 1 + i // len(configs)
         path = out / f"{cfg.stem}-{seed}.parquet"
-        subprocess.run(_cli("record", "--config", str(cfg), "--seconds", f"{seconds:g}",
-                            "--out", str(path), "--seed", str(seed), "--quiet", "--robot",
-                            f"{cfg.stem}-{seed}"), check=True, env=_env())  # fmt: skip
+        subprocess.run(
+            _cli(
+                "record",
+                "--config",
+                str(cfg),
+                "--seconds",
+                f"{seconds:g}",
+                "--out",
+                str(path),
+                "--seed",
+                str(seed),
+                "--quiet",
+                "--robot",
+                f"{cfg.stem}-{seed}",
+            ),
+            check=True,
+            env=_env(),
+        )
         paths.append(path)
     return paths
 
@@ -63,17 +78,23 @@ def _sequential(paths: list[Path], out: Path) -> tuple[float, dict[str, bytes]]:
 def _fleet(paths: list[Path], out: Path, *extra: str) -> tuple[float, dict[str, bytes], str]:
     """Wall time, the reports by recording, the summary line."""
     t0 = time.perf_counter()
-    res = subprocess.run(_cli("fleet", *map(str, paths), "--model", str(MODEL), "--out",
-                              str(out), "--quiet", *extra),
-                         env=_env(), capture_output=True, text=True)  # fmt: skip
+    res = subprocess.run(
+        _cli(
+            "fleet", *map(str, paths), "--model", str(MODEL), "--out", str(out), "--quiet", *extra
+        ),
+        env=_env(),
+        capture_output=True,
+        text=True,
+    )
     wall = time.perf_counter() - t0
     if res.returncode != 0:
         raise RuntimeError(res.stderr)
     import pyarrow.parquet as pq
 
     rows = pq.read_table(out / "fleet.parquet", columns=["recording", "report"]).to_pylist()
-    reports = {r["recording"]: (out / "reports" / r["report"]).read_bytes() for r in rows
-               if r["report"]}  # fmt: skip
+    reports = {
+        r["recording"]: (out / "reports" / r["report"]).read_bytes() for r in rows if r["report"]
+    }
     return wall, reports, res.stdout.strip().splitlines()[0]
 
 
@@ -81,20 +102,52 @@ def _cluster(tmp: Path) -> tuple[list[subprocess.Popen], str]:
     dask = str(Path(sys.executable).parent / "dask")
     sched = tmp / "scheduler.json"
     log = open(tmp / "dask.log", "wb")  # noqa: SIM115 - the processes write to it
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
-                               "--no-dashboard", "--scheduler-file", str(sched)],
-                              stdout=log, stderr=log, env=_env())]  # fmt: skip
+    procs = [
+        subprocess.Popen(
+            [
+                dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched),
+            ],
+            stdout=log,
+            stderr=log,
+            env=_env(),
+        )
+    ]
     deadline = time.monotonic() + 60
     while not sched.exists() and time.monotonic() < deadline:
         time.sleep(0.1)
     address = json.loads(sched.read_text())["address"]
     for _ in range(2):
-        procs.append(subprocess.Popen([dask, "worker", address, "--host", "127.0.0.1",
-                                       "--nthreads", "1", "--memory-limit", "650MiB",
-                                       "--no-dashboard"], stdout=log, stderr=log,
-                                      env=_env()))  # fmt: skip
-    wait = (f"from distributed import Client\nwith Client('{address}', timeout='30s') as c:\n"
-            "    c.wait_for_workers(2, timeout=90)\n")  # fmt: skip
+        procs.append(
+            subprocess.Popen(
+                [
+                    dask,
+                    "worker",
+                    address,
+                    "--host",
+                    "127.0.0.1",
+                    "--nthreads",
+                    "1",
+                    "--memory-limit",
+                    "650MiB",
+                    "--no-dashboard",
+                ],
+                stdout=log,
+                stderr=log,
+                env=_env(),
+            )
+        )
+    wait = (
+        f"from distributed import Client\nwith Client('{address}', timeout='30s') as c:\n"
+        "    c.wait_for_workers(2, timeout=90)\n"
+    )
     subprocess.run([sys.executable, "-c", wait], check=True, timeout=120, env=_env())
     return procs, address
 
@@ -106,27 +159,38 @@ def run() -> None:
         tmp = Path(name)
         t0 = time.perf_counter()
         paths = _record(tmp, count, seconds)
-        print(f"  {count} recordings of {seconds:g} s (record, Parquet, "
-              f"{sum(p.stat().st_size for p in paths) / 1e6:.0f} MB) in "
-              f"{time.perf_counter() - t0:.0f} s; load {os.getloadavg()[0]:.2f}")  # fmt: skip
+        print(
+            f"  {count} recordings of {seconds:g} s (record, Parquet, "
+            f"{sum(p.stat().st_size for p in paths) / 1e6:.0f} MB) in "
+            f"{time.perf_counter() - t0:.0f} s; load {os.getloadavg()[0]:.2f}"
+        )
         seq, single = _sequential(paths, tmp)
-        print(f"  sequential diagnose, one after another: {seq:.1f} s; "
-              f"load {os.getloadavg()[0]:.2f}")  # fmt: skip
+        print(
+            f"  sequential diagnose, one after another: {seq:.1f} s; load {os.getloadavg()[0]:.2f}"
+        )
         local, local_reports, _ = _fleet(paths, tmp / "local", "--workers", "2")
-        print(f"  fleet, LocalCluster(2 workers):           {local:.1f} s "
-              f"({seq / local:.2f}x); load {os.getloadavg()[0]:.2f}")  # fmt: skip
+        print(
+            f"  fleet, LocalCluster(2 workers):           {local:.1f} s "
+            f"({seq / local:.2f}x); load {os.getloadavg()[0]:.2f}"
+        )
         procs, address = _cluster(tmp)
         try:
             ext, ext_reports, _ = _fleet(paths, tmp / "ext", "--scheduler", address)
         finally:
             for p in procs:
                 stop_process(p)
-        print(f"  fleet, dask scheduler + 2 dask workers:    {ext:.1f} s "
-              f"({seq / ext:.2f}x); load {os.getloadavg()[0]:.2f}")  # fmt: skip
+        print(
+            f"  fleet, dask scheduler + 2 dask workers:    {ext:.1f} s "
+            f"({seq / ext:.2f}x); load {os.getloadavg()[0]:.2f}"
+        )
         same_local = local_reports == single
         same_ext = ext_reports == single
-        print(f"  reports byte-identical to diagnose alone: LocalCluster {same_local}, "
-              f"scheduler {same_ext} ({len(single)} reports)")  # fmt: skip
-        verdicts = {Path(k).stem: ",".join(f["effect"] for f in json.loads(v)["findings"])
-                    or "none" for k, v in sorted(single.items())}  # fmt: skip
+        print(
+            f"  reports byte-identical to diagnose alone: LocalCluster {same_local}, "
+            f"scheduler {same_ext} ({len(single)} reports)"
+        )
+        verdicts = {
+            Path(k).stem: ",".join(f["effect"] for f in json.loads(v)["findings"]) or "none"
+            for k, v in sorted(single.items())
+        }
         print("  verdicts: " + "; ".join(f"{k} {v}" for k, v in verdicts.items()))

@@ -44,8 +44,11 @@ def _p999_bound(m: dict[str, float], name: str) -> str:
     total = m.get(f'{name}_bucket{{le="+Inf"}}', 0.0)
     if not total:
         return "n/a"
-    bounds = sorted((float(k.split('le="')[1].rstrip('"}')), v) for k, v in m.items()
-                    if k.startswith(f"{name}_bucket") and "+Inf" not in k)  # fmt: skip
+    bounds = sorted(
+        (float(k.split('le="')[1].rstrip('"}')), v)
+        for k, v in m.items()
+        if k.startswith(f"{name}_bucket") and "+Inf" not in k
+    )
     for le, count in bounds:
         if count >= 0.999 * total:
             return f"<= {le * 1e6:.0f} us"
@@ -53,9 +56,12 @@ def _p999_bound(m: dict[str, float], name: str) -> str:
 
 
 def _one(config: Path, seconds: float, label: str) -> None:
-    plc = subprocess.Popen([sys.executable, "-m", "gateway", "sim-plc", "--config", str(config),
-                            "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                           text=True)  # fmt: skip
+    plc = subprocess.Popen(
+        [sys.executable, "-m", "gateway", "sim-plc", "--config", str(config), "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     gw = None
     try:
         assert plc.stdout is not None
@@ -66,8 +72,9 @@ def _one(config: Path, seconds: float, label: str) -> None:
         run_cfg = config.with_name(f"run-{label}.yaml")
         run_cfg.write_text(yaml.safe_dump(data))
         argv = ["run", "--config", str(run_cfg), "--seconds", str(seconds)]
-        gw = subprocess.Popen([sys.executable, "-m", "gateway", *argv], stderr=subprocess.PIPE,
-                              text=True)  # fmt: skip
+        gw = subprocess.Popen(
+            [sys.executable, "-m", "gateway", *argv], stderr=subprocess.PIPE, text=True
+        )
         assert gw.stderr is not None
         lines, mport = [], None
         for line in gw.stderr:
@@ -85,9 +92,12 @@ def _one(config: Path, seconds: float, label: str) -> None:
         over = m.get("cdpr_gateway_overruns_total", 0.0)
         share = 100.0 * over / cycles if cycles else float("nan")
         rss = m.get("process_resident_memory_bytes", 0.0) / 1e6
-        print(f"  {label:9} cycles {cycles:7.0f}  overruns {over:5.0f} ({share:.3f} %)  "
-              f"lateness p99.9 {_p999_bound(m, 'cdpr_gateway_jitter_seconds'):>10}  "
-              f"RSS {rss:5.0f} MB", flush=True)  # fmt: skip
+        print(
+            f"  {label:9} cycles {cycles:7.0f}  overruns {over:5.0f} ({share:.3f} %)  "
+            f"lateness p99.9 {_p999_bound(m, 'cdpr_gateway_jitter_seconds'):>10}  "
+            f"RSS {rss:5.0f} MB",
+            flush=True,
+        )
         print(f"            {rt}", flush=True)
     finally:
         if gw is not None:
@@ -105,8 +115,11 @@ def run() -> None:
         data["loop"]["realtime"] = {"enabled": False}
         off = Path(tmp) / "rt-off.yaml"
         off.write_text(yaml.safe_dump(data))
-        print(f"  {seconds:g} s per run, {pairs} pairs, sim-plc and run as plain processes "
-              f"(uid {os.getuid()}), alternating", flush=True)  # fmt: skip
+        print(
+            f"  {seconds:g} s per run, {pairs} pairs, sim-plc and run as plain processes "
+            f"(uid {os.getuid()}), alternating",
+            flush=True,
+        )
         for _ in range(pairs):
             _one(shipped, seconds, "shipped")
             _one(off, seconds, "RT off")

@@ -85,10 +85,14 @@ class _Runs:
 
         print(f"  {title}: {self.wall:.1f} s, CPU {100 * self.cpu / self.wall:.0f} % of one core")
         share = 100 * self.overruns / max(self.cycles, 1)
-        print(f"    cycles {self.cycles}, overruns {self.overruns} ({share:.3f} %), "
-              f"errors {self.errors}")  # fmt: skip
-        print(f"    jitter p50/p99/p99.9 {us(self.jitter, 50, 99, 99.9)}; "
-              f"cycle p50/p99 {us(self.cycle, 50, 99)}")  # fmt: skip
+        print(
+            f"    cycles {self.cycles}, overruns {self.overruns} ({share:.3f} %), "
+            f"errors {self.errors}"
+        )
+        print(
+            f"    jitter p50/p99/p99.9 {us(self.jitter, 50, 99, 99.9)}; "
+            f"cycle p50/p99 {us(self.cycle, 50, 99)}"
+        )
 
 
 def _process_cpu(pid: int | None) -> float:
@@ -107,8 +111,17 @@ class _Plc:
     up in a long run and stalls the soft PLC) and stdout drained by a thread."""
 
     def __init__(self, config_path: str, log: IO[str], rt: bool = False) -> None:
-        cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
-               "--port", "0", *(["--realtime"] if rt else [])]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "gateway.cli",
+            "sim-plc",
+            "--config",
+            config_path,
+            "--port",
+            "0",
+            *(["--realtime"] if rt else []),
+        ]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
@@ -149,8 +162,9 @@ def _child(code: str, *args: str) -> tuple[str, float, float]:
     """Run Python ``code`` with ``args`` in a fresh process: (its stdout, wall s, its own
     peak RSS in MB, VmHWM)."""
     t0 = time.perf_counter()
-    res = subprocess.run([sys.executable, "-c", _PEAK + code, *args], capture_output=True,
-                         text=True, env=_env())  # fmt: skip
+    res = subprocess.run(
+        [sys.executable, "-c", _PEAK + code, *args], capture_output=True, text=True, env=_env()
+    )
     if res.returncode != 0:
         raise RuntimeError(f"{args}: exit status {res.returncode}: {res.stderr[-500:]}")
     peak = next(x for x in res.stderr.splitlines() if x.startswith("PEAK_KB"))
@@ -179,8 +193,15 @@ def _child_diagnose(path: Path) -> tuple[float, float, str]:
     """``cdpr-gateway diagnose PATH --model config/default.yaml --json`` in a fresh
     process: (wall s, peak RSS MB, verdict line)."""
     code = "import sys\nfrom gateway.cli import main\nsys.exit(main(sys.argv[1:]))\n"
-    args = ["diagnose", str(path), "--model", str(DEFAULT_CONFIG_PATH), "--json",
-            str(path) + ".json", "--quiet"]  # fmt: skip
+    args = [
+        "diagnose",
+        str(path),
+        "--model",
+        str(DEFAULT_CONFIG_PATH),
+        "--json",
+        str(path) + ".json",
+        "--quiet",
+    ]
     out, wall, peak = _child(code, *args)
     return wall, peak, out.strip()
 
@@ -196,8 +217,10 @@ def _read_figures(files: dict[str, Path]) -> None:
     print("  read as diagnose reads it (a fresh process each; lengths: first row only):")
     for kind, path in files.items():
         took, peak, before, samples = _child_read(path)
-        print(f"    {kind:8s} {path.stat().st_size / 1e6:6.1f} MB: {samples} samples in "
-              f"{took:5.1f} s, peak RSS {peak:.0f} MB (imports {before:.0f} MB)")  # fmt: skip
+        print(
+            f"    {kind:8s} {path.stat().st_size / 1e6:6.1f} MB: {samples} samples in "
+            f"{took:5.1f} s, peak RSS {peak:.0f} MB (imports {before:.0f} MB)"
+        )
 
 
 def _diagnose_figures(tmp: Path, seconds: float) -> None:
@@ -208,15 +231,31 @@ def _diagnose_figures(tmp: Path, seconds: float) -> None:
     for suffix in (".csv.gz", ".parquet"):
         path = tmp / f"sim{suffix}"
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "gateway.cli", "record", "--config", str(cfg),
-                        "--seconds", f"{seconds:g}", "--out", str(path), "--quiet"],
-                       check=True, env=_env())  # fmt: skip
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "gateway.cli",
+                "record",
+                "--config",
+                str(cfg),
+                "--seconds",
+                f"{seconds:g}",
+                "--out",
+                str(path),
+                "--quiet",
+            ],
+            check=True,
+            env=_env(),
+        )
         made = time.perf_counter() - t0
         took, read_peak, before, _ = _child_read(path)
         wall, rss, verdict = _child_diagnose(path)
-        print(f"    {suffix:8s} {path.stat().st_size / 1e6:6.1f} MB (record {made:.0f} s): "
-              f"read {took:.1f} s, peak RSS {read_peak:.0f} MB (imports {before:.0f} MB); "
-              f"diagnose {wall:.1f} s, peak RSS {rss:.0f} MB; {verdict}")  # fmt: skip
+        print(
+            f"    {suffix:8s} {path.stat().st_size / 1e6:6.1f} MB (record {made:.0f} s): "
+            f"read {took:.1f} s, peak RSS {read_peak:.0f} MB (imports {before:.0f} MB); "
+            f"diagnose {wall:.1f} s, peak RSS {rss:.0f} MB; {verdict}"
+        )
 
 
 KINDS = (("csv.gz", "bench.csv.gz"), ("parquet", "bench.parquet"))
@@ -237,8 +276,10 @@ def run() -> None:
         )
         print(f"  {realtime.apply(cfg.loop.realtime).line()}")
     cycles = max(1, round(seconds / cfg.loop.period_s))
-    print(f"  {seconds:.0f} s per kind at {1 / cfg.loop.period_s:.0f} Hz, {cfg.cables} cables, "
-          f"in {3 * HALVES} alternating runs (without, csv.gz, parquet, without, ...)")  # fmt: skip
+    print(
+        f"  {seconds:.0f} s per kind at {1 / cfg.loop.period_s:.0f} Hz, {cfg.cables} cables, "
+        f"in {3 * HALVES} alternating runs (without, csv.gz, parquet, without, ...)"
+    )
     plain = _Runs()
     runs = {kind: _Runs() for kind, _ in KINDS}
     plc_log = tempfile.TemporaryFile("w+")  # noqa: SIM115 (closed in the finally below)
@@ -266,15 +307,23 @@ def run() -> None:
         for kind, rec in recs.items():
             r, size = runs[kind], files[kind].stat().st_size
             r.report(f"with {kind:8s}   ")
-            print(f"    recorded {rec.rows_written} rows x {len(rec.columns)} columns, dropped "
-                  f"{rec.dropped}, {size / 1e6:.1f} MB ({size / max(rec.rows_written, 1):.0f} "
-                  f"B/row){', FAILED: ' + rec.failed if rec.failed else ''}")  # fmt: skip
+            print(
+                f"    recorded {rec.rows_written} rows x {len(rec.columns)} columns, dropped "
+                f"{rec.dropped}, {size / 1e6:.1f} MB ({size / max(rec.rows_written, 1):.0f} "
+                f"B/row){', FAILED: ' + rec.failed if rec.failed else ''}"
+            )
             extra = r.cpu / r.wall - plain.cpu / plain.wall
-            print(f"    recording costs {100 * extra:+.1f} % of one core in the gateway's "
-                  f"process, {100 * r.writer_cpu / r.wall:.1f} % in the writer "
-                  "process")  # fmt: skip
-        print("  overruns without / " + " / ".join(f"with {k}" for k in recs) + ": "
-              + " / ".join(str(x.overruns) for x in (plain, *runs.values())))  # fmt: skip
+            print(
+                f"    recording costs {100 * extra:+.1f} % of one core in the gateway's "
+                f"process, {100 * r.writer_cpu / r.wall:.1f} % in the writer "
+                "process"
+            )
+        print(
+            "  overruns without / "
+            + " / ".join(f"with {k}" for k in recs)
+            + ": "
+            + " / ".join(str(x.overruns) for x in (plain, *runs.values()))
+        )
         print(f"  load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         _read_figures(files)
         _diagnose_figures(tmp, seconds)

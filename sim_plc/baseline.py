@@ -101,8 +101,9 @@ def fit(rec: Recording) -> Baseline:
     for lsig in (3.0, 4.0, 5.0):  # the stiffness is the one non-convex direction
         start = theta0.copy()
         start[3] = lsig
-        res = least_squares(resid, np.clip(start, lower, upper), bounds=(lower, upper),
-                            x_scale="jac", max_nfev=200)  # fmt: skip
+        res = least_squares(
+            resid, np.clip(start, lower, upper), bounds=(lower, upper), x_scale="jac", max_nfev=200
+        )
         if best is None or res.cost < best.cost:
             best = res
     assert best is not None

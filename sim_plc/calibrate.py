@@ -120,13 +120,17 @@ def prepare_dir(config: str, out: Path) -> tuple[Path, Path]:
     nominal, clean = out / "nominal.yaml", out / "plant-clean.yaml"
     gateway_side = {k: v for k, v in data.items() if k != "sim_plc"}
     _write_yaml(nominal, gateway_side, f"{config} without sim_plc: the gateway's nominal model")
-    _write_yaml(clean, {**data, "sim_plc": {**sim, "effects": {}}},
-                f"{config} with no concealed effects: the noise floor's plant")  # fmt: skip
+    _write_yaml(
+        clean,
+        {**data, "sim_plc": {**sim, "effects": {}}},
+        f"{config} with no concealed effects: the noise floor's plant",
+    )
     return nominal, clean
 
 
-def run_scored(plant: Path | str, cfg: Config, seconds: float, label: str,
-               record: Path | None = None) -> RunScore:  # fmt: skip
+def run_scored(
+    plant: Path | str, cfg: Config, seconds: float, label: str, record: Path | None = None
+) -> RunScore:
     """The soft PLC on ``plant``, the gateway on ``cfg`` for ``seconds``, scored."""
     plc = demo.SoftPlc(str(plant), BUS)
     channel = recorder = None
@@ -269,8 +273,10 @@ def table(result: dict[str, Any], config: str, seconds: float) -> str:
     )
     for key, title in runs:
         r = result[key]
-        rows.append(f"  {title:<26} {r['rmse_n']:16.3f}   {r['raw_rmse_n']:10.3f}   "
-                    f"{r['rmse_n'] / floor:7.2f}")  # fmt: skip
+        rows.append(
+            f"  {title:<26} {r['rmse_n']:16.3f}   {r['raw_rmse_n']:10.3f}   "
+            f"{r['rmse_n'] / floor:7.2f}"
+        )
     return "\n".join(rows)
 
 
@@ -285,8 +291,9 @@ def calibrate(config: str, seconds: float, out: Path, say) -> dict[str, Any]:
     say(f"2/4 before: plant {config}, nominal model, recording {seconds:g} s")
     before = run_scored(config, nominal, seconds, "calibrate before", out / "before.csv.gz")
     say("3/4 diagnose before.csv.gz against the wrench balance")
-    report = diagnose_recording(out / "before.csv.gz", nominal_path, out / "diagnosis.json",
-                                out / "fitted.yaml", say)  # fmt: skip
+    report = diagnose_recording(
+        out / "before.csv.gz", nominal_path, out / "diagnosis.json", out / "fitted.yaml", say
+    )
     say(f"4/4 after: plant {config}, fitted model {out / 'fitted.yaml'}, {seconds:g} s")
     fitted = load_config(out / "fitted.yaml")
     after = run_scored(config, fitted, seconds, "calibrate after", out / "after.csv.gz")

@@ -57,9 +57,12 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     else:
         parser.add_argument("--host", default=None, help="address to listen on")
         parser.add_argument("--port", type=int, default=None, help="TCP port (0: any free)")
-        parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None,
-                            help="the bus to serve (default: the config's bus.driver if "
-                            "canopen, else modbus_tcp)")  # fmt: skip
+        parser.add_argument(
+            "--bus",
+            choices=("modbus_tcp", "canopen"),
+            default=None,
+            help="the bus to serve (default: the config's bus.driver if canopen, else modbus_tcp)",
+        )
         parser.add_argument("--seconds", type=float, default=None, help="stop after (s)")
         parser.add_argument("--tls-cert", help="Modbus/TCP Security: server certificate (PEM)")
         parser.add_argument("--tls-key", help="Modbus/TCP Security: server private key (PEM)")
@@ -120,8 +123,10 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
     write_recording(out, rec, {"robot": robot, "started": started})
     if not args.quiet:
         took = time.perf_counter() - t0
-        print(f"record: {rec.samples} samples x {rec.cables} cables -> {out} ({took:.1f} s)",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"record: {rec.samples} samples x {rec.cables} cables -> {out} ({took:.1f} s)",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -228,6 +233,9 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
             signal.signal(s, handler)
     st = runtime.stats
     waits = f", waited {chunks.waits}x for a chunk" if chunks is not None else ""
-    print(f"sim-plc: stopped after {st.cycles} cycles, {st.late} late, {st.missed} skipped, "
-          f"longest step {st.max_step_s * 1e3:.2f} ms{waits}", file=sys.stderr)  # fmt: skip
+    print(
+        f"sim-plc: stopped after {st.cycles} cycles, {st.late} late, {st.missed} skipped, "
+        f"longest step {st.max_step_s * 1e3:.2f} ms{waits}",
+        file=sys.stderr,
+    )
     return 0

@@ -75,10 +75,22 @@ from sim_plc.truth import (
 )
 
 __all__ = [
-    "SCORE_AFTER_S", "TRUTH_EVERY_CYCLES", "ChainWarmup", "CycleRing", "DemoRun",
-    "InProcessCanopenPlc", "SoftPlc", "StandInPlant", "TruthChannel", "TruthMatcher",
-    "TruthScore", "TruthScorer", "run_command", "table", "with_port",
-]  # fmt: skip
+    "SCORE_AFTER_S",
+    "TRUTH_EVERY_CYCLES",
+    "ChainWarmup",
+    "CycleRing",
+    "DemoRun",
+    "InProcessCanopenPlc",
+    "SoftPlc",
+    "StandInPlant",
+    "TruthChannel",
+    "TruthMatcher",
+    "TruthScore",
+    "TruthScorer",
+    "run_command",
+    "table",
+    "with_port",
+]
 
 NO_REALTIME = "real-time: off (--no-realtime): loop.realtime not applied"
 STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first start
@@ -87,15 +99,24 @@ STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first sta
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to run")
     add_config_option(parser, DEFAULT_CONFIG_PATH)
-    parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None,
-                        help="fieldbus (default: bus.driver of the config)")  # fmt: skip
-    parser.add_argument("--offline", action="store_true",
-                        help="plant in process, virtual driver, no sockets")  # fmt: skip
-    parser.add_argument("--stand-in", action="store_true",
-                        help="with --offline: sinusoidal stand-in, not the plant")  # fmt: skip
-    parser.add_argument("--no-realtime", action="store_true",
-                        help="do not apply loop.realtime (SCHED_FIFO, mlockall, GC off) to "
-                        "the gateway's thread and the soft PLC")  # fmt: skip
+    parser.add_argument(
+        "--bus",
+        choices=("modbus_tcp", "canopen"),
+        default=None,
+        help="fieldbus (default: bus.driver of the config)",
+    )
+    parser.add_argument(
+        "--offline", action="store_true", help="plant in process, virtual driver, no sockets"
+    )
+    parser.add_argument(
+        "--stand-in", action="store_true", help="with --offline: sinusoidal stand-in, not the plant"
+    )
+    parser.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="do not apply loop.realtime (SCHED_FIFO, mlockall, GC off) to "
+        "the gateway's thread and the soft PLC",
+    )
 
 
 class StandInPlant:
@@ -146,8 +167,16 @@ class SoftPlc:
     """
 
     def __init__(self, config_path: str, bus: str, port: int = 0, realtime: bool = False) -> None:
-        cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
-               "--port", str(port)]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "gateway.cli",
+            "sim-plc",
+            "--config",
+            config_path,
+            "--port",
+            str(port),
+        ]
         if bus != "modbus_tcp":
             cmd += ["--bus", bus]
         if realtime:
@@ -258,8 +287,13 @@ def with_port(cfg: Config, bus: str, host: str, port: int) -> Config:
     return dataclasses.replace(cfg, bus=bus_cfg)
 
 
-def run_timed(service: CyclicService, seconds: float, label: str, err: TextIO,
-              rt: RealtimeConfig | None = None) -> RealtimeReport | None:  # fmt: skip
+def run_timed(
+    service: CyclicService,
+    seconds: float,
+    label: str,
+    err: TextIO,
+    rt: RealtimeConfig | None = None,
+) -> RealtimeReport | None:
     """Run ``service`` in a thread for ``seconds``; one progress line per second.
 
     With ``rt`` the loop's thread applies it first (``force``: as ``loop.realtime`` would
@@ -442,8 +476,10 @@ def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> Demo
     plc = InProcessCanopenPlc(cfg)
     matcher = None
     try:
-        print(f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
+            file=sys.stderr,
+        )
         service = CyclicService(plc.cfg, build_driver(plc.cfg))
         matcher = _off_cycle(service, cfg, plc.truth, rt)
         report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
@@ -457,8 +493,7 @@ def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> Demo
     return DemoRun(service, matcher.score, truth_line(matcher, how), lines, noise_floor(cfg))
 
 
-def run_online(cfg: Config, config_path: str, bus: str, seconds: float,
-               rt: bool = True) -> DemoRun:  # fmt: skip
+def run_online(cfg: Config, config_path: str, bus: str, seconds: float, rt: bool = True) -> DemoRun:
     if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
         return run_canopen_in_process(cfg, seconds, rt)
     plc = SoftPlc(config_path, bus, realtime=rt)

@@ -44,8 +44,10 @@ def _diagnose(fit: Recording, model: FrictionConfig, validation: Recording | Non
 
 
 def _parameters(report: dict) -> dict[str, dict[str, float]]:
-    return {f["effect"]: {k: float(v[0]) for k, v in f["parameters"].items()}
-            for f in report["findings"]}  # fmt: skip
+    return {
+        f["effect"]: {k: float(v[0]) for k, v in f["parameters"].items()}
+        for f in report["findings"]
+    }
 
 
 def run_emps(root: Path) -> dict[str, Any]:
@@ -61,10 +63,14 @@ def run_emps(root: Path) -> dict[str, Any]:
         # the sensor reads minus the motor force: its offset is minus the motor's
         "offset_n": None if "offset" not in params else -params["offset"]["c_n"],
     }
-    errors = {k: (None if got[k] is None else abs(got[k] - ref) / abs(ref))  # type: ignore[operator]
-              for k, ref in realdata.EMPS_PUBLISHED.items()}  # fmt: skip
-    met = all(errors[k] is not None and errors[k] <= tol  # type: ignore[operator]
-              for k, tol in realdata.EMPS_TARGETS.items())  # fmt: skip
+    errors = {
+        k: (None if got[k] is None else abs(got[k] - ref) / abs(ref))  # type: ignore[operator]
+        for k, ref in realdata.EMPS_PUBLISHED.items()
+    }
+    met = all(
+        errors[k] is not None and errors[k] <= tol  # type: ignore[operator]
+        for k, tol in realdata.EMPS_TARGETS.items()
+    )
     fin = res["report"]["final"]
     return {
         "found": [f["effect"] for f in res["report"]["findings"]],
@@ -92,14 +98,20 @@ def run_davinci(root: Path, refits: bool = True) -> dict[str, Any]:
             "before": realdata.rmse(rec, realdata.predict(rec, model)),
             "tool": realdata.rmse(rec, realdata.predict(rec, res["fitted"])),
         }
-        for name, rec in (("fit", sets.fit), ("validation", sets.validation),
-                          ("other_series", sets.other))
-    }  # fmt: skip
+        for name, rec in (
+            ("fit", sets.fit),
+            ("validation", sets.validation),
+            ("other_series", sets.other),
+        )
+    }
     start = time.perf_counter()
     base = baseline.fit(sets.fit)
     base_s = time.perf_counter() - start
-    for name, rec in (("fit", sets.fit), ("validation", sets.validation),
-                      ("other_series", sets.other)):  # fmt: skip
+    for name, rec in (
+        ("fit", sets.fit),
+        ("validation", sets.validation),
+        ("other_series", sets.other),
+    ):
         scored[name]["baseline"] = realdata.rmse(rec, baseline.predict(base.theta, rec)[:, None])
     fin = res["report"]["final"]
     out: dict[str, Any] = {
@@ -149,8 +161,12 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
         "| parameter | published | blind diagnosis | error | target |",
         "|---|---|---|---|---|",
     ]
-    names = {"m_eff_kg": "inertia (kg)", "c_ns_m": "viscous (N s/m)", "f0_n": "Coulomb (N)",
-             "offset_n": "offset of the motor force (N)"}  # fmt: skip
+    names = {
+        "m_eff_kg": "inertia (kg)",
+        "c_ns_m": "viscous (N s/m)",
+        "f0_n": "Coulomb (N)",
+        "offset_n": "offset of the motor force (N)",
+    }
     for key, label in names.items():
         tol = realdata.EMPS_TARGETS.get(key)
         e = err[key]
@@ -178,8 +194,11 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
         "|---|---|---|---|---|",
     ]
     targets = realdata.DAVINCI_TARGETS_N
-    rows = (("fit", "L_4, 9 fit trials"), ("validation", "L_4, 6 validation trials"),
-            ("other_series", "L_2, 4 trials (another series)"))  # fmt: skip
+    rows = (
+        ("fit", "L_4, 9 fit trials"),
+        ("validation", "L_4, 6 validation trials"),
+        ("other_series", "L_2, 4 trials (another series)"),
+    )
     for key, label in rows:
         s = dv["scored"][key]
         tgt = targets.get(key)

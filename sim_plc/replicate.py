@@ -364,9 +364,15 @@ def markdown(res: dict[str, Any]) -> str:
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="directory for JSON, markdown and PNGs")
     add_config_option(parser, DEFAULT_REPLICATE_CONFIG)
-    parser.add_argument("--seconds", "--seconds-limit", dest="seconds", type=float,
-                        default=None, metavar="N", help="cap each run's simulated time (s; "
-                        "--seconds-limit is the old name)")  # fmt: skip
+    parser.add_argument(
+        "--seconds",
+        "--seconds-limit",
+        dest="seconds",
+        type=float,
+        default=None,
+        metavar="N",
+        help="cap each run's simulated time (s; --seconds-limit is the old name)",
+    )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
 

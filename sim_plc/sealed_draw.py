@@ -55,8 +55,10 @@ def effects_draw(sc: Scenario, cables: int, rng: np.random.Generator) -> Draw:
             given = params[p.name]
             f = float(rng.uniform(0.7, 1.5))
             if isinstance(given, tuple):
-                per = [_value(p, float(given[i % len(given)]), neutral[p.name], f, rng)
-                       for i in range(cables)]  # fmt: skip
+                per = [
+                    _value(p, float(given[i % len(given)]), neutral[p.name], f, rng)
+                    for i in range(cables)
+                ]
                 drawn[p.name] = [round(x, 6) for x in per]
             else:
                 drawn[p.name] = round(_value(p, float(given), neutral[p.name], f, rng), 6)
@@ -67,8 +69,13 @@ def effects_draw(sc: Scenario, cables: int, rng: np.random.Generator) -> Draw:
 def _settings(sc: Scenario, rng: np.random.Generator, seed: int) -> Draw:
     """Generator settings other than the tuning suite's (``sc``'s rig or plant kept)."""
     if sc.plant:
-        return {"plant": True, "cables": sc.cables, "seconds": sc.seconds, "slow": sc.slow,
-                "seed": seed}  # fmt: skip
+        return {
+            "plant": True,
+            "cables": sc.cables,
+            "seconds": sc.seconds,
+            "slow": sc.slow,
+            "seed": seed,
+        }
     out: Draw = {
         "seed": seed,
         "motion": "moves" if rng.uniform() < 2 / 3 else "oscillation",

@@ -58,14 +58,18 @@ def check(doc: Path, path: Path) -> str:
 def add(doc: Path, path: Path, reason: str) -> str:
     """Record ``path``'s current hash in ``doc`` with today's date and ``reason``."""
     old = section(doc, HEADING)
-    lines = old.rstrip("\n").splitlines() if old else [
-        HEADING,
-        "",
-        "The sealed case files and their SHA-256 (the last line per file counts); a table run "
-        "and `tests/diagnose/test_sealed.py` refuse a file whose hash is not recorded here. "
-        "A new line means the cases were redrawn, and says why.",
-        "",
-    ]  # fmt: skip
+    lines = (
+        old.rstrip("\n").splitlines()
+        if old
+        else [
+            HEADING,
+            "",
+            "The sealed case files and their SHA-256 (the last line per file counts); a table run "
+            "and `tests/diagnose/test_sealed.py` refuse a file whose hash is not recorded here. "
+            "A new line means the cases were redrawn, and says why.",
+            "",
+        ]
+    )
     digest = sha256(path)
     today = _dt.date.today().isoformat()
     lines.append(f"- `{relative(path)}` SHA-256 `{digest}` ({today}: {reason})")

@@ -59,8 +59,14 @@ class TruthScore:
         self.corrected_sq = np.zeros(cables)
         self.samples = np.zeros(cables, dtype=np.int64)
 
-    def add(self, truth: np.ndarray, raw: np.ndarray, corrected: np.ndarray,
-            status: np.ndarray, warm: np.ndarray | None = None) -> None:  # fmt: skip
+    def add(
+        self,
+        truth: np.ndarray,
+        raw: np.ndarray,
+        corrected: np.ndarray,
+        status: np.ndarray,
+        warm: np.ndarray | None = None,
+    ) -> None:
         """Add the squared errors of the good channels (status 0, finite, ``warm`` where
         given) against ``truth``."""
         good = (status == 0) & np.isfinite(corrected) & np.isfinite(truth)
@@ -131,8 +137,9 @@ class TruthScorer:
     cycle tries again. With ``warmup`` a cable is scored once its chain has warmed up.
     """
 
-    def __init__(self, cables: int, source: TruthSource, every: int = 1,
-                 warmup: ChainWarmup | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, cables: int, source: TruthSource, every: int = 1, warmup: ChainWarmup | None = None
+    ) -> None:
         self.score = TruthScore(cables)
         self.source = source
         self.every = every
@@ -178,8 +185,9 @@ class CycleRing:
     ``warmup`` each slot also holds which cables had warmed up (else all count).
     """
 
-    def __init__(self, cables: int, size: int = RING_SIZE,
-                 warmup: ChainWarmup | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, cables: int, size: int = RING_SIZE, warmup: ChainWarmup | None = None
+    ) -> None:
         if size & (size - 1) or not 0 < size <= 0x10000:
             raise ValueError("ring size must be a power of two <= 65536")
         self.mask = size - 1
@@ -190,8 +198,9 @@ class CycleRing:
         self.status = np.zeros((size, cables), dtype=np.uint16)
         self.warm = np.ones((size, cables), dtype=bool)
         self.warmup = warmup
-        self._rows = [(self.raw[i], self.corrected[i], self.status[i], self.warm[i])
-                      for i in range(size)]  # fmt: skip
+        self._rows = [
+            (self.raw[i], self.corrected[i], self.status[i], self.warm[i]) for i in range(size)
+        ]
         self.latest = -1  # slot of the last cycle copied
         self.copied = 0  # cycles copied
         self._started = math.nan
@@ -259,13 +268,22 @@ class TruthMatcher:
     GIL (the loop would wait behind it).
     """
 
-    def __init__(self, ring: CycleRing, source: TruthSource, cables: int,
-                 interval_s: float = TRUTH_INTERVAL_S) -> None:  # fmt: skip
+    def __init__(
+        self,
+        ring: CycleRing,
+        source: TruthSource,
+        cables: int,
+        interval_s: float = TRUTH_INTERVAL_S,
+    ) -> None:
         self.ring, self.source, self.interval_s = ring, source, interval_s
         self.score = TruthScore(cables)
         self.truth = np.zeros(cables)
-        self._sample = (np.zeros(cables), np.zeros(cables), np.zeros(cables, dtype=np.uint16),
-                        np.ones(cables, dtype=bool))  # fmt: skip
+        self._sample = (
+            np.zeros(cables),
+            np.zeros(cables),
+            np.zeros(cables, dtype=np.uint16),
+            np.ones(cables, dtype=bool),
+        )
         self.read = self.matched = self.unmatched = self.failed = 0
         self.by_heartbeat = True  # False once the source gave no heartbeat
         self.priority: int | None = None  # set_realtime(): SCHED_FIFO 1 for this thread
@@ -335,8 +353,9 @@ class TruthChannel:
     def __call__(self, truth: np.ndarray) -> int:
         sock = self._connect()
         self._tid = (self._tid + 1) & 0xFFFF
-        request = struct.pack(">HHHBBHH", self._tid, 0, 6, self.unit_id, 3, TRUTH_ADDRESS,
-                              self.words)  # fmt: skip
+        request = struct.pack(
+            ">HHHBBHH", self._tid, 0, 6, self.unit_id, 3, TRUTH_ADDRESS, self.words
+        )
         try:
             sock.sendall(request)
             reply = b""

@@ -52,18 +52,37 @@ class Case:
 CASES = (
     Case(
         "rig_no_pulleys_f0",
-        Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb",
-                effects={"coulomb": {"f0_n": 5.0}}),
+        Foreign(
+            rig=True, tension=150.0, pulleys=(), model="coulomb", effects={"coulomb": {"f0_n": 5.0}}
+        ),
         {"coulomb": {"f0_n": (5.0, 0.05, 0.0)}},
-        nominal="none", pulleys=(), note="1: nominal `none` without pulleys (crashed)",
+        nominal="none",
+        pulleys=(),
+        note="1: nominal `none` without pulleys (crashed)",
     ),
     Case(
         "rig_positioning_axis",
-        Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
-                vmax=0.13, seconds=40.0, rate_hz=500.0, effects=RIG_AXIS),
-        {"inertia": {"m_eff_kg": (95.0, 0.05, 0.0)}, "viscous": {"c_ns_m": (200.0, 0.05, 0.0)},
-         "coulomb": {"f0_n": (20.0, 0.05, 0.0)}, "offset": {"c_n": (-3.0, 0.1, 0.3)}},
-        nominal="none", pulleys=(), validate=True, note="2: greedy dead end",
+        Foreign(
+            rig=True,
+            tension=150.0,
+            pulleys=(),
+            model="coulomb",
+            motion="positioning",
+            vmax=0.13,
+            seconds=40.0,
+            rate_hz=500.0,
+            effects=RIG_AXIS,
+        ),
+        {
+            "inertia": {"m_eff_kg": (95.0, 0.05, 0.0)},
+            "viscous": {"c_ns_m": (200.0, 0.05, 0.0)},
+            "coulomb": {"f0_n": (20.0, 0.05, 0.0)},
+            "offset": {"c_n": (-3.0, 0.1, 0.3)},
+        },
+        nominal="none",
+        pulleys=(),
+        validate=True,
+        note="2: greedy dead end",
     ),
     Case(
         "offset_drift_cancel",
@@ -80,18 +99,21 @@ CASES = (
     Case(
         "jitter_noise_free_100hz",
         Foreign(rate_hz=100.0, jitter_s=2e-3, noise_n=0.0),
-        {}, note="4: noise-free, 100 Hz +-2 ms",
+        {},
+        note="4: noise-free, 100 Hz +-2 ms",
     ),
     Case(
         "jitter_noise_free_250hz",
         Foreign(rate_hz=250.0, jitter_s=8e-4, noise_n=0.0, seed=5),
-        {}, note="4: noise-free, 250 Hz +-0.8 ms",
+        {},
+        note="4: noise-free, 250 Hz +-0.8 ms",
     ),
     Case(
         "p5_viscous_validate",
         Foreign(pulleys=P5_MIXED, effects={"viscous": {"c_ns_m": 80.0}}),
         {"viscous": {"c_ns_m": (80.0, 0.1, 0.0)}},
-        validate=True, note="5: no finding that does not generalise",
+        validate=True,
+        note="5: no finding that does not generalise",
     ),
     Case(
         "p5_viscous_no_validate",
@@ -111,7 +133,7 @@ CASES = (
         {"coulomb": {"f0_n": (3.0, 0.1, 0.0), "mu": (0.02, 0.1, 0.0)}},
         note="8: f0 under Dahl",
     ),
-)  # fmt: skip
+)
 
 
 def sealed_cases() -> tuple[Case, ...]:
@@ -121,8 +143,7 @@ def sealed_cases() -> tuple[Case, ...]:
         fo = dict(row["foreign"])
         fo["pulleys"] = tuple(tuple(p) for p in fo["pulleys"])
         truth = {e: {k: tuple(v) for k, v in ps.items()} for e, ps in row["truth"].items()}
-        out.append(Case(row["name"], Foreign(**fo), truth, validate=True,
-                        note=_machine_note(fo)))  # fmt: skip
+        out.append(Case(row["name"], Foreign(**fo), truth, validate=True, note=_machine_note(fo)))
     return tuple(out)
 
 
@@ -153,12 +174,17 @@ class Score:
     def why(self) -> list[str]:
         """What failed the strict score (empty: passed)."""
         val_up = self.validation is not None and self.validation[1] > self.validation[0] + 1e-12
-        return [text for text, failed in (
-            ("effects", not self.named), ("cables", not self.cables_ok),
-            ("parameters", self.param_err > 1.0),
-            ("held-out up", self.holdout[1] > self.holdout[0] + 1e-12),
-            ("validation up", val_up),
-        ) if failed]  # fmt: skip
+        return [
+            text
+            for text, failed in (
+                ("effects", not self.named),
+                ("cables", not self.cables_ok),
+                ("parameters", self.param_err > 1.0),
+                ("held-out up", self.holdout[1] > self.holdout[0] + 1e-12),
+                ("validation up", val_up),
+            )
+            if failed
+        ]
 
     @property
     def passed(self) -> bool:
@@ -189,8 +215,9 @@ def score(case: Case) -> Score:
     if "validation_rmse_before_n" in fin:
         val = (fin["validation_rmse_before_n"], fin["validation_rmse_after_n"])
     clipped = int(sum(rep.get("clipped", {}).get("per_cable", [])))
-    return Score(case, found, set(found) == set(case.truth), cables_ok, err, hold, val,
-                 clipped, seconds)  # fmt: skip
+    return Score(
+        case, found, set(found) == set(case.truth), cables_ok, err, hold, val, clipped, seconds
+    )
 
 
 def _rows(scores: list[Score]) -> list[str]:
@@ -213,25 +240,31 @@ SEALED_HEADING = "## Sealed foreign recordings (never tuned on)"
 def sealed_table(scores: list[Score], digest: str) -> str:
     """The markdown section of the sealed foreign cases."""
     clean = [s for s in scores if not s.case.truth]
-    return "\n".join([
-        SEALED_HEADING,
-        "",
-        f"`tests/foreign_sealed.yaml` (SHA-256 `{digest[:16]}...`, ## Seals): {len(scores)} "
-        "cases of the independent generator drawn once by `tests/foreign_sealed.py` with "
-        "another seed and settings the tuning cases do not use (1-4 pulleys, Coulomb or "
-        "Dahl chains, 200-1000 Hz, jitter, five noise kinds, moves or positioning, 1-3 "
-        "cables); each effect at the scenario suite's sizes (0.7-1.5x) and tolerances; "
-        "every case validated on a second seed. Same strict score; failures are published, "
-        "never tuned on.",
-        "",
-        f"**Passed: {sum(s.passed for s in scores)}/{len(scores)}. False findings on "
-        f"{len(clean)} clean recordings: {sum(len(s.found) for s in clean)}.**",
-        "",
-        "| case | machine | truth | found | pass | param err | held-out before -> after "
-        "| validation before -> after | clipped | s |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-        *_rows(scores),
-    ]) + "\n"  # fmt: skip
+    return (
+        "\n".join(
+            [
+                SEALED_HEADING,
+                "",
+                f"`tests/foreign_sealed.yaml` (SHA-256 `{digest[:16]}...`, ## Seals): "
+                f"{len(scores)} "
+                "cases of the independent generator drawn once by `tests/foreign_sealed.py` with "
+                "another seed and settings the tuning cases do not use (1-4 pulleys, Coulomb or "
+                "Dahl chains, 200-1000 Hz, jitter, five noise kinds, moves or positioning, 1-3 "
+                "cables); each effect at the scenario suite's sizes (0.7-1.5x) and tolerances; "
+                "every case validated on a second seed. Same strict score; failures are published, "
+                "never tuned on.",
+                "",
+                f"**Passed: {sum(s.passed for s in scores)}/{len(scores)}. False findings on "
+                f"{len(clean)} clean recordings: {sum(len(s.found) for s in clean)}.**",
+                "",
+                "| case | machine | truth | found | pass | param err | held-out before -> after "
+                "| validation before -> after | clipped | s |",
+                "|---|---|---|---|---|---|---|---|---|---|",
+                *_rows(scores),
+            ]
+        )
+        + "\n"
+    )
 
 
 def table(scores: list[Score]) -> str:
@@ -283,9 +316,12 @@ def _run(cases: tuple[Case, ...], k: str) -> list[Score]:
         if k not in case.name:
             continue
         s = score(case)
-        print(f"{case.name}: found {s.found or 'none'} pass={s.passed} err={s.param_err:.2f} "
-              f"hold {s.holdout[0]:.3f}->{s.holdout[1]:.3f} val {s.validation} "
-              f"clipped {s.clipped} {s.seconds:.1f}s", flush=True)  # fmt: skip
+        print(
+            f"{case.name}: found {s.found or 'none'} pass={s.passed} err={s.param_err:.2f} "
+            f"hold {s.holdout[0]:.3f}->{s.holdout[1]:.3f} val {s.validation} "
+            f"clipped {s.clipped} {s.seconds:.1f}s",
+            flush=True,
+        )
         scores.append(s)
     return scores
 

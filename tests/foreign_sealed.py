@@ -27,10 +27,20 @@ import yaml
 from sim_plc.scenarios import tolerance
 
 SEALED_FILE = Path(__file__).with_name("foreign_sealed.yaml")
-SINGLE = ("viscous", "coulomb", "presliding", "stribeck", "inertia", "delay", "lowpass",
-          "gain", "offset", "drift", "eccentricity")  # fmt: skip
-PAIRS = (("viscous", "offset"), ("coulomb", "gain"), ("lowpass", "drift"),
-         ("inertia", "viscous"))  # fmt: skip
+SINGLE = (
+    "viscous",
+    "coulomb",
+    "presliding",
+    "stribeck",
+    "inertia",
+    "delay",
+    "lowpass",
+    "gain",
+    "offset",
+    "drift",
+    "eccentricity",
+)
+PAIRS = (("viscous", "offset"), ("coulomb", "gain"), ("lowpass", "drift"), ("inertia", "viscous"))
 
 
 def _size(rng: np.random.Generator) -> float:
@@ -45,8 +55,10 @@ def _effect(name: str, rng: np.random.Generator, mu_mean: float) -> dict[str, fl
     r = lambda x: round(float(x), 6)  # noqa: E731
     draws = {
         "viscous": lambda: {"c_ns_m": r(6.0 * _size(rng))},
-        "coulomb": lambda: {"mu": r(mu_mean * (1 + 0.1 * _sign(rng) * _size(rng))),
-                            "f0_n": r(rng.uniform(0.3, 1.0))},
+        "coulomb": lambda: {
+            "mu": r(mu_mean * (1 + 0.1 * _sign(rng) * _size(rng))),
+            "f0_n": r(rng.uniform(0.3, 1.0)),
+        },
         "presliding": lambda: {"sigma_n_m": r(400.0 * _size(rng))},
         "stribeck": lambda: {"k": r(0.5 * _size(rng)), "v_s_m_s": r(0.01 * _size(rng))},
         "inertia": lambda: {"m_eff_kg": r(2.0 * _size(rng))},
@@ -55,16 +67,21 @@ def _effect(name: str, rng: np.random.Generator, mu_mean: float) -> dict[str, fl
         "gain": lambda: {"g": r(0.002 * _sign(rng) * _size(rng))},
         "offset": lambda: {"c_n": r(0.25 * _sign(rng) * _size(rng))},
         "drift": lambda: {"k_n_s": r(0.012 * _sign(rng) * _size(rng))},
-        "eccentricity": lambda: {"a_n": r(0.4 * _size(rng)), "r_m": r(0.03 * _size(rng)),
-                                 "phi_rad": r(rng.uniform(0.0, 2 * math.pi))},
-    }  # fmt: skip
+        "eccentricity": lambda: {
+            "a_n": r(0.4 * _size(rng)),
+            "r_m": r(0.03 * _size(rng)),
+            "phi_rad": r(rng.uniform(0.0, 2 * math.pi)),
+        },
+    }
     return draws[name]()
 
 
 def _machine(rng: np.random.Generator, seed: int) -> dict[str, Any]:
     n = int(rng.integers(1, 5))
-    pulleys = [[round(float(rng.uniform(20, 150)), 1), round(float(rng.uniform(0.01, 0.03)), 4)]
-               for _ in range(n)]  # fmt: skip
+    pulleys = [
+        [round(float(rng.uniform(20, 150)), 1), round(float(rng.uniform(0.01, 0.03)), 4)]
+        for _ in range(n)
+    ]
     out: dict[str, Any] = {
         "seed": seed,
         "pulleys": pulleys,

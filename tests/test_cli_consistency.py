@@ -57,8 +57,13 @@ def test_modules_do_not_define_the_common_options_twice() -> None:
 
 
 def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "gateway", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=timeout)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "gateway", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def test_replicate_into_an_impossible_directory_is_one_line_up_front() -> None:
@@ -82,8 +87,16 @@ def recording(tmp_path_factory) -> Path:
 def test_diagnose_report_onto_an_existing_file_fails_before_the_work(recording, tmp_path):
     existing = tmp_path / "taken"
     existing.write_text("x")
-    res = cli("diagnose", str(recording), "--model", "config/default.yaml",
-              "--json", str(tmp_path / "r.json"), "--report", str(existing))  # fmt: skip
+    res = cli(
+        "diagnose",
+        str(recording),
+        "--model",
+        "config/default.yaml",
+        "--json",
+        str(tmp_path / "r.json"),
+        "--report",
+        str(existing),
+    )
     assert res.returncode == 2, res.stderr
     assert "Traceback" not in res.stderr
     lines = res.stderr.strip().splitlines()
@@ -92,8 +105,15 @@ def test_diagnose_report_onto_an_existing_file_fails_before_the_work(recording, 
 
 
 def test_diagnose_needs_no_json_when_a_report_is_wanted(recording, tmp_path):
-    res = cli("diagnose", str(recording), "--model", "config/default.yaml",
-              "--report", str(tmp_path / "rep"), "--quiet")  # fmt: skip
+    res = cli(
+        "diagnose",
+        str(recording),
+        "--model",
+        "config/default.yaml",
+        "--report",
+        str(tmp_path / "rep"),
+        "--quiet",
+    )
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "rep" / "summary.md").is_file()
     assert res.stdout.startswith("verdict: ")

@@ -36,12 +36,18 @@ def log_level(text: str) -> str:
 
 def add_common_options(parser: argparse.ArgumentParser) -> None:
     """``--log-level`` and ``--quiet``, the same on every command."""
-    parser.add_argument("--log-level", type=log_level, default=None, metavar="LEVEL",
-                        help="DEBUG, INFO, WARNING, ERROR or CRITICAL (default INFO, "
-                        "WARNING with --quiet)")  # fmt: skip
-    parser.add_argument("--quiet", action="store_true",
-                        help="no progress or informational lines on stderr (warnings and "
-                        "errors still)")  # fmt: skip
+    parser.add_argument(
+        "--log-level",
+        type=log_level,
+        default=None,
+        metavar="LEVEL",
+        help="DEBUG, INFO, WARNING, ERROR or CRITICAL (default INFO, WARNING with --quiet)",
+    )
+    parser.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress or informational lines on stderr (warnings and errors still)",
+    )
 
 
 def resolve_log_level(args: argparse.Namespace) -> str:
@@ -67,13 +73,18 @@ def add_config_option(
     bundled file ``default`` with the help saying so."""
     if default is None:
         why = f": {why}" if why else ""
-        parser.add_argument("--config", metavar="FILE", required=True,
-                            help=f"YAML config file (required{why})")  # fmt: skip
+        parser.add_argument(
+            "--config", metavar="FILE", required=True, help=f"YAML config file (required{why})"
+        )
         return
-    parser.add_argument("--config", metavar="FILE", default=str(default),
-                        help=f"YAML config file (default: the bundled {default.name}, a soft "
-                        "PLC on 127.0.0.1; 'cdpr-gateway examples' lists and copies the "
-                        "bundled configs)")  # fmt: skip
+    parser.add_argument(
+        "--config",
+        metavar="FILE",
+        default=str(default),
+        help=f"YAML config file (default: the bundled {default.name}, a soft "
+        "PLC on 127.0.0.1; 'cdpr-gateway examples' lists and copies the "
+        "bundled configs)",
+    )
 
 
 def output_dir(path: str | Path, option: str) -> Path:

@@ -391,8 +391,14 @@ class LimitsConfig:
 
 
 RECORD_KINDS = (
-    "velocity", "tension_sensor", "length", "pose", "mass", "tension_corrected", "status",
-)  # fmt: skip
+    "velocity",
+    "tension_sensor",
+    "length",
+    "pose",
+    "mass",
+    "tension_corrected",
+    "status",
+)
 
 
 @dataclass(frozen=True)

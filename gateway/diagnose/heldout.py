@@ -35,8 +35,10 @@ class Motion:
     speed_max_m_s: float
 
     def text(self) -> str:
-        return (f"{self.seconds:.1f} s, {self.reversals} velocity reversals per cable, speeds "
-                f"{self.speed_min_m_s:.3f}-{self.speed_max_m_s:.3f} m/s")  # fmt: skip
+        return (
+            f"{self.seconds:.1f} s, {self.reversals} velocity reversals per cable, speeds "
+            f"{self.speed_min_m_s:.3f}-{self.speed_max_m_s:.3f} m/s"
+        )
 
 
 def motion(t: np.ndarray, velocity: np.ndarray) -> Motion:
@@ -63,10 +65,16 @@ def unseen_score(
         return None
     final = report["final"]
     if "validation_rmse_after_n" in final:
-        return (validation, float(final["validation_rmse_before_n"]),
-                float(final["validation_rmse_after_n"]))  # fmt: skip
-    return ("the held-out time blocks", float(findings[0]["holdout_rmse_before_n"]),
-            float(final["holdout_rmse_n"]))  # fmt: skip
+        return (
+            validation,
+            float(final["validation_rmse_before_n"]),
+            float(final["validation_rmse_after_n"]),
+        )
+    return (
+        "the held-out time blocks",
+        float(findings[0]["holdout_rmse_before_n"]),
+        float(final["holdout_rmse_n"]),
+    )
 
 
 def refusal(
@@ -84,15 +92,22 @@ def refusal(
     need = ""
     if factor > 1:
         reversals = moved.reversals / max(moved.seconds, 1e-9) * REFERENCE_S
-        rate = (f"about {reversals:.0f} reversals per cable at this motion's rate"
-                if reversals >= 1 else "with reversals of every cable")  # fmt: skip
-        need = (f"; record about {REFERENCE_S:.0f} s ({factor:.0f}x more: {rate}), over "
-                "the speed range the machine uses")  # fmt: skip
+        rate = (
+            f"about {reversals:.0f} reversals per cable at this motion's rate"
+            if reversals >= 1
+            else "with reversals of every cable"
+        )
+        need = (
+            f"; record about {REFERENCE_S:.0f} s ({factor:.0f}x more: {rate}), over "
+            "the speed range the machine uses"
+        )
     else:
         need = (
             "; the motion is long enough by the calibrate examples' measure: widen the "
             "speed range or add reversals"
         )
-    return (f"not written: the fitted model ({effects}) does not lower the error on data it "
-            f"was not fitted on ({what}: {before:.3f} N before, {after:.3f} N after); the "
-            f"recording has {moved.text()}{need}")  # fmt: skip
+    return (
+        f"not written: the fitted model ({effects}) does not lower the error on data it "
+        f"was not fitted on ({what}: {before:.3f} N before, {after:.3f} N after); the "
+        f"recording has {moved.text()}{need}"
+    )

@@ -164,8 +164,15 @@ def unexplained_plot(diag: Diagnosis, path: Path) -> None:
     if st is None:
         return
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    ax.errorbar(st.centre, st.mean, yerr=2 * st.se, fmt="o-", capsize=3, color="tab:purple",
-                label="final residual, binned mean +- 2 se")  # fmt: skip
+    ax.errorbar(
+        st.centre,
+        st.mean,
+        yerr=2 * st.se,
+        fmt="o-",
+        capsize=3,
+        color="tab:purple",
+        label="final residual, binned mean +- 2 se",
+    )
     ax.axhline(0.0, color="k", lw=0.8)
     ax.set_xlabel(f"{st.signal} ({signals.UNITS.get(st.signal, '')})")
     ax.set_ylabel("residual after the findings (N)")
@@ -295,10 +302,13 @@ def summary(diag: Diagnosis, source: str) -> str:
     lines += [region_line(r) for r in rep["mismatch"][:8]]
     warm = rep.get("warmup") or {}
     if warm.get("samples"):
-        lines += ["", f"The first {warm['seconds']:.2f} s (to {warm['until_s']:.2f} s) are the "
-                  "diagnosis' warm-up: "
-                  f"{warm['treatment']}; {len(warm['regions'])} region(s) inside it are not "
-                  "listed above."]  # fmt: skip
+        lines += [
+            "",
+            f"The first {warm['seconds']:.2f} s (to {warm['until_s']:.2f} s) are the "
+            "diagnosis' warm-up: "
+            f"{warm['treatment']}; {len(warm['regions'])} region(s) inside it are not "
+            "listed above.",
+        ]
     lines += ["", "![residual](residual.png)", "", "![overlay](overlay.png)", ""]
     return "\n".join(lines)
 
@@ -307,8 +317,10 @@ def region_line(r: dict[str, Any]) -> str:
     """One mismatch region for summary.md; cable 0 is the platform (the wrench reference
     locates regions in the platform's force balance, not on one cable)."""
     who = "the platform (wrench balance, all cables)" if r["cable"] == 0 else f"cable {r['cable']}"
-    return (f"- {who}, {r['start_s']:.2f}-{r['end_s']:.2f} s, {r['regime']}: "
-            f"{r['share']:.1%} of the residual energy")  # fmt: skip
+    return (
+        f"- {who}, {r['start_s']:.2f}-{r['end_s']:.2f} s, {r['regime']}: "
+        f"{r['share']:.1%} of the residual energy"
+    )
 
 
 def write_files(

@@ -165,20 +165,33 @@ class PlatformReference:
             usable[:, i] = warmup_mask(d, nom) & valid[:, i]
             cands.append(cable_candidates(all_cands, d, nom))
             d.release()
-        clipped = {"per_cable": [int((~valid[:, i]).sum()) for i in range(rec.cables)],
-                   "levels_n": levels}  # fmt: skip
+        clipped = {
+            "per_cable": [int((~valid[:, i]).sum()) for i in range(rec.cables)],
+            "levels_n": levels,
+        }
         return PlatformPrepared(
-            rec, nom, datas, blocks, nb, valid, usable, cands, selection_subset(rec.t, blocks),
-            validation_forwards(validation, nom, rec.cables), clipped,
-        )  # fmt: skip
+            rec,
+            nom,
+            datas,
+            blocks,
+            nb,
+            valid,
+            usable,
+            cands,
+            selection_subset(rec.t, blocks),
+            validation_forwards(validation, nom, rec.cables),
+            clipped,
+        )
 
     def units(self, prep: PlatformPrepared, say) -> Iterator[tuple[int, CableUnit]]:
         """One selection unit per cable (on the subset of a long recording); the cable's
         cached simulations and computed series are freed when the caller moves on."""
         for i, d in enumerate(prep.datas):
             where = "" if prep.subset is None else f" on {prep.subset[0].size} of {d.t.size}"
-            say(f"cable {i + 1}/{len(prep.datas)}: {len(prep.candidates[i])} candidate "
-                f"effects{where}")  # fmt: skip
+            say(
+                f"cable {i + 1}/{len(prep.datas)}: {len(prep.candidates[i])} candidate "
+                f"effects{where}"
+            )
             unit = self.unit(prep, i)
             yield i, unit
             unit.release()
@@ -190,22 +203,23 @@ class PlatformReference:
         after the start, by travel)."""
         d, cands = prep.datas[i], prep.candidates[i]
         if prep.subset is None:
-            return CableUnit(Forward(d, prep.nom), prep.blocks, prep.n_blocks, cands,
-                             prep.usable[:, i])  # fmt: skip
+            return CableUnit(
+                Forward(d, prep.nom), prep.blocks, prep.n_blocks, cands, prep.usable[:, i]
+            )
         idx, sub_blocks, use = prep.subset
         sub = d.subset(idx)
         d.release()
         use = use & prep.usable[idx, i] & warmup_mask(sub, prep.nom)
-        return CableUnit(Forward(sub, prep.nom), sub_blocks, int(sub_blocks.max()) + 1, cands,
-                         use)  # fmt: skip
+        return CableUnit(Forward(sub, prep.nom), sub_blocks, int(sub_blocks.max()) + 1, cands, use)
 
     def full_unit(self, prep: PlatformPrepared, i: int) -> CableUnit:
         """Cable ``i`` on every sample (thinned scoring in the fit of a long recording)."""
         fw = Forward(prep.datas[i], prep.nom)
         train = (prep.blocks % 2 == 0) & prep.usable[:, i]
         stride = max(1, int(train.sum()) // SELECTION_BUDGET)
-        return CableUnit(fw, prep.blocks, prep.n_blocks, prep.candidates[i], prep.usable[:, i],
-                         stride)  # fmt: skip
+        return CableUnit(
+            fw, prep.blocks, prep.n_blocks, prep.candidates[i], prep.usable[:, i], stride
+        )
 
     def locate(self, prep: PlatformPrepared) -> Located:
         """Regimes and where the nominal model's residual lives (cable by cable)."""
@@ -255,8 +269,9 @@ def locate_residual(prep: PlatformPrepared, thetas: list[dict[str, np.ndarray]])
 
 
 # ---- select and fit, unit by unit ----------------------------------------------------------
-def select_units(ref: PlatformReference, prep: PlatformPrepared, th: Thresholds,
-                 say) -> list[Tested]:  # fmt: skip
+def select_units(
+    ref: PlatformReference, prep: PlatformPrepared, th: Thresholds, say
+) -> list[Tested]:
     """Stage 3, with the per-unit half of stage 4: the selector over each cable (on the
     subset of a long recording), checked against the validation recording, then scored
     (every candidate tested, block refits) while its data is at hand; then only its
@@ -279,8 +294,9 @@ def select_units(ref: PlatformReference, prep: PlatformPrepared, th: Thresholds,
     return out
 
 
-def fit_units(ref: PlatformReference, prep: PlatformPrepared, tested: list[Tested],
-              th: Thresholds, say) -> list[Tested]:  # fmt: skip
+def fit_units(
+    ref: PlatformReference, prep: PlatformPrepared, tested: list[Tested], th: Thresholds, say
+) -> list[Tested]:
     """Stage 4: the significance stage over every cable and candidate (q-values over all
     of them; a cable whose finding fails is rebuilt, refitted and scored again), then the
     survivors refitted on all training samples. A long recording was selected on a subset
@@ -330,8 +346,9 @@ def validate(
             red = vfw.predict(rest)
             r_red = np.where(ok, ts - red, 0.0)
             sse_red = np.bincount(vblocks, weights=r_red**2, minlength=nvb)
-            cross = np.bincount(vblocks, weights=np.where(ok, r_full * (full - red), 0.0),
-                                minlength=nvb)  # fmt: skip
+            cross = np.bincount(
+                vblocks, weights=np.where(ok, r_full * (full - red), 0.0), minlength=nvb
+            )
             z = holdout_z(sse_red, sse_full, cross)
             gain = float(sse_red.sum() - sse_full.sum())
             if (

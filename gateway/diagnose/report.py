@@ -140,9 +140,18 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
         stat.append(_num(t.get("z", math.nan)))
         ps.append(_num(t.get("p", math.nan)))
         qs.append(_num(t.get("q", math.nan)))
-    out = {"effect": effect, "cables": cables, "parameters": params, "stderr": errs,
-           "stderr_jacobian": errs_jac, "stderr_blocks": errs_blk, "statistic": stat,
-           "p": ps, "q": qs, "evidence": ev}  # fmt: skip
+    out = {
+        "effect": effect,
+        "cables": cables,
+        "parameters": params,
+        "stderr": errs,
+        "stderr_jacobian": errs_jac,
+        "stderr_blocks": errs_blk,
+        "statistic": stat,
+        "p": ps,
+        "q": qs,
+        "evidence": ev,
+    }
     alts = alternatives(effect, tested, n_test)
     if alts:
         out["alternatives"] = alts
@@ -159,8 +168,10 @@ def alternatives(effect: str, tested: list[Tested], n_test: int) -> list[dict]:
         for rv in u.outcome.rivals.get(effect, []):
             if rv.separable:
                 continue
-            row = rows.setdefault(rv.effect, {"effect": rv.effect, "cables": [],
-                                              "parameters": {}, "holdout_rmse_n": []})  # fmt: skip
+            row = rows.setdefault(
+                rv.effect,
+                {"effect": rv.effect, "cables": [], "parameters": {}, "holdout_rmse_n": []},
+            )
             row["cables"].append(i + 1)
             for k, v in to_report(rv.effect, rv.theta).items():
                 row["parameters"].setdefault(k, []).append(_num(v))
@@ -289,6 +300,15 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
     }
     if unexplained is not None:
         report["unexplained"] = unexplained
-    return Diagnosis(report, rec.t, rec.tension_sensor, located.regime,
-                     final_loc.regions(), outcomes, order, forwards, located.regions,
-                     structure)  # fmt: skip
+    return Diagnosis(
+        report,
+        rec.t,
+        rec.tension_sensor,
+        located.regime,
+        final_loc.regions(),
+        outcomes,
+        order,
+        forwards,
+        located.regions,
+        structure,
+    )

@@ -443,10 +443,15 @@ class Selector:
                 fit = self.fit(s.kept, s.specs, nfev=30)
                 z = self.z(fit, model)
                 rows.append(
-                    Rival(rival, float(self.test_sse(fit.resid).sum()),
-                          z >= self.th.z_separate, fit.kept[rival],
-                          fit.stderr.get(rival, np.full(fit.kept[rival].size, np.nan)), z)
-                )  # fmt: skip
+                    Rival(
+                        rival,
+                        float(self.test_sse(fit.resid).sum()),
+                        z >= self.th.z_separate,
+                        fit.kept[rival],
+                        fit.stderr.get(rival, np.full(fit.kept[rival].size, np.nan)),
+                        z,
+                    )
+                )
             if rows:
                 result[effect] = rows
         return result

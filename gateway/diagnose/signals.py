@@ -58,9 +58,19 @@ SIGNALS: dict[str, Callable[[object], np.ndarray]] = {
     "travel since reversal": lambda d: _travel_since_reversal(d.x, d.v),  # type: ignore[attr-defined]
     "dT/dt": lambda d: np.gradient(d.ts, d.t) if d.t.size > 1 else np.zeros_like(d.ts),  # type: ignore[attr-defined]
 }
-UNITS = {"t": "s", "v": "m/s", "a": "m/s^2", "T": "N", "sgn(v)": "1", "sgn(v)*T": "N",
-         "T^2": "N^2", "sgn(v)*T^2": "N^2", "x": "m", "travel since reversal": "m",
-         "dT/dt": "N/s"}  # fmt: skip
+UNITS = {
+    "t": "s",
+    "v": "m/s",
+    "a": "m/s^2",
+    "T": "N",
+    "sgn(v)": "1",
+    "sgn(v)*T": "N",
+    "T^2": "N^2",
+    "sgn(v)*T^2": "N^2",
+    "x": "m",
+    "travel since reversal": "m",
+    "dT/dt": "N/s",
+}
 READINGS = {
     "t": "changes over time: a sensor drift or creep, a warming machine",
     "v": "a force that depends on speed beyond the fitted viscous term",
@@ -137,8 +147,9 @@ class Explainer:
     def __init__(self, blocks: np.ndarray, n_blocks: int, extra: dict[str, np.ndarray]) -> None:
         self.blocks, self.n_blocks, self.extra = blocks, n_blocks, extra
         self.names = list(SIGNALS) + [f"column {k}" for k in extra]
-        self.acc = {n: [np.zeros(n_blocks), np.zeros(n_blocks), np.zeros(n_blocks)]
-                    for n in self.names}  # fmt: skip
+        self.acc = {
+            n: [np.zeros(n_blocks), np.zeros(n_blocks), np.zeros(n_blocks)] for n in self.names
+        }
         self.bins: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]] = {
             n: [] for n in self.names
         }
@@ -196,8 +207,12 @@ class Explainer:
         for f, qv in zip(found, q, strict=True):
             f.q = float(qv)
         best = max((f.share for f in found), default=0.0)
-        found.sort(key=lambda f: (f.share < best - TIE * best, -f.line if f.share >= best
-                                  - TIE * best else -f.share))  # fmt: skip
+        found.sort(
+            key=lambda f: (
+                f.share < best - TIE * best,
+                -f.line if f.share >= best - TIE * best else -f.share,
+            )
+        )
         return found
 
 

@@ -151,10 +151,13 @@ def _fails(units: list[Tested], th) -> list[list[str]]:
     out = []
     for u in units:
         t = u.outcome.tests
-        out.append([
-            e for e in u.model.kept
-            if t[e]["q"] > th.fdr or t[e]["gain"] < th.rel_min or t[e]["param_z"] < th.z_min
-        ])  # fmt: skip
+        out.append(
+            [
+                e
+                for e in u.model.kept
+                if t[e]["q"] > th.fdr or t[e]["gain"] < th.rel_min or t[e]["param_z"] < th.z_min
+            ]
+        )
     return out
 
 

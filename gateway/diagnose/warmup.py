@@ -44,8 +44,13 @@ def warmup_until_s(rec: Recording, friction: FrictionConfig) -> tuple[float, int
     tension = np.asarray(rec.tension_sensor, dtype=float)
     first_warm = 0
     for i in range(rec.cables):
-        d = CableData(t, np.asarray(rec.velocity[:, i], dtype=float), tension[:, i],
-                      tension[:, i], float(t[0]))  # fmt: skip
+        d = CableData(
+            t,
+            np.asarray(rec.velocity[:, i], dtype=float),
+            tension[:, i],
+            tension[:, i],
+            float(t[0]),
+        )
         warm = warmup_mask(d, nom)
         cold = np.flatnonzero(~warm[: max(1, warm.size // 2)])  # the start's warm-up
         if cold.size and cold[0] == 0:
@@ -59,5 +64,10 @@ def annotate(report: dict[str, Any], rec: Recording, friction: FrictionConfig) -
     regions = report.get("mismatch") or []
     inside = [r for r in regions if samples and r["end_s"] <= until + 1e-9]
     report["mismatch"] = [r for r in regions if r not in inside]
-    report["warmup"] = {"until_s": until, "seconds": until - float(rec.t[0]) if samples else 0.0,
-                        "samples": samples, "treatment": TREATMENT, "regions": inside}  # fmt: skip
+    report["warmup"] = {
+        "until_s": until,
+        "seconds": until - float(rec.t[0]) if samples else 0.0,
+        "samples": samples,
+        "treatment": TREATMENT,
+        "regions": inside,
+    }

@@ -252,8 +252,9 @@ class WrenchModel:
             for j in range(len(SUBPARAMS[effect])):
                 pert = base_theta[effect].copy()
                 pert[j] += step(effect, j)
-                moved = fx.mass_delta(values_of({**base_theta, effect: pert}, "statics"),
-                                      d.t[rows], self.t0)  # fmt: skip
+                moved = fx.mass_delta(
+                    values_of({**base_theta, effect: pert}, "statics"), d.t[rows], self.t0
+                )
                 dm = (moved - base) / step(effect, j)  # type: ignore[operator]
                 out.append((dm[:, None] * d.dw_dm[rows])[:, :, None])
             return out
@@ -353,6 +354,7 @@ def prepare(rec: Recording, cfg: Config | None, friction: FrictionConfig) -> Pre
     blocks, nb = time_blocks(data.t)
     warm = np.ones(data.t.size, bool)
     for i in range(data.cables):
-        warm &= warmup_mask(CableData(data.t, data.v[:, i], data.ts[:, i], data.ts[:, i],
-                                      float(data.t[0])), nom)  # fmt: skip
+        warm &= warmup_mask(
+            CableData(data.t, data.v[:, i], data.ts[:, i], data.ts[:, i], float(data.t[0])), nom
+        )
     return Prepared(model, rows, chol, max(sigma, 1e-12), blocks, nb, warm)

@@ -269,8 +269,10 @@ def _identifiability(sel: WrenchUnit) -> dict:
 def _order(model: WrenchModel, theta: dict, mask: np.ndarray) -> list[str]:
     """Kept effects by the force residual energy each explains in the final model."""
     full = force_rms(model.residual(theta), mask) ** 2
-    worth = {e: force_rms(model.residual({k: v for k, v in theta.items() if k != e}), mask) ** 2
-             - full for e in theta}  # fmt: skip
+    worth = {
+        e: force_rms(model.residual({k: v for k, v in theta.items() if k != e}), mask) ** 2 - full
+        for e in theta
+    }
     return sorted(theta, key=lambda e: worth[e], reverse=True)
 
 
@@ -312,8 +314,10 @@ def diagnose_wrench(
     th = thresholds or Thresholds()
     prep = prepare(rec, cfg, friction)  # 1. prepare
     data, model = prep.model.data, prep.model
-    say(f"{rec.source}: wrench reference, {data.t.size} samples, sensitivities of "
-        f"{len(WRENCH_EFFECTS)} candidate effects")  # fmt: skip
+    say(
+        f"{rec.source}: wrench reference, {data.t.size} samples, sensitivities of "
+        f"{len(WRENCH_EFFECTS)} candidate effects"
+    )
     unit = WrenchUnit(prep, WRENCH_EFFECTS)
     selector = Selector(unit, th)  # 3. select (2. locate: with the report, on the balance)
     outcome = selector.run()
@@ -421,6 +425,16 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
     }
     zeros = np.zeros((data.t.size, 3))
     regimes = np.repeat(regime, 3, axis=1)
-    return WrenchDiagnosis(report, data.t, zeros, regimes, regions_final, [], order, [],
-                           regions_nominal=regions, nominal_pred=-r_nominal[:, :3],
-                           final_pred=-r_final[:, :3])  # fmt: skip
+    return WrenchDiagnosis(
+        report,
+        data.t,
+        zeros,
+        regimes,
+        regions_final,
+        [],
+        order,
+        [],
+        regions_nominal=regions,
+        nominal_pred=-r_nominal[:, :3],
+        final_pred=-r_final[:, :3],
+    )

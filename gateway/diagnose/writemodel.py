@@ -171,8 +171,11 @@ def write_model(
     fitted = fitted_friction(friction, report, int(report["cables"]), rec, notes)
     read_yaml(model_path)  # the loader's checks and limits, before the text is taken apart
     effects = _plain(fitted.to_mapping()).get("effects", {})
-    notes.insert(0, f"{model_path} plus the findings of a diagnosis of "
-                    f"{rec.source if rec is not None else 'a recording'}")  # fmt: skip
+    notes.insert(
+        0,
+        f"{model_path} plus the findings of a diagnosis of "
+        f"{rec.source if rec is not None else 'a recording'}",
+    )
     try:
         text = with_effects(Path(model_path).read_text(encoding="utf-8"), effects, notes)
         path.write_text(text, encoding="utf-8")

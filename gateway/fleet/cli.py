@@ -106,16 +106,21 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if not args.quiet:
             verdict, rmse = _verdict(res)
             what = f"{verdict} (RMSE {rmse} N)" if res.report_json else f"FAILED: {res.error}"
-            print(f"[{done:{len(str(len(recordings)))}d}/{len(recordings)}] {res.recording}: "
-                  f"{what}, {res.seconds:.1f} s", file=sys.stderr, flush=True)  # fmt: skip
+            print(
+                f"[{done:{len(str(len(recordings)))}d}/{len(recordings)}] {res.recording}: "
+                f"{what}, {res.seconds:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
 
     results, where = run_tasks(recordings, str(model), args.scheduler, args.workers, progress)
     wall = time.perf_counter() - t0
     return _write_outputs(args.out, results, where, wall, str(args.model))
 
 
-def _write_outputs(out: Path, results: list[TaskResult], where: str, wall: float,
-                   model: str) -> int:  # fmt: skip
+def _write_outputs(
+    out: Path, results: list[TaskResult], where: str, wall: float, model: str
+) -> int:
     from gateway.fleet.plots import write_plots, write_summary
     from gateway.fleet.table import table_rows, write_table
 
@@ -129,15 +134,25 @@ def _write_outputs(out: Path, results: list[TaskResult], where: str, wall: float
     summary = []
     for res, name in named:
         verdict, rmse = _verdict(res)
-        summary.append({"robot": res.robot, "start": res.start, "recording": res.recording,
-                        "verdict": verdict, "rmse": rmse, "error": res.error,
-                        "report": f"reports/{name}" if res.report_json else ""})  # fmt: skip
+        summary.append(
+            {
+                "robot": res.robot,
+                "start": res.start,
+                "recording": res.recording,
+                "verdict": verdict,
+                "rmse": rmse,
+                "error": res.error,
+                "report": f"reports/{name}" if res.report_json else "",
+            }
+        )
     summary.sort(key=lambda r: (r["robot"], r["start"], r["recording"]))
     info = {"cluster": where, "wall": f"{wall:.1f} s", "model": model}
     write_summary(out / "fleet.md", summary, plots, info)
     failed = sum(1 for r in results if r.error)
-    print(f"fleet: {len(results)} recordings, {failed} failed, {wall:.1f} s on {where}; "
-          f"table, fleet.md and plots in {out}")  # fmt: skip
+    print(
+        f"fleet: {len(results)} recordings, {failed} failed, {wall:.1f} s on {where}; "
+        f"table, fleet.md and plots in {out}"
+    )
     for res in results:
         if res.error:
             print(f"  failed: {res.recording}: {res.error}")

@@ -64,8 +64,9 @@ def write_plots(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     paths = []
     for robot, rs in sorted(by_robot.items()):
         params = _parameters(rs)[:MAX_PANELS] or [("none", "")]
-        fig, axes = plt.subplots(len(params), 1, figsize=(8, 2.2 * len(params) + 0.6),
-                                 squeeze=False, sharex=True)  # fmt: skip
+        fig, axes = plt.subplots(
+            len(params), 1, figsize=(8, 2.2 * len(params) + 0.6), squeeze=False, sharex=True
+        )
         recordings: dict[str, tuple[datetime.datetime, str]] = {}
         for r in rs:
             recordings[r["recording"]] = (_when(r["start"]), r["status"])
@@ -94,41 +95,69 @@ def _panel(ax, rs, recordings, effect: str, name: str) -> None:
     for cable, pts in sorted(series.items()):
         pts.sort()
         x, y, e = zip(*pts, strict=True)
-        ax.errorbar(x, y, yerr=e, marker="o", ms=3, capsize=2, lw=0.8,
-                    label="platform" if cable == 0 else f"cable {cable}")  # fmt: skip
-    without = [w for rec, (w, status) in recordings.items()
-               if rec not in with_effect and status == "ok"]  # fmt: skip
+        ax.errorbar(
+            x,
+            y,
+            yerr=e,
+            marker="o",
+            ms=3,
+            capsize=2,
+            lw=0.8,
+            label="platform" if cable == 0 else f"cable {cable}",
+        )
+    without = [
+        w for rec, (w, status) in recordings.items() if rec not in with_effect and status == "ok"
+    ]
     failed = [w for w, status in recordings.values() if status == "failed"]
     trans = ax.get_xaxis_transform()  # x in data, y in axes fractions: marks at the bottom
     if without:
-        ax.plot(without, [0.03] * len(without), "|", color="grey", ms=10, transform=trans,
-                label=f"no {effect if name else 'finding'} ({len(without)})")  # fmt: skip
+        ax.plot(
+            without,
+            [0.03] * len(without),
+            "|",
+            color="grey",
+            ms=10,
+            transform=trans,
+            label=f"no {effect if name else 'finding'} ({len(without)})",
+        )
     if failed:
-        ax.plot(failed, [0.03] * len(failed), "x", color="red", transform=trans,
-                label=f"failed ({len(failed)})")  # fmt: skip
+        ax.plot(
+            failed,
+            [0.03] * len(failed),
+            "x",
+            color="red",
+            transform=trans,
+            label=f"failed ({len(failed)})",
+        )
     ax.set_ylabel(f"{effect}\n{name}" if name else "no finding")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6, ncol=5, loc="upper left")
 
 
-def write_summary(path: Path, results: list[dict[str, Any]], plots: list[Path],
-                  info: dict[str, str]) -> None:  # fmt: skip
+def write_summary(
+    path: Path, results: list[dict[str, Any]], plots: list[Path], info: dict[str, str]
+) -> None:
     """``fleet.md``: what ran where, per recording the verdict, the failures, the files."""
     ok = [r for r in results if not r["error"]]
     failed = [r for r in results if r["error"]]
     lines = [
-        "# Fleet diagnosis", "",
+        "# Fleet diagnosis",
+        "",
         f"{len(results)} recordings, {len(ok)} diagnosed, {len(failed)} failed; "
-        f"{info.get('cluster', '')}; wall time {info.get('wall', '')}.", "",
+        f"{info.get('cluster', '')}; wall time {info.get('wall', '')}.",
+        "",
         f"Model: `{info.get('model', '')}`. Table: `fleet.parquet`, `fleet.csv` (one row per "
         "recording x finding x cable); each recording's report under `reports/` is what "
-        "`cdpr-gateway diagnose` writes for it alone.", "",
+        "`cdpr-gateway diagnose` writes for it alone.",
+        "",
         "| robot | start | recording | verdict | RMSE before -> after (N) | report |",
         "|---|---|---|---|---|---|",
-    ]  # fmt: skip
+    ]
     for r in results:
-        lines.append(f"| {r['robot']} | {r['start']} | `{r['recording']}` | {r['verdict']} | "
-                     f"{r['rmse']} | {r['report']} |")  # fmt: skip
+        lines.append(
+            f"| {r['robot']} | {r['start']} | `{r['recording']}` | {r['verdict']} | "
+            f"{r['rmse']} | {r['report']} |"
+        )
     if failed:
         lines += ["", "## Failed", ""]
         lines += [f"- `{r['recording']}`: {r['error']}" for r in failed]

@@ -49,9 +49,14 @@ def _client(distributed: Any, scheduler: str | None, workers: int) -> tuple[Any,
         n = len(client.scheduler_info().get("workers", {}))
         return client, None, f"scheduler {scheduler} with {n} workers"
     cluster = distributed.LocalCluster(
-        n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-        dashboard_address=None, memory_limit=WORKER_MEMORY_BYTES, silence_logs=40,
-    )  # fmt: skip
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        memory_limit=WORKER_MEMORY_BYTES,
+        silence_logs=40,
+    )
     client = distributed.Client(cluster, set_as_default=False)
     mb = WORKER_MEMORY_BYTES >> 20
     return client, cluster, f"LocalCluster of {workers} workers ({mb} MiB each) on 127.0.0.1"
@@ -92,5 +97,13 @@ def _result(future: Any, recording: str) -> TaskResult:
         return res
     except Exception as exc:  # the task never returned: a lost or killed worker
         robot, start = recording_identity(Path(recording), {})
-        return TaskResult(recording, robot, start, None, f"{type(exc).__name__}: {exc}",
-                          time.perf_counter() - t0, "", 0.0)  # fmt: skip
+        return TaskResult(
+            recording,
+            robot,
+            start,
+            None,
+            f"{type(exc).__name__}: {exc}",
+            time.perf_counter() - t0,
+            "",
+            0.0,
+        )

@@ -21,8 +21,19 @@ from typing import Any
 
 from gateway.fleet.task import TaskResult
 
-FIXED = ["recording", "report", "robot", "start", "status", "error", "reference", "samples",
-         "effect", "rank", "cable"]  # fmt: skip
+FIXED = [
+    "recording",
+    "report",
+    "robot",
+    "start",
+    "status",
+    "error",
+    "reference",
+    "samples",
+    "effect",
+    "rank",
+    "cable",
+]
 RMSE = ["rmse_before_n", "rmse_after_n", "holdout_rmse_before_n", "holdout_rmse_after_n"]
 TEXT = {"recording", "report", "robot", "start", "status", "error", "reference", "effect"}
 INTEGER = {"samples", "rank", "cable"}
@@ -58,19 +69,23 @@ def table_rows(results: list[tuple[TaskResult, str]]) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for res, report_name in results:
         base: dict[str, Any] = {
-            "recording": res.recording, "report": report_name, "robot": res.robot,
-            "start": res.start, "status": "failed" if res.error else "ok",
+            "recording": res.recording,
+            "report": report_name,
+            "robot": res.robot,
+            "start": res.start,
+            "status": "failed" if res.error else "ok",
             "error": res.error or "",
-        }  # fmt: skip
+        }
         if res.report_json is None:
             rows.append({**base, "effect": "", "rank": 0, "cable": 0})
             continue
         rep = json.loads(res.report_json)
         base.update(
-            reference=rep.get("reference", ""), samples=int(rep.get("samples", 0)),
+            reference=rep.get("reference", ""),
+            samples=int(rep.get("samples", 0)),
             baseline_rmse_n=float(rep["baseline"]["rmse_n"]),
             final_rmse_n=float(rep["final"]["rmse_n"]),
-        )  # fmt: skip
+        )
         findings = rep.get("findings", [])
         if not findings:
             rows.append({**base, "effect": "none", "rank": 0, "cable": 0})
@@ -80,8 +95,9 @@ def table_rows(results: list[tuple[TaskResult, str]]) -> list[dict[str, Any]]:
 
 
 def columns_of(rows: list[dict[str, Any]]) -> list[str]:
-    params = sorted({k for r in rows for k in r} - set(FIXED) - set(RMSE)
-                    - {"baseline_rmse_n", "final_rmse_n"})  # fmt: skip
+    params = sorted(
+        {k for r in rows for k in r} - set(FIXED) - set(RMSE) - {"baseline_rmse_n", "final_rmse_n"}
+    )
     values = [p for p in params if not p.endswith("_stderr")]
     ordered = [c for p in values for c in (p, f"{p}_stderr") if c in params]
     ordered += [p for p in params if p not in ordered]
@@ -102,8 +118,9 @@ def write_table(rows: list[dict[str, Any]], out: Path) -> tuple[Path, Path]:
             arrays.append(pa.array([int(r.get(c, 0)) for r in rows], pa.int64()))
         else:
             arrays.append(pa.array([float(r.get(c, math.nan)) for r in rows], pa.float64()))
-    pq.write_table(pa.Table.from_arrays(arrays, names=cols), out / "fleet.parquet",
-                   compression="zstd")  # fmt: skip
+    pq.write_table(
+        pa.Table.from_arrays(arrays, names=cols), out / "fleet.parquet", compression="zstd"
+    )
     with open(out / "fleet.csv", "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(cols)

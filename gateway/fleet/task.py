@@ -74,7 +74,12 @@ def diagnose_task(recording: str, model: str) -> TaskResult:
         error = f"{type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})"
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return TaskResult(
-        recording=recording, robot=robot, start=start, report_json=report, error=error,
-        seconds=time.perf_counter() - t0, worker=f"{socket.gethostname()}:{os.getpid()}",
+        recording=recording,
+        robot=robot,
+        start=start,
+        report_json=report,
+        error=error,
+        seconds=time.perf_counter() - t0,
+        worker=f"{socket.gethostname()}:{os.getpid()}",
         peak_rss_mb=peak,
-    )  # fmt: skip
+    )

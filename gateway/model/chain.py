@@ -112,8 +112,11 @@ class ChainParams:
         wrap = np.asarray(wrap_rad, dtype=float).reshape(-1)
         shape = (cables, wrap.size)
         mu_arr = np.broadcast_to(np.asarray(mu, dtype=float), shape).copy()
-        mu_in_arr = mu_arr.copy() if mu_in is None else np.broadcast_to(
-            np.asarray(mu_in, dtype=float), shape).copy()  # fmt: skip
+        mu_in_arr = (
+            mu_arr.copy()
+            if mu_in is None
+            else np.broadcast_to(np.asarray(mu_in, dtype=float), shape).copy()
+        )
         vs = _per_cable(stribeck_v_m_s, cables, "stribeck_v_m_s")
         if np.any(vs <= 0):
             raise ValueError("stribeck_v_m_s must be > 0")
@@ -459,8 +462,13 @@ class ChainStepper:
         self._travel = entry_point(travel_into, self._vel, self._dt, self._v_prev, self._dx)
         self._kernel = entry_point(
             compensate_kernel if forward else simulate_kernel,
-            self._p, self._in, self._vel, self._dx, self.state, self._out,
-        )  # fmt: skip
+            self._p,
+            self._in,
+            self._vel,
+            self._dx,
+            self.state,
+            self._out,
+        )
 
     def reset(self) -> None:
         """Relax every pulley (e.g. after a long outage when the real state is unknown);

@@ -24,6 +24,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     count = export_mcap(args.recording, args.out)
     if not args.quiet:
-        print(f"export: {count} messages -> {args.out} ({time.perf_counter() - t0:.1f} s)",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"export: {count} messages -> {args.out} ({time.perf_counter() - t0:.1f} s)",
+            file=sys.stderr,
+        )
     return 0

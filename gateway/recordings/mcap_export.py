@@ -24,9 +24,21 @@ from gateway.errors import GatewayError
 from gateway.recordings.reader import POSE_COLUMNS, Recording, read_recording
 
 CHANNELS = ("/tensions", "/setpoints", "/pose", "/status")
-_UNITS = {"sensor": "N", "platform": "N", "corrected": "N", "velocity": "m/s", "length": "m",
-          "x": "m", "y": "m", "z": "m", "rx": "rad", "ry": "rad", "rz": "rad", "mass": "kg",
-          "status": "0 good, 1 substituted, 2 invalid"}  # fmt: skip
+_UNITS = {
+    "sensor": "N",
+    "platform": "N",
+    "corrected": "N",
+    "velocity": "m/s",
+    "length": "m",
+    "x": "m",
+    "y": "m",
+    "z": "m",
+    "rx": "rad",
+    "ry": "rad",
+    "rz": "rad",
+    "mass": "kg",
+    "status": "0 good, 1 substituted, 2 invalid",
+}
 
 
 def _cable_columns(rec: Recording, prefix: str) -> np.ndarray | None:
@@ -39,8 +51,10 @@ def _cable_columns(rec: Recording, prefix: str) -> np.ndarray | None:
 def channel_arrays(rec: Recording) -> dict[str, dict[str, np.ndarray]]:
     """Per channel, field name -> (N,) or (N, m) array; channels without data left out."""
     out: dict[str, dict[str, np.ndarray]] = {"/tensions": {"sensor": rec.tension_sensor}}
-    for name, arr in (("platform", rec.tension_platform),
-                      ("corrected", _cable_columns(rec, "tension_corrected"))):  # fmt: skip
+    for name, arr in (
+        ("platform", rec.tension_platform),
+        ("corrected", _cable_columns(rec, "tension_corrected")),
+    ):
         if arr is not None:
             out["/tensions"][name] = arr
     out["/setpoints"] = {"velocity": rec.velocity}
@@ -68,8 +82,12 @@ def schema(topic: str, fields: dict[str, np.ndarray]) -> dict:
             props[name] = {"type": "array", "items": number, "description": desc + ", per cable"}
         else:
             props[name] = {**number, "description": desc}
-    return {"title": f"cdpr-gateway {topic}", "type": "object", "properties": props,
-            "required": ["t", *fields]}  # fmt: skip
+    return {
+        "title": f"cdpr-gateway {topic}",
+        "type": "object",
+        "properties": props,
+        "required": ["t", *fields],
+    }
 
 
 def _values(arr: np.ndarray) -> list:
@@ -122,15 +140,19 @@ def export_mcap(recording: Path, out: Path, progress: Callable[[float], None] | 
     with fh:
         writer = Writer(fh)
         writer.start(profile="", library=f"cdpr-gateway {__version__}")
-        writer.add_metadata("recording", {**rec.metadata, "source_file": str(recording),
-                                          "time_offset_ns": str(offset)})  # fmt: skip
+        writer.add_metadata(
+            "recording",
+            {**rec.metadata, "source_file": str(recording), "time_offset_ns": str(offset)},
+        )
         for n, (topic, fields) in enumerate(channels.items()):
-            sid = writer.register_schema(topic.strip("/"), "jsonschema",
-                                         json.dumps(schema(topic, fields)).encode())  # fmt: skip
+            sid = writer.register_schema(
+                topic.strip("/"), "jsonschema", json.dumps(schema(topic, fields)).encode()
+            )
             cid = writer.register_channel(topic, "json", sid)
             for k, data in enumerate(_messages(rec.t, fields, 8192)):
-                writer.add_message(cid, log_time=stamps[k], data=data,
-                                   publish_time=stamps[k], sequence=k)  # fmt: skip
+                writer.add_message(
+                    cid, log_time=stamps[k], data=data, publish_time=stamps[k], sequence=k
+                )
                 count += 1
             if progress is not None:
                 progress((n + 1) / len(channels))

@@ -81,11 +81,16 @@ def _standalone(table: pa.Table) -> bytes:
     sink = pa.BufferOutputStream()
     status = [n for n in table.column_names if n.startswith("status_")]
     pq.write_table(
-        table, sink, row_group_size=max(table.num_rows, 1), compression="zstd",
-        use_dictionary=status, use_byte_stream_split=[
-            n for n in table.column_names if n not in status],
-        write_page_index=False, write_statistics=True, store_schema=True,
-    )  # fmt: skip
+        table,
+        sink,
+        row_group_size=max(table.num_rows, 1),
+        compression="zstd",
+        use_dictionary=status,
+        use_byte_stream_split=[n for n in table.column_names if n not in status],
+        write_page_index=False,
+        write_statistics=True,
+        store_schema=True,
+    )
     return sink.getvalue().to_pybytes()
 
 
@@ -247,9 +252,11 @@ def _open(path: Path) -> pq.ParquetFile:
         raise RecordingError(f"{path}: Parquet footer of {footer} bytes (limit {MAX_FOOTER_BYTES})")
     try:
         return pq.ParquetFile(
-            path, pre_buffer=False, thrift_string_size_limit=MAX_FOOTER_BYTES,
+            path,
+            pre_buffer=False,
+            thrift_string_size_limit=MAX_FOOTER_BYTES,
             thrift_container_size_limit=1 << 20,
-        )  # fmt: skip
+        )
     except (pa.ArrowException, OSError) as exc:
         raise RecordingError(f"{path}: not a readable Parquet file: {exc}") from exc
 

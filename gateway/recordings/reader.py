@@ -406,9 +406,10 @@ def read_recording(
 def _finish(path: Path, meta: dict[str, str], sink: _Columns, reader: _Reader, min_samples: int):
     if reader.kept == 0:
         raise RecordingError(
-            f"{path}: no data rows" if reader.skipped == 0
+            f"{path}: no data rows"
+            if reader.skipped == 0
             else f"{path}: every row misses a required value"
-        )  # fmt: skip
+        )
     if reader.kept < min_samples:
         raise RecordingError(
             f"{path}: too short: {reader.kept} samples, at least {min_samples} are needed"
@@ -427,8 +428,10 @@ def _read_parquet(
     pf, names = parquet.open_checked(path, MAX_COLUMNS)
     max_rows = min(max_samples, MAX_VALUES // max(len(names), 1))
     if pf.metadata.num_rows > max_rows:
-        raise RecordingError(f"{path}: {pf.metadata.num_rows} rows of {len(names)} columns "
-                             f"exceed the reader's limit of {max_rows} samples")  # fmt: skip
+        raise RecordingError(
+            f"{path}: {pf.metadata.num_rows} rows of {len(names)} columns "
+            f"exceed the reader's limit of {max_rows} samples"
+        )
     meta = parquet.parquet_metadata(path, pf, MAX_METADATA_LINES, MAX_LINE_CHARS)
     try:
         cables, cols = _layout(path, 0, names)

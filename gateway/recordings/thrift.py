@@ -112,8 +112,11 @@ def _read_value(src: _In, ttype: int, depth: int) -> Any:
             raise ThriftError("map longer than the data")
         kv = src.byte()
         k, v = kv >> 4, kv & 0x0F
-        return Map(k, v, [(_read_value(src, k, depth + 1), _read_value(src, v, depth + 1))
-                          for _ in range(size)])  # fmt: skip
+        return Map(
+            k,
+            v,
+            [(_read_value(src, k, depth + 1), _read_value(src, v, depth + 1)) for _ in range(size)],
+        )
     if ttype == STRUCT:
         return _read_struct(src, depth + 1)
     raise ThriftError(f"unknown type {ttype}")
@@ -168,8 +171,9 @@ def _write_value(out: bytearray, ttype: int, value: Any) -> None:
         _varint(out, len(value))
         out += value
     elif ttype in (LIST, SET):
-        count, elem = (value.count, STRUCT) if isinstance(value, Raw) else (
-            len(value.items), value.elem)  # fmt: skip
+        count, elem = (
+            (value.count, STRUCT) if isinstance(value, Raw) else (len(value.items), value.elem)
+        )
         if count < 15:
             out.append((count << 4) | elem)
         else:

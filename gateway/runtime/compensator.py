@@ -376,9 +376,13 @@ class Compensator:
         new = steps != 0 or _differs(self.velocity_m_s, self._velocity_prev)
         if not new:  # the same sample again: the same acceleration, no time passed
             self._online(
-                self.used_n, self.model_in_n, self._velocity_prev, self._velocity_hold,
-                self._sample_dt, self._length_in,
-            )  # fmt: skip
+                self.used_n,
+                self.model_in_n,
+                self._velocity_prev,
+                self._velocity_hold,
+                self._sample_dt,
+                self._length_in,
+            )
             return 0.0
         dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
         dt = dt if dt > 0.0 else 0.0
@@ -387,9 +391,13 @@ class Compensator:
         if steps >= 1 and self._plc_period_s == self._plc_period_s:
             dt = steps * self._plc_period_s
         self._online(
-            self.used_n, self.model_in_n, self.velocity_m_s, self._velocity_prev, dt,
+            self.used_n,
+            self.model_in_n,
+            self.velocity_m_s,
+            self._velocity_prev,
+            dt,
             self._length_in,
-        )  # fmt: skip
+        )
         self._velocity_hold[:] = self._velocity_prev
         self._velocity_prev[:] = self.velocity_m_s
         self._sample_at, self._sample_dt = now, dt

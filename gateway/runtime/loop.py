@@ -467,8 +467,9 @@ class _Reporter:
             if in_outage:
                 log.warning(
                     "recovered: connected to the PLC at %s, active again after %.1f s",
-                    where, now - self.fault_since,
-                )  # fmt: skip
+                    where,
+                    now - self.fault_since,
+                )
                 self.fault_since = math.nan
                 self.cause = ""
                 self.next_check = now  # the next summary (if any) says the state is active

@@ -176,8 +176,11 @@ def _lock(ops: Ops, report: RealtimeReport) -> None:
     try:
         ops.mlockall()
     except (OSError, AttributeError) as exc:
-        why = _why(exc, "CAP_IPC_LOCK or LimitMEMLOCK=infinity") if isinstance(exc, OSError) else (
-            "mlockall not available")  # fmt: skip
+        why = (
+            _why(exc, "CAP_IPC_LOCK or LimitMEMLOCK=infinity")
+            if isinstance(exc, OSError)
+            else ("mlockall not available")
+        )
         report.refused.append(f"mlockall: {why}")
         return
     report.locked = True

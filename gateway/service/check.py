@@ -41,8 +41,9 @@ from gateway.service.exporter import FD_RESERVE, MAX_CONNECTIONS, NOFILE_NEEDED,
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     add_config_option(parser, why="the file to check")
-    parser.add_argument("--connect", action="store_true",
-                        help="also read once from the PLC (writes nothing)")  # fmt: skip
+    parser.add_argument(
+        "--connect", action="store_true", help="also read once from the PLC (writes nothing)"
+    )
 
 
 def file_problems(cfg: Config) -> list[str]:
@@ -139,9 +140,10 @@ def read_once(driver: Driver, cfg: Config) -> list[str]:
         f"  lengths m         {fmt(inputs.length_m, 4)}",
         f"  pose              {fmt(inputs.pose, 4)}",
         f"  PLC heartbeat     {inputs.plc_heartbeat}",
-        f"  implausible       {implausible} value(s) (NaN above)" if implausible else
-        "  implausible       none",
-    ]  # fmt: skip
+        f"  implausible       {implausible} value(s) (NaN above)"
+        if implausible
+        else "  implausible       none",
+    ]
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:

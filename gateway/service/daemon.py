@@ -59,14 +59,19 @@ log = logging.getLogger("cdpr_gateway")
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    add_config_option(parser, why="the PLC to serve; a bundled default would quietly target "
-                      "127.0.0.1 ('cdpr-gateway examples' shows the reference config)")  # fmt: skip
+    add_config_option(
+        parser,
+        why="the PLC to serve; a bundled default would quietly target "
+        "127.0.0.1 ('cdpr-gateway examples' shows the reference config)",
+    )
     parser.add_argument("--cycles", type=int, default=None, help="stop after N cycles")
     parser.add_argument("--seconds", type=float, default=None, help="stop after N seconds")
     parser.add_argument(
-        "--record", default=None, help="record what the gateway sees (.csv, .csv.gz or "
+        "--record",
+        default=None,
+        help="record what the gateway sees (.csv, .csv.gz or "
         ".parquet: the name chooses; with record.layout hive a folder); overrides record.path",
-    )  # fmt: skip
+    )
 
 
 def build_driver(cfg: Config, name: str | None = None, **kwargs: Any) -> Driver:
@@ -151,8 +156,9 @@ def start_recorder(cfg: Config, override: str | None) -> Recorder | None:
     }
     if cfg.source and Path(cfg.source).is_file():
         meta["config_sha256"] = hashlib.sha256(Path(cfg.source).read_bytes()).hexdigest()
-    recorder = Recorder(rc, cfg.cables, with_mass=with_mass, metadata=meta,
-                        period_s=cfg.loop.period_s)  # fmt: skip
+    recorder = Recorder(
+        rc, cfg.cables, with_mass=with_mass, metadata=meta, period_s=cfg.loop.period_s
+    )
     try:
         recorder.start()
     except OSError as exc:

@@ -22,9 +22,14 @@ SUFFIXES = (".yaml", ".eds")
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dir", nargs="?", type=Path, metavar="DIR",
-                        help="copy the bundled configs here (created; existing files are "
-                        "never overwritten); without it, list them")  # fmt: skip
+    parser.add_argument(
+        "dir",
+        nargs="?",
+        type=Path,
+        metavar="DIR",
+        help="copy the bundled configs here (created; existing files are "
+        "never overwritten); without it, list them",
+    )
 
 
 def bundled() -> list[Path]:
@@ -52,8 +57,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         return 0
     taken = [rel for rel in files if (args.dir / rel).exists()]
     if taken:
-        raise ConfigError(f"{args.dir / taken[0]}: exists; nothing copied (remove it or "
-                          "choose another DIR)")  # fmt: skip
+        raise ConfigError(
+            f"{args.dir / taken[0]}: exists; nothing copied (remove it or choose another DIR)"
+        )
     out = output_dir(args.dir, "DIR")
     for rel in files:
         (out / rel).parent.mkdir(exist_ok=True)

@@ -144,10 +144,14 @@ def _auth_checker(user: str | None, digest: str | None) -> Callable[[str], bool]
     return check
 
 
-def _response(status: str, body: bytes, headers: list[tuple[str, str]], head: bool,
-              keep_alive: bool) -> bytes:  # fmt: skip
-    lines = [f"HTTP/1.1 {status}", f"Content-Length: {len(body)}",
-             "Connection: " + ("keep-alive" if keep_alive else "close")]  # fmt: skip
+def _response(
+    status: str, body: bytes, headers: list[tuple[str, str]], head: bool, keep_alive: bool
+) -> bytes:
+    lines = [
+        f"HTTP/1.1 {status}",
+        f"Content-Length: {len(body)}",
+        "Connection: " + ("keep-alive" if keep_alive else "close"),
+    ]
     lines += [f"{k}: {v}" for k, v in headers]
     return ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + (b"" if head else body)
 
@@ -318,8 +322,10 @@ class MetricsServer:
             log.warning(
                 "metrics: not accepting connections: %d of %d descriptors open, %d kept for "
                 "the bus; raise RLIMIT_NOFILE (LimitNOFILE= in the unit)",
-                open_fds(), soft, self.fd_reserve,
-            )  # fmt: skip
+                open_fds(),
+                soft,
+                self.fd_reserve,
+            )
         self.counters.accept_paused += 1
         self._resume_at = time.monotonic() + ACCEPT_PAUSE_S
         self._set_accepting(False)
@@ -454,24 +460,37 @@ class MetricsServer:
         if headers.get("content-length", "0") not in ("", "0") or "transfer-encoding" in headers:
             self._queue(conn, "400 Bad Request", b"no request body\n", [], False, False)
         elif method not in ("GET", "HEAD"):
-            self._queue(conn, "405 Method Not Allowed", b"GET only\n", [("Allow", "GET, HEAD")],
-                        False, False)  # fmt: skip
+            self._queue(
+                conn,
+                "405 Method Not Allowed",
+                b"GET only\n",
+                [("Allow", "GET, HEAD")],
+                False,
+                False,
+            )
         elif self._auth is not None and not self._auth(headers.get("authorization", "")):
             self.counters.rejected += 1
-            self._queue(conn, "401 Unauthorized", b"unauthorized\n",
-                        [("WWW-Authenticate", 'Basic realm="cdpr-gateway"')], head_only,
-                        keep)  # fmt: skip
+            self._queue(
+                conn,
+                "401 Unauthorized",
+                b"unauthorized\n",
+                [("WWW-Authenticate", 'Basic realm="cdpr-gateway"')],
+                head_only,
+                keep,
+            )
         else:
             try:
                 payload = self._render()
             except Exception:  # a collector bug must not end the exporter thread
                 log.exception("metrics: rendering the registry failed")
-                self._queue(conn, "500 Internal Server Error", b"collector failed\n", [],
-                            False, False)  # fmt: skip
+                self._queue(
+                    conn, "500 Internal Server Error", b"collector failed\n", [], False, False
+                )
                 return
             self.counters.served += 1
-            self._queue(conn, "200 OK", payload, [("Content-Type", CONTENT_TYPE_LATEST)],
-                        head_only, keep)  # fmt: skip
+            self._queue(
+                conn, "200 OK", payload, [("Content-Type", CONTENT_TYPE_LATEST)], head_only, keep
+            )
 
     def _render(self) -> bytes:
         now = time.monotonic()
@@ -481,8 +500,15 @@ class MetricsServer:
             self.counters.renders += 1
         return self._payload
 
-    def _queue(self, conn: _Conn, status: str, body: bytes, headers: list[tuple[str, str]],
-               head: bool, keep_alive: bool) -> None:  # fmt: skip
+    def _queue(
+        self,
+        conn: _Conn,
+        status: str,
+        body: bytes,
+        headers: list[tuple[str, str]],
+        head: bool,
+        keep_alive: bool,
+    ) -> None:
         conn.outbox = memoryview(_response(status, body, headers, head, keep_alive))
         conn.close_after = not keep_alive
         self._write(conn)

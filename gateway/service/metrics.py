@@ -111,24 +111,48 @@ class GatewayCollector(Collector):
         for reason, stopped in zip(svc.driver.GATE_REASONS, svc.driver.gated, strict=True):
             gated.add_metric([reason], float(stopped))
         yield gated
-        yield _labelled(CounterMetricFamily, "reconnects_total", "Bus reconnections.",
-                        "bus", {bus: svc.reconnects})  # fmt: skip
-        yield _labelled(GaugeMetricFamily, "connected", "1 while the bus is up.",
-                        "bus", {bus: 1.0 if svc.bus_up else 0.0})  # fmt: skip
+        yield _labelled(
+            CounterMetricFamily,
+            "reconnects_total",
+            "Bus reconnections.",
+            "bus",
+            {bus: svc.reconnects},
+        )
+        yield _labelled(
+            GaugeMetricFamily,
+            "connected",
+            "1 while the bus is up.",
+            "bus",
+            {bus: 1.0 if svc.bus_up else 0.0},
+        )
         status, invalid = channel_status(svc)
         comp = svc.comp
         per_cable = (
-            ("tension_raw_newtons", "Scaled sensor reading (NaN while invalid).",
-             np.where(invalid, np.nan, comp.raw_n)),
-            ("tension_corrected_newtons", "Compensated platform tension (NaN while invalid).",
-             np.where(invalid, np.nan, comp.corrected_n)),
-            ("friction_newtons", "Estimated friction between sensor and platform (NaN while "
-             "invalid).", np.where(invalid, np.nan, comp.friction_n)),
+            (
+                "tension_raw_newtons",
+                "Scaled sensor reading (NaN while invalid).",
+                np.where(invalid, np.nan, comp.raw_n),
+            ),
+            (
+                "tension_corrected_newtons",
+                "Compensated platform tension (NaN while invalid).",
+                np.where(invalid, np.nan, comp.corrected_n),
+            ),
+            (
+                "friction_newtons",
+                "Estimated friction between sensor and platform (NaN while invalid).",
+                np.where(invalid, np.nan, comp.friction_n),
+            ),
             ("channel_status", "0 good, 1 substituted, 2 invalid.", status),
-        )  # fmt: skip
+        )
         for name, doc, values in per_cable:
-            yield _labelled(GaugeMetricFamily, name, doc, "cable",
-                            {str(i + 1): float(v) for i, v in enumerate(values)})  # fmt: skip
+            yield _labelled(
+                GaugeMetricFamily,
+                name,
+                doc,
+                "cable",
+                {str(i + 1): float(v) for i, v in enumerate(values)},
+            )
         info = GaugeMetricFamily(
             f"{PREFIX}_build_info", "Version and bus.", labels=["version", "bus"]
         )

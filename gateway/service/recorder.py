@@ -183,8 +183,9 @@ class Recorder:
     def dropped(self) -> int:
         """Samples not recorded: a full ring, and once the writer stopped (failed, ended)
         every sample it had not written."""
-        written, stopped = self._final if self._final is not None else (
-            self._ctl[WRITTEN], bool(self._ctl[STOP]))  # fmt: skip
+        written, stopped = (
+            self._final if self._final is not None else (self._ctl[WRITTEN], bool(self._ctl[STOP]))
+        )
         return self._dropped + (self._head - written if stopped else 0)
 
     @property
@@ -200,12 +201,20 @@ class Recorder:
         self._proc = self._spawn()
         assert self._proc.stdin is not None and self._proc.stdout is not None
         job = {
-            "fd": self._fd, "rows": self._size, "width": self._width, "select": self._select,
-            "columns": self.columns, "metadata": self.metadata, "path": str(self.cfg.path),
-            "rotate_bytes": self.cfg.rotate_bytes, "rotate_s": self.cfg.rotate_s,
-            "batch_s": self.cfg.batch_s, "layout": self.cfg.layout, "robot": self.robot,
+            "fd": self._fd,
+            "rows": self._size,
+            "width": self._width,
+            "select": self._select,
+            "columns": self.columns,
+            "metadata": self.metadata,
+            "path": str(self.cfg.path),
+            "rotate_bytes": self.cfg.rotate_bytes,
+            "rotate_s": self.cfg.rotate_s,
+            "batch_s": self.cfg.batch_s,
+            "layout": self.cfg.layout,
+            "robot": self.robot,
             "row_group_rows": self.row_group_rows,
-        }  # fmt: skip
+        }
         try:
             self._proc.stdin.write(json.dumps(job) + "\n")
             self._proc.stdin.flush()
@@ -242,10 +251,16 @@ class Recorder:
         def spawn() -> None:
             realtime.below_the_cycle()
             try:
-                result.append(subprocess.Popen(
-                    [sys.executable, "-m", "gateway.service.recorder_proc"], stdin=subprocess.PIPE,
-                    stdout=subprocess.PIPE, pass_fds=(self._fd,), env=env, text=True,
-                ))  # fmt: skip
+                result.append(
+                    subprocess.Popen(
+                        [sys.executable, "-m", "gateway.service.recorder_proc"],
+                        stdin=subprocess.PIPE,
+                        stdout=subprocess.PIPE,
+                        pass_fds=(self._fd,),
+                        env=env,
+                        text=True,
+                    )
+                )
             except OSError as exc:
                 result.append(exc)
 

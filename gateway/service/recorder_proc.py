@@ -123,8 +123,11 @@ class Sink:
             day = time.strftime("%Y-%m-%d", time.gmtime())
             folder = path / f"robot={job['robot']}" / f"date={day}"
             folder.mkdir(parents=True, exist_ok=True)
-            taken = [int(m.group(1)) for p in folder.glob("part-*.parquet")
-                     if (m := re.fullmatch(r"part-(\d+)\.parquet", p.name))]  # fmt: skip
+            taken = [
+                int(m.group(1))
+                for p in folder.glob("part-*.parquet")
+                if (m := re.fullmatch(r"part-(\d+)\.parquet", p.name))
+            ]
             return folder / f"part-{max(taken, default=-1) + 1:04d}.parquet"
         if job["rotate_bytes"] is None and job["rotate_s"] is None:
             return path
@@ -137,9 +140,12 @@ class Sink:
         if path != Path(self.job["path"]):
             meta["part"] = str(self.files)
         self.writer = open_writer(
-            path, self.job["columns"], meta, compresslevel=1,
+            path,
+            self.job["columns"],
+            meta,
+            compresslevel=1,
             row_group_rows=self.job.get("row_group_rows"),
-        )  # fmt: skip
+        )
         self.good_bytes = self.writer.bytes
         self.opened_at = time.monotonic()
         self.files += 1

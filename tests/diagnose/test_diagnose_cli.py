@@ -122,8 +122,9 @@ def test_cli_uses_wrench_balance_from_pose_with_full_config(tmp_path):
     path = tmp_path / "pose.csv"
     write_recording(path, rec)
     out = tmp_path / "r.json"
-    rc = main(["diagnose", str(path), "--model", str(DEFAULT_CONFIG_PATH), "--json", str(out),
-               "--quiet"])  # fmt: skip
+    rc = main(
+        ["diagnose", str(path), "--model", str(DEFAULT_CONFIG_PATH), "--json", str(out), "--quiet"]
+    )
     assert rc == 0
     report = json.loads(out.read_text())
     check_report(report)

@@ -32,8 +32,14 @@ def _found(diag) -> dict[str, dict]:
 
 def test_rig_without_pulleys_fits_f0_instead_of_crashing():
     """Nominal `none` with no pulleys: the coulomb candidate used to divide by zero."""
-    fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", seconds=15.0,
-                 effects={"coulomb": {"f0_n": 5.0}})  # fmt: skip
+    fo = Foreign(
+        rig=True,
+        tension=150.0,
+        pulleys=(),
+        model="coulomb",
+        seconds=15.0,
+        effects={"coulomb": {"f0_n": 5.0}},
+    )
     found = _found(run_foreign(fo, "none", ()))
     assert list(found) == ["coulomb"]
     assert found["coulomb"]["parameters"]["f0_n"][0] == pytest.approx(5.0, rel=0.05)
@@ -42,8 +48,17 @@ def test_rig_without_pulleys_fits_f0_instead_of_crashing():
 def test_positioning_axis_recovers_all_four_terms():
     """Inertia, viscous, load-independent Coulomb and offset on a rig moving at a few
     constant speeds with many reversals: the joint optimum, not a stand-in."""
-    fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
-                 vmax=0.13, seconds=16.0, rate_hz=250.0, effects=RIG_AXIS)  # fmt: skip
+    fo = Foreign(
+        rig=True,
+        tension=150.0,
+        pulleys=(),
+        model="coulomb",
+        motion="positioning",
+        vmax=0.13,
+        seconds=16.0,
+        rate_hz=250.0,
+        effects=RIG_AXIS,
+    )
     diag = run_foreign(fo, "none", ())
     found = _found(diag)
     assert set(found) == {"inertia", "viscous", "coulomb", "offset"}
@@ -58,8 +73,9 @@ def test_positioning_axis_recovers_all_four_terms():
 def test_pair_found_where_no_single_passes():
     """Offset and drift that cancel in the mean: with the single-effect screen made
     impassable, the pair screen still finds both (and fits them)."""
-    fo = Foreign(model="coulomb", seconds=20.0,
-                 effects={"offset": {"c_n": 0.6}, "drift": {"k_n_s": -0.06}})  # fmt: skip
+    fo = Foreign(
+        model="coulomb", seconds=20.0, effects={"offset": {"c_n": 0.6}, "drift": {"k_n_s": -0.06}}
+    )
     rec = recording_of(generate(fo))
     fr = FrictionConfig(model="coulomb", pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys))
     from gateway.diagnose.engine import diagnose
@@ -80,8 +96,11 @@ def test_noise_free_jittered_recording_gives_no_finding(rate, jitter):
     fo = Foreign(rate_hz=rate, jitter_s=jitter, noise_n=0.0, seconds=15.0)
     cols = generate(fo)
     rec = recording_of(cols)
-    fr = FrictionConfig(model="dahl", pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys),
-                        sigma_n_m=fo.sigma_n_m)  # fmt: skip
+    fr = FrictionConfig(
+        model="dahl",
+        pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys),
+        sigma_n_m=fo.sigma_n_m,
+    )
     assert _found(diagnose(rec, fr)) == {}
     t, v = cols["t"], cols["velocity_1"]
     data = CableData(t, v, cols["tension_platform_1"], cols["tension_sensor_1"], float(t[0]))
@@ -112,8 +131,9 @@ def test_validation_drops_an_effect_that_does_not_generalise():
     train = blocks % 2 == 0
     specs = {e: spec_for(e, d, nom, d.ts, train) for e in ("viscous", "offset")}
     theta = {"viscous": np.array([80.0]), "offset": np.array([-0.02])}
-    sel = Selector(CableUnit(fw, blocks, int(blocks.max()) + 1, ["viscous", "offset"]),
-                   Thresholds())  # fmt: skip
+    sel = Selector(
+        CableUnit(fw, blocks, int(blocks.max()) + 1, ["viscous", "offset"]), Thresholds()
+    )
     model = sel.unit.evaluate(theta, specs)
     out, dropped = validate(sel, model, vfw, np.ones(vd.t.size, bool), Thresholds())
     assert dropped == ["offset"]
@@ -145,8 +165,13 @@ def test_negative_inertia_is_never_reported_as_physics():
 def test_clipped_readings_are_detected_excluded_counted_and_named():
     from gateway.diagnose.plots import summary
 
-    fo = Foreign(cables=2, seconds=15.0, clip_n=400.0, clip_cables=(2,),
-                 effects={"viscous": {"c_ns_m": 300.0}})  # fmt: skip
+    fo = Foreign(
+        cables=2,
+        seconds=15.0,
+        clip_n=400.0,
+        clip_cables=(2,),
+        effects={"viscous": {"c_ns_m": 300.0}},
+    )
     diag = run_foreign(fo)
     clip = diag.report["clipped"]
     assert clip["per_cable"][0] == 0
@@ -217,8 +242,17 @@ def test_subset_search_undoes_a_stand_in():
     joint optimum of the four terms."""
     from gateway.diagnose.engine import cable_candidates, candidates_for
 
-    fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
-                 vmax=0.13, seconds=16.0, rate_hz=250.0, effects=RIG_AXIS)  # fmt: skip
+    fo = Foreign(
+        rig=True,
+        tension=150.0,
+        pulleys=(),
+        model="coulomb",
+        motion="positioning",
+        vmax=0.13,
+        seconds=16.0,
+        rate_hz=250.0,
+        effects=RIG_AXIS,
+    )
     rec = recording_of(generate(fo))
     nom = nominal_from(FrictionConfig(model="none", pulleys=()))
     d = cable_data(rec, rec.tension_platform, None)[0]

@@ -20,8 +20,13 @@ rmse = st.floats(0.01, 10.0, allow_nan=False)
 
 
 def report(before: float, after: float, validation: bool) -> dict:
-    finding = {"effect": "inertia", "cables": [1], "parameters": {"m_eff_kg": [27.45]},
-               "holdout_rmse_before_n": before, "holdout_rmse_after_n": after}  # fmt: skip
+    finding = {
+        "effect": "inertia",
+        "cables": [1],
+        "parameters": {"m_eff_kg": [27.45]},
+        "holdout_rmse_before_n": before,
+        "holdout_rmse_after_n": after,
+    }
     final = {"rmse_n": after, "holdout_rmse_n": after}
     if validation:  # the in-recording blocks say better; the unseen recording decides
         finding["holdout_rmse_after_n"] = final["holdout_rmse_n"] = before / 2
@@ -60,14 +65,16 @@ def recording(tmp_path):
     from sim_plc.cli import run_command
 
     out = tmp_path / "rec.csv"
-    args = types.SimpleNamespace(config="config/default.yaml", seconds=2.0, out=str(out),
-                                 quiet=True, seed=None, robot=None)  # fmt: skip
+    args = types.SimpleNamespace(
+        config="config/default.yaml", seconds=2.0, out=str(out), quiet=True, seed=None, robot=None
+    )
     assert run_command("record", args) == 0
     return out
 
 
-def test_diagnose_refuses_to_write_a_model_worse_on_unseen_data(recording, tmp_path, capsys,
-                                                                  monkeypatch):  # fmt: skip
+def test_diagnose_refuses_to_write_a_model_worse_on_unseen_data(
+    recording, tmp_path, capsys, monkeypatch
+):
     from gateway.diagnose import cli as dcli
 
     real = dcli.diagnose
@@ -79,8 +86,17 @@ def test_diagnose_refuses_to_write_a_model_worse_on_unseen_data(recording, tmp_p
 
     monkeypatch.setattr(dcli, "diagnose", worse)
     fitted = tmp_path / "fitted.yaml"
-    rc = main(["diagnose", str(recording), "--model", "config/default.yaml",
-               "--write-model", str(fitted), "--quiet"])  # fmt: skip
+    rc = main(
+        [
+            "diagnose",
+            str(recording),
+            "--model",
+            "config/default.yaml",
+            "--write-model",
+            str(fitted),
+            "--quiet",
+        ]
+    )
     assert rc == 2 and not fitted.exists()
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--write-model {fitted}: not written" in err[0], err
@@ -114,16 +130,32 @@ def test_calibrate_refuses_and_runs_no_after(tmp_path, capsys, monkeypatch):
         rng = np.random.default_rng(0)
         ts = 200 + rng.normal(0, 0.5, (t.size, m))
         pose = np.tile([0.0, 0.0, 1.5, 0.0, 0.0, 0.0], (t.size, 1))
-        return Recording(t=t, velocity=np.full((t.size, m), 0.01), tension_sensor=ts,
-                         tension_platform=None, pose=pose, mass=np.full(t.size, 40.0),
-                         extra={f"status_{i + 1}": np.zeros(t.size) for i in range(m)},
-                         source="fake")  # fmt: skip
+        return Recording(
+            t=t,
+            velocity=np.full((t.size, m), 0.01),
+            tension_sensor=ts,
+            tension_platform=None,
+            pose=pose,
+            mass=np.full(t.size, 40.0),
+            extra={f"status_{i + 1}": np.zeros(t.size) for i in range(m)},
+            source="fake",
+        )
 
     monkeypatch.setattr(calibrate, "run_scored", fake_run)
     monkeypatch.setattr(wrench_select, "diagnose_wrench", fake_wrench)
     out = tmp_path / "cal"
-    rc = main(["calibrate", "--config", "config/default.yaml", "--seconds", "1",
-               "--out", str(out), "--quiet"])  # fmt: skip
+    rc = main(
+        [
+            "calibrate",
+            "--config",
+            "config/default.yaml",
+            "--seconds",
+            "1",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2, err
     assert not (out / "fitted.yaml").exists() and "calibrate after" not in runs

@@ -21,18 +21,28 @@ FRICTION_BLOCK = re.search(r"(?ms)^friction:.*?(?=^loop:)", DEFAULT).group(0)
 numbers = st.floats(-5, 5, allow_nan=False).map(lambda x: round(x, 4))
 effects_st = st.dictionaries(
     st.sampled_from(["viscous", "offset", "gain", "inertia"]),
-    st.dictionaries(st.sampled_from(["c_ns_m", "c_n", "g", "m_eff_kg"]),
-                    numbers | st.lists(numbers, min_size=8, max_size=8), min_size=1, max_size=2),
+    st.dictionaries(
+        st.sampled_from(["c_ns_m", "c_n", "g", "m_eff_kg"]),
+        numbers | st.lists(numbers, min_size=8, max_size=8),
+        min_size=1,
+        max_size=2,
+    ),
     max_size=3,
-)  # fmt: skip
+)
 
 
 def layouts(old_effects: dict, comment: str) -> dict[str, str]:
     """The same model in several layouts, each with ``old_effects`` in it (if any)."""
     block = FRICTION_BLOCK
-    flow = "friction: {model: dahl, sigma_n_m: 500.0" + (
-        f", effects: {yaml.safe_dump(old_effects, default_flow_style=True).strip()}"
-        if old_effects else "") + "}  # flow\n\n"  # fmt: skip
+    flow = (
+        "friction: {model: dahl, sigma_n_m: 500.0"
+        + (
+            f", effects: {yaml.safe_dump(old_effects, default_flow_style=True).strip()}"
+            if old_effects
+            else ""
+        )
+        + "}  # flow\n\n"
+    )
     if old_effects:
         dumped = yaml.safe_dump({"effects": old_effects}, default_flow_style=None)
         block = block.rstrip("\n") + "\n" + "".join(f"  {ln}\n" for ln in dumped.splitlines())
@@ -42,10 +52,10 @@ def layouts(old_effects: dict, comment: str) -> dict[str, str]:
         "block": DEFAULT.replace(FRICTION_BLOCK, block).replace("# cdpr-gateway", f"# {comment}"),
         "flow": DEFAULT.replace(FRICTION_BLOCK, flow),
         "friction only": block.replace("friction:", f"# {comment}\nfriction:"),
-        "top level": "# a friction mapping alone\n" + "".join(
-            ln[2:] + "\n" for ln in block.splitlines()[1:] if ln.startswith("  ")),
+        "top level": "# a friction mapping alone\n"
+        + "".join(ln[2:] + "\n" for ln in block.splitlines()[1:] if ln.startswith("  ")),
         "no friction": without,
-    }  # fmt: skip
+    }
 
 
 def unchanged_outside(old: str, new: str) -> str:
@@ -74,8 +84,12 @@ def same(a, b) -> bool:
 
 
 @settings(max_examples=25, deadline=None)
-@given(old=effects_st, new=effects_st, comment=st.sampled_from(["note", "x: y # z", "é"]),
-       notes=st.lists(st.sampled_from(["clamped: a", "folded: b"]), max_size=2))  # fmt: skip
+@given(
+    old=effects_st,
+    new=effects_st,
+    comment=st.sampled_from(["note", "x: y # z", "é"]),
+    notes=st.lists(st.sampled_from(["clamped: a", "folded: b"]), max_size=2),
+)
 def test_only_friction_effects_changes(old, new, comment, notes) -> None:
     for name, text in layouts(old, comment).items():
         if name == "no friction" and old:
@@ -102,8 +116,12 @@ def test_only_friction_effects_changes(old, new, comment, notes) -> None:
 
 
 def test_write_model_keeps_the_default_config_byte_for_byte(tmp_path) -> None:
-    report = {"cables": 8, "findings": [{"effect": "viscous", "cables": list(range(1, 9)),
-                                         "parameters": {"c_ns_m": [24.9] * 8}}]}  # fmt: skip
+    report = {
+        "cables": 8,
+        "findings": [
+            {"effect": "viscous", "cables": list(range(1, 9)), "parameters": {"c_ns_m": [24.9] * 8}}
+        ],
+    }
     out = tmp_path / "fitted.yaml"
     write_model(out, DEFAULT_CONFIG_PATH, load_friction(DEFAULT_CONFIG_PATH), report)
     text = out.read_text()

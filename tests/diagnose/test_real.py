@@ -18,8 +18,9 @@ import pytest
 from gateway.recordings.reader import Recording
 from sim_plc import baseline, realdata, realsuite
 
-DATA = Path(os.environ.get("REAL_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"
-                           / "real"))  # fmt: skip
+DATA = Path(
+    os.environ.get("REAL_DATA", Path(__file__).resolve().parents[3] / "shared" / "data" / "real")
+)
 needs_data = pytest.mark.skipif(
     not (DATA / "emps").is_dir() or not (DATA / "davinci").is_dir(),
     reason=f"no real recordings under {DATA} (set REAL_DATA)",
@@ -69,8 +70,15 @@ def _synthetic(theta: np.ndarray, seconds: float, seed: int) -> Recording:
         x = 0.0026 * np.sin(2 * math.pi * (0.2 + 0.1 * k) * t)
         v = np.gradient(x, t)
         tp = 8.0 + 5.0 * np.sin(2 * math.pi * 0.13 * t + k)
-        trials.append(Recording(t=t, velocity=v[:, None], tension_sensor=tp[:, None],
-                                tension_platform=tp[:, None], length=x[:, None]))  # fmt: skip
+        trials.append(
+            Recording(
+                t=t,
+                velocity=v[:, None],
+                tension_sensor=tp[:, None],
+                tension_platform=tp[:, None],
+                length=x[:, None],
+            )
+        )
     rec = realdata.join(trials, "synthetic")
     ts = baseline.predict(theta, rec) + rng.normal(0.0, 0.05, rec.samples)
     rec.tension_sensor[:, 0] = ts

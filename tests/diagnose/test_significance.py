@@ -100,8 +100,14 @@ def test_unexplained_names_a_temperature_column_outside_the_catalogue() -> None:
     temp = 25.0 + 4.0 * np.sin(2 * np.pi * t / 17.0) + 2.0 * np.sin(2 * np.pi * t / 5.3)
     ts = simulate(_truth_chain(sc, 2), tp, v, t) + 0.3 * (temp - 25.0)[:, None]
     ts = ts + np.random.default_rng(5).normal(0.0, 0.4, ts.shape)
-    rec = Recording(t=t, velocity=v, tension_sensor=ts, tension_platform=tp,
-                    extra={"temperature_c": temp}, metadata={})  # fmt: skip
+    rec = Recording(
+        t=t,
+        velocity=v,
+        tension_sensor=ts,
+        tension_platform=tp,
+        extra={"temperature_c": temp},
+        metadata={},
+    )
     rep = diagnose(rec, sc.nominal()).report
     check_report(rep)
     un = rep["unexplained"]
@@ -109,8 +115,14 @@ def test_unexplained_names_a_temperature_column_outside_the_catalogue() -> None:
     assert un["share"] > 0.3
     assert "temperature_c" in un["reading"]
     clean = diagnose(
-        Recording(t=t, velocity=v, tension_sensor=ts - 0.3 * (temp - 25.0)[:, None],
-                  tension_platform=tp, extra={"temperature_c": temp}, metadata={}),
+        Recording(
+            t=t,
+            velocity=v,
+            tension_sensor=ts - 0.3 * (temp - 25.0)[:, None],
+            tension_platform=tp,
+            extra={"temperature_c": temp},
+            metadata={},
+        ),
         sc.nominal(),
-    ).report  # fmt: skip
+    ).report
     assert "unexplained" not in clean

@@ -38,9 +38,23 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
         name = f"{effect}.parquet" if i != 1 else f"{effect}.csv.gz"
         path = d / ("robot=r-offset/date=2026-01-02" if i == 1 else "") / name
         path.parent.mkdir(parents=True, exist_ok=True)
-        assert main(["record", "--config", str(ROOT / "config" / "calibrate" / f"{effect}.yaml"),
-                     "--seconds", "6", "--out", str(path), "--quiet",
-                     "--robot", f"r-{effect}"]) == 0  # fmt: skip
+        assert (
+            main(
+                [
+                    "record",
+                    "--config",
+                    str(ROOT / "config" / "calibrate" / f"{effect}.yaml"),
+                    "--seconds",
+                    "6",
+                    "--out",
+                    str(path),
+                    "--quiet",
+                    "--robot",
+                    f"r-{effect}",
+                ]
+            )
+            == 0
+        )
         out.append(path)
     (d / "broken.csv").write_text("t,velocity_1\n0,1\n")
     return [*out, d / "broken.csv"]
@@ -50,8 +64,20 @@ def single_reports(recs: list[Path], tmp: Path) -> dict[str, bytes]:
     """``diagnose REC --json`` of each good recording alone, the file's bytes."""
     out = {}
     for i, rec in enumerate(recs[:-1]):
-        assert main(["diagnose", str(rec), "--model", str(MODEL), "--json",
-                     str(tmp / f"{i}.json"), "--quiet"]) == 0  # fmt: skip
+        assert (
+            main(
+                [
+                    "diagnose",
+                    str(rec),
+                    "--model",
+                    str(MODEL),
+                    "--json",
+                    str(tmp / f"{i}.json"),
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
         out[str(rec.resolve())] = (tmp / f"{i}.json").read_bytes()
     return out
 
@@ -97,8 +123,9 @@ def test_fleet_on_a_local_cluster_matches_diagnose_alone(
 ) -> None:
     singles = single_reports(recordings, tmp_path)
     out = tmp_path / "fleet"
-    code = main(["fleet", *map(str, recordings), "--model", str(MODEL), "--out", str(out),
-                 "--workers", "2"])  # fmt: skip
+    code = main(
+        ["fleet", *map(str, recordings), "--model", str(MODEL), "--out", str(out), "--workers", "2"]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert captured.err.count("/4] ") == 4  # a line per finished recording
@@ -108,8 +135,13 @@ def test_fleet_on_a_local_cluster_matches_diagnose_alone(
 
 def _start(cmd: list[str], log: Path) -> subprocess.Popen[bytes]:
     with open(log, "wb") as fh:
-        return subprocess.Popen(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT,
-                                env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
+        return subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
 
 
 def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
@@ -130,8 +162,22 @@ def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
 ) -> None:
     dask = str(Path(sys.executable).parent / "dask")
     sched_file = tmp_path / "scheduler.json"
-    procs = [_start([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                     "--scheduler-file", str(sched_file)], tmp_path / "scheduler.log")]  # fmt: skip
+    procs = [
+        _start(
+            [
+                dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched_file),
+            ],
+            tmp_path / "scheduler.log",
+        )
+    ]
     try:
         deadline = time.monotonic() + 60
         while not sched_file.exists() and time.monotonic() < deadline:
@@ -140,24 +186,53 @@ def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
         address = json.loads(sched_file.read_text())["address"]
         assert address.startswith("tcp://127.0.0.1:")
         for i in range(2):
-            procs.append(_start([dask, "worker", address, "--host", "127.0.0.1", "--nthreads",
-                                 "1", "--memory-limit", "650MiB", "--no-dashboard"],
-                                tmp_path / f"worker{i}.log"))  # fmt: skip
+            procs.append(
+                _start(
+                    [
+                        dask,
+                        "worker",
+                        address,
+                        "--host",
+                        "127.0.0.1",
+                        "--nthreads",
+                        "1",
+                        "--memory-limit",
+                        "650MiB",
+                        "--no-dashboard",
+                    ],
+                    tmp_path / f"worker{i}.log",
+                )
+            )
         wait = textwrap.dedent(f"""
             from distributed import Client
             with Client("{address}", timeout="30s") as c:
                 c.wait_for_workers(2, timeout=90)
                 print(len(c.scheduler_info()["workers"]))
-        """)  # fmt: skip
-        ready = subprocess.run([sys.executable, "-c", wait], capture_output=True, text=True,
-                               timeout=120)  # fmt: skip
+        """)
+        ready = subprocess.run(
+            [sys.executable, "-c", wait], capture_output=True, text=True, timeout=120
+        )
         assert ready.stdout.strip() == "2", ready.stderr
         out = tmp_path / "fleet"
         run = subprocess.run(
-            [sys.executable, "-m", "gateway.cli", "fleet", *map(str, recordings), "--model",
-             str(MODEL), "--out", str(out), "--scheduler", address],
-            cwd=ROOT, capture_output=True, text=True, timeout=300,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "gateway.cli",
+                "fleet",
+                *map(str, recordings),
+                "--model",
+                str(MODEL),
+                "--out",
+                str(out),
+                "--scheduler",
+                address,
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert run.returncode == 0, run.stderr
         assert f"scheduler {address} with 2 workers" in run.stdout
     finally:
@@ -167,10 +242,13 @@ def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
 
 def test_a_missing_fleet_extra_is_one_line_naming_it(tmp_path: Path) -> None:
     args = ["fleet", str(MODEL), "--model", str(MODEL), "--out", str(tmp_path)]
-    code = ("import sys; sys.modules['distributed'] = None; from gateway.cli import main; "
-            f"sys.exit(main({args!r}))")  # fmt: skip
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                         timeout=60)  # fmt: skip
+    code = (
+        "import sys; sys.modules['distributed'] = None; from gateway.cli import main; "
+        f"sys.exit(main({args!r}))"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
     assert res.returncode == 2
     assert res.stderr.count("\n") == 1 and "cdpr-gateway[fleet]" in res.stderr, res.stderr
 
@@ -190,21 +268,44 @@ def test_recordings_are_files_globs_or_trees(tmp_path: Path) -> None:
 
 
 def test_the_table_has_a_row_per_finding_and_cable_and_keeps_the_rest() -> None:
-    report = {"reference": "platform_tension", "samples": 100, "baseline": {"rmse_n": 2.0},
-              "final": {"rmse_n": 1.0}, "findings": [
-                  {"effect": "offset", "cables": [2, 5], "parameters": {"c_n": [1.5, -2.0]},
-                   "stderr": {"c_n": [0.1, 0.2]}, "rmse_before_n": 2.0, "rmse_after_n": 1.2},
-                  {"effect": "mass_change", "cables": [0], "parameters": {"q_kg_s": [0.02]},
-                   "stderr": {"q_kg_s": [0.001]}, "rmse_before_n": 1.2,
-                   "rmse_after_n": 1.0}]}  # fmt: skip
+    report = {
+        "reference": "platform_tension",
+        "samples": 100,
+        "baseline": {"rmse_n": 2.0},
+        "final": {"rmse_n": 1.0},
+        "findings": [
+            {
+                "effect": "offset",
+                "cables": [2, 5],
+                "parameters": {"c_n": [1.5, -2.0]},
+                "stderr": {"c_n": [0.1, 0.2]},
+                "rmse_before_n": 2.0,
+                "rmse_after_n": 1.2,
+            },
+            {
+                "effect": "mass_change",
+                "cables": [0],
+                "parameters": {"q_kg_s": [0.02]},
+                "stderr": {"q_kg_s": [0.001]},
+                "rmse_before_n": 1.2,
+                "rmse_after_n": 1.0,
+            },
+        ],
+    }
     none = {**report, "findings": []}
-    res = [TaskResult("a", "r", "2026", json.dumps(report), None, 1.0, "w", 1.0),
-           TaskResult("b", "r", "2026", json.dumps(none), None, 1.0, "w", 1.0),
-           TaskResult("c", "r", "2026", None, "c: broken", 0.0, "w", 1.0)]  # fmt: skip
+    res = [
+        TaskResult("a", "r", "2026", json.dumps(report), None, 1.0, "w", 1.0),
+        TaskResult("b", "r", "2026", json.dumps(none), None, 1.0, "w", 1.0),
+        TaskResult("c", "r", "2026", None, "c: broken", 0.0, "w", 1.0),
+    ]
     rows = table_rows([(r, r.recording + ".json") for r in res])
     assert [(r["recording"], r["effect"], r["cable"], r["rank"]) for r in rows] == [
-        ("a", "offset", 2, 1), ("a", "offset", 5, 1), ("a", "mass_change", 0, 2),
-        ("b", "none", 0, 0), ("c", "", 0, 0)]  # fmt: skip
+        ("a", "offset", 2, 1),
+        ("a", "offset", 5, 1),
+        ("a", "mass_change", 0, 2),
+        ("b", "none", 0, 0),
+        ("c", "", 0, 0),
+    ]
     assert rows[1]["c_n"] == -2.0 and rows[1]["c_n_stderr"] == 0.2
     assert rows[2]["q_kg_s"] == 0.02 and math.isnan(rows[2].get("c_n", math.nan))
     assert rows[4]["status"] == "failed" and rows[4]["error"] == "c: broken"

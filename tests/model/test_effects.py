@@ -98,9 +98,16 @@ def test_registry_holds_the_catalogue_with_report_names_and_units() -> None:
     for name, params in REPORT_NAMES.items():
         assert {p.name: p.unit for p in fx.REGISTRY[name].params} == params
     assert set(fx.ONLINE_EFFECTS) == {
-        "coulomb", "coulomb_directional", "presliding", "viscous", "stribeck", "inertia",
-        "gain", "offset", "eccentricity",
-    }  # fmt: skip
+        "coulomb",
+        "coulomb_directional",
+        "presliding",
+        "viscous",
+        "stribeck",
+        "inertia",
+        "gain",
+        "offset",
+        "eccentricity",
+    }
 
 
 @pytest.mark.parametrize(
@@ -151,8 +158,9 @@ def test_coulomb_mu_is_absolute_per_pulley_for_every_user() -> None:
     users["plant"] = plant_chain(load_sim_config(sim_cfg), 8)
     gw = dataclasses.replace(cfg, friction=dataclasses.replace(UNEVEN, effects=eff))
     users["gateway"] = Compensator(gw).params
-    nom = forward.Nominal("dahl", np.asarray(UNEVEN.wrap_rad), np.asarray(UNEVEN.mu), 500.0,
-                          1.0, 0.0, 0.05)  # fmt: skip
+    nom = forward.Nominal(
+        "dahl", np.asarray(UNEVEN.wrap_rad), np.asarray(UNEVEN.mu), 500.0, 1.0, 0.0, 0.05
+    )
     users["diagnosis"] = forward.chain_params(nom, {"coulomb": np.array([0.05, 0.2])})
     sc = dataclasses.replace(scenarios.Scenario("x", eff), nominal_model="dahl")
     sc_nominal = dataclasses.replace(sc.nominal(), pulleys=UNEVEN.pulleys)
@@ -237,10 +245,8 @@ def test_eccentricity_phase_from_travel_to_length() -> None:
 # --- online compensation: per-cycle against batch -------------------------------------------
 
 ONLINE_CASES = {
-    "coulomb": {"coulomb": {"mu": [0.02, 0.01, 0.03, 0.02, 0.015, 0.02, 0.025, 0.01],
-                            "f0_n": 0.8}},
-    "coulomb_directional": {"coulomb_directional": {"mu_out": 0.025, "mu_in": 0.01,
-                                                    "f0_n": 0.3}},
+    "coulomb": {"coulomb": {"mu": [0.02, 0.01, 0.03, 0.02, 0.015, 0.02, 0.025, 0.01], "f0_n": 0.8}},
+    "coulomb_directional": {"coulomb_directional": {"mu_out": 0.025, "mu_in": 0.01, "f0_n": 0.3}},
     "presliding": {"presliding": {"sigma_n_m": 300.0}},
     "viscous": {"viscous": {"c_ns_m": [6.0, 2.0, 0.0, 1.0, 3.0, 4.0, 5.0, 0.5]}},
     "stribeck": {"stribeck": {"k": 0.5, "v_s_m_s": 0.004}},
@@ -249,12 +255,15 @@ ONLINE_CASES = {
     "offset": {"offset": {"c_n": [0.3, -0.2, 0.0, 1.0, 0.0, 0.0, 0.0, -1.5]}},
     "eccentricity": {"eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7}},
     "all": {
-        "coulomb": {"f0_n": 0.5}, "viscous": {"c_ns_m": 3.0},
-        "stribeck": {"k": 0.3, "v_s_m_s": 0.005}, "inertia": {"m_eff_kg": 1.5},
-        "gain": {"g": 0.004}, "offset": {"c_n": -0.7},
+        "coulomb": {"f0_n": 0.5},
+        "viscous": {"c_ns_m": 3.0},
+        "stribeck": {"k": 0.3, "v_s_m_s": 0.005},
+        "inertia": {"m_eff_kg": 1.5},
+        "gain": {"g": 0.004},
+        "offset": {"c_n": -0.7},
         "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7},
     },
-}  # fmt: skip
+}
 
 
 def _online_signals(n: int, m: int) -> tuple[np.ndarray, ...]:
@@ -299,14 +308,18 @@ def test_online_inverse_per_cycle_equals_batch() -> None:
     t, v, length, reading = _online_signals(n, m)
     values = fx.effect_values(
         {
-            "gain": {"g": [0.01, -0.02, 0.0]}, "offset": {"c_n": [0.5, 0.0, -1.0]},
+            "gain": {"g": [0.01, -0.02, 0.0]},
+            "offset": {"c_n": [0.5, 0.0, -1.0]},
             "inertia": {"m_eff_kg": [2.0, 0.0, 1.0]},
-            "eccentricity": {"a_n": [0.3, 0.2, 0.0], "r_m": [0.03, 0.05, 0.05],
-                             "phi_rad": [0.1, 0.2, 0.0]},
+            "eccentricity": {
+                "a_n": [0.3, 0.2, 0.0],
+                "r_m": [0.03, 0.05, 0.05],
+                "phi_rad": [0.1, 0.2, 0.0],
+            },
             "drift": {"k_n_s": 0.3},  # not online: the per-cycle form leaves it
         },
         m,
-    )  # fmt: skip
+    )
     s = SeriesData(t, v, length, fx.causal_acceleration(t, v), t[0])
     batch = fx.inverse(s, reading, values, online_only=True)
     out, prev, vel, pos = np.empty(m), np.zeros(m), np.zeros(m), np.zeros(m)
@@ -413,11 +426,14 @@ def test_forward_per_sample_form_equals_the_batch_form() -> None:
         {
             "inertia": {"m_eff_kg": [2.0, 0.0, 1.0]},
             "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.2},
-            "gain": {"g": [0.01, 0.0, -0.02]}, "offset": {"c_n": 0.5}, "drift": {"k_n_s": 0.3},
-            "lowpass": {"tau_s": [0.004, 0.0, 0.01]}, "delay": {"d_s": [0.0025, 0.004, 0.0]},
+            "gain": {"g": [0.01, 0.0, -0.02]},
+            "offset": {"c_n": 0.5},
+            "drift": {"k_n_s": 0.3},
+            "lowpass": {"tau_s": [0.004, 0.0, 0.01]},
+            "delay": {"d_s": [0.0025, 0.004, 0.0]},
         },
         m,
-    )  # fmt: skip
+    )
     batch = fx.forward(series(t, v, length), ts, eff)
     step = fx.ForwardStepper(eff, m, dt)
     t3, v3 = np.zeros(3), np.zeros((3, m))

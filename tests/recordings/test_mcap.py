@@ -24,9 +24,11 @@ def gateway_like(n: int = 700, m: int = 3) -> Recording:
         pose=rng.normal(0, 0.5, (n, 6)),
         mass=40 - 1e-3 * np.arange(n),
         metadata={"robot": "r9", "started": "2026-03-01T12:00:00+00:00", "source": "test"},
-        extra={**{f"tension_corrected_{i + 1}": rng.uniform(10, 400, n) for i in range(m)},
-               **{f"status_{i + 1}": rng.integers(0, 3, n).astype(float) for i in range(m)}},
-    )  # fmt: skip
+        extra={
+            **{f"tension_corrected_{i + 1}": rng.uniform(10, 400, n) for i in range(m)},
+            **{f"status_{i + 1}": rng.integers(0, 3, n).astype(float) for i in range(m)},
+        },
+    )
     rec.length[5, 1] = np.nan  # type: ignore[index]  # missing values: null in the export
     rec.extra["tension_corrected_2"][5] = np.nan
     return rec
@@ -73,20 +75,29 @@ def test_the_export_reads_back_equal(tmp_path: Path, capsys) -> None:
     for topic, fields in expect.items():
         assert len(got[topic]) == rec.samples, topic
         for name, values in fields.items():
-            back = np.array([[np.nan if x is None else x for x in np.atleast_1d(b[name])]
-                             for b in got[topic]], dtype=float)  # fmt: skip
+            back = np.array(
+                [[np.nan if x is None else x for x in np.atleast_1d(b[name])] for b in got[topic]],
+                dtype=float,
+            )
             np.testing.assert_array_equal(back.reshape(values.shape), values, err_msg=name)
     assert "export: 2800 messages" in capsys.readouterr().err
 
 
 def test_a_recording_without_pose_has_no_pose_channel(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
-    rec = Recording(t=np.arange(20) * 1e-3, velocity=rng.normal(size=(20, 1)),
-                    tension_sensor=rng.normal(size=(20, 1)),
-                    tension_platform=rng.normal(size=(20, 1)))  # fmt: skip
+    rec = Recording(
+        t=np.arange(20) * 1e-3,
+        velocity=rng.normal(size=(20, 1)),
+        tension_sensor=rng.normal(size=(20, 1)),
+        tension_platform=rng.normal(size=(20, 1)),
+    )
     write_recording(tmp_path / "p.csv", rec)
-    assert main(["export", str(tmp_path / "p.csv"), "--to", "mcap", str(tmp_path / "p.mcap"),
-                 "--quiet"]) == 0  # fmt: skip
+    assert (
+        main(
+            ["export", str(tmp_path / "p.csv"), "--to", "mcap", str(tmp_path / "p.mcap"), "--quiet"]
+        )
+        == 0
+    )
     with open(tmp_path / "p.mcap", "rb") as fh:
         topics = [c.topic for _, c, _ in make_reader(fh).iter_messages()]
     assert sorted(set(topics)) == ["/setpoints", "/tensions"] and len(topics) == 40

@@ -110,8 +110,12 @@ def _write_table(path: Path, columns: dict[str, object], meta: dict | None = Non
 
 
 T = np.arange(20) * 1e-3
-GOOD = {"t": T, "velocity_1": np.zeros(20), "tension_sensor_1": np.ones(20),
-        "tension_platform_1": np.ones(20)}  # fmt: skip
+GOOD = {
+    "t": T,
+    "velocity_1": np.zeros(20),
+    "tension_sensor_1": np.ones(20),
+    "tension_platform_1": np.ones(20),
+}
 
 
 @pytest.mark.parametrize(
@@ -181,8 +185,9 @@ class FullDisk(io.BytesIO):
 
 def test_a_full_disk_keeps_every_finished_row_group(tmp_path: Path) -> None:
     disk = FullDisk(limit=14_000)
-    w = ParquetRecordingWriter(tmp_path / "x.parquet", COLUMNS, {}, fileobj=disk,
-                               row_group_rows=100)  # fmt: skip
+    w = ParquetRecordingWriter(
+        tmp_path / "x.parquet", COLUMNS, {}, fileobj=disk, row_group_rows=100
+    )
     rows = []
     with pytest.raises(OSError, match="No space"):
         for k in range(100):
@@ -214,8 +219,9 @@ KILLED = textwrap.dedent(
 
 def test_a_killed_writer_leaves_a_readable_file(tmp_path: Path) -> None:
     path = tmp_path / "killed.parquet"
-    proc = subprocess.Popen([sys.executable, "-c", KILLED, str(path)], cwd=ROOT,
-                            stdout=subprocess.PIPE, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-c", KILLED, str(path)], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    )
     try:
         assert proc.stdout is not None and proc.stdout.readline() == "running\n"
         time.sleep(0.3)
@@ -241,18 +247,39 @@ def test_diagnose_reads_parquet_as_it_reads_the_csv_and_refuses_a_bad_one(
 
     cfg = ROOT / "config" / "calibrate" / "offset.yaml"
     csv = tmp_path / "r.csv.gz"
-    assert main(["record", "--config", str(cfg), "--seconds", "4", "--out", str(csv),
-                 "--quiet"]) == 0  # fmt: skip
+    assert (
+        main(["record", "--config", str(cfg), "--seconds", "4", "--out", str(csv), "--quiet"]) == 0
+    )
     write_recording(tmp_path / "r.parquet", read_recording(csv))
     model = ROOT / "config" / "default.yaml"
     for name in ("r.csv.gz", "r.parquet"):
-        assert main(["diagnose", str(tmp_path / name), "--model", str(model), "--json",
-                     str(tmp_path / f"{name}.json"), "--quiet"]) == 0  # fmt: skip
+        assert (
+            main(
+                [
+                    "diagnose",
+                    str(tmp_path / name),
+                    "--model",
+                    str(model),
+                    "--json",
+                    str(tmp_path / f"{name}.json"),
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
     assert (tmp_path / "r.csv.gz.json").read_bytes() == (tmp_path / "r.parquet.json").read_bytes()
     capsys.readouterr()
     _write_table(tmp_path / "bad.parquet", {**GOOD, "t": np.r_[T[:5], T[3], T[6:]]})
-    code = main(["diagnose", str(tmp_path / "bad.parquet"), "--model", str(model), "--json",
-                 str(tmp_path / "bad.json")])  # fmt: skip
+    code = main(
+        [
+            "diagnose",
+            str(tmp_path / "bad.parquet"),
+            "--model",
+            str(model),
+            "--json",
+            str(tmp_path / "bad.json"),
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1, err
     assert "bad.parquet: row 6: column 't'" in err and not (tmp_path / "bad.json").exists()

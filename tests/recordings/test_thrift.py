@@ -40,7 +40,7 @@ def values(depth: int) -> st.SearchStrategy[tuple[int, object]]:
         st.tuples(SCALARS[thrift.I32], SCALARS[thrift.BINARY]), min_size=1, max_size=5
     ).map(lambda kv: (thrift.MAP, Map(thrift.I32, thrift.BINARY, kv)))
     sub = structs(depth - 1).map(lambda s: (thrift.STRUCT, s))
-    return st.one_of(scalar, seq, mp, sub, inner)  # fmt: skip
+    return st.one_of(scalar, seq, mp, sub, inner)
 
 
 def structs(depth: int) -> st.SearchStrategy[list[Field]]:

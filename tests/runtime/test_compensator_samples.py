@@ -61,8 +61,7 @@ def _plant(effects: dict) -> Plant:
     tp = 200.0 + 60.0 * np.sin(2 * math.pi * 0.4 * tt + ph[2])
     values = cfg.friction.effect_values(CABLES)
     ts = simulate(fx.chain_params(cfg.friction, values, CABLES), tp, v, t)
-    series = fx.SeriesData(t, v, lambda: fx.displacement(t, v), lambda: fx.acceleration(t, v),
-                           0.0)  # fmt: skip
+    series = fx.SeriesData(t, v, lambda: fx.displacement(t, v), lambda: fx.acceleration(t, v), 0.0)
     return Plant(cfg, t, v, fx.forward(series, ts, values), tp)
 
 

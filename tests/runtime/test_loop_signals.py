@@ -46,8 +46,11 @@ def test_signal_writes_the_stopped_frame(tmp_path: Path, sig: signal.Signals) ->
         env.pop("NOTIFY_SOCKET", None)
         proc = subprocess.Popen(
             [sys.executable, "-m", "gateway.cli", "run", "--config", str(path)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
-        )  # fmt: skip
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
         try:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and proc.poll() is None:

@@ -104,8 +104,12 @@ EFFECTS = st.fixed_dictionaries(
     },
 )
 
-WARM_UP = [Event("ok", [200.0 + k] * CABLES, [0.05] * CABLES, [1.5] * CABLES,
-                 [0.0, 0.0, 1.5, 0.0, 0.0, 0.0]) for k in range(30)]  # fmt: skip
+WARM_UP = [
+    Event(
+        "ok", [200.0 + k] * CABLES, [0.05] * CABLES, [1.5] * CABLES, [0.0, 0.0, 1.5, 0.0, 0.0, 0.0]
+    )
+    for k in range(30)
+]
 
 
 class ScriptedPlc(Driver):
@@ -114,8 +118,14 @@ class ScriptedPlc(Driver):
 
     name = "scripted"
 
-    def __init__(self, cfg: Any, clock: FakeClock, events: list[Event], pipelined: bool,
-                 float_heartbeat: bool) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cfg: Any,
+        clock: FakeClock,
+        events: list[Event],
+        pipelined: bool,
+        float_heartbeat: bool,
+    ) -> None:
         super().__init__(cfg)
         self.fake_clock = clock
         self.events = events
@@ -241,8 +251,9 @@ def _check_frames(drv: ScriptedPlc, cfg: Any) -> int:
     return usable_values
 
 
-def _run(effects: dict, events: list[Event], pipelined: bool, float_hb: bool,
-         between_stall: bool) -> tuple[ScriptedPlc, Any]:  # fmt: skip
+def _run(
+    effects: dict, events: list[Event], pipelined: bool, float_hb: bool, between_stall: bool
+) -> tuple[ScriptedPlc, Any]:
     cfg = config(busy_wait_s=0.0)
     cfg = dataclasses.replace(cfg, friction=dataclasses.replace(cfg.friction, effects=effects))
     clock = FakeClock()
@@ -296,7 +307,13 @@ def test_the_check_catches_a_gate_that_lets_a_stalled_frame_through(monkeypatch)
     from drivers import gate
 
     monkeypatch.setattr(gate.Gate, "__call__", lambda *args: None)
-    stall = Event("ok", [210.0] * CABLES, [0.05] * CABLES, [1.5] * CABLES,
-                  [0.0, 0.0, 1.5, 0.0, 0.0, 0.0], stall_s=2.0)  # fmt: skip
+    stall = Event(
+        "ok",
+        [210.0] * CABLES,
+        [0.05] * CABLES,
+        [1.5] * CABLES,
+        [0.0, 0.0, 1.5, 0.0, 0.0, 0.0],
+        stall_s=2.0,
+    )
     with pytest.raises(AssertionError, match="frame at"):
         _property({}, [stall, *WARM_UP], True, False, True)

@@ -33,8 +33,7 @@ def run(fail_opens: int, attempt_s: float, cycles: int) -> tuple[CyclicService, 
     cfg = config(busy_wait_s=0.0)
     clock = FakeClock()
     faults = VirtualFaults(fail_opens=fail_opens)
-    drv = SlowAttempts(cfg, image=live_image(cfg), faults=faults, clock=clock,
-                       attempt_s=attempt_s)  # fmt: skip
+    drv = SlowAttempts(cfg, image=live_image(cfg), faults=faults, clock=clock, attempt_s=attempt_s)
     svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=1024)
     svc.run(cycles=cycles)
     return svc, make_registry(svc)

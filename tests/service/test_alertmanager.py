@@ -23,8 +23,9 @@ CONFIG = DEPLOY / "alertmanager.yml"
 
 def test_amtool_accepts_the_config_and_groups_by_robot() -> None:
     amtool = _require("amtool")
-    check = subprocess.run([amtool, "check-config", str(CONFIG)], capture_output=True,
-                           text=True, timeout=60)  # fmt: skip
+    check = subprocess.run(
+        [amtool, "check-config", str(CONFIG)], capture_output=True, text=True, timeout=60
+    )
     assert check.returncode == 0 and "SUCCESS" in check.stdout, check.stdout + check.stderr
     assert "4 inhibit rules" in check.stdout
 
@@ -34,10 +35,17 @@ def alertmanager(tmp_path: Path) -> Iterator[str]:
     binary = _require("prometheus-alertmanager")
     port = free_port()
     proc = subprocess.Popen(
-        [binary, f"--config.file={CONFIG}", f"--storage.path={tmp_path}",
-         f"--web.listen-address=127.0.0.1:{port}", "--cluster.listen-address="],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [
+            binary,
+            f"--config.file={CONFIG}",
+            f"--storage.path={tmp_path}",
+            f"--web.listen-address=127.0.0.1:{port}",
+            "--cluster.listen-address=",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     url = f"http://127.0.0.1:{port}/api/v2"
     try:
         deadline = time.monotonic() + 30
@@ -61,35 +69,52 @@ def alertmanager(tmp_path: Path) -> Iterator[str]:
 
 def outage(instance: str, cables: int) -> list[dict]:
     """What deploy/alerts.yml fires for one PLC outage on one robot."""
-    names = ["CdprGatewayBusDisconnected", "CdprGatewayFault", "CdprGatewayPlcHeartbeatStalled",
-             "CdprGatewayErrors"]  # fmt: skip
+    names = [
+        "CdprGatewayBusDisconnected",
+        "CdprGatewayFault",
+        "CdprGatewayPlcHeartbeatStalled",
+        "CdprGatewayErrors",
+    ]
     labels = [{"alertname": n, "severity": "critical"} for n in names]
-    labels += [{"alertname": "CdprGatewayChannelInvalid", "severity": "critical",
-                "cable": str(c + 1)} for c in range(cables)]  # fmt: skip
+    labels += [
+        {"alertname": "CdprGatewayChannelInvalid", "severity": "critical", "cable": str(c + 1)}
+        for c in range(cables)
+    ]
     start = datetime.now(UTC).isoformat()
-    return [{"labels": {**lab, "job": "cdpr-gateway", "instance": instance}, "startsAt": start}
-            for lab in labels]  # fmt: skip
+    return [
+        {"labels": {**lab, "job": "cdpr-gateway", "instance": instance}, "startsAt": start}
+        for lab in labels
+    ]
 
 
 def test_one_outage_leaves_only_its_cause_active_per_robot(tmp_path) -> None:
     with alertmanager(tmp_path) as url:
         alerts = outage("robot-a:9109", 8)  # a PLC outage on robot a
         alerts += [{**outage("robot-b:9109", 1)[-1]}]  # robot b: one bad channel, alone
-        request = urllib.request.Request(f"{url}/alerts", data=json.dumps(alerts).encode(),
-                                         headers={"Content-Type": "application/json"})  # fmt: skip
+        request = urllib.request.Request(
+            f"{url}/alerts",
+            data=json.dumps(alerts).encode(),
+            headers={"Content-Type": "application/json"},
+        )
         urllib.request.urlopen(request, timeout=5).close()
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline:
             with urllib.request.urlopen(f"{url}/alerts", timeout=5) as reply:
                 seen = json.load(reply)
-            if len(seen) == len(alerts) and all(a["status"]["state"] != "unprocessed"
-                                                for a in seen):  # fmt: skip
+            if len(seen) == len(alerts) and all(
+                a["status"]["state"] != "unprocessed" for a in seen
+            ):
                 break
             time.sleep(0.2)
-        active = sorted((a["labels"]["instance"], a["labels"]["alertname"])
-                        for a in seen if a["status"]["state"] == "active")  # fmt: skip
-        assert active == [("robot-a:9109", "CdprGatewayBusDisconnected"),
-                          ("robot-b:9109", "CdprGatewayChannelInvalid")], active  # fmt: skip
+        active = sorted(
+            (a["labels"]["instance"], a["labels"]["alertname"])
+            for a in seen
+            if a["status"]["state"] == "active"
+        )
+        assert active == [
+            ("robot-a:9109", "CdprGatewayBusDisconnected"),
+            ("robot-b:9109", "CdprGatewayChannelInvalid"),
+        ], active
         suppressed = [a for a in seen if a["status"]["state"] == "suppressed"]
         assert len(suppressed) == len(alerts) - 2
         assert all(a["status"]["inhibitedBy"] for a in suppressed)

@@ -50,8 +50,11 @@ def start_run(config: Path, env_extra: dict[str, str] | None = None, *args: str)
         env.pop("NOTIFY_SOCKET", None)
     return subprocess.Popen(
         [sys.executable, "-m", "gateway", "run", "--config", str(config), *args],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
-    )  # fmt: skip
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
 
 
 def finish(proc: subprocess.Popen, exits_by_itself: bool = False) -> tuple[int, str]:
@@ -141,8 +144,9 @@ def test_the_banner_tells_the_truth_about_real_time(tmp_path):
 
 
 def test_real_time_off_when_the_config_says_so(tmp_path):
-    proc = start_run(write_config(tmp_path, loop__realtime={"enabled": False}), None,
-                     "--seconds", "1")  # fmt: skip
+    proc = start_run(
+        write_config(tmp_path, loop__realtime={"enabled": False}), None, "--seconds", "1"
+    )
     rc, err = finish(proc, exits_by_itself=True)
     assert rc == 0, err
     assert "real-time: off (loop.realtime.enabled is false)" in err

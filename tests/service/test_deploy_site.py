@@ -46,8 +46,11 @@ def test_every_gateway_has_a_robot_and_a_cell_and_each_agent_keeps_its_own():
         assert job["file_sd_configs"][0]["files"] == ["gateways.yml"]
         (rule,) = job["relabel_configs"]
         assert rule["action"] == "keep" and rule["source_labels"] == ["cell"]
-        kept += [g["labels"]["robot"] for g in gateways
-                 if re.fullmatch(rule["regex"], g["labels"]["cell"])]  # fmt: skip
+        kept += [
+            g["labels"]["robot"]
+            for g in gateways
+            if re.fullmatch(rule["regex"], g["labels"]["cell"])
+        ]
         assert cfg["remote_write"][0]["url"].endswith("/api/v1/write")
         assert "rule_files" not in cfg  # an agent evaluates no rules
     assert sorted(kept) == sorted(robots)  # every gateway scraped by exactly one agent
@@ -84,8 +87,13 @@ def test_promtool_accepts_the_site_central_and_agent_configs(tmp_path):
     checks = [["prometheus-site.yml"], ["prometheus-central.yml"]]
     checks += [["--agent", p.name] for p in CELLS]
     for args in checks:
-        res = subprocess.run([promtool, "check", "config", *args], cwd=site,
-                             capture_output=True, text=True, timeout=60)  # fmt: skip
+        res = subprocess.run(
+            [promtool, "check", "config", *args],
+            cwd=site,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert res.returncode == 0, res.stdout + res.stderr
         assert "SUCCESS" in res.stdout
         if "--agent" not in args:
@@ -93,8 +101,13 @@ def test_promtool_accepts_the_site_central_and_agent_configs(tmp_path):
     # the check can fail: an agent config with a rule file is refused in agent mode
     bad = site / CELLS[0].name
     bad.write_text(bad.read_text() + "\nrule_files: [../alerts.yml]\n")
-    res = subprocess.run([promtool, "check", "config", "--agent", bad.name], cwd=site,
-                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    res = subprocess.run(
+        [promtool, "check", "config", "--agent", bad.name],
+        cwd=site,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert res.returncode != 0
 
 
@@ -122,15 +135,18 @@ def test_an_agent_forwards_two_gateways_to_the_central_prometheus(tmp_path):
     the centre's URL on loopback: the centre sees each gateway's series with its own
     instance, robot and cell, and `up` per robot for the alerts."""
     binary = _require("prometheus")
-    exporters = [MetricsServer(MetricsConfig(host="127.0.0.1", port=0),
-                               make_registry(ran_service(10))) for _ in range(2)]  # fmt: skip
+    exporters = [
+        MetricsServer(MetricsConfig(host="127.0.0.1", port=0), make_registry(ran_service(10)))
+        for _ in range(2)
+    ]
     central_port, agent_port = free_port(), free_port()
     site = tmp_path / "site"
     shutil.copytree(SITE, site)
     shutil.copy(DEPLOY / "alerts.yml", tmp_path)
-    gateways = [{"targets": [f"127.0.0.1:{e.port}"],
-                 "labels": {"robot": f"r-{i}", "cell": "cell-a"}}
-                for i, e in enumerate(exporters)]  # fmt: skip
+    gateways = [
+        {"targets": [f"127.0.0.1:{e.port}"], "labels": {"robot": f"r-{i}", "cell": "cell-a"}}
+        for i, e in enumerate(exporters)
+    ]
     gateways.append({"targets": ["127.0.0.1:9"], "labels": {"robot": "other", "cell": "cell-b"}})
     (site / "gateways.yml").write_text(yaml.safe_dump(gateways))
     agent_cfg = (SITE / "prometheus-cell-a.yml").read_text()
@@ -139,16 +155,27 @@ def test_an_agent_forwards_two_gateways_to_the_central_prometheus(tmp_path):
     agent_cfg = agent_cfg.replace("batch_send_deadline: 5s", "batch_send_deadline: 1s")
     (site / "prometheus-cell-a.yml").write_text(agent_cfg)
     procs = [
-        _start_prometheus(binary, [
-            f"--config.file={site / 'prometheus-central.yml'}",
-            "--web.enable-remote-write-receiver",
-            f"--storage.tsdb.path={tmp_path / 'central'}",
-            f"--web.listen-address=127.0.0.1:{central_port}"], tmp_path / "central.log"),
-        _start_prometheus(binary, [
-            f"--config.file={site / 'prometheus-cell-a.yml'}", "--enable-feature=agent",
-            f"--storage.agent.path={tmp_path / 'agent'}",
-            f"--web.listen-address=127.0.0.1:{agent_port}"], tmp_path / "agent.log"),
-    ]  # fmt: skip
+        _start_prometheus(
+            binary,
+            [
+                f"--config.file={site / 'prometheus-central.yml'}",
+                "--web.enable-remote-write-receiver",
+                f"--storage.tsdb.path={tmp_path / 'central'}",
+                f"--web.listen-address=127.0.0.1:{central_port}",
+            ],
+            tmp_path / "central.log",
+        ),
+        _start_prometheus(
+            binary,
+            [
+                f"--config.file={site / 'prometheus-cell-a.yml'}",
+                "--enable-feature=agent",
+                f"--storage.agent.path={tmp_path / 'agent'}",
+                f"--web.listen-address=127.0.0.1:{agent_port}",
+            ],
+            tmp_path / "agent.log",
+        ),
+    ]
     try:
         deadline = time.monotonic() + WAIT_S
         series: list[dict] = []
@@ -160,10 +187,12 @@ def test_an_agent_forwards_two_gateways_to_the_central_prometheus(tmp_path):
             except OSError:
                 series = []
             time.sleep(0.5)
-        labels = sorted((s["metric"]["robot"], s["metric"]["instance"], s["metric"]["cell"])
-                        for s in series)  # fmt: skip
-        assert labels == [(f"r-{i}", f"127.0.0.1:{e.port}", "cell-a")
-                          for i, e in enumerate(exporters)], series  # fmt: skip
+        labels = sorted(
+            (s["metric"]["robot"], s["metric"]["instance"], s["metric"]["cell"]) for s in series
+        )
+        assert labels == [
+            (f"r-{i}", f"127.0.0.1:{e.port}", "cell-a") for i, e in enumerate(exporters)
+        ], series
         up = query(central_port, 'up{job="cdpr-gateway"}')
         assert sorted(s["metric"]["robot"] for s in up) == ["r-0", "r-1"]  # not cell-b's
     finally:

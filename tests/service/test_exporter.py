@@ -220,11 +220,30 @@ def tls_files(tmp_path_factory) -> tuple[Path, Path]:
     tmp = tmp_path_factory.mktemp("tls")
     cert, key = tmp / "cert.pem", tmp / "key.pem"
     subprocess.run(
-        [openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256",
-         "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1", "-addext",
-         "subjectAltName=IP:127.0.0.1", "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True, timeout=60,
-    )  # fmt: skip
+        [
+            openssl,
+            "req",
+            "-x509",
+            "-newkey",
+            "ec",
+            "-pkeyopt",
+            "ec_paramgen_curve:P-256",
+            "-nodes",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=127.0.0.1",
+            "-addext",
+            "subjectAltName=IP:127.0.0.1",
+            "-keyout",
+            str(key),
+            "-out",
+            str(cert),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
     return cert, key
 
 
@@ -421,8 +440,13 @@ def test_check_warns_when_the_descriptor_limit_is_too_low():
     env = {**os.environ, "PYTHONPATH": str(root)}
     done = subprocess.run(
         [sys.executable, "-m", "gateway.cli", "check", "--config", "config/default.yaml"],
-        capture_output=True, text=True, timeout=120, env=env, preexec_fn=low_limit, cwd=root,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+        preexec_fn=low_limit,
+        cwd=root,
+    )
     assert done.returncode == 0, done.stderr
     warnings = [ln for ln in done.stderr.splitlines() if "RLIMIT_NOFILE" in ln]
     assert len(warnings) == 1 and "48" in warnings[0], done.stderr

@@ -63,9 +63,13 @@ def test_names_types_and_labels_are_exactly_the_design_table():
 
 # the process collector (docs/realtime.md watches process_resident_memory_bytes)
 PROCESS_METRICS = {
-    "process_virtual_memory_bytes", "process_resident_memory_bytes", "process_start_time_seconds",
-    "process_cpu_seconds", "process_open_fds", "process_max_fds",
-}  # fmt: skip
+    "process_virtual_memory_bytes",
+    "process_resident_memory_bytes",
+    "process_start_time_seconds",
+    "process_cpu_seconds",
+    "process_open_fds",
+    "process_max_fds",
+}
 
 
 def test_process_metrics_are_this_process():
@@ -200,11 +204,28 @@ def test_tls_exporter(tmp_path):
         pytest.skip("openssl not installed")
     cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
     subprocess.run(
-        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
-         "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
-         "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True, timeout=60,
-    )  # fmt: skip
+        [
+            openssl,
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=127.0.0.1",
+            "-addext",
+            "subjectAltName=IP:127.0.0.1",
+            "-keyout",
+            str(key),
+            "-out",
+            str(cert),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
     reg = make_registry(ran_service(3))
     cfg = MetricsConfig(host="127.0.0.1", port=0, certfile=str(cert), keyfile=str(key))
     server = MetricsServer(cfg, reg)

@@ -47,8 +47,13 @@ NO_PYARROW = textwrap.dedent(
 
 def test_the_gateways_process_records_parquet_without_importing_pyarrow(tmp_path: Path) -> None:
     path = tmp_path / "r.parquet"
-    proc = subprocess.run([sys.executable, "-c", NO_PYARROW, str(path)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", NO_PYARROW, str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     written, dropped, imported = proc.stdout.split()
     assert imported == "False"  # the writer process imported it, not this one
@@ -77,8 +82,9 @@ def test_a_killed_writer_process_leaves_every_finished_row_group(tmp_path: Path)
 
 
 def test_the_hive_layout_rotates_into_a_tree_duckdb_reads_as_one_table(tmp_path: Path) -> None:
-    cfg = RecordConfig(path=str(tmp_path / "tree"), layout="hive", robot="cell-3",
-                       rotate_bytes=4096, batch_s=0.001)  # fmt: skip
+    cfg = RecordConfig(
+        path=str(tmp_path / "tree"), layout="hive", robot="cell-3", rotate_bytes=4096, batch_s=0.001
+    )
     rec = Recorder(cfg, M, with_mass=True, period_s=0.01)
     rec.start()
     for k in range(0, 3000, 250):
@@ -115,8 +121,11 @@ def test_layout_and_robot_are_checked(key: str, value: str) -> None:
 def _soft_plc() -> tuple[subprocess.Popen[str], int, threading.Thread]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "gateway.cli", "sim-plc", "--port", "0", "--host", "127.0.0.1"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-    )  # fmt: skip
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     lines: queue.Queue[str] = queue.Queue()
     reader = threading.Thread(target=lambda: [lines.put(x) for x in proc.stdout], daemon=True)  # type: ignore[union-attr]
     reader.start()
@@ -136,10 +145,25 @@ def test_run_record_writes_a_tree_pyarrow_duckdb_and_the_reader_agree_on(tmp_pat
         (tmp_path / "gw.yaml").write_text(text)
         tree = tmp_path / "tree"
         run = subprocess.run(
-            [sys.executable, "-m", "gateway.cli", "run", "--config", str(tmp_path / "gw.yaml"),
-             "--seconds", "2.5", "--record", str(tree), "--log-level", "WARNING"],
-            cwd=ROOT, capture_output=True, text=True, timeout=120,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "gateway.cli",
+                "run",
+                "--config",
+                str(tmp_path / "gw.yaml"),
+                "--seconds",
+                "2.5",
+                "--record",
+                str(tree),
+                "--log-level",
+                "WARNING",
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     finally:
         plc.terminate()
         plc.wait(20)

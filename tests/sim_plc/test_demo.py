@@ -61,8 +61,11 @@ def test_run_sigterm_stops_cleanly(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "gateway.cli", "run", "--config", str(path)],
-        stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT,
-    )  # fmt: skip
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=ROOT,
+    )
     lines: list[str] = []
     ready = threading.Event()
 
@@ -91,8 +94,9 @@ def test_run_sigterm_stops_cleanly(tmp_path):
     assert "stopped: cycles" in text
     # timestamps and logger names, the start-up banner, the state change
     stamp = r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} (INFO|WARNING) cdpr_gateway(\.loop)?: "
-    assert re.search(stamp + r"cdpr-gateway \S+ starting; config " + re.escape(str(path)), text,
-                     re.MULTILINE), text  # fmt: skip
+    assert re.search(
+        stamp + r"cdpr-gateway \S+ starting; config " + re.escape(str(path)), text, re.MULTILINE
+    ), text
     assert re.search(stamp + r"bus: virtual \(bus\.virtual\)", text, re.MULTILINE)
     assert re.search(stamp + r"model: dahl, 3 pulleys", text, re.MULTILINE)
     assert re.search(stamp + r"loop: period 1 ms, .*real-time: tried", text, re.MULTILINE)

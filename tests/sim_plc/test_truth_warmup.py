@@ -42,8 +42,12 @@ def test_a_cable_warms_up_after_its_relaxation_lengths_of_travel(tension, speed,
     warm = ChainWarmup(cfg)
     params = fx.chain_params(cfg.friction, cfg.friction.effect_values(cfg.cables), cfg.cables)
     lam_pos, lam_neg = coulomb_coefficients(params)
-    need = WARMUP_LENGTHS * float(np.max(np.maximum(lam_pos, lam_neg)[0])) * tension / float(
-        params.sigma_n_m[0])  # fmt: skip
+    need = (
+        WARMUP_LENGTHS
+        * float(np.max(np.maximum(lam_pos, lam_neg)[0]))
+        * tension
+        / float(params.sigma_n_m[0])
+    )
     v = np.full(cfg.cables, speed)
     v[1] = -speed  # either direction
     v[2] = 0.0  # a cable at rest never warms up

@@ -107,9 +107,20 @@ def _fault_and_recover(
         ("exception", {"code": 6}, ("io",), False),  # server busy
         ("exception", {"code": 2}, ("io",), False),  # illegal data address
     ],
-    ids=["delay-reply", "delay-request", "drop", "drop-half", "corrupt-header", "wrong-tid",
-         "reset-mid-frame", "reset-at-start", "silent", "busy", "illegal-address"],
-)  # fmt: skip
+    ids=[
+        "delay-reply",
+        "delay-request",
+        "drop",
+        "drop-half",
+        "corrupt-header",
+        "wrong-tid",
+        "reset-mid-frame",
+        "reset-at-start",
+        "silent",
+        "busy",
+        "illegal-address",
+    ],
+)
 def test_fault_flagged_counted_recovered(
     rig: GatewayRig,
     kind: str,
@@ -212,22 +223,71 @@ def make_certificates(directory: Path) -> dict[str, Path]:
     def run(*args: str) -> None:
         subprocess.run(["openssl", *args], check=True, capture_output=True, timeout=30)
 
-    p = {n: directory / f"{n}.pem" for n in (
-        "ca", "ca_key", "server", "server_key", "client", "client_key",
-        "other_ca", "other_ca_key", "stranger", "stranger_key")}  # fmt: skip
+    p = {
+        n: directory / f"{n}.pem"
+        for n in (
+            "ca",
+            "ca_key",
+            "server",
+            "server_key",
+            "client",
+            "client_key",
+            "other_ca",
+            "other_ca_key",
+            "stranger",
+            "stranger_key",
+        )
+    }
     ec = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes")
     for ca in ("ca", "other_ca"):
-        run("req", "-x509", *ec, "-keyout", str(p[f"{ca}_key"]), "-out", str(p[ca]),
-            "-days", "2", "-subj", f"/CN=cdpr test {ca}")  # fmt: skip
+        run(
+            "req",
+            "-x509",
+            *ec,
+            "-keyout",
+            str(p[f"{ca}_key"]),
+            "-out",
+            str(p[ca]),
+            "-days",
+            "2",
+            "-subj",
+            f"/CN=cdpr test {ca}",
+        )
     ext = directory / "server.ext"
     ext.write_text("subjectAltName=IP:127.0.0.1\n")
-    for name, ca, extra in (("server", "ca", ("-extfile", str(ext))), ("client", "ca", ()),
-                            ("stranger", "other_ca", ())):  # fmt: skip
+    for name, ca, extra in (
+        ("server", "ca", ("-extfile", str(ext))),
+        ("client", "ca", ()),
+        ("stranger", "other_ca", ()),
+    ):
         csr = directory / f"{name}.csr"
-        run("req", "-new", *ec, "-keyout", str(p[f"{name}_key"]), "-out", str(csr),
-            "-subj", f"/CN=cdpr test {name}")  # fmt: skip
-        run("x509", "-req", "-in", str(csr), "-CA", str(p[ca]), "-CAkey", str(p[f"{ca}_key"]),
-            "-CAcreateserial", "-out", str(p[name]), "-days", "2", *extra)  # fmt: skip
+        run(
+            "req",
+            "-new",
+            *ec,
+            "-keyout",
+            str(p[f"{name}_key"]),
+            "-out",
+            str(csr),
+            "-subj",
+            f"/CN=cdpr test {name}",
+        )
+        run(
+            "x509",
+            "-req",
+            "-in",
+            str(csr),
+            "-CA",
+            str(p[ca]),
+            "-CAkey",
+            str(p[f"{ca}_key"]),
+            "-CAcreateserial",
+            "-out",
+            str(p[name]),
+            "-days",
+            "2",
+            *extra,
+        )
     return p
 
 

@@ -173,8 +173,25 @@ def mbpoll_values(port: int, address: int, count: int, kind: str) -> dict[int, f
         if os.environ.get("CDPR_REQUIRE_EXTERNAL") == "1":
             pytest.fail("mbpoll not installed but CDPR_REQUIRE_EXTERNAL=1")
         pytest.skip("mbpoll (Debian package 'mbpoll') not installed")
-    cmd = [binary, "-m", "tcp", "-p", str(port), "-a", "1", "-0", "-1", "-B",
-           "-t", kind, "-r", str(address), "-c", str(count), "127.0.0.1"]  # fmt: skip
+    cmd = [
+        binary,
+        "-m",
+        "tcp",
+        "-p",
+        str(port),
+        "-a",
+        "1",
+        "-0",
+        "-1",
+        "-B",
+        "-t",
+        kind,
+        "-r",
+        str(address),
+        "-c",
+        str(count),
+        "127.0.0.1",
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
     assert res.returncode == 0, res.stdout + res.stderr
     found = re.findall(r"^\[(\d+)\]:\s+(\S+)", res.stdout, flags=re.MULTILINE)

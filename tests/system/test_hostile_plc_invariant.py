@@ -235,8 +235,11 @@ def test_the_gateway_process_against_a_hostile_plc(tmp_path) -> None:
     env.pop("NOTIFY_SOCKET", None)
     proc = subprocess.Popen(
         [sys.executable, "-m", "gateway.cli", "run", "--config", str(path)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
-    )  # fmt: skip
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     rng = random.Random(7)
     stops: list[tuple[float, float]] = []  # (SIGSTOP, SIGCONT) times
     try:

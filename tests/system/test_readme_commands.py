@@ -54,8 +54,10 @@ def test_readme_commands_run_from_a_wheel_in_an_empty_directory(tmp_path: Path) 
     res = subprocess.run(
         [str(ROOT / ".ci" / "wheel-check"), sys.executable],
         env={**env, "WHEEL_CHECK_VENV": str(install), "WHEEL_CHECK_DEMO": "0"},
-        capture_output=True, text=True, timeout=900,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -66,10 +68,15 @@ def test_readme_commands_run_from_a_wheel_in_an_empty_directory(tmp_path: Path) 
         if argv[0] == "pip":  # the extra's requirements into the wheel's venv (the wheel
             # itself is not on the package index here)
             extra = re.fullmatch(r"cdpr-gateway\[(\w+)\]", argv[2]).group(1)  # type: ignore[union-attr]
-            argv = [str(install / "venv" / "bin" / "python"), "-m", "pip", "install", "-q",
-                    *extra_requirements(extra)]  # fmt: skip
-        run = subprocess.run(argv, cwd=empty, env=env, capture_output=True, text=True,
-                             timeout=600)  # fmt: skip
+            argv = [
+                str(install / "venv" / "bin" / "python"),
+                "-m",
+                "pip",
+                "install",
+                "-q",
+                *extra_requirements(extra),
+            ]
+        run = subprocess.run(argv, cwd=empty, env=env, capture_output=True, text=True, timeout=600)
         assert run.returncode == 0, f"{command}\n{run.stdout}\n{run.stderr}"
         assert "Traceback" not in run.stderr, command
         if command.startswith("cdpr-gateway diagnose"):

@@ -54,9 +54,20 @@ from gateway.model.effects.forms import causal_acceleration
 from gateway.model.fastcall import entry_point
 
 MODULES = (
-    coulomb, coulomb_directional, presliding, viscous, stribeck, inertia, delay, lowpass,
-    gain, offset, drift, eccentricity, mass_change,
-)  # fmt: skip
+    coulomb,
+    coulomb_directional,
+    presliding,
+    viscous,
+    stribeck,
+    inertia,
+    delay,
+    lowpass,
+    gain,
+    offset,
+    drift,
+    eccentricity,
+    mass_change,
+)
 """The catalogue's order (reports and the model file list effects in it)."""
 REGISTRY: dict[str, Effect] = {mod.EFFECT.name: mod.EFFECT for mod in MODULES}
 EFFECT_NAMES: tuple[str, ...] = tuple(REGISTRY)
@@ -183,8 +194,9 @@ def chain_params(nominal: NominalChain, eff: Effects, cables: int) -> ChainParam
         stribeck_k=np.zeros(cables),
         stribeck_v_m_s=np.full(cables, 0.01),
         viscous_ns_m=np.broadcast_to(
-            np.asarray(nominal.viscous_ns_m, dtype=float), (cables,)).copy(),
-    )  # fmt: skip
+            np.asarray(nominal.viscous_ns_m, dtype=float), (cables,)
+        ).copy(),
+    )
     for e in ordered(eff, "chain"):
         e.apply_chain(draft, eff[e.name])
     law: ModelName = draft.law  # type: ignore[assignment]
@@ -264,8 +276,15 @@ class OnlineInverse:
     the first).
     """
 
-    def __init__(self, eff: Effects, cables: int, out: np.ndarray, v: np.ndarray,
-                 v_prev: np.ndarray, length: np.ndarray) -> None:  # fmt: skip
+    def __init__(
+        self,
+        eff: Effects,
+        cables: int,
+        out: np.ndarray,
+        v: np.ndarray,
+        v_prev: np.ndarray,
+        length: np.ndarray,
+    ) -> None:
         self.steps = []
         for e in reversed(ordered(eff, "path", "sensor")):
             if not e.online.compensable or e.online_kernel is None:
@@ -273,11 +292,21 @@ class OnlineInverse:
             p = online_params(e, eff[e.name], cables)
             entry = entry_point(e.online_kernel, p, out, v, v_prev, 0.0, length)
             self.steps.append((entry, p))
-        self.names = tuple(e.name for e in reversed(ordered(eff, "path", "sensor"))
-                           if e.online.compensable and e.online_kernel is not None)  # fmt: skip
+        self.names = tuple(
+            e.name
+            for e in reversed(ordered(eff, "path", "sensor"))
+            if e.online.compensable and e.online_kernel is not None
+        )
 
-    def __call__(self, y_in: np.ndarray, out: np.ndarray, v: np.ndarray, v_prev: np.ndarray,
-                 dt: float, length: np.ndarray) -> None:  # fmt: skip
+    def __call__(
+        self,
+        y_in: np.ndarray,
+        out: np.ndarray,
+        v: np.ndarray,
+        v_prev: np.ndarray,
+        dt: float,
+        length: np.ndarray,
+    ) -> None:
         out[:] = y_in
         for entry, p in self.steps:
             entry(p, out, v, v_prev, dt, length)
@@ -298,7 +327,12 @@ def compensate_online(
     chain (sensor -> platform) with ``dt`` from ``t``.
     """
     t = np.asarray(t, dtype=float)
-    s = SeriesData(t, velocity, np.asarray(length, dtype=float),
-                   causal_acceleration(t, velocity), float(t[0]) if t.size else 0.0)  # fmt: skip
+    s = SeriesData(
+        t,
+        velocity,
+        np.asarray(length, dtype=float),
+        causal_acceleration(t, velocity),
+        float(t[0]) if t.size else 0.0,
+    )
     ts = inverse(s, np.asarray(reading, dtype=float), eff, online_only=True)
     return compensate(params, ts, velocity, t)
