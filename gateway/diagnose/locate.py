@@ -65,14 +65,23 @@ class Region:
 
 
 def moving_mean(e: np.ndarray, w: int) -> np.ndarray:
-    """``np.convolve(e, ones(w) / w, "same")`` by a running sum: O(N) whatever ``w``
-    (the window is 0.5 % of the recording: 3000 samples of a 10-min one)."""
+    """``np.convolve(e, ones(w) / w, "same")`` (``e`` at least ``w`` long) by a running
+    sum: O(N) whatever ``w`` (the window is 0.5 % of the recording: 3000 samples of a
+    10-min one), with no index arrays (memory: one running sum beside the result)."""
     n = e.size
-    csum = np.concatenate(([0.0], np.cumsum(e)))
-    start = np.arange(n) - w // 2  # the window of sample k: [k - w // 2, k - w // 2 + w)
-    a = np.clip(start, 0, n)
-    b = np.clip(start + w, 0, n)
-    return (csum[b] - csum[a]) / w
+    h = w // 2  # the window of sample k: [k - h, k - h + w), clipped to the samples
+    csum = np.empty(n + 1)
+    csum[0] = 0.0
+    np.cumsum(e, out=csum[1:])
+    if n < w:  # short: every window clipped at both ends
+        k = np.arange(n)
+        return (csum[np.clip(k - h + w, 0, n)] - csum[np.clip(k - h, 0, n)]) / w
+    out = np.empty(n)
+    np.subtract(csum[w:], csum[: n - w + 1], out=out[h : n - w + h + 1])
+    out[:h] = csum[w - h : w]
+    out[n - w + h + 1 :] = csum[n] - csum[n - w + 1 : n - h]
+    out /= w
+    return out
 
 
 def cable_regions(t: np.ndarray, e: np.ndarray, regime: np.ndarray, cable: int) -> list[Region]:

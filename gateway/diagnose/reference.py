@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from gateway.core.heap import trim_heap
 from gateway.diagnose import locate
 from gateway.diagnose.fit import best_start, joint_fit, linear_refit, spec_for
 from gateway.diagnose.forward import CableData, Forward, Nominal
@@ -196,6 +197,7 @@ class PlatformReference:
             yield i, unit
             unit.release()
             d.release()
+            trim_heap()  # the cable's many freed temporaries leave the process
 
     def unit(self, prep: PlatformPrepared, i: int) -> CableUnit:
         """Cable ``i``'s selection unit: every sample, or the subset of a long recording

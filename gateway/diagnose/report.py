@@ -30,9 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gateway.core.heap import trim_heap
 from gateway.diagnose import locate, signals
 from gateway.diagnose.evidence import evidence
-from gateway.diagnose.forward import Forward, report_stderr, to_report
+from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.select import Outcome, Thresholds
 from gateway.diagnose.significance import Tested, combined_stderr
 from gateway.diagnose.stats import white_noise
@@ -203,6 +204,9 @@ def noise_estimate(resid: np.ndarray) -> float:
     return float(math.sqrt(np.mean(per**2)))
 
 
+EXPLAIN_SAMPLES = 150_000
+
+
 def final_residual(prep, forwards, thetas, located, th: Thresholds):
     """The final model's residual, cable by cable (no (N, m) residual is held): its white
     noise (RMS over cables), where it lives (:class:`locate.EnergyMap`) and the strongest
@@ -210,17 +214,26 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
     and the :class:`signals.Structure`, or Nones)."""
     per = np.zeros(len(forwards))
     emap = locate.EnergyMap(prep.rec.t)
-    extra = {k: np.asarray(v, dtype=float) for k, v in (prep.rec.extra or {}).items()}
-    explainer = signals.Explainer(prep.blocks, prep.n_blocks, extra)
+    # the structure search on at most EXPLAIN_SAMPLES samples a cable (evenly thinned: a
+    # smooth function of a signal needs no more; memory and time of a long recording)
+    n = prep.rec.samples
+    idx = np.arange(0, n, max(1, -(-n // EXPLAIN_SAMPLES)))
+    blk = prep.blocks[idx]
+    extra = {k: np.asarray(v, dtype=float)[idx] for k, v in (prep.rec.extra or {}).items()}
+    explainer = signals.Explainer(blk, prep.n_blocks, extra)
     for i, (fw, th_i) in enumerate(zip(forwards, thetas, strict=True)):
         r = fw.data.ts - fw.predict(th_i)
         fw.clear_cache()
         r[~prep.valid[:, i]] = 0.0
         per[i] = white_noise(r[prep.valid[:, i]])
         emap.add(i + 1, r, located.regime[:, i])
-        use = prep.usable[:, i]
-        explainer.add(fw.data, r, (prep.blocks % 2 == 0) & use, (prep.blocks % 2 == 1) & use)
-        fw.data.release()
+        use = prep.usable[idx, i]
+        d = fw.data  # thinned: its x and a from the thinned series (not the whole's)
+        thin = CableData(d.t[idx], d.v[idx], d.tp[idx], d.ts[idx], d.t0)
+        explainer.add(thin, r[idx], (blk % 2 == 0) & use, (blk % 2 == 1) & use)
+        del thin, r
+        d.release()
+        trim_heap()
     noise = float(math.sqrt(np.mean(per**2))) if per.size else 0.0
     found = explainer.result()
     st = signals.significant(found, th.fdr)
