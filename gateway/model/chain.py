@@ -6,6 +6,10 @@ Per pulley ``T_j = T_{j-1} + F_j`` where ``F_j`` is
 * ``coulomb``: ``sgn(v) F_Rj`` (eq. 8, 11, 12),
 * ``dahl``: the pre-sliding state stepped with :func:`friction.dahl_step` over the
   cable travel of each step (eq. 14), carried between calls,
+* ``maxwell_slip``: ``K`` Dahl elements in parallel (generalised Maxwell-slip): element
+  ``q`` holds the fraction ``w_q`` of the Coulomb level and has the stiffness
+  ``w_q sigma_q``, each stepped like the Dahl state; ``F_j`` is their sum (one element
+  with ``w = 1`` is ``dahl``),
 * ``none``: 0,
 
 with the Coulomb level ``F_Rj = (lambda_ij(s) |T_j| + f0_i / n) S_i(v)`` (physics.md:
@@ -17,26 +21,34 @@ a load-independent part (seals, preload; split evenly over the pulleys) and
 at the platform end: ``T_p = T_n + c v``. ``|T|`` makes the law hold for push forces too
 (a single-axis test rig).
 
-Cable travel (:func:`travel_into`, the one definition every form uses): the trapezoid over
-the actual sample times, ``dx_k = (v_{k-1} + v_k) / 2 (t_k - t_{k-1})``, ``dx_0 = 0``; the
-Dahl state advances by ``dx_k`` and takes its direction from it, while the Coulomb sign,
-the Stribeck factor and the viscous term take the sample's own ``v_k``. (Stepping with
-``v_k dt_k`` instead makes an error of the order ``a dt^2 / 2`` per step that sampling
-jitter turns into noise: 0.13 N RMS on a noise-free 100 Hz +-2 ms recording.)
+Cable travel (the one definition every form uses): the setpoint travel
+(:func:`travel_into`), the trapezoid over the actual sample times,
+``dx_k = (v_{k-1} + v_k) / 2 (t_k - t_{k-1})``, ``dx_0 = 0``; then, per cable, in the
+kernels (:func:`_drive`): plus the stretch change ``(T_s,k - T_s,k-1) c`` of the cable
+between winch and sensor pulley (compliance ``c = 1 / k``, ``T_s`` the sensor-side tension;
+0 at a cable's first sample), then through the play operator of width ``b`` (backlash: the
+drive stands still until the setpoint has travelled ``b`` back across the gap). The Dahl
+and Maxwell-slip states advance by that travel and take their direction from it, while
+the Coulomb sign, the Stribeck factor and the viscous term take the sample's own ``v_k``.
+(Stepping with ``v_k dt_k`` instead makes an error of the order ``a dt^2 / 2`` per step
+that sampling jitter turns into noise: 0.13 N RMS on a noise-free 100 Hz +-2 ms recording.)
 
 Simulation (platform -> sensor) is explicit: ``F_Rj`` follows from the known platform-side
-tension, so each pulley is one exact Dahl step. Compensation (sensor -> platform) is
-implicit in ``T_j``: Newton's iteration seeded with the previous cycle (``T_{j-1} +
-F_old``) converges to 1e-9 N in one or two passes at 1 kHz (tests check it), stopping at
-``tol_n`` or after ``max_iter`` passes.
+tension, so each pulley is one exact Dahl step; with a stretching cable the travel depends
+on the sensor-side tension being computed, and ``T_s`` is the root of
+``T_s = sim(T_s)`` found per sample by a bracketed secant (:func:`_simulate_stretch`).
+Compensation (sensor -> platform) is implicit in ``T_j``: Newton's iteration seeded with
+the previous cycle (``T_{j-1} + F_old``) converges to 1e-9 N in one or two passes at 1 kHz
+(tests check it), stopping at ``tol_n`` or after ``max_iter`` passes; its travel is
+explicit (``T_s`` is its input).
 
 * :func:`compensate` / :class:`ChainStepper`: sensor reading ``T_s`` and setpoint velocity
   -> platform tension ``T_p`` (what the gateway does each cycle).
 * :func:`simulate`: platform tension and velocity -> the sensor reading ``T_s`` (the plant).
 
 Two compiled kernels (:func:`compensate_kernel`, :func:`simulate_kernel`) share the pulley
-step and read their parameters from one :class:`KernelParams`; ``compensate(simulate(T))``
-returns ``T``.
+step and read their parameters from one :class:`KernelParams` and their state from one
+:class:`ChainState`; ``compensate(simulate(T))`` returns ``T``.
 """
 
 from __future__ import annotations
@@ -51,12 +63,14 @@ from numba import njit
 from gateway.model.fastcall import entry_point
 from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step, dahl_step_slope
 
-LAWS = {"none": 0, "coulomb": 1, "dahl": 2}
+LAWS = {"none": 0, "coulomb": 1, "dahl": 2, "maxwell_slip": 3}
 """The law table: a friction law's name -> its code in the compiled pulley step
-(:func:`_pulley` dispatches on it). A new chain-side law is one row here and its branch
-there; the effects that switch a chain to it say so in their module."""
+(:func:`_pulley` dispatches on it; the multi-element law in :func:`_slip`). A new
+chain-side law is one row here and its branch there; the effects that switch a chain to
+it say so in their module."""
 LAW_NONE, LAW_COULOMB, LAW_DAHL = LAWS["none"], LAWS["coulomb"], LAWS["dahl"]
-ModelName = Literal["none", "coulomb", "dahl"]
+LAW_SLIP = LAWS["maxwell_slip"]
+ModelName = Literal["none", "coulomb", "dahl", "maxwell_slip"]
 
 
 def _per_cable(value: float | np.ndarray, cables: int, name: str) -> np.ndarray:
@@ -76,7 +90,11 @@ class ChainParams:
     ``mu`` (m, n) the bearing coefficient paying out (v > 0), ``mu_in`` (m, n) hauling in
     (v < 0; the same as ``mu`` unless a direction-dependent effect sets it);
     ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,).
-    ``beta``: Dahl shape exponent.
+    ``beta``: Dahl shape exponent. ``slip_w``, ``slip_sigma`` (m, K): the Maxwell-slip
+    elements' fractions of the level and stiffnesses per unit fraction (N/m; read by
+    ``maxwell_slip`` only; default one element, ``w = 1``, ``sigma_n_m``).
+    ``stretch_c`` (m,): compliance (m/N) of the cable between winch and sensor pulley (0:
+    rigid); ``backlash_m`` (m,): width of the dead zone in the travel (0: none).
     """
 
     model: ModelName
@@ -89,6 +107,10 @@ class ChainParams:
     stribeck_v_m_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     viscous_ns_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     mu_in: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slip_w: np.ndarray = field(default_factory=lambda: np.ones((0, 1)))
+    slip_sigma: np.ndarray = field(default_factory=lambda: np.ones((0, 1)))
+    stretch_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    backlash_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @staticmethod
     def build(
@@ -104,9 +126,14 @@ class ChainParams:
         stribeck_k: float | np.ndarray = 0.0,
         stribeck_v_m_s: float | np.ndarray = 0.01,
         viscous_ns_m: float | np.ndarray = 0.0,
+        slip_w: np.ndarray | None = None,
+        slip_sigma: np.ndarray | None = None,
+        stretch_c: float | np.ndarray = 0.0,
+        backlash_m: float | np.ndarray = 0.0,
     ) -> ChainParams:
         """Broadcast scalars and per-pulley (n,) or per-cable-per-pulley (m, n) ``mu``
-        (``mu_in`` None: the same as ``mu``)."""
+        (``mu_in`` None: the same as ``mu``); ``slip_w``, ``slip_sigma`` (K,) or (m, K)
+        (None: one element, ``w = 1`` at ``sigma_n_m``)."""
         if model not in LAWS:
             raise ValueError(f"model must be one of {sorted(LAWS)}, got {model!r}")
         wrap = np.asarray(wrap_rad, dtype=float).reshape(-1)
@@ -117,17 +144,32 @@ class ChainParams:
         vs = _per_cable(stribeck_v_m_s, cables, "stribeck_v_m_s")
         if np.any(vs <= 0):
             raise ValueError("stribeck_v_m_s must be > 0")
+        sigma = _per_cable(sigma_n_m, cables, "sigma_n_m")
+        w = np.ones((cables, 1)) if slip_w is None else np.asarray(slip_w, dtype=float)
+        w = np.broadcast_to(w, (cables, w.shape[-1])).copy()
+        ks = sigma[:, None].copy() if slip_sigma is None else np.broadcast_to(
+            np.asarray(slip_sigma, dtype=float), w.shape).copy()  # fmt: skip
+        if np.any(w < 0) or np.any(np.abs(w.sum(axis=1) - 1.0) > 1e-9) or np.any(ks <= 0):
+            raise ValueError("slip_w: fractions >= 0 summing to 1; slip_sigma: > 0")
+        stretch = _per_cable(stretch_c, cables, "stretch_c")
+        play = _per_cable(backlash_m, cables, "backlash_m")
+        if np.any(stretch < 0) or np.any(play < 0):
+            raise ValueError("stretch_c and backlash_m must be >= 0")
         return ChainParams(
             model=model,
             wrap_rad=wrap,
             mu=mu_arr,
             mu_in=mu_in_arr,
-            sigma_n_m=_per_cable(sigma_n_m, cables, "sigma_n_m"),
+            sigma_n_m=sigma,
             beta=float(beta),
             f0_n=_per_cable(f0_n, cables, "f0_n"),
             stribeck_k=_per_cable(stribeck_k, cables, "stribeck_k"),
             stribeck_v_m_s=vs,
             viscous_ns_m=_per_cable(viscous_ns_m, cables, "viscous_ns_m"),
+            slip_w=w,
+            slip_sigma=ks,
+            stretch_c=stretch,
+            backlash_m=play,
         )
 
     @staticmethod
@@ -156,6 +198,11 @@ class ChainParams:
     def pulleys(self) -> int:
         return int(self.wrap_rad.size)
 
+    @property
+    def elements(self) -> int:
+        """State elements per pulley: the Maxwell-slip law's ``K``, else 1."""
+        return int(self.slip_w.shape[1]) if LAWS[self.model] == LAW_SLIP else 1
+
 
 _NEWTON_CURVATURE = 1.0
 """Bound, in 1/N, on |g''/(2 g')| for the pulley equation g(T) = T - T_a - F(T): F depends on
@@ -165,21 +212,28 @@ Newton's next correction is at most this times step^2, so a pass whose correctio
 step^2 * bound <= tol leaves an error below tol: no confirming pass is needed."""
 
 
+F0, STRIB_K, STRIB_V, VISCOUS, SIGMA, STRETCH, PLAY = range(7)
+"""Columns of :attr:`KernelParams.cable`."""
+GAP, TS_PREV = 0, 1
+"""Columns of :attr:`ChainState.drive`."""
+
+
 class KernelParams(NamedTuple):
     """What the compiled kernels read, as one numba-compatible structure.
 
-    ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0;
-    ``f0``, ``strib_k``, ``strib_v``, ``viscous``, ``sigma`` (m,); ``beta``; ``law``
-    (:data:`LAWS`); Newton's ``tol`` (N^2 on the squared step) and ``max_iter``.
+    ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0; ``cable``
+    (m, 7): per cable ``f0``, the Stribeck ``k`` and ``v_s``, ``viscous``, ``sigma``, the
+    stretch compliance ``c`` (m/N) and the backlash width (m) (columns :data:`F0` ..
+    :data:`PLAY`; one array: every array of the structure costs unboxing time per call);
+    ``slip`` (m, K, 2): per Maxwell-slip element its fraction ``w`` and stiffness per unit
+    fraction; ``beta``; ``law`` (:data:`LAWS`); Newton's ``tol`` (N^2 on the squared step)
+    and ``max_iter``.
     """
 
     lam_pos: np.ndarray
     lam_neg: np.ndarray
-    f0: np.ndarray
-    strib_k: np.ndarray
-    strib_v: np.ndarray
-    viscous: np.ndarray
-    sigma: np.ndarray
+    cable: np.ndarray
+    slip: np.ndarray
     beta: float
     law: int
     tol: float
@@ -189,14 +243,17 @@ class KernelParams(NamedTuple):
 def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20) -> KernelParams:
     """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
     lam_pos, lam_neg = coulomb_coefficients(params)
+    cable = np.column_stack([
+        params.f0_n, params.stribeck_k, params.stribeck_v_m_s, params.viscous_ns_m,
+        params.sigma_n_m, params.stretch_c, params.backlash_m,
+    ])  # fmt: skip
+    k = params.elements
+    slip = np.stack([params.slip_w[:, :k], params.slip_sigma[:, :k]], axis=2)
     return KernelParams(
         lam_pos=lam_pos,
         lam_neg=lam_neg,
-        f0=params.f0_n,
-        strib_k=params.stribeck_k,
-        strib_v=params.stribeck_v_m_s,
-        viscous=params.viscous_ns_m,
-        sigma=params.sigma_n_m,
+        cable=np.ascontiguousarray(cable),
+        slip=np.ascontiguousarray(slip),
         beta=float(params.beta),
         law=LAWS[params.model],
         tol=float(tol_n),
@@ -204,10 +261,45 @@ def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20)
     )
 
 
+class ChainState(NamedTuple):
+    """What the kernels carry from one sample to the next (updated in place).
+
+    ``f`` (m, n, K): the force of each state element of each pulley (K = 1 but for the
+    Maxwell-slip law; a pulley's friction force is the sum over its elements); ``drive``
+    (m, 2): per cable where the drive stands in the backlash's dead zone (column
+    :data:`GAP`, in ``[-b/2, b/2]``, 0 at the start) and the previous sample's sensor-side
+    tension for the stretch change (:data:`TS_PREV`, NaN: none yet); ``scratch``
+    (m, n, K): room for trial steps (so that no step allocates).
+    """
+
+    f: np.ndarray
+    drive: np.ndarray
+    scratch: np.ndarray
+
+    @staticmethod
+    def relaxed(params: ChainParams) -> ChainState:
+        """The state of a chain at rest: every element force zero."""
+        m, n, k = params.cables, params.pulleys, params.elements
+        drive = np.zeros((m, 2))
+        drive[:, TS_PREV] = np.nan
+        return ChainState(np.zeros((m, n, k)), drive, np.zeros((m, n, k)))
+
+    def reset(self) -> None:
+        """Every pulley relaxed, the drive centred in its dead zone, no previous tension."""
+        self.f[:] = 0.0
+        self.drive[:, GAP] = 0.0
+        self.drive[:, TS_PREV] = np.nan
+
+    def pulley_forces(self) -> np.ndarray:
+        """(m, n) friction force of each pulley (the sum of its elements), N."""
+        return self.f.sum(axis=2)
+
+
 @njit(cache=True, inline="always")
 def _pulley(p, i, j, t_b, f_old, dx, strib):
     """Friction force of pulley ``j`` of cable ``i`` whose platform-side tension is
-    ``t_b``, and dF/dt_b, by the chain's law (:data:`LAWS`).
+    ``t_b``, and dF/dt_b, by the chain's law (:data:`LAWS`; ``maxwell_slip``:
+    :func:`_slip`).
 
     ``dx``: the step's cable travel (Dahl) or, for Coulomb, anything with the sign of
     the sample's velocity (only its sign is read); ``strib``: the Stribeck factor."""
@@ -216,14 +308,14 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
         return (0.0 if law == LAW_COULOMB else f_old), 0.0
     s = 1.0 if dx > 0.0 else -1.0
     lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
-    fr = (lam * abs(t_b) + p.f0[i] / p.lam_pos.shape[1]) * strib
+    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
     dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
     if law == LAW_COULOMB:
         return s * fr, s * dfr
     # LAW_DAHL
     if fr <= FR_FLOOR_N:
         return 0.0, 0.0
-    sigma = p.sigma[i]
+    sigma = p.cable[i, SIGMA]
     if p.beta == 1.0:
         f_new, slope = dahl_step_slope(f_old, fr, dx, sigma)
         return f_new, slope * dfr
@@ -232,18 +324,55 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
 
 
 @njit(cache=True, inline="always")
+def _slip(p, i, j, t_b, f, dx, strib, trial):
+    """The Maxwell-slip law: pulley ``j`` of cable ``i`` with its elements ``f[i, j]``
+    stepped into ``trial`` (K,); returns their sum and d(sum)/dt_b. Element ``q`` is a
+    Dahl state with the level ``w_q F_R`` and the stiffness ``w_q sigma_q`` (its relaxation
+    length ``F_R / sigma_q`` does not depend on ``w_q``)."""
+    k_el = p.slip.shape[1]
+    total = 0.0
+    if dx == 0.0:
+        for q in range(k_el):
+            trial[q] = f[i, j, q]
+            total += trial[q]
+        return total, 0.0
+    s = 1.0 if dx > 0.0 else -1.0
+    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
+    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
+    dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    slope = 0.0
+    for q in range(k_el):
+        w = p.slip[i, q, 0]
+        level = w * fr
+        if level <= FR_FLOOR_N:
+            trial[q] = 0.0
+            continue
+        sigma = w * p.slip[i, q, 1]
+        if p.beta == 1.0:
+            f_new, sl = dahl_step_slope(f[i, j, q], level, dx, sigma)
+        else:
+            f_new = dahl_step(f[i, j, q], level, dx, sigma, p.beta)
+            sl = s * (1.0 - math.exp(-sigma * abs(dx) / level))  # quasi-Newton slope
+        trial[q] = f_new
+        total += f_new
+        slope += w * sl
+    return total, slope * dfr
+
+
+@njit(cache=True, inline="always")
 def _stribeck(p, i, v):
-    if p.strib_k[i] == 0.0:
+    if p.cable[i, STRIB_K] == 0.0:
         return 1.0
-    return 1.0 + p.strib_k[i] * math.exp(-((v / p.strib_v[i]) ** 2))
+    return 1.0 + p.cable[i, STRIB_K] * math.exp(-((v / p.cable[i, STRIB_V]) ** 2))
 
 
 @njit(cache=True)
 def travel_into(vel, dt, v_prev, dx):
-    """Cable travel of each step (m), the trapezoid over the actual sample spacing:
+    """Setpoint travel of each step (m), the trapezoid over the actual sample spacing:
     ``dx[k, i] = (v_prev[i] + vel[k, i]) / 2 * dt[k]`` with ``v_prev`` the velocity of the
     step before, updated in place (so a per-cycle caller carries it). ``vel``, ``dx``
-    (N, m); ``dt`` (N,); ``v_prev`` (m,)."""
+    (N, m); ``dt`` (N,); ``v_prev`` (m,). The kernels drive the friction state with it
+    through :func:`_drive` (stretch, backlash)."""
     for k in range(vel.shape[0]):
         for i in range(vel.shape[1]):
             dx[k, i] = 0.5 * (v_prev[i] + vel[k, i]) * dt[k]
@@ -251,17 +380,62 @@ def travel_into(vel, dt, v_prev, dx):
 
 
 @njit(cache=True, inline="always")
+def _play(gap, d, width):
+    """The play operator: the drive's position in the dead zone ``gap`` moved by ``d``;
+    returns (the drive's travel, the new gap). Inside ``[-width/2, width/2]`` nothing
+    moves; at an edge the drive follows."""
+    g = gap + d
+    half = 0.5 * width
+    if g > half:
+        return g - half, half
+    if g < -half:
+        return g + half, -half
+    return 0.0, g
+
+
+@njit(cache=True, inline="always")
+def _drive(p, st, i, dx_set, t_s):
+    """The travel that drives cable ``i``'s friction state for a step whose setpoint
+    travel is ``dx_set`` and whose sensor-side tension is ``t_s``: plus the stretch change
+    ``(t_s - t_s,prev) c``, then through the dead zone; updates ``st.drive``
+    (the one definition, docs/physics.md sec. 3)."""
+    c = p.cable[i, STRETCH]
+    width = p.cable[i, PLAY]
+    if c == 0.0 and width == 0.0:
+        return dx_set
+    d = dx_set
+    if c != 0.0:
+        prev = st.drive[i, TS_PREV]
+        if prev == prev:
+            d += (t_s - prev) * c
+        st.drive[i, TS_PREV] = t_s
+    if width != 0.0:
+        d, st.drive[i, GAP] = _play(st.drive[i, GAP], d, width)
+    return d
+
+
+@njit(cache=True, inline="always")
 def _direction(law, v, dx):
-    """What sets the pulley's direction: the velocity for Coulomb, the travel for Dahl."""
+    """What sets the pulley's direction: the velocity for Coulomb, the travel for Dahl
+    and Maxwell-slip."""
     return v if law == LAW_COULOMB else dx
 
 
+@njit(cache=True, inline="always")
+def _plain(p):
+    """True when the chain is one-element (not Maxwell-slip) and every cable's travel is
+    the setpoint's (no stretch, no dead zone): the kernels' fast path."""
+    if p.law == LAW_SLIP:
+        return False
+    for i in range(p.cable.shape[0]):
+        if p.cable[i, STRETCH] != 0.0 or p.cable[i, PLAY] != 0.0:
+            return False
+    return True
+
+
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
-def compensate_kernel(p, t_in, vel, dx_all, f_state, out):
-    """Sensor -> platform for (N, m) ``t_in``, ``vel``, travel ``dx_all`` (:func:`travel_into`)
-    and ``out``; ``f_state`` (m, n) in/out. Each pulley's implicit equation by Newton, seeded
-    with the previous cycle's force. Returns the largest number of Newton passes any pulley
-    needed."""
+def _compensate_plain(p, t_in, vel, dx_all, f_state, out):
+    """:func:`compensate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
     n = p.lam_pos.shape[1]
     worst = 0
@@ -286,21 +460,155 @@ def compensate_kernel(p, t_in, vel, dx_all, f_state, out):
                     f_state[i, j] = t_b - t_a
                     worst = max(worst, it)
                     t_a = t_b
-            out[k, i] = t_a + p.viscous[i] * v
+            out[k, i] = t_a + p.cable[i, VISCOUS] * v
     return worst
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
-def simulate_kernel(p, t_in, vel, dx_all, f_state, out):
-    """Platform -> sensor, same arguments as :func:`compensate_kernel`; explicit (each
-    pulley's Coulomb level follows from its known platform-side tension)."""
+def compensate_kernel(p, t_in, vel, dx_all, st, out):
+    """Sensor -> platform for (N, m) ``t_in``, ``vel``, setpoint travel ``dx_all``
+    (:func:`travel_into`) and ``out``; ``st`` (:class:`ChainState`) in/out. Each pulley's
+    implicit equation by Newton, seeded with the previous cycle's force. Returns the largest
+    number of Newton passes any pulley needed."""
+    n_samples, m = t_in.shape
+    n = p.lam_pos.shape[1]
+    f_state = st.f
+    if _plain(p):
+        return _compensate_plain(p, t_in, vel, dx_all, f_state.reshape((m, n)), out)
+    worst = 0
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            t_a = t_in[k, i]
+            dx = _direction(p.law, v, _drive(p, st, i, dx_all[k, i], t_a))
+            if p.law == LAW_SLIP:
+                strib = _stribeck(p, i, v)
+                for j in range(n):
+                    f_old = 0.0
+                    for q in range(f_state.shape[2]):
+                        f_old += f_state[i, j, q]
+                    t_b = t_a + f_old
+                    it = 0
+                    while it < p.max_iter:
+                        it += 1
+                        f_new, d_b = _slip(p, i, j, t_b, f_state, dx, strib, st.scratch[i, j])
+                        step = (t_b - t_a - f_new) / (1.0 - d_b)
+                        t_b -= step
+                        if step * step * _NEWTON_CURVATURE <= p.tol:
+                            break
+                    _slip(p, i, j, t_b, f_state, dx, strib, st.scratch[i, j])
+                    f_state[i, j, :] = st.scratch[i, j]
+                    worst = max(worst, it)
+                    t_a = t_b
+            elif p.law != LAW_NONE:
+                strib = _stribeck(p, i, v)
+                for j in range(n):
+                    f_old = f_state[i, j, 0]
+                    t_b = t_a + f_old
+                    it = 0
+                    while it < p.max_iter:
+                        it += 1
+                        f_new, d_b = _pulley(p, i, j, t_b, f_old, dx, strib)
+                        step = (t_b - t_a - f_new) / (1.0 - d_b)
+                        t_b -= step
+                        if step * step * _NEWTON_CURVATURE <= p.tol:
+                            break
+                    f_state[i, j, 0] = t_b - t_a
+                    worst = max(worst, it)
+                    t_a = t_b
+            out[k, i] = t_a + p.cable[i, VISCOUS] * v
+    return worst
+
+
+@njit(cache=True, inline="always")
+def _simulate_pulleys(p, i, t_b, dx, strib, src, dst):
+    """Platform -> sensor through cable ``i``'s pulleys from the element states ``src``
+    (m, n, K) into ``dst`` (m, n, K; may be ``src``); returns the sensor-side tension."""
+    n = p.lam_pos.shape[1]
+    for j in range(n - 1, -1, -1):
+        if p.law == LAW_SLIP:
+            f_new, _ = _slip(p, i, j, t_b, src, dx, strib, dst[i, j])
+        else:
+            f_new, _ = _pulley(p, i, j, t_b, src[i, j, 0], dx, strib)
+            dst[i, j, 0] = f_new
+        t_b -= f_new
+    return t_b
+
+
+@njit(cache=True)
+def _stretch_eval(p, st, i, t_b, dx_set, v, strib, t_s, scratch):
+    """The sensor-side tension the pulleys give when the sensor side is assumed to carry
+    ``t_s`` (its stretch change enters the travel); states from ``st`` into ``scratch``."""
+    d = dx_set
+    prev = st.drive[i, TS_PREV]
+    if prev == prev:
+        d += (t_s - prev) * p.cable[i, STRETCH]
+    if p.cable[i, PLAY] != 0.0:
+        d = _play(st.drive[i, GAP], d, p.cable[i, PLAY])[0]
+    return _simulate_pulleys(p, i, t_b, _direction(p.law, v, d), strib, st.f, scratch)
+
+
+@njit(cache=True)
+def _simulate_stretch(p, st, i, t_b, dx_set, v, strib, scratch):
+    """Platform -> sensor for a stretching cable: the root ``T_s`` of
+    ``h(T) = sim(T) - T`` (``sim``: :func:`_stretch_eval`), bracketed from the previous
+    sample's tension and refined by the Illinois secant to ``tol``; the states committed at
+    the root. ``h`` falls with slope <= -1 wherever the chain's force grows with its
+    travel (series compliance), so the bracket is found in one or two steps."""
+    prev = st.drive[i, TS_PREV]
+    a = prev if prev == prev else t_b
+    ha = _stretch_eval(p, st, i, t_b, dx_set, v, strib, a, scratch) - a
+    root = a
+    if ha != 0.0:
+        b = a + ha
+        hb = _stretch_eval(p, st, i, t_b, dx_set, v, strib, b, scratch) - b
+        grow = 1.0
+        tries = 0
+        while hb != 0.0 and (hb > 0.0) == (ha > 0.0) and tries < 40:
+            a, ha = b, hb  # no sign change yet: step further the same way
+            grow *= 2.0
+            b = a + grow * hb
+            hb = _stretch_eval(p, st, i, t_b, dx_set, v, strib, b, scratch) - b
+            tries += 1
+        root = b
+        if hb != 0.0 and (hb > 0.0) != (ha > 0.0):
+            side = 0
+            for _ in range(4 * p.max_iter + 20):
+                c = b - hb * (b - a) / (hb - ha)
+                hc = _stretch_eval(p, st, i, t_b, dx_set, v, strib, c, scratch) - c
+                root = c
+                small = 1e-12 * max(1.0, abs(c))
+                if abs(hc) <= small or abs(c - b) <= small:
+                    break
+                if (hc > 0.0) == (hb > 0.0):
+                    b, hb = c, hc
+                    if side == -1:
+                        ha *= 0.5
+                    side = -1
+                else:
+                    a, ha = b, hb
+                    b, hb = c, hc
+                    side = 1
+    d = dx_set
+    if prev == prev:
+        d += (root - prev) * p.cable[i, STRETCH]
+    st.drive[i, TS_PREV] = root
+    if p.cable[i, PLAY] != 0.0:
+        d, st.drive[i, GAP] = _play(st.drive[i, GAP], d, p.cable[i, PLAY])
+    _simulate_pulleys(p, i, t_b, _direction(p.law, v, d), strib, st.f, st.f)
+    return root
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _simulate_plain(p, t_in, vel, dx_all, f_state, out):
+    """:func:`simulate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
     n = p.lam_pos.shape[1]
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
             dx = _direction(p.law, v, dx_all[k, i])
-            t_b = t_in[k, i] - p.viscous[i] * v
+            t_b = t_in[k, i] - p.cable[i, VISCOUS] * v
             if p.law != LAW_NONE:
                 strib = _stribeck(p, i, v)
                 for j in range(n - 1, -1, -1):
@@ -308,6 +616,31 @@ def simulate_kernel(p, t_in, vel, dx_all, f_state, out):
                     f_state[i, j] = f_new
                     t_b -= f_new
             out[k, i] = t_b
+    return 0
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def simulate_kernel(p, t_in, vel, dx_all, st, out):
+    """Platform -> sensor, same arguments as :func:`compensate_kernel`; explicit (each
+    pulley's Coulomb level follows from its known platform-side tension) but for a
+    stretching cable (:func:`_simulate_stretch`)."""
+    n_samples, m = t_in.shape
+    f_state = st.f
+    if _plain(p):
+        return _simulate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])), out)
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            t_b = t_in[k, i] - p.cable[i, VISCOUS] * v
+            if p.law == LAW_NONE:
+                out[k, i] = t_b
+                continue
+            strib = _stribeck(p, i, v)
+            if p.cable[i, STRETCH] != 0.0:
+                out[k, i] = _simulate_stretch(p, st, i, t_b, dx_all[k, i], v, strib, st.scratch)
+            else:
+                dx = _direction(p.law, v, _drive(p, st, i, dx_all[k, i], 0.0))
+                out[k, i] = _simulate_pulleys(p, i, t_b, dx, strib, f_state, f_state)
     return 0
 
 
@@ -354,9 +687,9 @@ def travel(t: np.ndarray | float, velocity: np.ndarray) -> np.ndarray:
     return dx
 
 
-def new_state(params: ChainParams) -> np.ndarray:
-    """Friction state (m, n), N: relaxed (every pulley force zero)."""
-    return np.zeros((params.cables, params.pulleys))
+def new_state(params: ChainParams) -> ChainState:
+    """Friction state of ``params``' chain: relaxed (every pulley force zero)."""
+    return ChainState.relaxed(params)
 
 
 def _run_batch(
@@ -365,7 +698,7 @@ def _run_batch(
     tension: np.ndarray,
     velocity: np.ndarray,
     t: np.ndarray | float,
-    state: np.ndarray | None,
+    state: ChainState | None,
     tol_n: float,
     max_iter: int,
 ) -> np.ndarray:
@@ -400,14 +733,14 @@ def simulate(
     tension_platform: np.ndarray,
     velocity: np.ndarray,
     t: np.ndarray | float,
-    state: np.ndarray | None = None,
+    state: ChainState | None = None,
     tol_n: float = 1e-10,
     max_iter: int = 20,
 ) -> np.ndarray:
     """Sensor reading (N, m) from platform tension and cable velocity, both (N, m).
 
-    ``t``: sample times (N,) in s, or a constant period. ``state`` (m, n): friction
-    state carried in and updated in place (relaxed if None).
+    ``t``: sample times (N,) in s, or a constant period. ``state``
+    (:class:`ChainState`): carried in and updated in place (relaxed if None).
     """
     return _run_batch(params, False, tension_platform, velocity, t, state, tol_n, max_iter)
 
@@ -417,7 +750,7 @@ def compensate(
     tension_sensor: np.ndarray,
     velocity: np.ndarray,
     t: np.ndarray | float,
-    state: np.ndarray | None = None,
+    state: ChainState | None = None,
     tol_n: float = 1e-10,
     max_iter: int = 20,
 ) -> np.ndarray:
@@ -428,10 +761,10 @@ def compensate(
 class ChainStepper:
     """Per-cycle form: one sample for every cable on preallocated buffers.
 
-    The friction state and the previous step's velocity (for the travel,
-    :func:`travel_into`) are carried between calls. ``step`` allocates nothing. The first
-    step after construction or :meth:`reset` has no previous velocity: it takes its own
-    (``dx = v dt``; the batch form takes no travel at its first sample, ``dt = 0``).
+    The friction state (:attr:`chain_state`) and the previous step's velocity (for the
+    travel, :func:`travel_into`) are carried between calls. ``step`` allocates nothing. The
+    first step after construction or :meth:`reset` has no previous velocity: it takes its
+    own (``dx = v dt``; the batch form takes no travel at its first sample, ``dt = 0``).
     """
 
     def __init__(
@@ -446,7 +779,7 @@ class ChainStepper:
         self.params = params
         self.forward = forward
         self.period_s = float(period_s)
-        self.state = new_state(params)
+        self.chain_state = new_state(params)
         self.iterations = 0
         self._in = np.zeros((1, m))
         self._vel = np.zeros((1, m))
@@ -459,13 +792,18 @@ class ChainStepper:
         self._travel = entry_point(travel_into, self._vel, self._dt, self._v_prev, self._dx)
         self._kernel = entry_point(
             compensate_kernel if forward else simulate_kernel,
-            self._p, self._in, self._vel, self._dx, self.state, self._out,
+            self._p, self._in, self._vel, self._dx, self.chain_state, self._out,
         )  # fmt: skip
+
+    @property
+    def state(self) -> np.ndarray:
+        """(m, n) friction force of each pulley (N): the sum of its state elements."""
+        return self.chain_state.pulley_forces()
 
     def reset(self) -> None:
         """Relax every pulley (e.g. after a long outage when the real state is unknown);
         the next step has no previous velocity."""
-        self.state[:] = 0.0
+        self.chain_state.reset()
         self._primed = False
 
     def step(
@@ -481,7 +819,7 @@ class ChainStepper:
         self._dt[0] = self.period_s if dt < 0.0 else dt  # own buffers: types fixed
         self._travel(self._vel, self._dt, self._v_prev, self._dx)
         self.iterations = self._kernel(
-            self._p, self._in, self._vel, self._dx, self.state, self._out
+            self._p, self._in, self._vel, self._dx, self.chain_state, self._out
         )
         out[:] = self._out[0]
         return self.iterations
