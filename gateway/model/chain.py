@@ -9,7 +9,9 @@ Per pulley ``T_j = T_{j-1} + F_j`` where ``F_j`` is
 * ``maxwell_slip``: ``K`` Dahl elements in parallel (generalised Maxwell-slip): element
   ``q`` holds the fraction ``w_q`` of the Coulomb level and has the stiffness
   ``w_q sigma_q``, each stepped like the Dahl state; ``F_j`` is their sum (one element
-  with ``w = 1`` is ``dahl``),
+  with ``w = 1`` is ``dahl``). An element is carried per unit fraction, ``G_q`` with the
+  whole level ``F_R`` and the stiffness ``sigma_q`` (``F_q = w_q G_q`` exactly: the Dahl
+  step is homogeneous in level and stiffness), so ``F_j`` is linear in the fractions,
 * ``none``: 0,
 
 with the Coulomb level ``F_Rj = (lambda_ij(s) |T_j| + f0_i / n) S_i(v)`` (physics.md:
@@ -24,23 +26,23 @@ at the platform end: ``T_p = T_n + c v``. ``|T|`` makes the law hold for push fo
 Cable travel (the one definition every form uses): the setpoint travel
 (:func:`travel_into`), the trapezoid over the actual sample times,
 ``dx_k = (v_{k-1} + v_k) / 2 (t_k - t_{k-1})``, ``dx_0 = 0``; then, per cable, in the
-kernels (:func:`_drive`): plus the stretch change ``(T_s,k - T_s,k-1) c`` of the cable
-between winch and sensor pulley (compliance ``c = 1 / k``, ``T_s`` the sensor-side tension;
-0 at a cable's first sample), then through the play operator of width ``b`` (backlash: the
-drive stands still until the setpoint has travelled ``b`` back across the gap). The Dahl
-and Maxwell-slip states advance by that travel and take their direction from it, while
-the Coulomb sign, the Stribeck factor and the viscous term take the sample's own ``v_k``.
+kernels (:func:`_step_cable`): minus the stretch change ``(F_k - F_{k-1}) c`` of the cable
+between winch and pulleys (compliance ``c = 1 / k``; ``F = sum_j F_j`` the tension the
+pulleys hold back, so the stretch the friction itself causes), then through the play
+operator of width ``b`` (:func:`_play`, backlash: the drive stands still until the
+setpoint has travelled ``b`` back across the gap). The Dahl and Maxwell-slip states
+advance by that travel and take their direction from it, while the Coulomb sign, the
+Stribeck factor and the viscous term take the sample's own ``v_k``.
 (Stepping with ``v_k dt_k`` instead makes an error of the order ``a dt^2 / 2`` per step
 that sampling jitter turns into noise: 0.13 N RMS on a noise-free 100 Hz +-2 ms recording.)
 
 Simulation (platform -> sensor) is explicit: ``F_Rj`` follows from the known platform-side
-tension, so each pulley is one exact Dahl step; with a stretching cable the travel depends
-on the sensor-side tension being computed, and ``T_s`` is the root of
-``T_s = sim(T_s)`` found per sample by a bracketed secant (:func:`_simulate_stretch`).
-Compensation (sensor -> platform) is implicit in ``T_j``: Newton's iteration seeded with
-the previous cycle (``T_{j-1} + F_old``) converges to 1e-9 N in one or two passes at 1 kHz
-(tests check it), stopping at ``tol_n`` or after ``max_iter`` passes; its travel is
-explicit (``T_s`` is its input).
+tension, so each pulley is one exact Dahl step. Compensation (sensor -> platform) is
+implicit in ``T_j``: Newton's iteration seeded with the previous cycle (``T_{j-1} +
+F_old``) converges to 1e-9 N in one or two passes at 1 kHz (tests check it), stopping at
+``tol_n`` or after ``max_iter`` passes. With a stretching cable the travel depends on the
+friction the step produces: both directions solve for the drive per sample by a bracketed
+secant (:func:`_step_cable`), and both read the same drive, so each inverts the other.
 
 * :func:`compensate` / :class:`ChainStepper`: sensor reading ``T_s`` and setpoint velocity
   -> platform tension ``T_p`` (what the gateway does each cycle).
@@ -91,8 +93,10 @@ class ChainParams:
     (v < 0; the same as ``mu`` unless a direction-dependent effect sets it);
     ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,).
     ``beta``: Dahl shape exponent. ``slip_w``, ``slip_sigma`` (m, K): the Maxwell-slip
-    elements' fractions of the level and stiffnesses per unit fraction (N/m; read by
-    ``maxwell_slip`` only; default one element, ``w = 1``, ``sigma_n_m``).
+    elements' fractions of the level (summing to 1 per cable; a fraction outside [0, 1]
+    is the linear extension a fit's finite difference may step to) and stiffnesses per
+    unit fraction (N/m; read by ``maxwell_slip`` only; default one element, ``w = 1``,
+    ``sigma_n_m``).
     ``stretch_c`` (m,): compliance (m/N) of the cable between winch and sensor pulley (0:
     rigid); ``backlash_m`` (m,): width of the dead zone in the travel (0: none).
     """
@@ -149,8 +153,8 @@ class ChainParams:
         w = np.broadcast_to(w, (cables, w.shape[-1])).copy()
         ks = sigma[:, None].copy() if slip_sigma is None else np.broadcast_to(
             np.asarray(slip_sigma, dtype=float), w.shape).copy()  # fmt: skip
-        if np.any(w < 0) or np.any(np.abs(w.sum(axis=1) - 1.0) > 1e-9) or np.any(ks <= 0):
-            raise ValueError("slip_w: fractions >= 0 summing to 1; slip_sigma: > 0")
+        if np.any(np.abs(w.sum(axis=1) - 1.0) > 1e-9) or np.any(ks <= 0):
+            raise ValueError("slip_w: fractions summing to 1; slip_sigma: > 0")
         stretch = _per_cable(stretch_c, cables, "stretch_c")
         play = _per_cable(backlash_m, cables, "backlash_m")
         if np.any(stretch < 0) or np.any(play < 0):
@@ -214,8 +218,6 @@ step^2 * bound <= tol leaves an error below tol: no confirming pass is needed.""
 
 F0, STRIB_K, STRIB_V, VISCOUS, SIGMA, STRETCH, PLAY = range(7)
 """Columns of :attr:`KernelParams.cable`."""
-GAP, TS_PREV = 0, 1
-"""Columns of :attr:`ChainState.drive`."""
 
 
 class KernelParams(NamedTuple):
@@ -247,8 +249,10 @@ def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20)
         params.f0_n, params.stribeck_k, params.stribeck_v_m_s, params.viscous_ns_m,
         params.sigma_n_m, params.stretch_c, params.backlash_m,
     ])  # fmt: skip
-    k = params.elements
-    slip = np.stack([params.slip_w[:, :k], params.slip_sigma[:, :k]], axis=2)
+    if params.elements > 1 or LAWS[params.model] == LAW_SLIP:
+        slip = np.stack([params.slip_w, params.slip_sigma], axis=2)
+    else:  # one element: the Dahl state (w = 1, sigma)
+        slip = np.stack([np.ones(params.cables), params.sigma_n_m], axis=1)[:, None, :]
     return KernelParams(
         lam_pos=lam_pos,
         lam_neg=lam_neg,
@@ -264,35 +268,35 @@ def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20)
 class ChainState(NamedTuple):
     """What the kernels carry from one sample to the next (updated in place).
 
-    ``f`` (m, n, K): the force of each state element of each pulley (K = 1 but for the
-    Maxwell-slip law; a pulley's friction force is the sum over its elements); ``drive``
-    (m, 2): per cable where the drive stands in the backlash's dead zone (column
-    :data:`GAP`, in ``[-b/2, b/2]``, 0 at the start) and the previous sample's sensor-side
-    tension for the stretch change (:data:`TS_PREV`, NaN: none yet); ``scratch``
-    (m, n, K): room for trial steps (so that no step allocates).
+    ``f`` (m, n, K): each state element of each pulley (K = 1 but for the Maxwell-slip
+    law, whose elements are carried per unit fraction: a pulley's friction force is
+    ``sum_q w_q f[i, j, q]``, :meth:`pulley_forces`); ``gap`` (m,): where the drive stands
+    in the backlash's dead zone (in ``[-b/2, b/2]``, 0 at the start); ``scratch``
+    (m, n + 1, K): room for trial steps (rows ``0..n-1``: a cable's trial states, row
+    ``n``: one pulley's Newton trial), so that no step allocates.
     """
 
     f: np.ndarray
-    drive: np.ndarray
+    gap: np.ndarray
     scratch: np.ndarray
 
     @staticmethod
     def relaxed(params: ChainParams) -> ChainState:
         """The state of a chain at rest: every element force zero."""
         m, n, k = params.cables, params.pulleys, params.elements
-        drive = np.zeros((m, 2))
-        drive[:, TS_PREV] = np.nan
-        return ChainState(np.zeros((m, n, k)), drive, np.zeros((m, n, k)))
+        return ChainState(np.zeros((m, n, k)), np.zeros(m), np.zeros((m, n + 1, k)))
 
     def reset(self) -> None:
-        """Every pulley relaxed, the drive centred in its dead zone, no previous tension."""
+        """Every pulley relaxed, the drive centred in its dead zone."""
         self.f[:] = 0.0
-        self.drive[:, GAP] = 0.0
-        self.drive[:, TS_PREV] = np.nan
+        self.gap[:] = 0.0
 
-    def pulley_forces(self) -> np.ndarray:
-        """(m, n) friction force of each pulley (the sum of its elements), N."""
-        return self.f.sum(axis=2)
+    def pulley_forces(self, p: KernelParams) -> np.ndarray:
+        """(m, n) friction force of each pulley (its elements weighted by their
+        fractions), N."""
+        if self.f.shape[2] == 1:
+            return self.f[:, :, 0].copy()
+        return np.einsum("ijq,iq->ij", self.f, p.slip[:, :, 0])
 
 
 @njit(cache=True, inline="always")
@@ -324,39 +328,48 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
 
 
 @njit(cache=True, inline="always")
-def _slip(p, i, j, t_b, f, dx, strib, trial):
-    """The Maxwell-slip law: pulley ``j`` of cable ``i`` with its elements ``f[i, j]``
-    stepped into ``trial`` (K,); returns their sum and d(sum)/dt_b. Element ``q`` is a
-    Dahl state with the level ``w_q F_R`` and the stiffness ``w_q sigma_q`` (its relaxation
-    length ``F_R / sigma_q`` does not depend on ``w_q``)."""
-    k_el = p.slip.shape[1]
+def _elements(p, i, j, t_b, f, dx, strib, out, row):
+    """The presliding laws (Dahl, Maxwell-slip) of pulley ``j`` of cable ``i`` whose
+    platform-side tension is ``t_b``, for the drive ``dx``: its elements ``f[i, j]`` (per
+    unit fraction; Dahl: one with ``w = 1``) stepped into ``out[i, row]``. Returns the
+    force ``sum_q w_q G_q``, its derivative in ``t_b`` and in ``dx`` (at fixed ``t_b``).
+    Element ``q`` per unit fraction is a Dahl state with the whole level ``F_R`` and the
+    stiffness ``sigma_q`` (its relaxation length ``F_R / sigma_q``)."""
+    k_el = f.shape[2]
     total = 0.0
     if dx == 0.0:
         for q in range(k_el):
-            trial[q] = f[i, j, q]
-            total += trial[q]
-        return total, 0.0
+            out[i, row, q] = f[i, j, q]
+            total += p.slip[i, q, 0] * f[i, j, q]
+        return total, 0.0, 0.0
     s = 1.0 if dx > 0.0 else -1.0
     lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
     fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
     dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    if fr <= FR_FLOOR_N:
+        for q in range(k_el):
+            out[i, row, q] = 0.0
+        return 0.0, 0.0, 0.0
     slope = 0.0
+    ddx = 0.0
     for q in range(k_el):
         w = p.slip[i, q, 0]
-        level = w * fr
-        if level <= FR_FLOOR_N:
-            trial[q] = 0.0
-            continue
-        sigma = w * p.slip[i, q, 1]
+        sigma = p.slip[i, q, 1]
+        g = f[i, j, q]
+        e = math.exp(-sigma * abs(dx) / fr)
         if p.beta == 1.0:
-            f_new, sl = dahl_step_slope(f[i, j, q], level, dx, sigma)
+            rest = g - s * fr
+            g_new = s * fr + rest * e
+            sl = s * (1.0 - e) + rest * e * sigma * abs(dx) / (fr * fr)
+            ddx += w * sigma * (1.0 - s * g / fr) * e
         else:
-            f_new = dahl_step(f[i, j, q], level, dx, sigma, p.beta)
-            sl = s * (1.0 - math.exp(-sigma * abs(dx) / level))  # quasi-Newton slope
-        trial[q] = f_new
-        total += f_new
+            g_new = dahl_step(g, fr, dx, sigma, p.beta)
+            sl = s * (1.0 - e)  # quasi-Newton slopes
+            ddx += w * sigma * e
+        out[i, row, q] = g_new
+        total += w * g_new
         slope += w * sl
-    return total, slope * dfr
+    return total, slope * dfr, ddx
 
 
 @njit(cache=True, inline="always")
@@ -372,7 +385,7 @@ def travel_into(vel, dt, v_prev, dx):
     ``dx[k, i] = (v_prev[i] + vel[k, i]) / 2 * dt[k]`` with ``v_prev`` the velocity of the
     step before, updated in place (so a per-cycle caller carries it). ``vel``, ``dx``
     (N, m); ``dt`` (N,); ``v_prev`` (m,). The kernels drive the friction state with it
-    through :func:`_drive` (stretch, backlash)."""
+    through :func:`_step_cable` (stretch, backlash)."""
     for k in range(vel.shape[0]):
         for i in range(vel.shape[1]):
             dx[k, i] = 0.5 * (v_prev[i] + vel[k, i]) * dt[k]
@@ -394,31 +407,129 @@ def _play(gap, d, width):
 
 
 @njit(cache=True, inline="always")
-def _drive(p, st, i, dx_set, t_s):
-    """The travel that drives cable ``i``'s friction state for a step whose setpoint
-    travel is ``dx_set`` and whose sensor-side tension is ``t_s``: plus the stretch change
-    ``(t_s - t_s,prev) c``, then through the dead zone; updates ``st.drive``
-    (the one definition, docs/physics.md sec. 3)."""
-    c = p.cable[i, STRETCH]
-    width = p.cable[i, PLAY]
-    if c == 0.0 and width == 0.0:
-        return dx_set
-    d = dx_set
-    if c != 0.0:
-        prev = st.drive[i, TS_PREV]
-        if prev == prev:
-            d += (t_s - prev) * c
-        st.drive[i, TS_PREV] = t_s
-    if width != 0.0:
-        d, st.drive[i, GAP] = _play(st.drive[i, GAP], d, width)
-    return d
-
-
-@njit(cache=True, inline="always")
 def _direction(law, v, dx):
     """What sets the pulley's direction: the velocity for Coulomb, the travel for Dahl
     and Maxwell-slip."""
     return v if law == LAW_COULOMB else dx
+
+
+@njit(cache=True, inline="always")
+def _chain_force(p, f, i):
+    """Cable ``i``'s pulleys' friction, ``sum_j F_j``, from the element states ``f``."""
+    total = 0.0
+    for j in range(f.shape[1]):
+        for q in range(f.shape[2]):
+            total += p.slip[i, q, 0] * f[i, j, q]
+    return total
+
+
+@njit(cache=True, inline="always")
+def _through(p, st, i, forward, t_known, v, strib, d_raw, dst):
+    """Cable ``i`` through its pulleys for one sample whose drive before the dead zone is
+    ``d_raw``: from the sensor side (``forward``: ``t_known`` the sensor-side tension,
+    Newton per pulley) or from the platform side (``t_known`` the platform tension,
+    explicit). The element states come from ``st.f`` and go to ``dst`` (``st.f``: commit;
+    ``st.scratch``: a trial). Returns the other end's tension, the pulleys' friction
+    ``F = sum_j F_j``, ``dF / d(d_raw)`` at fixed tensions, and the most Newton passes."""
+    n = p.lam_pos.shape[1]
+    d = d_raw
+    moving = 1.0
+    if p.cable[i, PLAY] != 0.0:
+        d = _play(st.gap[i], d_raw, p.cable[i, PLAY])[0]
+        moving = 1.0 if d != 0.0 else 0.0
+    coulomb = p.law == LAW_COULOMB
+    dx = v if coulomb else d
+    worst = 0
+    force = 0.0
+    slope_d = 0.0
+    if p.law == LAW_NONE:
+        out = t_known + p.cable[i, VISCOUS] * v if forward else t_known - p.cable[i, VISCOUS] * v
+        return out, 0.0, 0.0, 0
+    if forward:
+        t_a = t_known
+        for j in range(n):
+            f_old = _chain_force_pulley(p, st.f, i, j)
+            t_b = t_a + f_old
+            it = 0
+            while it < p.max_iter:
+                it += 1
+                if coulomb:
+                    f_new, d_b = _pulley(p, i, j, t_b, f_old, dx, strib)
+                else:
+                    f_new, d_b, _ = _elements(p, i, j, t_b, st.f, dx, strib, st.scratch, n)
+                step = (t_b - t_a - f_new) / (1.0 - d_b)
+                t_b -= step
+                if step * step * _NEWTON_CURVATURE <= p.tol:
+                    break
+            if coulomb:
+                dst[i, j, 0] = t_b - t_a
+            else:
+                f_new, _, dd = _elements(p, i, j, t_b, st.f, dx, strib, dst, j)
+                slope_d += dd
+            worst = max(worst, it)
+            t_a = t_b
+        force = t_a - t_known
+        return t_a + p.cable[i, VISCOUS] * v, force, slope_d * moving, worst
+    t_b = t_known - p.cable[i, VISCOUS] * v
+    for j in range(n - 1, -1, -1):
+        if coulomb:
+            f_new, _ = _pulley(p, i, j, t_b, st.f[i, j, 0], dx, strib)
+            dst[i, j, 0] = f_new
+        else:
+            f_new, _, dd = _elements(p, i, j, t_b, st.f, dx, strib, dst, j)
+            slope_d += dd
+        t_b -= f_new
+        force += f_new
+    return t_b, force, slope_d * moving, 0
+
+
+@njit(cache=True, inline="always")
+def _chain_force_pulley(p, f, i, j):
+    """Pulley ``j`` of cable ``i``'s friction force from its elements."""
+    total = 0.0
+    for q in range(f.shape[2]):
+        total += p.slip[i, q, 0] * f[i, j, q]
+    return total
+
+
+@njit(cache=True)
+def _step_cable(p, st, i, forward, t_known, v, strib, dx_set):
+    """One sample of cable ``i`` (general path): with a stretching cable the drive ``d``
+    solves ``g(d) = d - dx_set + (F(d) - F_old) c = 0`` (``F`` the pulleys' friction after
+    the step, ``F_old`` before it) by Newton's iteration from ``dx_set`` with the slope
+    ``1 + c dF/dd``, kept inside the bracket its own steps find (bisection where a step
+    leaves it: ``g`` has kinks where the drive changes sign or meets the dead zone's edge).
+    ``g`` rises with slope >= 1 wherever the friction grows with its travel, so the root
+    is unique. Then the states are committed at the root (and the dead zone moved).
+    Returns the other end's tension and the most Newton passes."""
+    c = p.cable[i, STRETCH]
+    root = dx_set
+    if c != 0.0 and p.law != LAW_NONE and p.law != LAW_COULOMB:
+        f_old = _chain_force(p, st.f, i)
+        lo, hi = -math.inf, math.inf
+        d = dx_set
+        for _ in range(4 * p.max_iter + 20):
+            _, force, slope, _ = _through(p, st, i, forward, t_known, v, strib, d, st.scratch)
+            g = d - dx_set + c * (force - f_old)
+            if g == 0.0:
+                break
+            if g > 0.0:
+                hi = min(hi, d)
+            else:
+                lo = max(lo, d)
+            gp = 1.0 + c * slope
+            nxt = d - g / (gp if gp > 0.5 else 1.0)
+            if not lo < nxt < hi and math.isfinite(lo) and math.isfinite(hi):
+                nxt = 0.5 * (lo + hi)
+            if abs(nxt - d) <= 1e-16 + 1e-13 * abs(nxt):
+                d = nxt
+                break
+            d = nxt
+        root = d
+    out, _, _, worst = _through(p, st, i, forward, t_known, v, strib, root, st.f)
+    if p.cable[i, PLAY] != 0.0:
+        st.gap[i] = _play(st.gap[i], root, p.cable[i, PLAY])[1]
+    return out, worst
 
 
 @njit(cache=True, inline="always")
@@ -471,132 +582,18 @@ def compensate_kernel(p, t_in, vel, dx_all, st, out):
     implicit equation by Newton, seeded with the previous cycle's force. Returns the largest
     number of Newton passes any pulley needed."""
     n_samples, m = t_in.shape
-    n = p.lam_pos.shape[1]
-    f_state = st.f
     if _plain(p):
-        return _compensate_plain(p, t_in, vel, dx_all, f_state.reshape((m, n)), out)
+        f_state = st.f
+        return _compensate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])),
+                                 out)  # fmt: skip
     worst = 0
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            t_a = t_in[k, i]
-            dx = _direction(p.law, v, _drive(p, st, i, dx_all[k, i], t_a))
-            if p.law == LAW_SLIP:
-                strib = _stribeck(p, i, v)
-                for j in range(n):
-                    f_old = 0.0
-                    for q in range(f_state.shape[2]):
-                        f_old += f_state[i, j, q]
-                    t_b = t_a + f_old
-                    it = 0
-                    while it < p.max_iter:
-                        it += 1
-                        f_new, d_b = _slip(p, i, j, t_b, f_state, dx, strib, st.scratch[i, j])
-                        step = (t_b - t_a - f_new) / (1.0 - d_b)
-                        t_b -= step
-                        if step * step * _NEWTON_CURVATURE <= p.tol:
-                            break
-                    _slip(p, i, j, t_b, f_state, dx, strib, st.scratch[i, j])
-                    f_state[i, j, :] = st.scratch[i, j]
-                    worst = max(worst, it)
-                    t_a = t_b
-            elif p.law != LAW_NONE:
-                strib = _stribeck(p, i, v)
-                for j in range(n):
-                    f_old = f_state[i, j, 0]
-                    t_b = t_a + f_old
-                    it = 0
-                    while it < p.max_iter:
-                        it += 1
-                        f_new, d_b = _pulley(p, i, j, t_b, f_old, dx, strib)
-                        step = (t_b - t_a - f_new) / (1.0 - d_b)
-                        t_b -= step
-                        if step * step * _NEWTON_CURVATURE <= p.tol:
-                            break
-                    f_state[i, j, 0] = t_b - t_a
-                    worst = max(worst, it)
-                    t_a = t_b
-            out[k, i] = t_a + p.cable[i, VISCOUS] * v
+            strib = _stribeck(p, i, v)
+            out[k, i], it = _step_cable(p, st, i, True, t_in[k, i], v, strib, dx_all[k, i])
+            worst = max(worst, it)
     return worst
-
-
-@njit(cache=True, inline="always")
-def _simulate_pulleys(p, i, t_b, dx, strib, src, dst):
-    """Platform -> sensor through cable ``i``'s pulleys from the element states ``src``
-    (m, n, K) into ``dst`` (m, n, K; may be ``src``); returns the sensor-side tension."""
-    n = p.lam_pos.shape[1]
-    for j in range(n - 1, -1, -1):
-        if p.law == LAW_SLIP:
-            f_new, _ = _slip(p, i, j, t_b, src, dx, strib, dst[i, j])
-        else:
-            f_new, _ = _pulley(p, i, j, t_b, src[i, j, 0], dx, strib)
-            dst[i, j, 0] = f_new
-        t_b -= f_new
-    return t_b
-
-
-@njit(cache=True)
-def _stretch_eval(p, st, i, t_b, dx_set, v, strib, t_s, scratch):
-    """The sensor-side tension the pulleys give when the sensor side is assumed to carry
-    ``t_s`` (its stretch change enters the travel); states from ``st`` into ``scratch``."""
-    d = dx_set
-    prev = st.drive[i, TS_PREV]
-    if prev == prev:
-        d += (t_s - prev) * p.cable[i, STRETCH]
-    if p.cable[i, PLAY] != 0.0:
-        d = _play(st.drive[i, GAP], d, p.cable[i, PLAY])[0]
-    return _simulate_pulleys(p, i, t_b, _direction(p.law, v, d), strib, st.f, scratch)
-
-
-@njit(cache=True)
-def _simulate_stretch(p, st, i, t_b, dx_set, v, strib, scratch):
-    """Platform -> sensor for a stretching cable: the root ``T_s`` of
-    ``h(T) = sim(T) - T`` (``sim``: :func:`_stretch_eval`), bracketed from the previous
-    sample's tension and refined by the Illinois secant to ``tol``; the states committed at
-    the root. ``h`` falls with slope <= -1 wherever the chain's force grows with its
-    travel (series compliance), so the bracket is found in one or two steps."""
-    prev = st.drive[i, TS_PREV]
-    a = prev if prev == prev else t_b
-    ha = _stretch_eval(p, st, i, t_b, dx_set, v, strib, a, scratch) - a
-    root = a
-    if ha != 0.0:
-        b = a + ha
-        hb = _stretch_eval(p, st, i, t_b, dx_set, v, strib, b, scratch) - b
-        grow = 1.0
-        tries = 0
-        while hb != 0.0 and (hb > 0.0) == (ha > 0.0) and tries < 40:
-            a, ha = b, hb  # no sign change yet: step further the same way
-            grow *= 2.0
-            b = a + grow * hb
-            hb = _stretch_eval(p, st, i, t_b, dx_set, v, strib, b, scratch) - b
-            tries += 1
-        root = b
-        if hb != 0.0 and (hb > 0.0) != (ha > 0.0):
-            side = 0
-            for _ in range(4 * p.max_iter + 20):
-                c = b - hb * (b - a) / (hb - ha)
-                hc = _stretch_eval(p, st, i, t_b, dx_set, v, strib, c, scratch) - c
-                root = c
-                small = 1e-12 * max(1.0, abs(c))
-                if abs(hc) <= small or abs(c - b) <= small:
-                    break
-                if (hc > 0.0) == (hb > 0.0):
-                    b, hb = c, hc
-                    if side == -1:
-                        ha *= 0.5
-                    side = -1
-                else:
-                    a, ha = b, hb
-                    b, hb = c, hc
-                    side = 1
-    d = dx_set
-    if prev == prev:
-        d += (root - prev) * p.cable[i, STRETCH]
-    st.drive[i, TS_PREV] = root
-    if p.cable[i, PLAY] != 0.0:
-        d, st.drive[i, GAP] = _play(st.drive[i, GAP], d, p.cable[i, PLAY])
-    _simulate_pulleys(p, i, t_b, _direction(p.law, v, d), strib, st.f, st.f)
-    return root
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
@@ -623,24 +620,16 @@ def _simulate_plain(p, t_in, vel, dx_all, f_state, out):
 def simulate_kernel(p, t_in, vel, dx_all, st, out):
     """Platform -> sensor, same arguments as :func:`compensate_kernel`; explicit (each
     pulley's Coulomb level follows from its known platform-side tension) but for a
-    stretching cable (:func:`_simulate_stretch`)."""
+    stretching cable (:func:`_step_cable`)."""
     n_samples, m = t_in.shape
-    f_state = st.f
     if _plain(p):
+        f_state = st.f
         return _simulate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])), out)
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
-            t_b = t_in[k, i] - p.cable[i, VISCOUS] * v
-            if p.law == LAW_NONE:
-                out[k, i] = t_b
-                continue
             strib = _stribeck(p, i, v)
-            if p.cable[i, STRETCH] != 0.0:
-                out[k, i] = _simulate_stretch(p, st, i, t_b, dx_all[k, i], v, strib, st.scratch)
-            else:
-                dx = _direction(p.law, v, _drive(p, st, i, dx_all[k, i], 0.0))
-                out[k, i] = _simulate_pulleys(p, i, t_b, dx, strib, f_state, f_state)
+            out[k, i] = _step_cable(p, st, i, False, t_in[k, i], v, strib, dx_all[k, i])[0]
     return 0
 
 
@@ -790,15 +779,22 @@ class ChainStepper:
         self._dt = np.array([self.period_s])
         self._p = kernel_params(params, tol_n, max_iter)
         self._travel = entry_point(travel_into, self._vel, self._dt, self._v_prev, self._dx)
+        # a plain chain steps its (m, n) forces directly (a view of the state): the kernel's
+        # fast path without the per-call check
+        if _plain(self._p):
+            kernel = _compensate_plain if forward else _simulate_plain
+            self._held: ChainState | np.ndarray = self.chain_state.f.reshape(m, params.pulleys)
+        else:
+            kernel = compensate_kernel if forward else simulate_kernel
+            self._held = self.chain_state
         self._kernel = entry_point(
-            compensate_kernel if forward else simulate_kernel,
-            self._p, self._in, self._vel, self._dx, self.chain_state, self._out,
-        )  # fmt: skip
+            kernel, self._p, self._in, self._vel, self._dx, self._held, self._out
+        )
 
     @property
     def state(self) -> np.ndarray:
         """(m, n) friction force of each pulley (N): the sum of its state elements."""
-        return self.chain_state.pulley_forces()
+        return self.chain_state.pulley_forces(self._p)
 
     def reset(self) -> None:
         """Relax every pulley (e.g. after a long outage when the real state is unknown);
@@ -819,7 +815,7 @@ class ChainStepper:
         self._dt[0] = self.period_s if dt < 0.0 else dt  # own buffers: types fixed
         self._travel(self._vel, self._dt, self._v_prev, self._dx)
         self.iterations = self._kernel(
-            self._p, self._in, self._vel, self._dx, self.chain_state, self._out
+            self._p, self._in, self._vel, self._dx, self._held, self._out
         )
         out[:] = self._out[0]
         return self.iterations

@@ -269,15 +269,15 @@ def test_backlash_holds_the_friction_for_its_width_after_a_reversal() -> None:
 
 
 def test_cable_stretch_puts_the_cable_in_series_with_the_presliding_state() -> None:
-    """With a constant platform tension ``T_s = T_p - F``, so the drive is the setpoint
-    travel minus ``(F - F_0) c``: the force after a reversal is the Dahl curve of that
-    drive (checked sample by sample), and softer than without stretch."""
+    """The drive is the setpoint travel minus ``(F - F_0) c``: the force after a reversal
+    is the Dahl curve of that drive (checked sample by sample), softer than without
+    stretch."""
     sigma, k, n = 800.0, 400.0, 4000
     p = one_pulley("dahl", sigma_n_m=sigma, stretch_c=1.0 / k)
     t, tp, vel = reversal(n)
     force = tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
     out, back = levels(p, 200.0)
-    assert force[n - 1] == pytest.approx(out, abs=1e-9)
+    assert force[n - 1] == pytest.approx(out, abs=1e-8)
     x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
     drive = x - (force[n - 1] - force[n:]) / k  # the reversal lowers F: the drive lags
     want = -back + (force[n - 1] + back) * np.exp(-sigma * drive / back)
@@ -286,15 +286,21 @@ def test_cable_stretch_puts_the_cable_in_series_with_the_presliding_state() -> N
     assert np.all(force[n + 1 : n + 200] > rigid[n + 1 : n + 200])  # softer: F falls later
 
 
-def test_a_load_change_at_standstill_moves_a_stretching_chain_only() -> None:
-    t = np.arange(2000) * 1e-3
-    vel = np.where(t < 1.0, 0.02, 0.0)[:, None]
-    tp = np.where(t < 1.5, 200.0, 260.0)[:, None]  # the load rises while the cable stands
-    rigid = simulate(one_pulley(), tp, vel, t)
-    soft = simulate(one_pulley(stretch_c=1.0 / 2000.0), tp, vel, t)
-    f_rigid, f_soft = tp - rigid, tp - soft
-    assert f_rigid[1600, 0] == f_rigid[1400, 0]
-    assert f_soft[1600, 0] - f_soft[1400, 0] > 0.1  # T_s rose: the drive moved out
+def test_the_stretch_takes_no_difference_of_the_readings() -> None:
+    """Compensating noisy readings through a stretching chain: the drive comes from the
+    model's friction, not from differences of the readings, so sensor noise of 0.5 N at
+    1 kHz (0.07 mm per step at k = 1e4 N/m were it differenced, against 0.03 mm of
+    setpoint travel) leaves the estimate as unbiased as on a rigid chain."""
+    n, m = 20000, 2
+    t = np.arange(n) * 1e-3
+    vel = 0.03 * np.sign(np.sin(2 * np.pi * 0.2 * t))[:, None] * np.ones((1, m))
+    tp = np.full((n, m), 250.0)
+    noise = np.random.default_rng(9).normal(0.0, 0.5, (n, m))
+    for c in (0.0, 1e-4):
+        p = params("dahl", cables=m, stretch_c=c)
+        ts = simulate(p, tp, vel, t)
+        err = compensate(p, ts + noise, vel, t) - tp
+        assert abs(float(np.mean(err))) < 0.02, c
 
 
 @settings(max_examples=30, deadline=None)
@@ -333,3 +339,20 @@ def test_stepper_matches_batch_with_elements_stretch_and_backlash(forward: bool)
         stepper.step(tp[k], vel[k], out, t[k] - t[k - 1] if k else 0.0)
         assert_allclose(out, batch[k], rtol=0, atol=1e-9, err_msg=f"sample {k}")
     assert stepper.state.shape == (3, 3)  # per pulley: the sum of its elements
+
+
+@settings(max_examples=20, deadline=None)
+@given(w=st.floats(-0.5, 1.5), s1=st.floats(100.0, 1e5), s2=st.floats(10.0, 1e4))
+def test_maxwell_slip_force_is_linear_in_the_fractions(w, s1, s2) -> None:
+    """The elements are carried per unit fraction: the force is ``w F(1) + (1 - w) F(0)``
+    for any ``w`` (the fit's finite differences may step past [0, 1])."""
+    t = np.arange(2000) * 1e-3
+    vel = 0.08 * np.sin(2 * np.pi * 1.1 * t)[:, None]
+    tp = 200 + 30 * np.sin(2 * t)[:, None]
+
+    def force(frac: float) -> np.ndarray:
+        p = one_pulley("maxwell_slip", slip_w=np.array([frac, 1 - frac]),
+                       slip_sigma=np.array([s1, s2]))  # fmt: skip
+        return tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+
+    assert_allclose(force(w), w * force(1.0) + (1 - w) * force(0.0), rtol=0, atol=1e-9)
