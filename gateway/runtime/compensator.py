@@ -31,7 +31,8 @@ per-cycle model can undo are removed (:class:`gateway.model.effects.OnlineInvers
 effect's compiled per-cycle inverse, e.g. an acceleration from the backward difference of
 the setpoint velocity over the time since the last new sample, a pulley phase from the
 setpoint length), and the chain (``ChainStepper``, sensor -> platform; the nominal friction
-with the fitted chain-side effects, :func:`gateway.model.effects.chain_params`) with the
+with the fitted chain-side effects it compensates online,
+:func:`gateway.model.effects.chain_params`) with the
 setpoint velocities gives the corrected platform tensions ``T_p``. An effect that cannot be
 undone causally is not compensated (each effect's ``online`` says why; docs/physics.md).
 :attr:`Compensator.friction_n` is ``T_p`` minus the sensor value fed to the model (the
@@ -178,7 +179,7 @@ class Compensator:
         fr = cfg.friction
         self.cables = m
         values = fr.effect_values(m)
-        self.params = fx.chain_params(fr, values, m)
+        self.params = fx.chain_params(fr, values, m, online_only=True)
         self.stepper = ChainStepper(
             self.params, lp.period_s, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter
         )
@@ -304,10 +305,10 @@ class Compensator:
             self._velocity_hold[:] = self._velocity_prev
             self._velocity_prev[:] = self.velocity_m_s
             self._sample_at, self._sample_dt = now, dt
-        else:  # the same sample again: the same acceleration
+        else:  # the same sample again: the same acceleration, a filter not advanced
             self._online(
                 self.used_n, self.model_in_n, self._velocity_prev, self._velocity_hold,
-                self._sample_dt, self._length_in,
+                self._sample_dt, self._length_in, False,
             )  # fmt: skip
 
     def mark_unread(self, now_s: float) -> None:
