@@ -109,10 +109,6 @@ class Spring(Effect):
             "l0_m": float(np.hypot(se[1] / k, kl * se[0] / k**2)),
         }
 
-    def significance(self, theta: np.ndarray, se: np.ndarray, neutral: np.ndarray) -> float:
-        """The stiffness over its standard error (the length means nothing without it)."""
-        return float(abs(theta[0]) / se[0]) if se[0] > 0 else 0.0
-
     def applicable(self, d: FitData, nom: NominalChain) -> bool:
         return (float(np.ptp(d.x)) if d.x.size else 0.0) >= MIN_SPAN_M
 
