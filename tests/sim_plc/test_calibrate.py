@@ -26,7 +26,8 @@ AFTER_MAX = 1.15  # issue 10: the after RMSE within 1.15x the noise floor
 def test_examples_hide_one_effect_each_behind_the_closed_form():
     names = {p.stem for p in EXAMPLES.glob("*.yaml")}
     assert names == {"viscous", "offset", "gain", "coulomb_f0", "coulomb_directional", "inertia",
-                     "mass_change"}  # fmt: skip
+                     "mass_change", "maxwell_slip", "cable_stretch", "backlash", "sensor_creep",
+                     "spring"}  # fmt: skip
     for path in EXAMPLES.glob("*.yaml"):
         sim = read_yaml(path)["sim_plc"]
         assert sim["distribution"]["method"] == "closed_form"
