@@ -500,36 +500,75 @@ def _step_cable(p, st, i, forward, t_known, v, strib, dx_set):
     ``1 + c dF/dd``, kept inside the bracket its own steps find (bisection where a step
     leaves it: ``g`` has kinks where the drive changes sign or meets the dead zone's edge).
     ``g`` rises with slope >= 1 wherever the friction grows with its travel, so the root
-    is unique. Then the states are committed at the root (and the dead zone moved).
-    Returns the other end's tension and the most Newton passes."""
+    is unique. The states of the last evaluation (at the root) are committed and the dead
+    zone moved. Returns the other end's tension and the most Newton passes."""
     c = p.cable[i, STRETCH]
-    root = dx_set
-    if c != 0.0 and p.law != LAW_NONE and p.law != LAW_COULOMB:
-        f_old = _chain_force(p, st.f, i)
-        lo, hi = -math.inf, math.inf
-        d = dx_set
-        for _ in range(4 * p.max_iter + 20):
-            _, force, slope, _ = _through(p, st, i, forward, t_known, v, strib, d, st.scratch)
-            g = d - dx_set + c * (force - f_old)
-            if g == 0.0:
-                break
-            if g > 0.0:
-                hi = min(hi, d)
-            else:
-                lo = max(lo, d)
-            gp = 1.0 + c * slope
-            nxt = d - g / (gp if gp > 0.5 else 1.0)
-            if not lo < nxt < hi and math.isfinite(lo) and math.isfinite(hi):
-                nxt = 0.5 * (lo + hi)
-            if abs(nxt - d) <= 1e-16 + 1e-13 * abs(nxt):
-                d = nxt
-                break
-            d = nxt
-        root = d
-    out, _, _, worst = _through(p, st, i, forward, t_known, v, strib, root, st.f)
+    if c == 0.0 or p.law == LAW_NONE or p.law == LAW_COULOMB:
+        out, _, _, worst = _through(p, st, i, forward, t_known, v, strib, dx_set, st.f)
+        if p.cable[i, PLAY] != 0.0:
+            st.gap[i] = _play(st.gap[i], dx_set, p.cable[i, PLAY])[1]
+        return out, worst
+    f_old = _chain_force(p, st.f, i)
+    lo, hi = -math.inf, math.inf
+    d = dx_set
+    out, worst = 0.0, 0
+    for _ in range(4 * p.max_iter + 20):
+        out, force, slope, worst = _through(p, st, i, forward, t_known, v, strib, d, st.scratch)
+        g = d - dx_set + c * (force - f_old)
+        if g == 0.0:
+            break
+        if g > 0.0:
+            hi = min(hi, d)
+        else:
+            lo = max(lo, d)
+        gp = 1.0 + c * slope
+        nxt = d - g / (gp if gp > 0.5 else 1.0)
+        if not lo < nxt < hi and math.isfinite(lo) and math.isfinite(hi):
+            nxt = 0.5 * (lo + hi)
+        if abs(nxt - d) <= 1e-16 + 1e-12 * abs(nxt):
+            break  # the next step is below the precision: d (just evaluated) is the root
+        d = nxt
+    # commit the states of the last evaluation, at the root d
+    for j in range(st.f.shape[1]):
+        for q in range(st.f.shape[2]):
+            st.f[i, j, q] = st.scratch[i, j, q]
     if p.cable[i, PLAY] != 0.0:
-        st.gap[i] = _play(st.gap[i], root, p.cable[i, PLAY])[1]
+        st.gap[i] = _play(st.gap[i], d, p.cable[i, PLAY])[1]
     return out, worst
+
+
+@njit(cache=True, inline="always")
+def _rigid(p):
+    """True when the chain has a presliding state and no cable stretches: its drive is
+    explicit (the setpoint travel, through a dead zone where there is one)."""
+    if p.law != LAW_DAHL and p.law != LAW_SLIP:
+        return False
+    for i in range(p.cable.shape[0]):  # noqa: SIM110 (numba: a plain loop)
+        if p.cable[i, STRETCH] != 0.0:
+            return False
+    return True
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _simulate_rigid(p, t_in, vel, dx_all, st, out):
+    """:func:`simulate_kernel` for a :func:`_rigid` chain (the general path's explicit
+    case, without its per-sample solve)."""
+    n_samples, m = t_in.shape
+    n = p.lam_pos.shape[1]
+    f_state = st.f
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            dx = dx_all[k, i]
+            width = p.cable[i, PLAY]
+            if width != 0.0:
+                dx, st.gap[i] = _play(st.gap[i], dx, width)
+            t_b = t_in[k, i] - p.cable[i, VISCOUS] * v
+            strib = _stribeck(p, i, v)
+            for j in range(n - 1, -1, -1):
+                t_b -= _elements(p, i, j, t_b, f_state, dx, strib, f_state, j)[0]
+            out[k, i] = t_b
+    return 0
 
 
 @njit(cache=True, inline="always")
@@ -625,6 +664,8 @@ def simulate_kernel(p, t_in, vel, dx_all, st, out):
     if _plain(p):
         f_state = st.f
         return _simulate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])), out)
+    if _rigid(p):
+        return _simulate_rigid(p, t_in, vel, dx_all, st, out)
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]

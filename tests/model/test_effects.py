@@ -475,3 +475,23 @@ def test_a_repeated_plc_sample_does_not_advance_an_online_filter() -> None:
         b[k] = twice.model_in_n
     assert_allclose(b, a, rtol=0, atol=1e-12)
     assert np.max(np.abs(a - (reading - 0.3))) > 0.05  # the creep's inverse acts
+
+
+def test_a_rigid_cable_among_stretching_ones_is_written_as_a_number(tmp_path) -> None:
+    """``cable_stretch`` found on some cables: the others (k = inf, absent) are written as
+    ``K_MAX``, which a model file can hold and the chain takes as rigid."""
+    from gateway.model.effects import cable_stretch
+    from gateway.model.effects.base import ModelFile
+
+    values = {"k_n_m": np.array([5000.0, np.inf, 8000.0])}
+    fr = load_config().friction
+    cable_stretch.EFFECT.to_model(values, ModelFile(fr, None, None))
+    assert_allclose(values["k_n_m"], [5000.0, cable_stretch.K_MAX, 8000.0])
+    written = dataclasses.replace(
+        fr, effects=FrictionConfig.effects_mapping({"cable_stretch": values})
+    )
+    path = tmp_path / "fitted.yaml"
+    path.write_text(yaml.safe_dump({"friction": written.to_mapping()}))
+    back = load_friction(path)
+    params = fx.chain_params(back, back.effect_values(3), 3)
+    assert_allclose(params.stretch_c, [1 / 5000.0, 0.0, 1 / 8000.0])

@@ -18,7 +18,8 @@ at about half its level (measured: 2.2 N of a 4.1 N mean level). The friction's 
 stretch comes from the model's state, the same in the plant, the diagnosis and the
 gateway, so it is compensated online.
 
-Absent: ``k = inf`` (a rigid cable). The fit varies the compliance ``1 / k`` (0: absent).
+Absent: ``k = inf`` (a rigid cable; :data:`K_MAX` or more where a number must stand). The
+fit varies the compliance ``1 / k`` (0: absent).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from gateway.model.effects.base import (
     Compose,
     Effect,
     FitData,
+    ModelFile,
     NominalChain,
     Online,
     Param,
@@ -44,7 +46,9 @@ from gateway.model.effects.base import (
 STIFFNESSES = (1e3, 3e3, 1e4, 1e5)
 """Starting points of the fit (N/m)."""
 K_MAX = 1e12
-"""A compliance fitted at 0 is reported as this stiffness (finite in a report)."""
+"""A rigid cable's stiffness where a number must stand (a compliance fitted at 0 in a
+report; a cable without stretch in a model file's per-cable list, whose numbers are
+finite): the chain takes any ``k >= K_MAX`` as rigid."""
 
 
 class CableStretch(Effect):
@@ -71,12 +75,18 @@ class CableStretch(Effect):
 
     def apply_chain(self, draft: ChainDraft, p: Values) -> None:
         k = np.asarray(p["k_n_m"], dtype=float)
-        draft.stretch_c = np.where(np.isfinite(k), 1.0 / k, 0.0)
+        draft.stretch_c = np.where(k < K_MAX, 1.0 / np.minimum(k, K_MAX), 0.0)
 
     def compose(self, old: Values, new: Values, ctx: Compose) -> Values:
         """A compliance found on top of a model's adds to it (in series)."""
         with np.errstate(divide="ignore"):  # both rigid: k = inf
             return {"k_n_m": 1.0 / (1.0 / old["k_n_m"] + 1.0 / new["k_n_m"])}
+
+    def to_model(self, values: Values, ctx: ModelFile) -> None:
+        """A rigid cable (``k = inf``, where another cable's stretch was found) is written as
+        :data:`K_MAX` (a model file's numbers are finite)."""
+        k = values["k_n_m"]
+        values["k_n_m"] = np.where(np.isfinite(k), k, K_MAX)
 
     def applicable(self, d: FitData, nom: NominalChain) -> bool:
         return travel_driven(nom)
