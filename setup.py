@@ -8,12 +8,17 @@ pyproject.toml.
 
 from setuptools import find_packages, setup
 
+# Each folder of config/ is a package of its own (setuptools warns, 40 lines on every
+# install, about data in a folder that is not a listed package: gateway.data.calibrate).
+DATA = {"gateway.data": "config", "gateway.data.calibrate": "config/calibrate"}
+
 setup(
-    packages=[*find_packages(include=["gateway*", "drivers*", "sim_plc*"]), "gateway.data"],
-    package_dir={"gateway.data": "config"},
+    packages=[*find_packages(include=["gateway*", "drivers*", "sim_plc*"]), *DATA],
+    package_dir=DATA,
     package_data={
         "gateway": ["py.typed"],
-        "sim_plc": ["scenarios.yaml"],
-        "gateway.data": ["*.yaml", "*.eds", "calibrate/*.yaml"],
+        "sim_plc": ["scenarios.yaml", "scenarios_sealed.yaml"],
+        "gateway.data": ["*.yaml", "*.eds"],
+        "gateway.data.calibrate": ["*.yaml"],
     },
 )

@@ -1,7 +1,8 @@
 """Run the benchmarks: ``python -m bench`` (all but the soak) or ``python -m bench model statics``.
 
-The 600-s soak and the calibrate table (~10 min) run only when named (``python -m bench
-soak``, ``make soak``, ``python -m bench calibrate``).
+The 600-s soak, the calibrate table (~30 min) and the real recordings (~6 min, data read
+from outside the checkout) run only when named (``python -m bench soak``, ``make soak``,
+``python -m bench calibrate``, ``python -m bench real``).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-ONLY_BY_NAME = {"soak", "calibrate"}  # ~10 min each: only when named, not in a plain `make bench`
+ONLY_BY_NAME = {"soak", "calibrate", "real"}  # minutes each: only when named, not in `make bench`
 
 
 def main(argv: list[str]) -> int:

@@ -1,15 +1,17 @@
-"""``cdpr-gateway calibrate`` over every example of ``config/calibrate/`` (issue 10's table).
+"""``cdpr-gateway calibrate`` over every example of ``config/calibrate/``.
 
 Each example (every file of ``config/calibrate/``) hides one effect at 2-5x the 0.5 N
-sensor noise in a soft PLC whose controller distributes
-tensions by the closed form (not the gateway's statics). Per example: the finding, the
-corrected-tension RMSE against the plant's truth before and after calibration, the noise
-floor (the same plant without the effect, nominal model), after / floor (goal <= 1.15) and
-the gateway's cycles in each run (30 000 in 30 s on an idle machine: fewer means the
-machine was loaded, and the RMSE of a run then varies by tens of per cent).
+sensor noise (``viscous_60`` and the ``*_large`` ones at 7-12x) in a soft PLC whose
+controller distributes tensions by the closed form (not the gateway's statics). Per
+example: the finding, the corrected-tension RMSE against the plant's truth before and after
+calibration (each cable scored once the gateway's chain has warmed up,
+:class:`sim_plc.truth.ChainWarmup`), the noise floor (the same plant without the effect,
+nominal model), after / floor (goal <= 1.15) and the gateway's cycles in each run (30 000
+in 30 s on an idle machine: fewer means the machine was loaded, and the RMSE of a run then
+varies by tens of per cent).
 
-``python -m bench calibrate`` (30 s per run, three runs per example: ~10 min in all);
-``CALIBRATE_SECONDS`` and ``CALIBRATE_ONLY=viscous,gain`` change that. Results stay in
+``python -m bench calibrate`` (30 s per run, three runs per example: ~30 min for the 13
+examples); ``CALIBRATE_SECONDS`` and ``CALIBRATE_ONLY=viscous,gain`` change that. Results stay in
 ``$CALIBRATE_OUT`` (default: a temporary directory, removed afterwards).
 """
 
@@ -70,10 +72,14 @@ def run() -> None:
     finally:
         if tmp is not None:
             tmp.cleanup()
-    print(f"\ncalibrate, {seconds:g} s per run (before/after/floor: corrected-tension RMSE "
-          f"vs the plant's truth, N; ratio = after / floor, goal <= {GOAL})")  # fmt: skip
-    print("| effect      | finding            | before |  after |  floor | ratio |    | cycles "
-          "floor/before/after |")  # fmt: skip
+    print(
+        f"\ncalibrate, {seconds:g} s per run (before/after/floor: corrected-tension RMSE "
+        f"vs the plant's truth, N; ratio = after / floor, goal <= {GOAL})"
+    )
+    print(
+        "| effect      | finding            | before |  after |  floor | ratio |    | cycles "
+        "floor/before/after |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(r)

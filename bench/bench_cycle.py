@@ -17,7 +17,7 @@ Reported, each as p50 / p99 / p99.9 in microseconds over ``BENCH_CYCLES`` cycles
 
 * ``cycle``: one whole loop iteration without the wait (``_cycle`` + pacing
   ``finish`` + the reporter), back to back: the gateway's compute per cycle with warm
-  caches (issue 12 goal: p99 <= 20 us on the 2-core machine);
+  caches (goal: p99 <= 20 us on the 2-core machine);
 * ``cycle after sleep``: the same, each cycle after sleeping ``period - busy_wait_s``
   as the real loop does (at most 3000 cycles): on a shared machine whatever runs on the
   core meanwhile evicts the caches, and the same code takes several times longer;
@@ -108,9 +108,12 @@ def _replies(cfg: Any, layout: Any, codec: Any, np: Any) -> list[bytes]:
         return codec(field, image, rs.start, 0, sensor)
 
     raw, vel, lng, pose, hb = (
-        enc(r.raw_tensions), enc(r.setpoint_velocities), enc(r.setpoint_lengths),
-        enc(r.pose), enc(r.plc_heartbeat),
-    )  # fmt: skip
+        enc(r.raw_tensions),
+        enc(r.setpoint_velocities),
+        enc(r.setpoint_lengths),
+        enc(r.pose),
+        enc(r.plc_heartbeat),
+    )
     m = cfg.cables
     home = np.asarray(cfg.geometry.home_pose, dtype=float)
     phase = np.arange(m) * 0.7
@@ -276,8 +279,12 @@ def _run_in(tree: Path, cycles: int) -> dict[str, Any]:
     script = ROOT / "bench" / "bench_cycle.py"
     out = subprocess.run(
         [sys.executable, str(script), "--worker", str(cycles)],
-        capture_output=True, text=True, env=env, cwd=str(tree), timeout=900,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=str(tree),
+        timeout=900,
+    )
     if out.returncode != 0:
         raise RuntimeError(f"harness in {tree} failed: {out.stderr[-800:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -293,8 +300,10 @@ def run() -> None:
     cycles = int(os.environ.get("BENCH_CYCLES", "20000"))
     rounds = int(os.environ.get("BENCH_CYCLE_ROUNDS", "3"))
     base_rev = os.environ.get("BENCH_CYCLE_BASE", "main")
-    print(f"  compute per cycle, fake in-process bus (modbus_tcp driver, no socket), "
-          f"{cycles} cycles x {rounds} rounds, p50 / p99 / p99.9 us")  # fmt: skip
+    print(
+        f"  compute per cycle, fake in-process bus (modbus_tcp driver, no socket), "
+        f"{cycles} cycles x {rounds} rounds, p50 / p99 / p99.9 us"
+    )
     with tempfile.TemporaryDirectory(prefix="bench-cycle-") as tmp:
         base = _tree_of(base_rev, tmp) if base_rev != "none" else None
         trees = (
@@ -317,8 +326,10 @@ def run() -> None:
             cells += f"{b[0] / a[0]:.2f} / {b[1] / a[1]:.2f}"
         print(f"  {p:<18}{cells}")
     print(f"  {runs[names[-1]][-1]['rt']}")
-    print(f"  (medians over {rounds} alternating rounds; load average "
-          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())})")  # fmt: skip
+    print(
+        f"  (medians over {rounds} alternating rounds; load average "
+        f"{' '.join(f'{x:.2f}' for x in os.getloadavg())})"
+    )
 
 
 if __name__ == "__main__" and len(sys.argv) > 2 and sys.argv[1] == "--worker":

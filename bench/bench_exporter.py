@@ -1,4 +1,4 @@
-"""The metrics exporter under hostile scrapers (issue 13 item 2): fds, threads, latency, overruns.
+"""The metrics exporter under hostile scrapers: fds, threads, latency, overruns.
 
 ``python -m bench exporter``. The gateway daemon (``cdpr-gateway run``) runs as a child
 process at 1 kHz against the soft PLC (``cdpr-gateway sim-plc``, another child) on
@@ -52,9 +52,14 @@ def _child(src: Path, args: list[str]) -> subprocess.Popen[str]:
         resource.setrlimit(resource.RLIMIT_NOFILE, (FD_LIMIT, FD_LIMIT))
 
     return subprocess.Popen(
-        [sys.executable, "-m", "gateway.cli", *args], cwd=src, env=env, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, preexec_fn=limit,
-    )  # fmt: skip
+        [sys.executable, "-m", "gateway.cli", *args],
+        cwd=src,
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        preexec_fn=limit,
+    )
 
 
 def _proc_figures(pid: int) -> tuple[int, int]:
@@ -131,9 +136,11 @@ def _idle_phase(pid: int, port: int, count: int, hold_s: float) -> None:
         time.sleep(0.2)
     for s in clients:
         s.close()
-    print(f"   idle x{len(clients)} for {hold_s:.0f} s: threads {quiet[0]} -> peak "
-          f"{peak_threads}, fds {quiet[1]} -> peak {peak_fds}; a scrape meanwhile: "
-          f"{scrape}")  # fmt: skip
+    print(
+        f"   idle x{len(clients)} for {hold_s:.0f} s: threads {quiet[0]} -> peak "
+        f"{peak_threads}, fds {quiet[1]} -> peak {peak_fds}; a scrape meanwhile: "
+        f"{scrape}"
+    )
 
 
 def _burst_phase(port: int, count: int) -> None:
@@ -164,12 +171,16 @@ def _burst_phase(port: int, count: int) -> None:
     time.sleep(window + 0.5)
     c3, o3 = _cycles_overruns(port)
     a = np.asarray(lat) * 1e3 if lat else np.asarray([np.nan])
-    print(f"   burst x{count}: latency p50 {np.percentile(a, 50):.1f} ms, p99 "
-          f"{np.percentile(a, 99):.1f} ms, max {a.max():.1f} ms; failed {len(failed)} "
-          f"{sorted(set(failed))}; window {window:.2f} s")  # fmt: skip
-    print(f"   overruns during the burst {100 * (o1 - o0) / max(c1 - c0, 1):.2f} % "
-          f"of {c1 - c0:.0f} cycles; quiet window {100 * (o3 - o2) / max(c3 - c2, 1):.2f} % "
-          f"of {c3 - c2:.0f} cycles")  # fmt: skip
+    print(
+        f"   burst x{count}: latency p50 {np.percentile(a, 50):.1f} ms, p99 "
+        f"{np.percentile(a, 99):.1f} ms, max {a.max():.1f} ms; failed {len(failed)} "
+        f"{sorted(set(failed))}; window {window:.2f} s"
+    )
+    print(
+        f"   overruns during the burst {100 * (o1 - o0) / max(c1 - c0, 1):.2f} % "
+        f"of {c1 - c0:.0f} cycles; quiet window {100 * (o3 - o2) / max(c3 - c2, 1):.2f} % "
+        f"of {c3 - c2:.0f} cycles"
+    )
 
 
 def run() -> None:

@@ -1,6 +1,6 @@
 """The gateway against a hostile Modbus PLC (tests/hostile_modbus.py), loopback only.
 
-Two probes (issue "hostile PLC" items 3 and 4), each bounded in time:
+Two probes (a hostile PLC), each bounded in time:
 
 * ``storm``: the real cycle (:class:`gateway.runtime.loop.CyclicService` with the Modbus driver)
   runs ``seconds`` against a PLC that answers exceptions (6, busy), malformed frames,

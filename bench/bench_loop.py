@@ -33,7 +33,7 @@ major page faults of this process during the run (``getrusage``); CPU and peak R
 Then the floor (a bare socket doing the same function-23 transaction) and, unless
 disabled, CANopen on python-can's virtual bus.
 
-Goals (issue 12, 2-core machine): overruns <= 0.05 % with RT, <= 0.3 % without;
+Goals (2-core machine): overruns <= 0.05 % with RT, <= 0.3 % without;
 lateness p99.9 <= 150 us with RT; gateway compute p99 <= 20 us. Figures only: nothing
 here asserts on time. The loop's per-phase timings are read from ``service.stats``
 (rings ``jitter_ring``, ``cycle_ring``, ``read_ring``, ``compensate_ring``,
@@ -89,8 +89,16 @@ class BenchPlc:
     """``sim-plc --port 0 [--realtime]`` as a subprocess; its stderr kept for the report."""
 
     def __init__(self, config_path: str, rt: bool) -> None:
-        cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
-               "--port", "0"] + (["--realtime"] if rt else [])  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "gateway.cli",
+            "sim-plc",
+            "--config",
+            config_path,
+            "--port",
+            "0",
+        ] + (["--realtime"] if rt else [])
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
         self.proc = subprocess.Popen(
@@ -214,17 +222,26 @@ def run_modbus(cfg: Config, seconds: float, rt: bool, poll: bool = False) -> dic
         plc.close()
     wall = wall1 - wall0
     return {
-        "rt": rt, "name": "RT on" if rt else ("RT off + poll" if poll else "RT off"),
-        "service": service, "wall": wall, "rss": rss, "floor": floor,
+        "rt": rt,
+        "name": "RT on" if rt else ("RT off + poll" if poll else "RT off"),
+        "service": service,
+        "wall": wall,
+        "rss": rss,
+        "floor": floor,
         "cpu": (u1.ru_utime + u1.ru_stime - u0.ru_utime - u0.ru_stime) / wall,
-        "minflt": u1.ru_minflt - u0.ru_minflt, "majflt": u1.ru_majflt - u0.ru_majflt,
-        "gateway_rt": report.line("gateway real-time") if report else (
-            "gateway real-time: off" + (
-                f"; the bench holds {realtime.CPU_DMA_LATENCY} at 0" if held is not None else "")),
+        "minflt": u1.ru_minflt - u0.ru_minflt,
+        "majflt": u1.ru_majflt - u0.ru_majflt,
+        "gateway_rt": report.line("gateway real-time")
+        if report
+        else (
+            "gateway real-time: off"
+            + (f"; the bench holds {realtime.CPU_DMA_LATENCY} at 0" if held is not None else "")
+        ),
         "plc_rt": "; ".join(plc.lines("sim-plc: real-time")) or "n/a",
         "plc_stop": "; ".join(plc.lines("sim-plc: stopped")) or "n/a",
-        "causes": _causes(service, wire), "wire": wire.recent(),
-    }  # fmt: skip
+        "causes": _causes(service, wire),
+        "wire": wire.recent(),
+    }
 
 
 def _floor(host: str, port: int, service: CyclicService, n: int) -> np.ndarray:
@@ -302,10 +319,12 @@ def run_canopen(cfg: Config, seconds: float) -> None:
     finally:
         plc.close()
     s = service.stats
-    print(f"  canopen (virtual bus, in process, RT off): {s.cycles} cycles, {s.overruns} "
-          f"overruns ({100 * s.overruns / max(s.cycles, 1):.3f} %); lateness "
-          f"{_fmt(_summary(s.jitter_ring.recent()))} us; cycle "
-          f"{_fmt(_summary(s.cycle_ring.recent()))} us")  # fmt: skip
+    print(
+        f"  canopen (virtual bus, in process, RT off): {s.cycles} cycles, {s.overruns} "
+        f"overruns ({100 * s.overruns / max(s.cycles, 1):.3f} %); lateness "
+        f"{_fmt(_summary(s.jitter_ring.recent()))} us; cycle "
+        f"{_fmt(_summary(s.cycle_ring.recent()))} us"
+    )
 
 
 def run() -> None:
@@ -314,8 +333,10 @@ def run() -> None:
     if "BENCH_BUSY_WAIT_S" in os.environ:  # spin before each deadline (config loop.busy_wait_s)
         loop = dataclasses.replace(cfg.loop, busy_wait_s=float(os.environ["BENCH_BUSY_WAIT_S"]))
         cfg = dataclasses.replace(cfg, loop=loop)
-    print(f"  gateway vs soft PLC (subprocess) over modbus_tcp on loopback, {seconds:g} s each,"
-          f" busy-wait {cfg.loop.busy_wait_s * 1e6:.0f} us")  # fmt: skip
+    print(
+        f"  gateway vs soft PLC (subprocess) over modbus_tcp on loopback, {seconds:g} s each,"
+        f" busy-wait {cfg.loop.busy_wait_s * 1e6:.0f} us"
+    )
     runs = [run_modbus(cfg, seconds, rt=False)]
     if os.environ.get("BENCH_LOOP_POLL", "1") != "0":
         runs.append(run_modbus(cfg, seconds, rt=False, poll=True))

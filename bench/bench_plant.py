@@ -69,10 +69,12 @@ def _stall_line(name: str, late: np.ndarray, runtime: PlcRuntime) -> str:
     p50, p99, p999 = np.percentile(late, [50, 99, 99.9]) * 1e6
     over = int(np.sum(late > 100e-6))
     st = runtime.stats
-    return (f"   {name:<32} probe wake-up late p50 {p50:5.0f} / p99 {p99:5.0f} / p99.9 "
-            f"{p999:5.0f} / max {late.max() * 1e6:6.0f} us, {over} stalls > 100 us in "
-            f"{late.size} wake-ups; runtime: longest step {st.max_step_s * 1e6:.0f} us, "
-            f"{st.late} late cycles of {st.cycles}")  # fmt: skip
+    return (
+        f"   {name:<32} probe wake-up late p50 {p50:5.0f} / p99 {p99:5.0f} / p99.9 "
+        f"{p999:5.0f} / max {late.max() * 1e6:6.0f} us, {over} stalls > 100 us in "
+        f"{late.size} wake-ups; runtime: longest step {st.max_step_s * 1e6:.0f} us, "
+        f"{st.late} late cycles of {st.cycles}"
+    )
 
 
 def _stall_run(cfg: Any, seconds: float, worker: bool, rt: bool) -> None:
@@ -141,13 +143,22 @@ def run() -> None:
         for name, sel in (("all steps", slice(None)), ("  within a chunk", ~first)):
             t = took[sel]
             med, p99, p999 = np.percentile(t, [50, 99, 99.9]) * 1e6
-            print(f"   Plant.step CPU, {where}, {name}: median {med:.0f} us, p99 {p99:.0f} "
-                  f"us, p99.9 {p999:.0f} us, max {t.max() * 1e6:.0f} us, "
-                  f"{int(np.sum(t > 100e-6))} of {t.size} steps > 100 us")  # fmt: skip
+            print(
+                f"   Plant.step CPU, {where}, {name}: median {med:.0f} us, p99 {p99:.0f} "
+                f"us, p99.9 {p999:.0f} us, max {t.max() * 1e6:.0f} us, "
+                f"{int(np.sum(t > 100e-6))} of {t.size} steps > 100 us"
+            )
         t = took[first]
-        print(f"     first step of a chunk ({t.size}): median {np.median(t) * 1e6:.0f} us, max "
-              f"{t.max() * 1e6:.0f} us" + (" (a write and a read on the worker's socket; "
-              "the GIL is released in both system calls)" if worker else ""))  # fmt: skip
+        print(
+            f"     first step of a chunk ({t.size}): median {np.median(t) * 1e6:.0f} us, max "
+            f"{t.max() * 1e6:.0f} us"
+            + (
+                " (a write and a read on the worker's socket; "
+                "the GIL is released in both system calls)"
+                if worker
+                else ""
+            )
+        )
     for rt in (False, True):
         for worker in (False, True):
             _stall_run(cfg, seconds, worker, rt)
@@ -155,5 +166,7 @@ def run() -> None:
     t0 = time.perf_counter()
     rec = make_recording(cfg, None, seconds)
     dt = time.perf_counter() - t0
-    print(f"   make_recording: {rec.samples} samples in {dt:.2f} s "
-          f"({rec.samples / dt:,.0f} samples/s, {seconds / dt:.1f}x real time)")  # fmt: skip
+    print(
+        f"   make_recording: {rec.samples} samples in {dt:.2f} s "
+        f"({rec.samples / dt:,.0f} samples/s, {seconds / dt:.1f}x real time)"
+    )

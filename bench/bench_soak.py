@@ -195,25 +195,35 @@ def _report(gw: Gateway, plc: dict[str, Any], res: dict[str, Any]) -> None:
     lost = s.skipped + (s.cycles - s.written)
     deadlines = res["elapsed_s"] / gw.period_s
     print(f"soak: {res['elapsed_s']:.0f} s at {1 / gw.period_s:.0f} Hz, seed {res['seed']}")
-    print(f"  cycles: executed {s.cycles}, written {s.written}, skipped {s.skipped} "
-          f"(overruns {s.overruns}); deadlines ~{deadlines:.0f}; cycles lost {lost}")  # fmt: skip
+    print(
+        f"  cycles: executed {s.cycles}, written {s.written}, skipped {s.skipped} "
+        f"(overruns {s.overruns}); deadlines ~{deadlines:.0f}; cycles lost {lost}"
+    )
     print(f"  faults injected (frames): {sum(injected.values())} {injected}")
     failed = len(res["episodes"]) - len(recovered)
-    print(f"  fault episodes: {len(res['episodes'])}, survived {len(recovered)}, "
-          f"not recovered within {RECOVERY_WAIT_S} s: {failed}")  # fmt: skip
+    print(
+        f"  fault episodes: {len(res['episodes'])}, survived {len(recovered)}, "
+        f"not recovered within {RECOVERY_WAIT_S} s: {failed}"
+    )
     if recovered:
-        print(f"  recovery after clear (polled, upper bound): median "
-              f"{np.median(recovered):.0f} cycles, max {max(recovered)} cycles")  # fmt: skip
+        print(
+            f"  recovery after clear (polled, upper bound): median "
+            f"{np.median(recovered):.0f} cycles, max {max(recovered)} cycles"
+        )
     print(f"  gateway errors: {gw.errors()}, reconnects {gw.reconnects():.0f}")
-    print(f"  writes at the PLC: {plc['writes']} (all good {plc['all_good']}, flagged "
-          f"{plc['flagged']}); values lost {plc['bad_values']}")  # fmt: skip
+    print(
+        f"  writes at the PLC: {plc['writes']} (all good {plc['all_good']}, flagged "
+        f"{plc['flagged']}); values lost {plc['bad_values']}"
+    )
     for line in plc["bad"]:
         print(f"    {line}")
     m = res["mem"]
     growth = m["rss_end"] - m["rss_start"]
-    print(f"  gateway process RSS: start {m['rss_start'] / 1024:.1f} MiB, end "
-          f"{m['rss_end'] / 1024:.1f} MiB, growth {growth / 1024:+.1f} MiB; open fds: "
-          f"start {m['fd_start']}, end {m['fd_end']}")  # fmt: skip
+    print(
+        f"  gateway process RSS: start {m['rss_start'] / 1024:.1f} MiB, end "
+        f"{m['rss_end'] / 1024:.1f} MiB, growth {growth / 1024:+.1f} MiB; open fds: "
+        f"start {m['fd_start']}, end {m['fd_end']}"
+    )
 
 
 def run() -> None:

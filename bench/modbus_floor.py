@@ -164,8 +164,10 @@ def main(argv: list[str]) -> int:
         print(_report("floor", floor_roundtrips(argv[0], int(argv[1]), n)))
         return 0
     per_request, times = server_cost(int(argv[0]) if argv else 5000)
-    print(f"server   CPU per fc23 request {per_request * 1e6:6.1f} us (its thread's clock); "
-          + _report("", times).strip())  # fmt: skip
+    print(
+        f"server   CPU per fc23 request {per_request * 1e6:6.1f} us (its thread's clock); "
+        + _report("", times).strip()
+    )
     res = side_by_side(int(argv[0]) if argv else 5000)
     for name, t in res.items():
         print(_report(name, t))

@@ -33,7 +33,15 @@ The contract a loop relies on is declared here, with defaults, and nowhere else:
   :meth:`poll_connect` (non-blocking drivers implement ``_open_begin``/``_open_advance``);
 * one cycle's transfer as one explicit :meth:`exchange` (``outputs`` written and
   ``inputs`` read in one transaction where the bus can: Modbus function 23, see
-  :attr:`Driver.combines_write_and_read`); :meth:`write_from` always sends at once.
+  :attr:`Driver.combines_write_and_read`); :meth:`write_from` always sends at once;
+* every frame passes the output gate (:class:`drivers.gate.Gate`) in
+  :meth:`exchange` and :meth:`write_from`, at :attr:`Driver.clock`'s time of sending, just
+  before the hook encodes it: a value the PLC may use is finite, fits its register, was
+  computed from data no older than ``loop.max_input_age_s`` while the PLC heartbeat
+  watchdog was armed; anything else goes out invalid (counted in :attr:`Driver.gated`);
+* the time of the data: :attr:`Inputs.read_time_s` is the driver clock when the data was
+  requested (or, on a paced bus, when its SYNC came): an upper bound of its age. The loop
+  sets :attr:`Driver.clock` to its own clock.
 
 Only this class changes :attr:`Driver.state`.
 """
@@ -50,6 +58,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from drivers import gate
+from gateway.core.ring import Ring
 from gateway.errors import DriverError, DriverInitError
 
 DRIVERS: dict[str, str] = {
@@ -97,8 +107,8 @@ class Inputs:
     velocity_m_s: np.ndarray  # setpoint cable velocities
     length_m: np.ndarray  # setpoint cable lengths
     pose: np.ndarray  # (6,) x, y, z m; rx, ry, rz rad
-    plc_heartbeat: int = 0
-    read_time_s: float = 0.0  # time.monotonic() when the reply arrived
+    plc_heartbeat: int | float = 0  # float when its register is float32 (NaN: no value)
+    read_time_s: float = 0.0  # driver clock when the data was requested (its age's bound)
     platform_mass_kg: float = float("nan")  # when the register map has platform_mass
 
     @staticmethod
@@ -120,6 +130,14 @@ class Outputs:
     wrench: np.ndarray  # (6,) N, N m
     gateway_heartbeat: int = 0
     gateway_state: int = int(Lifecycle.CONNECTED)
+    data_at: float = math.nan  # read_time_s of the inputs the frame was computed from
+    heartbeat_at: float = -math.inf  # when the PLC heartbeat last changed (-inf: never seen)
+
+    def stamp(self, data_at: float, heartbeat_at: float) -> Outputs:
+        """Say when the frame's data was requested and when the PLC heartbeat last
+        changed (driver clock): the output gate sends nothing good without both."""
+        self.data_at, self.heartbeat_at = float(data_at), float(heartbeat_at)
+        return self
 
     @staticmethod
     def allocate(cables: int) -> Outputs:
@@ -162,23 +180,7 @@ class Backoff:
         self.next_at = -math.inf
 
 
-@dataclass
-class RoundtripRing:
-    """Last ``size`` transaction durations (s); written in the cycle, read at scrape time."""
-
-    size: int = 4096
-    values: np.ndarray = field(init=False)
-    count: int = 0
-
-    def __post_init__(self) -> None:
-        self.values = np.zeros(self.size)
-
-    def add(self, seconds: float) -> None:
-        self.values[self.count % self.size] = seconds
-        self.count += 1
-
-    def recent(self) -> np.ndarray:
-        return self.values[: min(self.count, self.size)]
+ROUNDTRIP_HISTORY = 4096
 
 
 class Driver(ABC):
@@ -190,12 +192,14 @@ class Driver(ABC):
     paced_by_bus: ClassVar[bool] = False
     #: The budget (s) :meth:`open` gives each ``_open_advance`` call while it blocks.
     OPEN_POLL_S: ClassVar[float] = 0.05
+    #: What :attr:`gated` counts, by index (``cdpr_gateway_gated_total{reason}``).
+    GATE_REASONS: ClassVar[tuple[str, ...]] = gate.REASONS
 
     def __init__(self, config: Any) -> None:
         self.config = config
         self.cables: int = config.cables
         self.state = DriverState.UNCONFIGURED
-        self.roundtrip_s = RoundtripRing()
+        self.roundtrip_s = Ring(ROUNDTRIP_HISTORY)  # transaction durations (s)
         self.backoff = Backoff()
         self.reconnects = 0  # connections re-established after one was up
         self.reconnect_attempts = 0  # connection attempts, first one included
@@ -205,6 +209,48 @@ class Driver(ABC):
         self._closed = False
         self._connecting = False
         self._ever_connected = False
+        self.clock = time.monotonic  # the loop replaces it with its own clock
+        self.plc_heartbeat_modulus = 1 << 16  # the PLC heartbeat's wrap (0: a float)
+        self._gate: gate.Gate | None = None
+
+    def write_blocked(self) -> str:
+        """Why the bus does not take a frame now ("" when it does), e.g. a CANopen node
+        an NMT master stopped: the loop then writes nothing and reports CONNECTED."""
+        return ""
+
+    def output_bands(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """(corrected tension, wrench) values the written registers can carry."""
+        f32 = float(np.finfo(np.float32).max)
+        return (-f32, f32), (-f32, f32)
+
+    @property
+    def output_gate(self) -> gate.Gate:
+        """The output gate of this driver's frames (built once, on first use)."""
+        if self._gate is None:
+            lp = self.config.loop
+            tension, wrench = self.output_bands()
+            age = lp.max_input_age_s if lp.max_input_age_s is not None else 2 * lp.period_s
+            limits = gate.limits(tension, wrench, age, lp.heartbeat_timeout_s)
+            self._gate = gate.Gate(limits, self.cables)
+        return self._gate
+
+    @property
+    def gated(self) -> np.ndarray:
+        """Values the gate wrote invalid, by reason (:attr:`GATE_REASONS`)."""
+        return self.output_gate.counts
+
+    def _gate_frame(self, outputs: Outputs) -> int:
+        """The output gate at this moment (module doc of :mod:`drivers.gate`); the number
+        of values it stopped. A driver may call it again right before sending."""
+        o = outputs
+        return self.output_gate(
+            self.clock(),
+            o.data_at,
+            o.heartbeat_at,
+            o.tension_corrected_n,
+            o.channel_status,
+            o.wrench,
+        )
 
     @property
     def combines_write_and_read(self) -> bool:
@@ -268,6 +314,7 @@ class Driver(ABC):
             raise DriverInitError(f"{self.name}: cannot open: {exc}") from exc
 
     def _opened(self) -> None:
+        self.output_gate  # noqa: B018 - built (compiled) now, not on the first frame
         self._connecting = False
         if self._ever_connected:
             self.reconnects += 1
@@ -284,6 +331,9 @@ class Driver(ABC):
         """One cycle's transfer: write ``outputs`` (None: nothing to write) and read
         ``inputs``, in one transaction where the bus can (Modbus function 23), else write
         then read. A normal return is a good data reply: the reconnect backoff resets."""
+        if outputs is not None:
+            self._gate_frame(outputs)
+        inputs.read_time_s = self.clock()  # a driver that knows better overwrites it
         start = time.perf_counter()
         try:
             self._exchange(outputs, inputs)
@@ -291,7 +341,6 @@ class Driver(ABC):
             self.state = DriverState.FAULT
             raise
         self.roundtrip_s.add(time.perf_counter() - start)
-        inputs.read_time_s = time.monotonic()
         self.backoff.reset()
         if outputs is not None:
             self.state = DriverState.ACTIVE
@@ -299,7 +348,8 @@ class Driver(ABC):
             self.state = DriverState.CONNECTED
 
     def write_from(self, outputs: Outputs) -> None:
-        """Send ``outputs`` now."""
+        """Send ``outputs`` now (through the output gate)."""
+        self._gate_frame(outputs)
         try:
             self._write(outputs)
         except DriverError:

@@ -64,6 +64,7 @@ pose or a heartbeat.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Any
 
@@ -76,12 +77,15 @@ from drivers.canopen_pdo import (  # noqa: F401 - re-exported: drivers.canopen i
     LENGTH_M_PER_COUNT,
     POSITION_M_PER_COUNT,
     STATUS_BITS,
+    TENSION_MAX_N,
+    TENSION_MIN_N,
     TENSION_N_PER_COUNT,
     TENSION_NO_VALUE,
     VELOCITY_M_S_PER_COUNT,
     PdoLayout,
     decode_tension,
     encode_tension,
+    import_eds,
     load_pdo_layouts,
     new_slots,
     pack_pdo,
@@ -92,7 +96,7 @@ from drivers.canopen_pdo import (  # noqa: F401 - re-exported: drivers.canopen i
     unpack_status,
 )
 from drivers.s7 import S7Analog
-from gateway.errors import DriverInitError, DriverIOError, DriverTimeoutError
+from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError
 
 log = logging.getLogger("cdpr_gateway.canopen")
 
@@ -153,6 +157,11 @@ class CanopenDriver(Driver):
             timeout_s or self.can_cfg.timeout_s or READ_TIMEOUT_PERIODS * self.can_cfg.sync_period_s
         )
         self.analog = S7Analog.from_sensor(config.sensor)
+        if config.sensor.range_n > TENSION_MAX_N:
+            raise ConfigError(
+                f"sensor.range_n: {config.sensor.range_n:g} N cannot be written over CANopen "
+                f"(2100h: {TENSION_N_PER_COUNT:g} N per count, at most {TENSION_MAX_N:g} N)"
+            )
         self._external_bus = bus
         self._bus: can.BusABC | None = None
         self._rx: dict[int, tuple[PdoLayout, int]] = {}  # cob_id -> (layout, required bit)
@@ -171,6 +180,18 @@ class CanopenDriver(Driver):
         self._network: canopen.Network | None = None
         self._node: canopen.LocalNode | None = None
         self._sdo_rx = -1
+
+    def write_blocked(self) -> str:
+        """No PDOs unless the node is operational (CiA 301): stopped or pre-operational
+        by the NMT master, the gateway writes nothing and says so."""
+        state = self.nmt_state if self._node is not None else "OPERATIONAL"
+        if state == "OPERATIONAL":
+            return ""
+        return f"canopen node {self.can_cfg.gateway_node_id:#04x}: NMT state {state}"
+
+    def output_bands(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The corrected-tension PDO's counts (0x7FFF is "no value"); no wrench on CANopen."""
+        return (TENSION_MIN_N, TENSION_MAX_N), (-math.inf, math.inf)
 
     # --- hooks ----------------------------------------------------------------------------
     def _open(self) -> None:
@@ -216,7 +237,7 @@ class CanopenDriver(Driver):
         cfg = self.can_cfg
         path = resolve_path(cfg.gateway_eds)
         try:
-            od = canopen.import_od(str(path), cfg.gateway_node_id)
+            od = import_eds(path, cfg.gateway_node_id)
         except Exception as exc:
             raise DriverInitError(f"{path}: cannot load EDS: {exc}") from exc
         network = canopen.Network()
@@ -285,6 +306,9 @@ class CanopenDriver(Driver):
         self._sync_seen, self._received = False, 0
         self.sets += 1
         self.last_sync_timestamp = self._sync_timestamp
+        # the data belongs to its SYNC: its age counts from the SYNC's arrival
+        since_sync = max(time.time() - self._sync_timestamp, 0.0)
+        inputs.read_time_s = min(inputs.read_time_s, self.clock() - since_sync)
         self._fill(inputs)
 
     def _collect(self, deadline: float) -> bool:

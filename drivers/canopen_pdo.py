@@ -7,6 +7,7 @@ files in ``config/`` are the source of truth); everything here is also importabl
 
 from __future__ import annotations
 
+import io
 import math
 import struct
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ import canopen
 import numpy as np
 from canopen import objectdictionary as od_types
 
+from gateway.core.files import MAX_EDS_BYTES, read_regular
 from gateway.core.resources import data_dir
 from gateway.errors import DriverInitError, DriverIOError
 
@@ -26,6 +28,8 @@ LENGTH_M_PER_COUNT = 1e-4
 POSITION_M_PER_COUNT = 1e-4
 ANGLE_RAD_PER_COUNT = 1e-4
 TENSION_NO_VALUE = 0x7FFF
+TENSION_MIN_N = -32767 * TENSION_N_PER_COUNT  # what encode_tension writes without clamping
+TENSION_MAX_N = 32766 * TENSION_N_PER_COUNT
 STATUS_BITS = 2
 
 _STRUCT_CODES = {
@@ -63,13 +67,23 @@ def resolve_path(path: str | Path) -> Path:
     return p if p.is_absolute() or p.exists() else data_dir() / p
 
 
+def import_eds(eds_path: str | Path, node_id: int) -> Any:
+    """The object dictionary of an EDS file, read through the one bounded file reader
+    (a regular file under a size limit: a device, a FIFO or a huge file is refused)."""
+    path = resolve_path(eds_path)
+    raw = read_regular(path, MAX_EDS_BYTES, "EDS file")
+    fp = io.StringIO(raw.decode("utf-8", errors="replace"))
+    fp.name = str(path)  # canopen picks the format by the name's suffix
+    return canopen.import_od(fp, node_id)
+
+
 def load_pdo_layouts(
     eds_path: str | Path, node_id: int
 ) -> tuple[dict[int, PdoLayout], dict[int, PdoLayout]]:
     """(TPDOs, RPDOs) of an EDS by PDO number; only enabled PDOs with a mapping."""
     path = resolve_path(eds_path)
     try:
-        od = canopen.import_od(str(path), node_id)
+        od = import_eds(path, node_id)
         network = canopen.Network()  # never connected: only to satisfy PdoMap.subscribe
         node = canopen.LocalNode(node_id, od)
         network.add_node(node)

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import Backoff, Driver, Inputs, Outputs
-from drivers.registers import FieldCodec, FieldGroup, Span, layout_map
+from drivers.registers import FieldCodec, FieldGroup, Span, check_outputs, layout_map, value_band
 from gateway.core.config import ModbusTcpConfig
 from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError
 
@@ -94,6 +94,7 @@ class ModbusTcpDriver(Driver):
         self.where = f"modbus_tcp {self.mb.host}:{self.mb.port} unit {self.mb.unit_id}"
         self.layout = layout_map(self.mb.registers)
         self._check_counts()
+        check_outputs(self.mb.registers, config.sensor)
         try:
             self._ssl = _tls_context(self.mb)
         except (OSError, ssl.SSLError) as exc:
@@ -105,8 +106,16 @@ class ModbusTcpDriver(Driver):
         self._connect_deadline = 0.0
         self._tid = 0
         self._timeouts_in_a_row = 0
+        self._outgoing: tuple[Outputs, int] | None = None  # the frame's outputs, while sent
         self.foreign_unit_replies = 0  # replies from another unit id (also dropped_replies)
         self._build_frames(config)
+        self.plc_heartbeat_modulus = {"float32": 0, "int32": 2**32, "uint32": 2**32}.get(
+            self.mb.registers.plc_heartbeat.type, 2**16
+        )
+
+    def output_bands(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        r = self.mb.registers
+        return value_band(r.corrected_tensions), value_band(r.wrench)
 
     @property
     def combines_write_and_read(self) -> bool:
@@ -120,7 +129,10 @@ class ModbusTcpDriver(Driver):
             "setpoint_velocities": (r.setpoint_velocities, self.cables),
             "setpoint_lengths": (r.setpoint_lengths, self.cables),
             "pose": (r.pose, 6),
+            "plc_heartbeat": (r.plc_heartbeat, 1),
             "corrected_tensions": (r.corrected_tensions, self.cables),
+            "gateway_heartbeat": (r.gateway_heartbeat, 1),
+            "gateway_state": (r.gateway_state, 1),
             "channel_status": (r.channel_status, self.cables),
             "wrench": (r.wrench, 6),
         }
@@ -161,13 +173,13 @@ class ModbusTcpDriver(Driver):
         self._mass = inp(r.platform_mass) if r.platform_mass is not None else None
         self._mass_value = np.zeros(1)
 
-        def outp(f: Any) -> FieldCodec:
-            return FieldCodec(f, self._wdata, ws.start, 0, sensor)
+        def outp(f: Any, wrap: bool = False) -> FieldCodec:
+            return FieldCodec(f, self._wdata, ws.start, 0, sensor, wrap=wrap)
 
         self._out = (
             outp(r.corrected_tensions),
             outp(r.channel_status),
-            outp(r.gateway_heartbeat),
+            outp(r.gateway_heartbeat, wrap=True),
             outp(r.gateway_state),
             outp(r.wrench),
         )
@@ -178,6 +190,7 @@ class ModbusTcpDriver(Driver):
             (self._raw, self._vel, self._len, self._pose, self._hb), raw=(False,) * 4 + (True,)
         )
         self._hb_value = np.zeros(1)
+        self._hb_int = r.plc_heartbeat.type != "float32"
         self._out_group = FieldGroup(self._out)
         self._decode(Inputs.allocate(self.cables))
         self._encode(Outputs.allocate(self.cables))
@@ -341,19 +354,24 @@ class ModbusTcpDriver(Driver):
         self._tid = (self._tid + 1) & 0xFFFF
         struct.pack_into(">H", frame, 0, self._tid)
         deadline = time.perf_counter() + self.mb.timeout_s
+        late = False
         try:
             if self._sock_timeout < 0.5 * self.mb.timeout_s:
                 sock.settimeout(self.mb.timeout_s)
                 self._sock_timeout = self.mb.timeout_s
+            self._last_look(frame)
             sock.sendall(frame)
             n = self._receive(sock, self._tid, deadline)
+            if time.perf_counter() > deadline:  # read late (this process was held up):
+                late = True  # the reply is dropped, its data is no good
+                raise TimeoutError
         except TimeoutError as exc:
             self._timeouts_in_a_row += 1
             if self._timeouts_in_a_row >= MAX_TIMEOUTS_IN_A_ROW:
                 self._drop()
+            what = "reply read after its deadline" if late else "no reply within"
             raise DriverTimeoutError(
-                f"{self.where}: function {fc} at register {address}: no reply within "
-                f"{self.mb.timeout_s} s"
+                f"{self.where}: function {fc} at register {address}: {what} {self.mb.timeout_s} s"
             ) from exc
         except (OSError, ssl.SSLError) as exc:
             self._drop()
@@ -363,6 +381,17 @@ class ModbusTcpDriver(Driver):
         self._timeouts_in_a_row = 0
         self._check_reply(fc, address, n)  # an exception reply is no good reply
         return n
+
+    def _last_look(self, frame: bytearray) -> None:
+        """The output gate once more right before the frame leaves: a frame that went
+        stale since it was encoded (this process held up in between) goes out invalid."""
+        outgoing = self._outgoing
+        if outgoing is None:
+            return
+        outputs, at = outgoing
+        if self._gate_frame(outputs):
+            self._encode(outputs)
+            frame[at:] = self._wdata
 
     def _check_reply(self, fc: int, address: int, n: int) -> None:
         rfc = self._rx[MBAP]
@@ -392,7 +421,11 @@ class ModbusTcpDriver(Driver):
         elif self.mb.use_fc23:
             self._encode(outputs)
             self._fc23[self._wdata_at23 :] = self._wdata
-            self._read_span(self._fc23, FC_READ_WRITE, self.layout.read_span)
+            self._outgoing = (outputs, self._wdata_at23)
+            try:
+                self._read_span(self._fc23, FC_READ_WRITE, self.layout.read_span)
+            finally:
+                self._outgoing = None
         else:  # the 3 + 16 fallback
             self._write(outputs)
             self._read_span(self._fc3, FC_READ, self.layout.read_span)
@@ -405,22 +438,24 @@ class ModbusTcpDriver(Driver):
         hb = self._hb_value
         i = inputs
         self._in_group.decode((i.tension_raw_n, i.velocity_m_s, i.length_m, i.pose, hb))
-        inputs.plc_heartbeat = int(hb[0])
+        inputs.plc_heartbeat = int(hb[0]) if self._hb_int else float(hb[0])
         if self._mass is not None:
             inputs.platform_mass_kg = float(self._mass.decode(self._mass_value)[0])
 
     def _encode(self, outputs: Outputs) -> None:
         o = outputs
-        self._out_group.encode(
-            (o.tension_corrected_n, o.channel_status, int(o.gateway_heartbeat) & 0xFFFF,
-             int(o.gateway_state), o.wrench)
-        )  # fmt: skip
+        hb, state = int(o.gateway_heartbeat), int(o.gateway_state)
+        self._out_group.encode((o.tension_corrected_n, o.channel_status, hb, state, o.wrench))
 
     def _write(self, outputs: Outputs) -> None:
         self._encode(outputs)
         self._fc16[self._wdata_at16 :] = self._wdata
         ws = self.layout.write_span
-        n = self._transact(self._fc16, FC_WRITE, ws.start)
+        self._outgoing = (outputs, self._wdata_at16)
+        try:
+            n = self._transact(self._fc16, FC_WRITE, ws.start)
+        finally:
+            self._outgoing = None
         if n != 5 or struct.unpack_from(">HH", self._rx, MBAP + 1) != (ws.start, ws.count):
             raise DriverIOError(f"{self.where}: function 16 at register {ws.start}: bad echo")
 

@@ -3,33 +3,37 @@
 Registers travel big-endian on the wire, so a block of holding registers *is* a byte
 string of ``2 * n`` bytes. :class:`FieldCodec` binds one :class:`RegisterField` to a fixed
 byte buffer (a driver's preallocated receive or transmit frame, or a server's register
-image) and converts between that buffer and a float64 array, vectorised and without
-allocating per call: the numpy views onto the buffer and the scratch arrays are made once.
+image) and converts between that buffer and a float64 array without allocating per call.
+
+There is one codec: each field is a row of a structured plan (:data:`PLAN`: where it sits,
+its type, word order, scale, S7 window, sentinel) and one compiled kernel each way reads
+or writes every row of a plan. :class:`FieldCodec` is one row; :class:`FieldGroup` stacks
+the rows of several codecs of one buffer so that a cycle's decode or encode is one call
+(each small numpy call costs ~0.5-1 us on 8-element arrays).
 
 Types: int16, uint16, int32, uint32, float32. For 32-bit types ``word_order`` says which
 16-bit word comes first (``high_first`` is the Modbus convention, and then the bytes are
 simply big-endian; ``low_first`` swaps the two words). Plain fields decode as
-``value = raw * scale`` and encode as ``raw = round(value / scale)`` (integers clipped to
-the type's range, NaN -> 0).
-
-:class:`FieldGroup` binds several codecs of one buffer (a driver's whole reply or request
-frame) and decodes or encodes all of them in ONE compiled call, with exactly the results
-of the codecs one by one (tests check bit for bit): a cycle's decode is one call instead
-of a dozen small numpy calls (each costs ~0.5-1 us on 8-element arrays).
+``value = raw * scale`` and encode as ``raw = round(value / scale)``. An integer field
+never clips a value to a plausible number: NaN, infinities and values its type cannot hold
+at its scale are written as its sentinel (``invalid``; default the type's minimum if
+signed, its maximum if unsigned), and a float32 field writes NaN. Counters (heartbeats)
+wrap modulo the register (2**16 or 2**32; 2**24 for float32).
 
 ``format: s7_analog`` (Siemens S7 analog values, int16): decoded and encoded by the one S7
-codec, :class:`drivers.s7.S7Analog` (see there for the reading: 0..``adc_full_scale``
-counts is 0..``range_n`` newtons, over- and underrange included; the overflow/underflow
-codes and the counts no S7 module sends decode as NaN, so the gateway marks the channel
-invalid); ``scale`` is not applied.
+codec (:mod:`drivers.s7`: 0..``adc_full_scale`` counts is 0..``range_n`` newtons, over- and
+underrange included; the overflow/underflow codes and the counts no S7 module sends decode
+as NaN, so the gateway marks the channel invalid); ``scale`` is not applied.
 
 :func:`layout_map` checks a whole :class:`RegisterMap` (no two fields overlap; the write
 span never covers a PLC input register) and computes the contiguous spans a driver
-transfers: the inputs and the outputs.
+transfers: the inputs and the outputs. :func:`check_outputs` refuses an output map that
+cannot carry the contract of the output gate (:mod:`drivers.gate`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import combinations
@@ -39,167 +43,99 @@ import numpy as np
 from numba import literal_unroll, njit, types
 from numba.extending import overload
 
-from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW, S7Analog
+from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW, S7Analog  # noqa: F401 - re-exported
+from drivers.s7 import decode_count as s7_decode_count
+from drivers.s7 import encode_count as s7_encode_count
 from gateway.core.config import RegisterField, RegisterMap, SensorConfig
 from gateway.errors import ConfigError
 
 MAX_READ_REGISTERS = 125  # functions 3, 4, 23 (read part)
 MAX_WRITE_REGISTERS_FC16 = 123
 MAX_WRITE_REGISTERS_FC23 = 121
+RANGE_MARGIN = 0.05  # the compensator's: readings down to -5 % of the range are plausible
 
-_DTYPES: dict[str, np.dtype] = {
-    "int16": np.dtype(">i2"),
-    "uint16": np.dtype(">u2"),
-    "int32": np.dtype(">i4"),
-    "uint32": np.dtype(">u4"),
-    "float32": np.dtype(">f4"),
-}
+# --- the one codec: a plan row per field, one compiled kernel each way ------------------
+MODE_SCALED, MODE_RAW, MODE_WRAP = 0, 1, 2
+_KINDS = {"int16": 0, "uint16": 1, "int32": 2, "uint32": 3, "float32": 4}
+_TYPE_RANGE = {0: (-32768, 32767), 1: (0, 65535), 2: (-(2**31), 2**31 - 1), 3: (0, 2**32 - 1)}
+_DEFAULT_INVALID = {0: -32768, 1: 65535, 2: -(2**31), 3: 2**32 - 1}
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
-
-def field_dtype(field: RegisterField) -> np.dtype:
-    """The big-endian numpy dtype of one value of ``field`` (high word first)."""
-    return _DTYPES[field.type]
-
-
-class FieldCodec:
-    """One register field bound to a byte buffer that holds registers from ``base_address``.
-
-    ``buffer`` must stay the same object (and size) for the codec's lifetime; ``offset`` is
-    the byte position of register ``base_address`` inside it (e.g. 9 for the data of a
-    function-3 reply frame after the MBAP header, function code and byte count).
-    """
-
-    def __init__(
-        self,
-        field: RegisterField,
-        buffer: bytearray | memoryview,
-        base_address: int,
-        offset: int = 0,
-        sensor: SensorConfig | None = None,
-    ) -> None:
-        if field.address < base_address:
-            raise ConfigError(
-                f"register {field.address} lies before the buffer base {base_address}"
-            )
-        self.field = field
-        self.count = field.count
-        self.dtype = field_dtype(field)
-        start = offset + 2 * (field.address - base_address)
-        if start + 2 * field.words > len(buffer):
-            raise ConfigError(
-                f"registers {field.address}..{field.end - 1} do not fit the buffer "
-                f"(base {base_address}, {len(buffer)} bytes)"
-            )
-        self.swap = field.words == 2 * field.count and field.word_order == "low_first"
-        self.buffer = buffer
-        self.start = start  # byte position of the field in ``buffer``
-        self._words = np.frombuffer(buffer, dtype=">u2", count=field.words, offset=start)
-        if self.swap:  # values are assembled in a scratch copy with the words swapped
-            self._scratch = np.empty(field.words, dtype=">u2")
-            self._values = self._scratch.view(self.dtype)
-        else:
-            self._values = np.frombuffer(buffer, dtype=self.dtype, count=self.count, offset=start)
-        self.s7 = field.format == "s7_analog"
-        if self.s7 and field.type != "int16":
-            raise ConfigError(f"register {field.address}: format s7_analog needs type int16")
-        sensor = sensor or SensorConfig()
-        self.analog = S7Analog.from_sensor(sensor)
-        self.newtons_per_count = self.analog.newtons_per_count
-        self._lut = self.analog.table if self.s7 else None
-        self._mask = np.empty(self.count, dtype=bool)
-        self._mask2 = np.empty(self.count, dtype=bool)
-        self._float = np.empty(self.count)
-        info = np.iinfo(self.dtype) if self.dtype.kind in "iu" else None
-        self._limits = (float(info.min), float(info.max)) if info is not None else None
-
-    # --- decode ----------------------------------------------------------------------
-    def _source(self) -> np.ndarray:
-        if self.swap:
-            self._scratch[0::2] = self._words[1::2]
-            self._scratch[1::2] = self._words[0::2]
-        return self._values
-
-    def decode(self, out: np.ndarray, raw: bool = False) -> np.ndarray:
-        """Decode the bound registers into ``out`` (shape (count,), float64).
-
-        ``raw=True`` skips scaling (S7 counts, unscaled integers); otherwise S7 values come
-        out in newtons with NaN for the overflow/underflow codes.
-        """
-        src = self._source()
-        if raw:
-            np.copyto(out, src, casting="unsafe")
-        elif self._lut is not None:  # S7: one lookup does scaling and the codes
-            np.take(self._lut, self._words, out=out)
-        elif self.field.scale == 1.0:
-            np.copyto(out, src, casting="unsafe")
-        else:
-            np.multiply(src, self.field.scale, out=out)
-        return out
-
-    def decode_int(self, index: int = 0) -> int:
-        """One value as a Python int, unscaled (heartbeats, states)."""
-        return int(self._source()[index])
-
-    # --- encode ----------------------------------------------------------------------
-    def encode(self, values: np.ndarray | float, raw: bool = False) -> None:
-        """Encode ``values`` (shape (count,) or a scalar) into the bound registers.
-
-        ``raw=True`` writes values as they are (S7 counts, unscaled integers, clipped).
-        """
-        if self._direct(values, raw):
-            return
-        f = self._float
-        f[...] = values
-        if self.s7 and not raw:
-            a = self.analog  # the S7 codec's encoding, without allocating
-            np.divide(f, a.newtons_per_count, out=f)
-            np.rint(f, out=f)
-            np.isnan(f, out=self._mask)
-            np.greater(f, a.max_counts, out=self._mask2)
-            np.logical_or(self._mask, self._mask2, out=self._mask)
-            np.copyto(f, S7_OVERFLOW, where=self._mask)
-            np.less(f, a.min_counts, out=self._mask2)
-            np.copyto(f, S7_UNDERFLOW, where=self._mask2)
-        elif not raw and self.field.scale != 1.0:
-            np.divide(f, self.field.scale, out=f)
-        if self._limits is not None:
-            np.rint(f, out=f)
-            np.isnan(f, out=self._mask)
-            np.copyto(f, 0.0, where=self._mask)
-            np.clip(f, self._limits[0], self._limits[1], out=f)
-        self._values[...] = f
-        self._store()
-
-    def _store(self) -> None:
-        if self.swap:
-            self._words[0::2] = self._scratch[1::2]
-            self._words[1::2] = self._scratch[0::2]
-
-    def _direct(self, values: np.ndarray | float, raw: bool) -> bool:
-        """Fast paths that need no scaling, rounding or clipping; True when done."""
-        if self.s7 and not raw:
-            return False
-        if not raw and self.field.scale != 1.0:
-            return False
-        if self._limits is None:  # float32: numpy casts, NaN stays NaN
-            self._values[...] = values
-        elif isinstance(values, int | np.integer):
-            lo, hi = self._limits
-            self._values[...] = min(max(int(values), int(lo)), int(hi))
-        elif isinstance(values, np.ndarray) and np.can_cast(values.dtype, self.dtype):
-            self._values[...] = values
-        else:
-            return False
-        self._store()
-        return True
+PLAN = np.dtype(
+    [
+        ("start", np.int64),  # byte position of the field in the buffer
+        ("count", np.int64),
+        ("kind", np.int64),  # _KINDS
+        ("swap", np.bool_),  # 32-bit values with the low word first
+        ("s7", np.bool_),  # format s7_analog
+        ("mode", np.int64),  # MODE_SCALED, MODE_RAW (as is, clipped), MODE_WRAP (modulo)
+        ("scale", np.float64),
+        ("npc", np.float64),  # S7: newtons per count
+        ("s7_lo", np.float64),  # S7 window, counts
+        ("s7_hi", np.float64),
+        ("type_lo", np.float64),  # the type's range
+        ("type_hi", np.float64),
+        ("good_lo", np.float64),  # raw values a scaled value may take (the sentinel's side
+        ("good_hi", np.float64),  # of the type's range excluded)
+        ("invalid", np.float64),  # raw value written for "no value" (NaN for float32)
+    ]
+)
 
 
-# --- several fields in one compiled call -------------------------------------------------
-_TYPE_CODES = {"int16": 0, "uint16": 1, "int32": 2, "uint32": 3, "float32": 4}
-# columns of a FieldGroup plan row (float64; the integers are exact)
-_START, _COUNT, _TYPE, _SWAP, _S7, _SCALE, _NPC, _MIN, _MAX, _LO, _HI, _RAW = range(12)
-_INT_LIMITS = {0: (-32768.0, 32767.0), 1: (0.0, 65535.0), 2: (-(2.0**31), 2.0**31 - 1),
-               3: (0.0, 2.0**32 - 1), 4: (0.0, 0.0)}  # fmt: skip
+def invalid_raw(field: RegisterField) -> float:
+    """The raw value ``field`` holds for "no value": NaN for float32, else the field's
+    ``invalid`` sentinel (default: the type's minimum if signed, maximum if unsigned)."""
+    kind = _KINDS[field.type]
+    if kind == 4:
+        return math.nan
+    return float(field.invalid if field.invalid is not None else _DEFAULT_INVALID[kind])
+
+
+def good_raw_band(field: RegisterField) -> tuple[float, float]:
+    """The raw values a scaled value may be written as: the type's range on the side of 0
+    away from the sentinel (float32: its finite range). A value outside it is invalid."""
+    kind = _KINDS[field.type]
+    if kind == 4:
+        return -FLOAT32_MAX, FLOAT32_MAX
+    lo, hi = _TYPE_RANGE[kind]
+    s = invalid_raw(field)
+    return (float(s + 1), float(hi)) if s < 0 or s == lo else (float(lo), float(s - 1))
+
+
+def value_band(field: RegisterField) -> tuple[float, float]:
+    """The values (after scaling) ``field`` can carry without clipping or the sentinel."""
+    lo, hi = good_raw_band(field)
+    if field.format == "s7_analog":
+        raise ValueError("value_band: S7 fields are read, not written")
+    a, b = lo * field.scale, hi * field.scale
+    return min(a, b), max(a, b)
+
+
+def _plan_row(
+    field: RegisterField, start: int, swap: bool, mode: int, analog: S7Analog
+) -> tuple[Any, ...]:
+    """The :data:`PLAN` record of one field, its columns given by name."""
+    kind = _KINDS[field.type]
+    type_lo, type_hi = _TYPE_RANGE.get(kind, (0, 0))
+    good_lo, good_hi = good_raw_band(field)
+    row = {
+        "start": start,
+        "count": field.count,
+        "kind": kind,
+        "swap": swap,
+        "s7": field.format == "s7_analog",
+        "mode": mode,
+        "scale": field.scale,
+        "npc": analog.newtons_per_count,
+        "s7_lo": analog.min_counts,
+        "s7_hi": analog.max_counts,
+        "type_lo": type_lo,
+        "type_hi": type_hi,
+        "good_lo": good_lo,
+        "good_hi": good_hi,
+        "invalid": invalid_raw(field),
+    }
+    return tuple(row[name] for name in PLAN.names or ())
 
 
 def _size(value):  # untyped: the overload must have the same signature
@@ -227,104 +163,189 @@ def _get_impl(value, i):
 
 
 @njit(cache=True, inline="always")
-def _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32):
-    """The value of the bits ``u`` (one 16-bit word, or two assembled high word first),
-    as FieldCodec.decode computes it (``scale`` 1.0 / ``s7`` False for raw values)."""
-    if kind == 4:
+def _decode_one(u, row, bits, as_f32):
+    """The value of the bits ``u`` (one 16-bit word, or two assembled high word first)
+    of a field with plan ``row`` (a :data:`PLAN` record)."""
+    scaled = row.mode == MODE_SCALED
+    scale = row.scale if scaled else 1.0
+    if row.kind == 4:
         bits[0] = u
         f = as_f32[0]
         # numpy multiplies a float32 field by a Python float scale in float32 (NEP 50)
         return float(f) if scale == 1.0 else float(f * np.float32(scale))
-    if kind == 0 and u >= 32768:
+    if row.kind == 0 and u >= 32768:
         u -= 65536
-    elif kind == 2 and u >= 2**31:
+    elif row.kind == 2 and u >= 2**31:
         u -= 2**32
-    if s7:  # the S7 window: counts * N/count, else NaN
-        return u * npc if lo <= u <= hi else np.nan
+    if row.s7 and scaled:
+        return s7_decode_count(u, row.npc, row.s7_lo, row.s7_hi)
     return float(u) if scale == 1.0 else u * scale
 
 
 @njit(cache=True, inline="always")
-def _encode_one(x, kind, s7, scale, npc, row, bits, as_f32):
-    """The bits FieldCodec.encode stores for ``x`` (``scale`` 1.0 / ``s7`` False for raw
-    values); ``row``: (S7 min counts, S7 max counts, type min, type max)."""
+def _encode_one(x, row, bits, as_f32):
+    """The bits stored for ``x`` in a field with plan ``row`` (a :data:`PLAN` record).
+
+    Scaled: S7 fields through the S7 encoding; others ``x / scale``, integers rounded;
+    an integer that is NaN or outside the good band becomes the field's sentinel (never
+    clipped to a plausible number). Raw: as is, integers clipped to the type (the soft
+    PLC's counts). Wrap: modulo the register (2**16, 2**32; 2**24 for float32).
+    """
     f = x
-    if s7:  # the S7 codec's encoding
-        f = np.rint(x / npc)
-        if np.isnan(f) or f > row[1]:
-            f = float(S7_OVERFLOW)
-        elif f < row[0]:
-            f = float(S7_UNDERFLOW)
-    elif scale != 1.0:
-        f = x / scale
-    if kind == 4:
+    if row.mode == MODE_WRAP:
+        if row.kind == 4:
+            f = x % 16777216.0 if np.isfinite(x) else 0.0
+        else:
+            mask = 0xFFFF if row.kind <= 1 else 0xFFFFFFFF
+            return np.int64(x if np.isfinite(x) else 0.0) & mask
+    elif row.mode == MODE_SCALED:
+        if row.s7:
+            f = s7_encode_count(x, row.npc, row.s7_lo, row.s7_hi)
+        elif row.scale != 1.0:
+            f = x / row.scale
+    if row.kind == 4:
         as_f32[0] = np.float32(f)
         return np.int64(bits[0])
     f = np.rint(f)
-    if np.isnan(f):
+    if row.mode == MODE_SCALED and not row.s7:
+        if np.isnan(f) or f < row.good_lo or f > row.good_hi:
+            f = row.invalid
+    elif np.isnan(f):
         f = 0.0
-    f = min(max(f, row[2]), row[3])
-    return np.int64(f) & (0xFFFF if kind <= 1 else 0xFFFFFFFF)
+    f = min(max(f, row.type_lo), row.type_hi)
+    return np.int64(f) & (0xFFFF if row.kind <= 1 else 0xFFFFFFFF)
 
 
 @njit(cache=True)
-def _decode_group(buf, plan, bits, outs):
+def _decode_fields(buf, plan, bits, outs):
     as_f32 = bits.view(np.float32)  # float32 bit patterns are assembled in ``bits``
     k = 0
     for out in literal_unroll(outs):
-        n, kind, raw = int(plan[k, _COUNT]), int(plan[k, _TYPE]), plan[k, _RAW] != 0.0
-        if out.size != n:
-            raise ValueError("FieldGroup.decode: an output's size differs from its field's count")
-        start, step, swap = int(plan[k, _START]), 2 if kind <= 1 else 4, plan[k, _SWAP] != 0.0
-        s7 = plan[k, _S7] != 0.0 and not raw
-        scale = 1.0 if raw else plan[k, _SCALE]
-        npc, lo, hi = plan[k, _NPC], plan[k, _MIN], plan[k, _MAX]
-        for i in range(n):
-            p = start + step * i
+        row = plan[k]
+        if out.size != row.count:
+            raise ValueError("decode: an output's size differs from its field's count")
+        step = 2 if row.kind <= 1 else 4
+        for i in range(row.count):
+            p = row.start + step * i
             u = (np.int64(buf[p]) << 8) | np.int64(buf[p + 1])
-            if kind >= 2:
+            if row.kind >= 2:
                 w = (np.int64(buf[p + 2]) << 8) | np.int64(buf[p + 3])
-                u = (w << 16) | u if swap else (u << 16) | w
-            out[i] = _decode_one(u, kind, s7, scale, npc, lo, hi, bits, as_f32)
+                u = (w << 16) | u if row.swap else (u << 16) | w
+            out[i] = _decode_one(u, row, bits, as_f32)
         k += 1  # noqa: SIM113 (literal_unroll has no enumerate)
 
 
 @njit(cache=True)
-def _encode_group(buf, plan, bits, values):
+def _encode_fields(buf, plan, bits, values):
     as_f32 = bits.view(np.float32)
     k = 0
     for value in literal_unroll(values):
-        n, kind, raw = int(plan[k, _COUNT]), int(plan[k, _TYPE]), plan[k, _RAW] != 0.0
+        row = plan[k]
         size = _size(value)
-        if size >= 0 and size != n:
-            raise ValueError("FieldGroup.encode: a value's size differs from its field's count")
-        start, step, swap = int(plan[k, _START]), 2 if kind <= 1 else 4, plan[k, _SWAP] != 0.0
-        s7 = plan[k, _S7] != 0.0 and not raw
-        scale = 1.0 if raw else plan[k, _SCALE]
-        row = (plan[k, _MIN], plan[k, _MAX], plan[k, _LO], plan[k, _HI])
-        npc = plan[k, _NPC]
-        for i in range(n):
-            u = _encode_one(_get(value, i), kind, s7, scale, npc, row, bits, as_f32)
-            p = start + step * i
-            if kind <= 1:
+        if size >= 0 and size != row.count:
+            raise ValueError("encode: a value's size differs from its field's count")
+        step = 2 if row.kind <= 1 else 4
+        for i in range(row.count):
+            u = _encode_one(_get(value, i), row, bits, as_f32)
+            p = row.start + step * i
+            if row.kind <= 1:
                 buf[p], buf[p + 1] = (u >> 8) & 0xFF, u & 0xFF
                 continue
             hi, lo = (u >> 16) & 0xFFFF, u & 0xFFFF
-            if swap:
+            if row.swap:
                 hi, lo = lo, hi
             buf[p], buf[p + 1] = (hi >> 8) & 0xFF, hi & 0xFF
             buf[p + 2], buf[p + 3] = (lo >> 8) & 0xFF, lo & 0xFF
         k += 1
 
 
-class FieldGroup:
-    """Several :class:`FieldCodec` of ONE buffer, decoded or encoded in one compiled call.
+class FieldCodec:
+    """One register field bound to a byte buffer that holds registers from ``base_address``.
 
-    The results are those of the codecs one by one (``decode(out, raw)``,
-    ``encode(values, raw)`` with the group's ``raw`` flag per codec), without the dozen
-    small numpy calls they make: the per-cycle decode of a reply and encode of a request.
-    The first call with a new combination of value types compiles (numba; cached on
-    disk): callers warm the group up outside the cycle.
+    ``buffer`` must stay the same object (and size) for the codec's lifetime; ``offset`` is
+    the byte position of register ``base_address`` inside it (e.g. 9 for the data of a
+    function-3 reply frame after the MBAP header, function code and byte count).
+    ``wrap``: a counter (heartbeat): encoded modulo the register's range, never scaled.
+    The codec is the plan row of the field (:data:`PLAN`) and the one compiled kernel each
+    way; :class:`FieldGroup` runs the same kernel over several fields at once.
+    """
+
+    def __init__(
+        self,
+        field: RegisterField,
+        buffer: bytearray | memoryview,
+        base_address: int,
+        offset: int = 0,
+        sensor: SensorConfig | None = None,
+        wrap: bool = False,
+    ) -> None:
+        if field.address < base_address:
+            raise ConfigError(
+                f"register {field.address} lies before the buffer base {base_address}"
+            )
+        start = offset + 2 * (field.address - base_address)
+        if start + 2 * field.words > len(buffer):
+            raise ConfigError(
+                f"registers {field.address}..{field.end - 1} do not fit the buffer "
+                f"(base {base_address}, {len(buffer)} bytes)"
+            )
+        self.s7 = field.format == "s7_analog"
+        if self.s7 and field.type != "int16":
+            raise ConfigError(f"register {field.address}: format s7_analog needs type int16")
+        self.field = field
+        self.count = field.count
+        self.buffer = buffer
+        self.start = start  # byte position of the field in ``buffer``
+        self.wrap = wrap
+        self.analog = S7Analog.from_sensor(sensor or SensorConfig())
+        self.newtons_per_count = self.analog.newtons_per_count
+        swap = field.words == 2 * field.count and field.word_order == "low_first"
+        scaled = MODE_WRAP if wrap else MODE_SCALED
+        raw = MODE_WRAP if wrap else MODE_RAW
+        self.plans = {
+            mode: np.array([_plan_row(field, start, swap, mode, self.analog)], dtype=PLAN)
+            for mode in (scaled, raw)
+        }
+        self._scaled, self._raw = self.plans[scaled], self.plans[raw]
+        self._buf = np.frombuffer(buffer, dtype=np.uint8)
+        self._bits = np.zeros(1, dtype=np.uint32)
+
+    def plan_row(self, raw: bool = False) -> np.ndarray:
+        return (self._raw if raw else self._scaled)[0]
+
+    def decode(self, out: np.ndarray, raw: bool = False) -> np.ndarray:
+        """Decode the bound registers into ``out`` (shape (count,), float64).
+
+        ``raw=True`` skips scaling (S7 counts, unscaled integers); otherwise S7 values come
+        out in newtons with NaN outside the S7 window.
+        """
+        _decode_fields(self._buf, self._raw if raw else self._scaled, self._bits, (out,))
+        return out
+
+    def decode_int(self, index: int = 0) -> int:
+        """One value as a Python int, unscaled (heartbeats, states)."""
+        out = np.zeros(self.count)
+        return int(self.decode(out, raw=True)[index])
+
+    def encode(self, values: np.ndarray | float, raw: bool = False) -> None:
+        """Encode ``values`` (shape (count,) or a scalar) into the bound registers.
+
+        ``raw=True`` writes values as they are (S7 counts, unscaled integers, clipped).
+        """
+        if isinstance(values, np.ndarray) and values.dtype != np.float64:
+            values = values.astype(np.float64)
+        elif isinstance(values, int | float | np.integer | np.floating):
+            values = float(values)
+        _encode_fields(self._buf, self._raw if raw else self._scaled, self._bits, (values,))
+
+
+class FieldGroup:
+    """Several :class:`FieldCodec` of ONE buffer through the one kernel in one call.
+
+    The plan rows of the codecs (``raw`` flag per codec) are stacked: a cycle's decode of
+    a reply and encode of a request is one compiled call instead of one per field. The
+    first call with a new combination of value types compiles (numba; cached on disk):
+    callers warm the group up outside the cycle.
     """
 
     def __init__(self, codecs: Sequence[FieldCodec], raw: Sequence[bool] | None = None) -> None:
@@ -337,29 +358,17 @@ class FieldGroup:
         if any(c.buffer is not buffer for c in codecs):
             raise ValueError("FieldGroup: every codec must be bound to the same buffer")
         self.codecs = tuple(codecs)
-        self.plan = np.array([_plan_row(c, r) for c, r in zip(codecs, raw, strict=True)])
+        self.plan = np.array([c.plan_row(r) for c, r in zip(codecs, raw, strict=True)], PLAN)
         self._buf = np.frombuffer(buffer, dtype=np.uint8)
         self._bits = np.zeros(1, dtype=np.uint32)
 
     def decode(self, outs: tuple[np.ndarray, ...]) -> None:
         """Decode codec ``k`` into ``outs[k]`` (float64, shape (count,)), all in one call."""
-        _decode_group(self._buf, self.plan, self._bits, outs)
+        _decode_fields(self._buf, self.plan, self._bits, outs)
 
     def encode(self, values: tuple[Any, ...]) -> None:
         """Encode ``values[k]`` (an array of shape (count,) or a scalar) into codec ``k``."""
-        _encode_group(self._buf, self.plan, self._bits, values)
-
-
-def _plan_row(codec: FieldCodec, raw: bool) -> list[float]:
-    f, a = codec.field, codec.analog
-    kind = _TYPE_CODES[f.type]
-    lo, hi = _INT_LIMITS[kind]
-    row = [0.0] * 12
-    row[_START], row[_COUNT], row[_TYPE] = codec.start, codec.count, kind
-    row[_SWAP], row[_S7], row[_SCALE] = float(codec.swap), float(codec.s7), f.scale
-    row[_NPC], row[_MIN], row[_MAX] = a.newtons_per_count, a.min_counts, a.max_counts
-    row[_LO], row[_HI], row[_RAW] = lo, hi, float(raw)
-    return row
+        _encode_fields(self._buf, self.plan, self._bits, values)
 
 
 @dataclass(frozen=True)
@@ -436,3 +445,46 @@ def layout_map(rmap: RegisterMap) -> MapLayout:
             f"({write_span.count} registers) exceeds one write ({MAX_WRITE_REGISTERS_FC23})"
         )
     return MapLayout(inputs, outputs, read_span, write_span)
+
+
+def check_outputs(rmap: RegisterMap, sensor: SensorConfig) -> None:
+    """Refuse (ConfigError naming the key) an output map that cannot keep the contract.
+
+    ``corrected_tensions`` must carry the sensor's range ``0..range_n`` at its type and
+    scale without clipping, and an integer sentinel must not be a plausible tension (it
+    must lie below ``-RANGE_MARGIN * range_n`` or above ``range_n``); the wrench's
+    sentinel must not be 0; counters and the state are plain unscaled values.
+    """
+    for name, f in rmap.outputs().items():
+        if f.invalid is not None and f.type == "float32":
+            raise ConfigError(f"registers.{name}: invalid: float32 writes NaN, no sentinel")
+        if f.invalid is not None:
+            lo, hi = _TYPE_RANGE[_KINDS[f.type]]
+            if not lo <= f.invalid <= hi:
+                raise ConfigError(f"registers.{name}: invalid: {f.invalid} is not a {f.type}")
+        if f.format == "s7_analog":
+            raise ConfigError(f"registers.{name}: format s7_analog is for the raw channels")
+    for name in ("gateway_heartbeat", "gateway_state", "channel_status"):
+        f = getattr(rmap, name)
+        if f.scale != 1.0:
+            raise ConfigError(f"registers.{name}: scale must be 1 (a code, not a measurement)")
+    if rmap.plc_heartbeat.scale != 1.0 or rmap.plc_heartbeat.format != "plain":
+        raise ConfigError("registers.plc_heartbeat: scale must be 1 and format plain")
+    t = rmap.corrected_tensions
+    low, high = value_band(t)
+    if low > 0.0 or high < sensor.range_n:
+        raise ConfigError(
+            f"registers.corrected_tensions: {t.type} at scale {t.scale:g} carries "
+            f"{low:g}..{high:g} N, not the sensor range 0..{sensor.range_n:g} N "
+            "(sensor.range_n): choose float32 or a smaller scale"
+        )
+    if t.type != "float32":
+        s = invalid_raw(t) * t.scale
+        if -RANGE_MARGIN * sensor.range_n <= s <= sensor.range_n:
+            raise ConfigError(
+                f"registers.corrected_tensions: invalid: {invalid_raw(t):g} is {s:g} N, a "
+                "plausible tension: a sentinel must lie outside the sensor range"
+            )
+    w = rmap.wrench
+    if w.type != "float32" and invalid_raw(w) == 0:
+        raise ConfigError("registers.wrench: invalid: 0 is a plausible wrench")

@@ -1,11 +1,13 @@
 """``cdpr-gateway`` command line: ``run | check | demo | sim-plc | record | replicate | diagnose
-| calibrate``.
+| calibrate | examples | export | fleet``.
 
 Each command lives in its own module, imported only when that command is chosen. A command
 module provides ``configure_parser(command, parser)`` and ``run_command(command, args)``
 returning the exit status. Errors of the project (:class:`GatewayError`) end the program
-with status 2 and one clear line on stderr, and so do bad command-line arguments; anything
-else is a bug and shows a traceback. The soft PLC's commands (``demo``, ``sim-plc``,
+with status 2 and one clear line on stderr, and so do bad command-line arguments: what a
+restart cannot fix. A :class:`TemporaryError` (a port another process holds) exits 75
+(EX_TEMPFAIL), which a service manager may retry. Anything else is a bug and shows a
+traceback. The soft PLC's commands (``demo``, ``sim-plc``,
 ``record``, ``replicate``, ``calibrate``) live in ``sim_plc`` and are imported only when
 chosen: the daemon's modules never import ``sim_plc``.
 """
@@ -13,13 +15,18 @@ chosen: the daemon's modules never import ``sim_plc``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import NoReturn
 
 from gateway import __version__
-from gateway.errors import GatewayError
+from gateway.core.cliopts import add_common_options, resolve_log_level, setup_logging
+from gateway.errors import GatewayError, TemporaryError
+
+EX_TEMPFAIL = 75  # sysexits.h: a temporary failure, a retry may succeed
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("gateway.service.daemon", "run the gateway daemon against the PLC in the config"),
@@ -33,6 +40,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replicate": ("sim_plc.replicate", "reproduce the paper's experiment (JSON, markdown, PNG)"),
     "diagnose": ("gateway.diagnose.cli", "find and model the physics a recording shows"),
     "calibrate": ("sim_plc.calibrate", "soft PLC loop: record, diagnose, write the model, rerun"),
+    "examples": ("gateway.service.examples", "list the bundled configs, or copy them into DIR"),
+    "export": ("gateway.recordings.export", "write a recording as MCAP (Foxglove, PlotJuggler)"),
+    "fleet": ("gateway.fleet.cli", "diagnose many recordings on dask.distributed, one table"),
 }
 
 
@@ -56,6 +66,17 @@ def _top_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def _quiet(quiet: bool) -> Iterator[None]:
+    """With ``--quiet``, what a command prints on stderr (progress) goes nowhere; the log
+    handler keeps the real stderr (warnings), and errors are printed after this ends."""
+    if not quiet:
+        yield
+        return
+    with open(os.devnull, "w", encoding="utf-8") as devnull, contextlib.redirect_stderr(devnull):
+        yield
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in COMMANDS:
@@ -68,9 +89,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     module = importlib.import_module(module_name)
     parser = _OneLineParser(prog=f"cdpr-gateway {command}", description=help_text)
     module.configure_parser(command, parser)
+    add_common_options(parser)  # --log-level, --quiet: the same on every command
     args = parser.parse_args(argv[1:])
+    setup_logging(resolve_log_level(args))
     try:
-        return int(module.run_command(command, args) or 0)
+        with _quiet(args.quiet):
+            return int(module.run_command(command, args) or 0)
+    except TemporaryError as exc:
+        print(f"cdpr-gateway {command}: error: {exc} (temporary: try again)", file=sys.stderr)
+        return EX_TEMPFAIL
     except GatewayError as exc:
         print(f"cdpr-gateway {command}: error: {exc}", file=sys.stderr)
         return 2

@@ -14,6 +14,12 @@ class ConfigError(GatewayError):
     """
 
 
+class TemporaryError(GatewayError):
+    """Something the program needs is not available now but may be later (a port another
+    process holds): the command line exits 75 (EX_TEMPFAIL), not 2, so a service manager
+    that does not restart after a configuration error (exit 2) restarts after this."""
+
+
 class RecordingError(GatewayError):
     """A recording is malformed; the message names the file, line and column."""
 

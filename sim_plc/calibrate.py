@@ -41,8 +41,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from gateway.core.cliopts import add_config_option
 from gateway.core.config import Config, load_config, load_friction
 from gateway.core.configtypes import read_yaml
+from gateway.diagnose import heldout, warmup
 from gateway.diagnose.engine import reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
@@ -70,7 +72,11 @@ class RunScore:
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True, help="SIM.yaml: a config with a sim_plc: plant")
+    add_config_option(
+        parser,
+        why="SIM.yaml, a config whose sim_plc: section hides an "
+        "effect: 'cdpr-gateway examples' copies one per effect (calibrate/)",
+    )
     parser.add_argument("--seconds", type=float, default=30.0, help="length of each gateway run")
     parser.add_argument("--out", type=Path, required=True, help="directory for the results")
 
@@ -114,13 +120,17 @@ def prepare_dir(config: str, out: Path) -> tuple[Path, Path]:
     nominal, clean = out / "nominal.yaml", out / "plant-clean.yaml"
     gateway_side = {k: v for k, v in data.items() if k != "sim_plc"}
     _write_yaml(nominal, gateway_side, f"{config} without sim_plc: the gateway's nominal model")
-    _write_yaml(clean, {**data, "sim_plc": {**sim, "effects": {}}},
-                f"{config} with no concealed effects: the noise floor's plant")  # fmt: skip
+    _write_yaml(
+        clean,
+        {**data, "sim_plc": {**sim, "effects": {}}},
+        f"{config} with no concealed effects: the noise floor's plant",
+    )
     return nominal, clean
 
 
-def run_scored(plant: Path | str, cfg: Config, seconds: float, label: str,
-               record: Path | None = None) -> RunScore:  # fmt: skip
+def run_scored(
+    plant: Path | str, cfg: Config, seconds: float, label: str, record: Path | None = None
+) -> RunScore:
     """The soft PLC on ``plant``, the gateway on ``cfg`` for ``seconds``, scored."""
     plc = demo.SoftPlc(str(plant), BUS)
     channel = recorder = None
@@ -132,7 +142,9 @@ def run_scored(plant: Path | str, cfg: Config, seconds: float, label: str,
             service.recorder = recorder
         mb = live.bus.modbus_tcp
         channel = demo.TruthChannel(mb.host, mb.port, mb.unit_id, cfg.cables)
-        scorer = demo.TruthScorer(cfg.cables, channel, demo.TRUTH_EVERY_CYCLES)
+        scorer = demo.TruthScorer(
+            cfg.cables, channel, demo.TRUTH_EVERY_CYCLES, demo.ChainWarmup(cfg)
+        )
         service.add_observer(scorer)
         demo.run_timed(service, seconds, label, sys.stderr)
     finally:
@@ -171,6 +183,16 @@ def gateway_rows(rec: Recording) -> Recording:
     keep[1:] &= np.any(np.diff(rec.tension_sensor, axis=0) != 0, axis=1)
     if keep.sum() < 10:
         raise GatewayError(f"{rec.source}: fewer than 10 rows with new, good readings")
+    kept = _rows(rec, keep)
+    return dataclasses.replace(
+        kept,
+        tension_platform=None,  # what a real robot has: no platform tensions
+        skipped_rows=rec.skipped_rows + int(rec.samples - keep.sum()),
+    )
+
+
+def _rows(rec: Recording, keep: np.ndarray) -> Recording:
+    """``rec`` with only the rows ``keep`` (bool or index array) selects."""
 
     def rows(a: np.ndarray | None) -> np.ndarray | None:
         return None if a is None else a[keep]
@@ -180,13 +202,22 @@ def gateway_rows(rec: Recording) -> Recording:
         t=rec.t[keep],
         velocity=rec.velocity[keep],
         tension_sensor=rec.tension_sensor[keep],
-        tension_platform=None,  # what a real robot has: no platform tensions
+        tension_platform=rows(rec.tension_platform),
         length=rows(rec.length),
         pose=rows(rec.pose),
         mass=rows(rec.mass),
         extra={k: v[keep] for k, v in rec.extra.items()},
-        skipped_rows=rec.skipped_rows + int(rec.samples - keep.sum()),
     )
+
+
+VALIDATION_SHARE = 0.25  # the recording's last quarter: never fitted, scores the model
+
+
+def split_validation(rec: Recording) -> tuple[Recording, Recording]:
+    """(the first 75 % of the rows to fit, the last 25 % to validate on): the model is
+    judged on motion it was not fitted on (:mod:`gateway.diagnose.heldout`)."""
+    cut = round(rec.samples * (1.0 - VALIDATION_SHARE))
+    return _rows(rec, np.arange(cut)), _rows(rec, np.arange(cut, rec.samples))
 
 
 def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path, say) -> dict:
@@ -201,12 +232,19 @@ def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path,
         raise GatewayError(f"{recording}: no pose and mass columns: no wrench reference")
     model_friction = load_friction(model)
     rec, friction = relative_to_model(rec, model_friction, cfg)
-    diag = diagnose_wrench(rec, friction, cfg, None, progress=say)
+    fit, check = split_validation(rec)
+    say(f"fit on the first {fit.samples} rows, validate on the last {check.samples}")
+    diag = diagnose_wrench(fit, friction, cfg, check, progress=say)
+    warmup.annotate(diag.report, fit, friction)  # the start-up transient, said as such
     try:
         report.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{report}: cannot write: {exc.strerror or exc}") from exc
-    write_model(fitted, model, model_friction, diag.report, rec)
+    moved = heldout.motion(fit.t, fit.velocity)
+    refused = heldout.refusal(diag.report, moved, "the recording's last quarter, not fitted")
+    if refused is not None:  # no 'after' run with a model that fits the noise
+        raise GatewayError(f"{fitted}: {refused}")
+    write_model(fitted, model, model_friction, diag.report, fit)
     return diag.report
 
 
@@ -235,8 +273,10 @@ def table(result: dict[str, Any], config: str, seconds: float) -> str:
     )
     for key, title in runs:
         r = result[key]
-        rows.append(f"  {title:<26} {r['rmse_n']:16.3f}   {r['raw_rmse_n']:10.3f}   "
-                    f"{r['rmse_n'] / floor:7.2f}")  # fmt: skip
+        rows.append(
+            f"  {title:<26} {r['rmse_n']:16.3f}   {r['raw_rmse_n']:10.3f}   "
+            f"{r['rmse_n'] / floor:7.2f}"
+        )
     return "\n".join(rows)
 
 
@@ -251,8 +291,9 @@ def calibrate(config: str, seconds: float, out: Path, say) -> dict[str, Any]:
     say(f"2/4 before: plant {config}, nominal model, recording {seconds:g} s")
     before = run_scored(config, nominal, seconds, "calibrate before", out / "before.csv.gz")
     say("3/4 diagnose before.csv.gz against the wrench balance")
-    report = diagnose_recording(out / "before.csv.gz", nominal_path, out / "diagnosis.json",
-                                out / "fitted.yaml", say)  # fmt: skip
+    report = diagnose_recording(
+        out / "before.csv.gz", nominal_path, out / "diagnosis.json", out / "fitted.yaml", say
+    )
     say(f"4/4 after: plant {config}, fitted model {out / 'fitted.yaml'}, {seconds:g} s")
     fitted = load_config(out / "fitted.yaml")
     after = run_scored(config, fitted, seconds, "calibrate after", out / "after.csv.gz")

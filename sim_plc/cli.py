@@ -1,25 +1,29 @@
 """``cdpr-gateway record`` and ``cdpr-gateway sim-plc``.
 
 * ``record --config FILE --seconds N --out FILE.csv[.gz]``: the plant in batch mode,
-  written as a recording (spec/recording.md); progress on stderr.
+  written as a recording (docs/recording-format.md); progress on stderr.
 * ``sim-plc --config FILE [--host H] [--port P] [--bus modbus_tcp|canopen]``: the plant
   stepped in real time at the config's period and served on the bus until SIGINT or
   SIGTERM; prints ``sim-plc: serving modbus_tcp on HOST:PORT`` once listening. The plant's
   chunks are prepared by a worker process (``sim_plc.prepare``) so the serving process
-  never stalls on them; ``--realtime`` (or ``loop.realtime.enabled``) applies the
-  config's real-time settings to the PLC's threads, reported in one line on stderr.
+  never stalls on them; ``--realtime`` applies the config's real-time settings
+  (``loop.realtime``, which ``run`` applies by default) to the PLC's threads, reported in
+  one line on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import signal
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
+from gateway.core.cliopts import add_config_option
 from gateway.core.config import (
     DEFAULT_CONFIG_PATH,
     Config,
@@ -34,11 +38,15 @@ from sim_plc.config import load_sim_config
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="config file (YAML)")
+    add_config_option(parser, DEFAULT_CONFIG_PATH)
     if command == "record":
         parser.add_argument("--seconds", type=float, required=True, help="duration (s)")
-        parser.add_argument("--out", required=True, help="recording to write (.csv or .csv.gz)")
-        parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+        parser.add_argument(
+            "--out", required=True, help="recording to write (.csv, .csv.gz or .parquet)"
+        )
+        parser.add_argument(
+            "--robot", help="the robot's name in the metadata (default: the config's name)"
+        )
         parser.add_argument(
             "--seed",
             type=int,
@@ -49,7 +57,12 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     else:
         parser.add_argument("--host", default=None, help="address to listen on")
         parser.add_argument("--port", type=int, default=None, help="TCP port (0: any free)")
-        parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None)
+        parser.add_argument(
+            "--bus",
+            choices=("modbus_tcp", "canopen"),
+            default=None,
+            help="the bus to serve (default: the config's bus.driver if canopen, else modbus_tcp)",
+        )
         parser.add_argument("--seconds", type=float, default=None, help="stop after (s)")
         parser.add_argument("--tls-cert", help="Modbus/TCP Security: server certificate (PEM)")
         parser.add_argument("--tls-key", help="Modbus/TCP Security: server private key (PEM)")
@@ -57,8 +70,8 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument(
             "--realtime",
             action="store_true",
-            help="apply the config's loop.realtime settings (SCHED_FIFO, mlockall, ...) "
-            "even when loop.realtime.enabled is false",
+            help="apply the config's loop.realtime settings (SCHED_FIFO, mlockall, ...) to "
+            "the soft PLC (default: not applied; the demo passes it)",
         )
         parser.add_argument(
             "--chunks-in-process",
@@ -104,12 +117,16 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
             sim, seed=args.seed, trajectory=dataclasses.replace(traj, random=motion)
         )
     t0 = time.perf_counter()
+    started = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     rec = make_recording(cfg, sim, args.seconds, _ProgressBar("record", args.quiet))
-    write_recording(out, rec)
+    robot = args.robot or (Path(cfg.source).stem if cfg.source else "sim")
+    write_recording(out, rec, {"robot": robot, "started": started})
     if not args.quiet:
         took = time.perf_counter() - t0
-        print(f"record: {rec.samples} samples x {rec.cables} cables -> {out} ({took:.1f} s)",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"record: {rec.samples} samples x {rec.cables} cables -> {out} ({took:.1f} s)",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -128,12 +145,7 @@ def _server(
         plc = CanopenPlc(cfg, image)
         plc.start(realtime=True)
         return plc, f"canopen on {cfg.bus.canopen.interface}:{cfg.bus.canopen.channel}"
-    try:
-        from sim_plc.modbus_server import ModbusPlcServer  # lazy: needs pymodbus
-    except ImportError as exc:
-        raise ConfigError(
-            f"bus modbus_tcp: the soft PLC's Modbus server is missing: {exc}"
-        ) from exc
+    from sim_plc.modbus_server import ModbusPlcServer
 
     mb = cfg.bus.modbus_tcp
     host = mb.host if host is None else host
@@ -180,11 +192,15 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
     runtime = PlcRuntime(plant, image, plant.period_s)
     done = threading.Event()
     # before the runtime and server threads start: they inherit the policy and affinity
-    rt = realtime.apply(cfg.loop.realtime, force=bool(getattr(args, "realtime", False)))
+    # the config's loop.realtime is the gateway's (on by default): the soft PLC applies
+    # those settings only when asked to
+    wanted = bool(getattr(args, "realtime", False))
+    rt = realtime.apply(dataclasses.replace(cfg.loop.realtime, enabled=wanted))
     if chunks is not None and rt.old_policy is not None and cfg.loop.realtime.policy != "other":
         ok, what = chunks.lowest_realtime()  # background, above normal tasks
         (rt.applied if ok else rt.refused).append(what)
-    print(rt.line("sim-plc: real-time"), file=sys.stderr, flush=True)
+    line = rt.line("sim-plc: real-time") if wanted else "sim-plc: real-time: off (no --realtime)"
+    print(line, file=sys.stderr, flush=True)
 
     def on_signal(signum: int, frame: object) -> None:
         done.set()
@@ -217,6 +233,9 @@ def _serve(cfg: Config, args: argparse.Namespace) -> int:
             signal.signal(s, handler)
     st = runtime.stats
     waits = f", waited {chunks.waits}x for a chunk" if chunks is not None else ""
-    print(f"sim-plc: stopped after {st.cycles} cycles, {st.late} late, {st.missed} skipped, "
-          f"longest step {st.max_step_s * 1e3:.2f} ms{waits}", file=sys.stderr)  # fmt: skip
+    print(
+        f"sim-plc: stopped after {st.cycles} cycles, {st.late} late, {st.missed} skipped, "
+        f"longest step {st.max_step_s * 1e3:.2f} ms{waits}",
+        file=sys.stderr,
+    )
     return 0

@@ -212,8 +212,9 @@ def per_cable(value: PerCable | None, cables: int, default: float = 0.0) -> np.n
 def _check_noise(noise: PerCable, cables: int, src: str) -> None:
     arr = np.atleast_1d(np.asarray(noise, dtype=float))
     if isinstance(noise, tuple) and len(noise) != cables:
-        raise ConfigError(f"{src}: sim_plc.noise_std_n: expected one value per cable "
-                          f"({cables}), got {len(noise)}")  # fmt: skip
+        raise ConfigError(
+            f"{src}: sim_plc.noise_std_n: expected one value per cable ({cables}), got {len(noise)}"
+        )
     if np.any(arr < 0):
         raise ConfigError(f"{src}: sim_plc.noise_std_n: must be >= 0")
 
@@ -243,8 +244,9 @@ def load_sim_config(cfg: Config) -> SimPlcConfig:
     lo = tension.min_n if dist.tau_min_n is None else dist.tau_min_n
     hi = tension.max_n if dist.tau_max_n is None else dist.tau_max_n
     if not lo < hi or (dist.target_n is not None and not lo <= dist.target_n <= hi):
-        raise ConfigError(f"{src}: sim_plc.distribution: limits {lo:g} .. {hi:g} N "
-                          "(target within them) needed")  # fmt: skip
+        raise ConfigError(
+            f"{src}: sim_plc.distribution: limits {lo:g} .. {hi:g} N (target within them) needed"
+        )
     if raw.trajectory.kind == "file" and not raw.trajectory.file.path:
         raise ConfigError(f"{src}: sim_plc.trajectory.file.path: required for kind 'file'")
     return SimPlcConfig(

@@ -52,6 +52,7 @@ from typing import IO, Any, TextIO
 import numpy as np
 
 from drivers.s7 import S7Analog
+from gateway.core.cliopts import add_config_option
 from gateway.core.config import DEFAULT_CONFIG_PATH, Config, RealtimeConfig, load_config
 from gateway.errors import GatewayError
 from gateway.model.chain import ChainParams, ChainStepper
@@ -64,6 +65,7 @@ from sim_plc.modbus_server import TRUTH_ADDRESS
 from sim_plc.truth import (
     SCORE_AFTER_S,
     TRUTH_EVERY_CYCLES,
+    ChainWarmup,
     CycleRing,
     TruthChannel,
     TruthMatcher,
@@ -73,10 +75,22 @@ from sim_plc.truth import (
 )
 
 __all__ = [
-    "SCORE_AFTER_S", "TRUTH_EVERY_CYCLES", "CycleRing", "DemoRun", "InProcessCanopenPlc",
-    "SoftPlc", "StandInPlant", "TruthChannel", "TruthMatcher", "TruthScore", "TruthScorer",
-    "run_command", "table", "with_port",
-]  # fmt: skip
+    "SCORE_AFTER_S",
+    "TRUTH_EVERY_CYCLES",
+    "ChainWarmup",
+    "CycleRing",
+    "DemoRun",
+    "InProcessCanopenPlc",
+    "SoftPlc",
+    "StandInPlant",
+    "TruthChannel",
+    "TruthMatcher",
+    "TruthScore",
+    "TruthScorer",
+    "run_command",
+    "table",
+    "with_port",
+]
 
 NO_REALTIME = "real-time: off (--no-realtime): loop.realtime not applied"
 STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first start
@@ -84,16 +98,25 @@ STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first sta
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to run")
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
-    parser.add_argument("--bus", choices=("modbus_tcp", "canopen"), default=None,
-                        help="fieldbus (default: bus.driver of the config)")  # fmt: skip
-    parser.add_argument("--offline", action="store_true",
-                        help="plant in process, virtual driver, no sockets")  # fmt: skip
-    parser.add_argument("--stand-in", action="store_true",
-                        help="with --offline: sinusoidal stand-in, not the plant")  # fmt: skip
-    parser.add_argument("--no-realtime", action="store_true",
-                        help="do not apply loop.realtime (SCHED_FIFO, mlockall, GC off) to "
-                        "the gateway's thread and the soft PLC")  # fmt: skip
+    add_config_option(parser, DEFAULT_CONFIG_PATH)
+    parser.add_argument(
+        "--bus",
+        choices=("modbus_tcp", "canopen"),
+        default=None,
+        help="fieldbus (default: bus.driver of the config)",
+    )
+    parser.add_argument(
+        "--offline", action="store_true", help="plant in process, virtual driver, no sockets"
+    )
+    parser.add_argument(
+        "--stand-in", action="store_true", help="with --offline: sinusoidal stand-in, not the plant"
+    )
+    parser.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="do not apply loop.realtime (SCHED_FIFO, mlockall, GC off) to "
+        "the gateway's thread and the soft PLC",
+    )
 
 
 class StandInPlant:
@@ -144,8 +167,16 @@ class SoftPlc:
     """
 
     def __init__(self, config_path: str, bus: str, port: int = 0, realtime: bool = False) -> None:
-        cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", config_path,
-               "--port", str(port)]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "gateway.cli",
+            "sim-plc",
+            "--config",
+            config_path,
+            "--port",
+            str(port),
+        ]
         if bus != "modbus_tcp":
             cmd += ["--bus", bus]
         if realtime:
@@ -256,8 +287,13 @@ def with_port(cfg: Config, bus: str, host: str, port: int) -> Config:
     return dataclasses.replace(cfg, bus=bus_cfg)
 
 
-def run_timed(service: CyclicService, seconds: float, label: str, err: TextIO,
-              rt: RealtimeConfig | None = None) -> RealtimeReport | None:  # fmt: skip
+def run_timed(
+    service: CyclicService,
+    seconds: float,
+    label: str,
+    err: TextIO,
+    rt: RealtimeConfig | None = None,
+) -> RealtimeReport | None:
     """Run ``service`` in a thread for ``seconds``; one progress line per second.
 
     With ``rt`` the loop's thread applies it first (``force``: as ``loop.realtime`` would
@@ -366,13 +402,17 @@ def table(run: DemoRun, title: str) -> str:
     if score is not None and score.samples.any():
         raw, corrected = score.rmse()
         rows += ["", "  cable  RMSE raw N  RMSE corrected N  samples"]
+        scored = score.samples > 0  # a cable whose chain never warmed up has none
         for i in range(raw.size):
             rows.append(
                 f"  {i + 1:>5}  {raw[i]:10.3f}  {corrected[i]:16.3f}  {score.samples[i]:7d}"
+                if scored[i]
+                else f"  {i + 1:>5}  not scored: its chain has not warmed up"
             )
-        rows.append(f"  {'mean':>5}  {raw.mean():10.3f}  {corrected.mean():16.3f}")
+        raw_mean, corrected_mean = raw[scored].mean(), corrected[scored].mean()
+        rows.append(f"  {'mean':>5}  {raw_mean:10.3f}  {corrected_mean:16.3f}")
         if run.noise_n is not None:
-            ratio = corrected.mean() / run.noise_n if run.noise_n > 0 else math.nan
+            ratio = corrected_mean / run.noise_n if run.noise_n > 0 else math.nan
             rows.append(
                 f"  noise floor {run.noise_n:.3f} N (sim_plc.noise_std_n, mean over cables): "
                 f"corrected RMSE {ratio:.2f}x the floor"
@@ -403,7 +443,7 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> DemoRun:
 
     driver = VirtualDriver(cfg, image=image, step=step)
     service = CyclicService(cfg, driver)
-    scorer = TruthScorer(cfg.cables, truth)
+    scorer = TruthScorer(cfg.cables, truth)  # plant and gateway start together: no warm-up
     service.add_observer(scorer)
     run_timed(service, seconds, "demo (offline)", sys.stderr)
     n = int(scorer.score.samples.max()) if scorer.score.samples.size else 0
@@ -412,13 +452,13 @@ def run_offline(cfg: Config, seconds: float, stand_in: bool = False) -> DemoRun:
     return DemoRun(service, scorer.score, how, noise_n=noise)
 
 
-def _off_cycle(service: CyclicService, cables: int, source: TruthSource, rt: bool) -> TruthMatcher:
+def _off_cycle(service: CyclicService, cfg: Config, source: TruthSource, rt: bool) -> TruthMatcher:
     """The ring observer on ``service`` and the matcher's thread, started (with ``rt`` at
     SCHED_FIFO 1, below the loop: measured, a normal-priority thread that holds the GIL
     when other processes preempt it makes the loop overrun -- 1.9 % vs 0.03-0.05 %)."""
-    ring = CycleRing(cables)
+    ring = CycleRing(cfg.cables, warmup=ChainWarmup(cfg))
     service.add_observer(ring)
-    matcher = TruthMatcher(ring, source, cables)
+    matcher = TruthMatcher(ring, source, cfg.cables)
     if rt:
         matcher.set_realtime()
     matcher.start()
@@ -436,10 +476,12 @@ def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> Demo
     plc = InProcessCanopenPlc(cfg)
     matcher = None
     try:
-        print(f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"demo: soft PLC on canopen virtual:{plc.cfg.bus.canopen.channel} (in process)",
+            file=sys.stderr,
+        )
         service = CyclicService(plc.cfg, build_driver(plc.cfg))
-        matcher = _off_cycle(service, cfg.cables, plc.truth, rt)
+        matcher = _off_cycle(service, cfg, plc.truth, rt)
         report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
         if matcher is not None:
@@ -451,8 +493,7 @@ def run_canopen_in_process(cfg: Config, seconds: float, rt: bool = True) -> Demo
     return DemoRun(service, matcher.score, truth_line(matcher, how), lines, noise_floor(cfg))
 
 
-def run_online(cfg: Config, config_path: str, bus: str, seconds: float,
-               rt: bool = True) -> DemoRun:  # fmt: skip
+def run_online(cfg: Config, config_path: str, bus: str, seconds: float, rt: bool = True) -> DemoRun:
     if bus == "canopen" and cfg.bus.canopen.interface == "virtual":
         return run_canopen_in_process(cfg, seconds, rt)
     plc = SoftPlc(config_path, bus, realtime=rt)
@@ -464,7 +505,7 @@ def run_online(cfg: Config, config_path: str, bus: str, seconds: float,
         if bus == "modbus_tcp":
             mb = live.bus.modbus_tcp
             channel = TruthChannel(mb.host, mb.port, mb.unit_id, cfg.cables)
-            matcher = _off_cycle(service, cfg.cables, channel, rt)
+            matcher = _off_cycle(service, cfg, channel, rt)
         report = run_timed(service, seconds, "demo", sys.stderr, cfg.loop.realtime if rt else None)
     finally:
         if matcher is not None:

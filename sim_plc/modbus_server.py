@@ -1,6 +1,6 @@
 """The soft PLC's Modbus TCP server: a lean asyncio MBAP server over a :class:`ProcessImage`.
 
-The register map comes from ``cfg.bus.modbus_tcp.registers`` (default: issue 3's map).
+The register map comes from ``cfg.bus.modbus_tcp.registers`` (default: the shipped map).
 Holding registers (functions 3, 6, 16, 23; function 4 reads the same registers) are laid
 out in three areas, every other address is illegal (Modbus exception 2):
 
@@ -33,8 +33,8 @@ its replies is paused (flow control).
 At most ``max_connections`` connections are served; further ones are closed at once.
 
 The server was pymodbus 3.16's until it lost pipelined requests (its transport clears the
-receive buffer on every send) and left connections with a bad header silently dead
-(issue 13 item 7); this one is also cheaper per request (``python -m bench.modbus_floor``).
+receive buffer on every send) and left connections with a bad header silently dead; this
+one is also cheaper per request (``python -m bench.modbus_floor``).
 
 The server runs its own asyncio loop in a daemon thread: ``start()`` returns once it
 listens, ``port`` is the bound port (``port=0`` asks the OS), ``stop()`` is safe twice.

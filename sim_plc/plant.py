@@ -254,7 +254,8 @@ def _recording_setpoints(model: PlantModel, t: np.ndarray, progress: Progress | 
     # without a hidden mass change the truth is what is recorded: one array for both
     hidden = model.hides_mass
     keep = ("pose", "length", "velocity", "mass", "tension_recorded") + (
-        ("tension_true",) if hidden else ())  # fmt: skip
+        ("tension_true",) if hidden else ()
+    )
     out = {"pose": np.empty((n, 6)), "mass": np.empty(n)}
     out.update({k: np.empty((n, m)) for k in keep if k not in out})
     if not hidden:
@@ -390,8 +391,11 @@ class Plant:
             self._solved += 1
         cur = self._cur
         t, tp, v = float(cur.t[i]), cur.tension_true[i], cur.velocity[i]
-        nxt_t, nxt_v = (cur.t[i + 1], cur.velocity[i + 1]) if i + 1 < self.chunk else (
-            self._nxt.t[0], self._nxt.velocity[0])  # fmt: skip
+        nxt_t, nxt_v = (
+            (cur.t[i + 1], cur.velocity[i + 1])
+            if i + 1 < self.chunk
+            else (self._nxt.t[0], self._nxt.velocity[0])
+        )
         self._t3[:2], self._v3[:2] = self._t3[1:], self._v3[1:]
         self._t3[1:], self._v3[1], self._v3[2] = (t, nxt_t), v, nxt_v
         # no travel at the first sample (as in the batch form); then a period's

@@ -3,7 +3,7 @@
 :class:`sim_plc.plant.Plant` in its own process would hold the GIL for every step (the
 chain, the effects, the noise and the A/D: 20-60 us, over 100 us one step in ten on a
 busy machine) and, every 250th step, for the statics of the next chunk (1.4-2.1 ms): the
-Modbus server thread, which needs the same GIL, stalled that long (issue 12).
+Modbus server thread, which needs the same GIL, stalled that long.
 
 :class:`ChunkWorker` runs the plant itself, a whole :class:`~sim_plc.plant.Plant` stepped
 sample by sample in a separate process (``spawn``: no threads or locks of the parent are
@@ -81,9 +81,16 @@ class Chunk:
 
 def _slot_views(raw: Any, slots: int, chunk: int, cables: int) -> list[dict[str, np.ndarray]]:
     """Numpy views of each slot of the shared buffer: one array per field of FIELDS."""
-    shapes = {"t": (chunk,), "pose": (chunk, 6), "length": (chunk, cables), "mass": (chunk,),
-              "velocity": (chunk, cables), "tension_true": (chunk, cables),
-              "analog": (chunk, cables), "counts": (chunk, cables)}  # fmt: skip
+    shapes = {
+        "t": (chunk,),
+        "pose": (chunk, 6),
+        "length": (chunk, cables),
+        "mass": (chunk,),
+        "velocity": (chunk, cables),
+        "tension_true": (chunk, cables),
+        "analog": (chunk, cables),
+        "counts": (chunk, cables),
+    }
     flat = np.frombuffer(raw, dtype=np.float64)
     views, off = [], 0
     for _ in range(slots):
@@ -128,8 +135,9 @@ def _run_chunk(plant: Any, image: Any, slot: dict[str, np.ndarray]) -> None:
         slot["counts"][j] = plant.counts
 
 
-def _worker(conn: Connection, raw: Any, slots: int, cfg: Config, sim: SimPlcConfig,
-            chunk: int) -> None:  # fmt: skip
+def _worker(
+    conn: Connection, raw: Any, slots: int, cfg: Config, sim: SimPlcConfig, chunk: int
+) -> None:
     """Serve chunk indices (int64 requests on ``conn``'s socket; -1 or EOF: stop): chunk
     ``i`` of the plant's run is written into slot ``i % slots`` of ``raw``, then a note
     ``(i, n)`` is sent, followed by ``n`` bytes of the pickled exception when it failed
@@ -142,8 +150,9 @@ def _worker(conn: Connection, raw: Any, slots: int, cfg: Config, sim: SimPlcConf
     plant = Plant(cfg, sim, chunk)
     image = ProcessImage(plant.model.cables)
     views = _slot_views(raw, slots, chunk, plant.model.cables)
-    scratch = _slot_views(np.zeros(slot_doubles(chunk, plant.model.cables)), 1, chunk,
-                          plant.model.cables)[0]  # fmt: skip
+    scratch = _slot_views(
+        np.zeros(slot_doubles(chunk, plant.model.cables)), 1, chunk, plant.model.cables
+    )[0]
     done = 0  # chunks the plant has run
     while (request := _read_exact(fd, _REQUEST.size)) is not None:
         index = _REQUEST.unpack(request)[0]

@@ -30,8 +30,10 @@ from typing import Any
 
 import numpy as np
 
+from gateway.core.cliopts import add_config_option, output_dir
 from gateway.core.config import Config, load_config
 from gateway.core.resources import data_file
+from gateway.errors import ConfigError
 from gateway.model import chain
 from sim_plc.config import SimPlcConfig, load_sim_config
 from sim_plc.plant import PlantModel, Setpoints, sensor_batch
@@ -361,16 +363,25 @@ def markdown(res: dict[str, Any]) -> str:
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="directory for JSON, markdown and PNGs")
-    parser.add_argument("--config", default=str(DEFAULT_REPLICATE_CONFIG), help="config (YAML)")
+    add_config_option(parser, DEFAULT_REPLICATE_CONFIG)
     parser.add_argument(
-        "--seconds-limit", type=float, default=None, help="cap each run's simulated time (s)"
+        "--seconds",
+        "--seconds-limit",
+        dest="seconds",
+        type=float,
+        default=None,
+        metavar="N",
+        help="cap each run's simulated time (s; --seconds-limit is the old name)",
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
+    if args.seconds is not None and not args.seconds > 0:
+        raise ConfigError("--seconds: must be > 0")
+    out = output_dir(args.out, "--out")  # before the work
     cfg = load_config(args.config)
-    res = replicate(cfg, Path(args.out), args.seconds_limit, plots=not args.no_plots)
+    res = replicate(cfg, out, args.seconds, plots=not args.no_plots)
     for name, goal in res["goals"].items():
         _log(f"goal {name}: {'met' if goal['met'] else 'MISSED'} ({goal['value']})")
     missed = [name for name, goal in res["goals"].items() if not goal["met"]]

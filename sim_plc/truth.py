@@ -9,6 +9,9 @@
 * :class:`TruthChannel`: the demo's own Modbus connection to the soft PLC's side channel
   (:data:`sim_plc.modbus_server.TRUTH_ADDRESS`: the true tensions and the PLC heartbeat of
   one plant step, in no gateway register map).
+* :class:`ChainWarmup`: which cables' friction state has forgotten its relaxed start, so
+  that a score measures the model, not where the plant happened to be when the gateway
+  joined it.
 """
 
 from __future__ import annotations
@@ -24,10 +27,22 @@ from collections.abc import Callable
 import numpy as np
 
 from drivers.base import Inputs
+from gateway.core.config import Config
+from gateway.model import effects as fx
+from gateway.model.chain import coulomb_coefficients
 from gateway.runtime.compensator import Compensator
 from sim_plc.modbus_server import TRUTH_ADDRESS
 
-SCORE_AFTER_S = 0.5  # scoring skips the model's warm-up
+SCORE_AFTER_S = 0.5  # scoring skips the loop's start, and each cable's chain warm-up
+WARMUP_LENGTHS = 4.0
+"""Relaxation lengths ``F_R / sigma`` of cable travel before a cable is scored. The soft PLC's
+plant has run (and its pulleys' pre-sliding state developed) before the gateway connects,
+whose chain starts relaxed; the difference decays as ``exp(-sigma |x| / F_R)`` over the
+travel ``x``, 2 % after four lengths: the diagnosis leaves out the same warm-up
+(``gateway.diagnose.engine.WARMUP_LENGTHS``). Measured on replays of a live read pattern,
+the first seconds otherwise decided a 30-s score: 0.500 N from 2 s on, 0.50-0.56 N from
+0.5 s (nominal friction) and 0.51-0.78 N (mu 0.025), by where the plant was at the
+gateway's start."""
 TRUTH_EVERY_CYCLES = 10  # the in-cycle scorer (TruthScorer) samples the truth this seldom
 TRUTH_INTERVAL_S = 0.01  # the off-cycle matcher (TruthMatcher) reads the truth this often
 RING_SIZE = 1024  # cycles the demo's observer keeps for matching (~1 s at 1 kHz)
@@ -44,10 +59,19 @@ class TruthScore:
         self.corrected_sq = np.zeros(cables)
         self.samples = np.zeros(cables, dtype=np.int64)
 
-    def add(self, truth: np.ndarray, raw: np.ndarray, corrected: np.ndarray,
-            status: np.ndarray) -> None:  # fmt: skip
-        """Add the squared errors of the good channels (status 0, finite) against ``truth``."""
+    def add(
+        self,
+        truth: np.ndarray,
+        raw: np.ndarray,
+        corrected: np.ndarray,
+        status: np.ndarray,
+        warm: np.ndarray | None = None,
+    ) -> None:
+        """Add the squared errors of the good channels (status 0, finite, ``warm`` where
+        given) against ``truth``."""
         good = (status == 0) & np.isfinite(corrected) & np.isfinite(truth)
+        if warm is not None:
+            good &= warm
         self.raw_sq[good] += (raw[good] - truth[good]) ** 2
         self.corrected_sq[good] += (corrected[good] - truth[good]) ** 2
         self.samples[good] += 1
@@ -57,6 +81,52 @@ class TruthScore:
         return np.sqrt(self.raw_sq / n), np.sqrt(self.corrected_sq / n)
 
 
+class ChainWarmup:
+    """Per cable, whether the gateway's chain has travelled ``WARMUP_LENGTHS`` relaxation
+    lengths since its first cycle (True from the start for a chain without pre-sliding
+    state: Coulomb or none). ``F_R`` is the cable's largest pulley level at its corrected
+    tension of the cycle; ``sigma`` its Dahl stiffness, from ``cfg``'s model and fitted
+    effects. :meth:`update` allocates nothing (it runs in the cycle's observers)."""
+
+    def __init__(self, cfg: Config) -> None:
+        m = cfg.cables
+        params = fx.chain_params(cfg.friction, cfg.friction.effect_values(m), m)
+        dahl = params.model == "dahl" and params.pulleys > 0
+        self.lam = np.zeros(m)
+        self.f0 = np.zeros(m)
+        if dahl:
+            lam_pos, lam_neg = coulomb_coefficients(params)
+            self.lam = np.max(np.maximum(lam_pos, lam_neg), axis=1)
+            self.f0 = params.f0_n / params.pulleys
+        self.per_sigma = WARMUP_LENGTHS / np.maximum(params.sigma_n_m, 1e-12)
+        self.travel = np.zeros(m)
+        self.warm = np.full(m, not dahl)
+        self.all_warm = not dahl
+        self._at = math.nan
+        self._step = np.zeros(m)
+        self._need = np.zeros(m)
+        self._reached = np.zeros(m, bool)
+
+    def update(self, velocity: np.ndarray, tension: np.ndarray, now: float) -> np.ndarray:
+        """Add the travel since the previous call (|v| times the time between calls) and
+        return the (m,) warm mask (a cable stays warm once it is)."""
+        if self.all_warm:
+            return self.warm
+        dt = now - self._at if self._at == self._at else 0.0
+        self._at = now
+        np.abs(velocity, out=self._step)
+        self._step *= max(dt, 0.0)
+        self.travel += self._step
+        np.abs(tension, out=self._need)
+        self._need *= self.lam
+        self._need += self.f0
+        self._need *= self.per_sigma
+        np.greater_equal(self.travel, self._need, out=self._reached)
+        self.warm |= self._reached
+        self.all_warm = bool(self.warm.all())
+        return self.warm
+
+
 class TruthScorer:
     """A loop observer: every ``every`` cycles (after ``SCORE_AFTER_S``) it asks ``source``
     for the plant's truth and scores the gateway's raw and corrected tensions against it.
@@ -64,13 +134,16 @@ class TruthScorer:
     ``source(truth)`` fills ``truth`` and returns the PLC heartbeat of that plant step
     (None: unknown, score anyway); a heartbeat other than the gateway's reading means
     the plant has stepped since: that sample is skipped (``mismatched``) and the next
-    cycle tries again.
+    cycle tries again. With ``warmup`` a cable is scored once its chain has warmed up.
     """
 
-    def __init__(self, cables: int, source: TruthSource, every: int = 1) -> None:
+    def __init__(
+        self, cables: int, source: TruthSource, every: int = 1, warmup: ChainWarmup | None = None
+    ) -> None:
         self.score = TruthScore(cables)
         self.source = source
         self.every = every
+        self.warmup = warmup
         self.truth = np.zeros(cables)
         self.mismatched = 0
         self.failed = 0
@@ -80,6 +153,9 @@ class TruthScorer:
     def __call__(self, inputs: Inputs, comp: Compensator, now: float) -> None:
         if self._started is None:
             self._started = now
+        warm = None
+        if self.warmup is not None:
+            warm = self.warmup.update(comp.velocity_m_s, comp.corrected_n, now)
         if now - self._started < SCORE_AFTER_S:
             return
         self._countdown -= 1
@@ -95,7 +171,7 @@ class TruthScorer:
             self.mismatched += 1
             self._countdown = 1  # the plant stepped in between: try again next cycle
             return
-        self.score.add(self.truth, comp.raw_n, comp.corrected_n, comp.status)
+        self.score.add(self.truth, comp.raw_n, comp.corrected_n, comp.status, warm)
 
 
 class CycleRing:
@@ -105,10 +181,13 @@ class CycleRing:
     scoring costs the cycle a few copies; :class:`TruthMatcher` reads the ring off the cycle.
 
     A slot's ``stamp`` is -1 while it is written (a reader that sees the same heartbeat
-    before and after its copy has a whole sample); ``when`` is the cycle's time.
+    before and after its copy has a whole sample); ``when`` is the cycle's time. With
+    ``warmup`` each slot also holds which cables had warmed up (else all count).
     """
 
-    def __init__(self, cables: int, size: int = RING_SIZE) -> None:
+    def __init__(
+        self, cables: int, size: int = RING_SIZE, warmup: ChainWarmup | None = None
+    ) -> None:
         if size & (size - 1) or not 0 < size <= 0x10000:
             raise ValueError("ring size must be a power of two <= 65536")
         self.mask = size - 1
@@ -117,7 +196,11 @@ class CycleRing:
         self.raw = np.zeros((size, cables))
         self.corrected = np.zeros((size, cables))
         self.status = np.zeros((size, cables), dtype=np.uint16)
-        self._rows = [(self.raw[i], self.corrected[i], self.status[i]) for i in range(size)]
+        self.warm = np.ones((size, cables), dtype=bool)
+        self.warmup = warmup
+        self._rows = [
+            (self.raw[i], self.corrected[i], self.status[i], self.warm[i]) for i in range(size)
+        ]
         self.latest = -1  # slot of the last cycle copied
         self.copied = 0  # cycles copied
         self._started = math.nan
@@ -125,15 +208,20 @@ class CycleRing:
     def __call__(self, inputs: Inputs, comp: Compensator, now: float) -> None:
         if self._started != self._started:
             self._started = now
+        warm_now = None
+        if self.warmup is not None:
+            warm_now = self.warmup.update(comp.velocity_m_s, comp.corrected_n, now)
         if now - self._started < SCORE_AFTER_S:
             return
         hb = inputs.plc_heartbeat
-        slot = hb & self.mask
-        raw, corrected, status = self._rows[slot]
+        slot = int(hb) & self.mask
+        raw, corrected, status, warm = self._rows[slot]
         self.stamp[slot] = -1
         np.copyto(raw, comp.raw_n)
         np.copyto(corrected, comp.corrected_n)
         np.copyto(status, comp.status)
+        if warm_now is not None:
+            np.copyto(warm, warm_now)
         self.when[slot] = now
         self.stamp[slot] = hb
         self.latest = slot
@@ -141,7 +229,7 @@ class CycleRing:
 
     def take(self, heartbeat: int | None, near: float, into: tuple[np.ndarray, ...]) -> bool:
         """Copy the cycle that read ``heartbeat`` (None: the latest cycle) into ``into``
-        (raw, corrected, status) if the ring holds it from within ``MATCH_WINDOW_S`` of
+        (raw, corrected, status, warm) if the ring holds it from within ``MATCH_WINDOW_S`` of
         ``near`` (not an old lap of the 16-bit heartbeat); False if it does not."""
         slot = self.latest if heartbeat is None else heartbeat & self.mask
         if slot < 0:
@@ -180,12 +268,22 @@ class TruthMatcher:
     GIL (the loop would wait behind it).
     """
 
-    def __init__(self, ring: CycleRing, source: TruthSource, cables: int,
-                 interval_s: float = TRUTH_INTERVAL_S) -> None:  # fmt: skip
+    def __init__(
+        self,
+        ring: CycleRing,
+        source: TruthSource,
+        cables: int,
+        interval_s: float = TRUTH_INTERVAL_S,
+    ) -> None:
         self.ring, self.source, self.interval_s = ring, source, interval_s
         self.score = TruthScore(cables)
         self.truth = np.zeros(cables)
-        self._sample = (np.zeros(cables), np.zeros(cables), np.zeros(cables, dtype=np.uint16))
+        self._sample = (
+            np.zeros(cables),
+            np.zeros(cables),
+            np.zeros(cables, dtype=np.uint16),
+            np.ones(cables, dtype=bool),
+        )
         self.read = self.matched = self.unmatched = self.failed = 0
         self.by_heartbeat = True  # False once the source gave no heartbeat
         self.priority: int | None = None  # set_realtime(): SCHED_FIFO 1 for this thread
@@ -231,8 +329,8 @@ class TruthMatcher:
             if time.monotonic() >= give_up or self._stop.wait(0.001):
                 self.unmatched += 1
                 return
-        raw, corrected, status = self._sample
-        self.score.add(self.truth, raw, corrected, status)
+        raw, corrected, status, warm = self._sample
+        self.score.add(self.truth, raw, corrected, status, warm)
         self.matched += 1
 
 
@@ -255,8 +353,9 @@ class TruthChannel:
     def __call__(self, truth: np.ndarray) -> int:
         sock = self._connect()
         self._tid = (self._tid + 1) & 0xFFFF
-        request = struct.pack(">HHHBBHH", self._tid, 0, 6, self.unit_id, 3, TRUTH_ADDRESS,
-                              self.words)  # fmt: skip
+        request = struct.pack(
+            ">HHHBBHH", self._tid, 0, 6, self.unit_id, 3, TRUTH_ADDRESS, self.words
+        )
         try:
             sock.sendall(request)
             reply = b""

@@ -127,6 +127,7 @@ def netns_gateway_main(group: str, port: int, seconds: float) -> dict[str, objec
     bus = _udp_bus(group, port)
     driver = CanopenDriver(cfg, bus=bus, timeout_s=0.05)
     inputs, outputs = Inputs.allocate(cfg.cables), Outputs.allocate(cfg.cables)
+    outputs.channel_status[:] = 0  # good: an invalid channel carries no value
     good = timeouts = 0
     end = time.monotonic() + seconds
     driver.open()
@@ -140,7 +141,8 @@ def netns_gateway_main(group: str, port: int, seconds: float) -> dict[str, objec
             good += 1
             outputs.tension_corrected_n[:] = inputs.tension_raw_n
             outputs.gateway_heartbeat = good
-            driver.write_from(outputs)
+            now = driver.clock()  # fresh data, a live PLC (the output gate checks both)
+            driver.write_from(outputs.stamp(now, now))
     finally:
         driver.close()
         bus.shutdown()

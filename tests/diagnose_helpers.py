@@ -229,10 +229,19 @@ def _drive_chain(fo: Foreign, tn, v, wrap, mu, f0, sigma, st) -> np.ndarray:
     slip = e.get("maxwell_slip", {})
     k = e.get("cable_stretch", {}).get("k_n_m", math.inf)
     return _chain_drive(
-        tn, v, 1.0 / fo.fine_hz, wrap, mu, f0, slip.get("sigma_n_m", sigma),
-        slip.get("w", 1.0), 1.0 / k, e.get("backlash", {}).get("width_m", 0.0),
-        st["k"], st["v_s_m_s"],
-    )  # fmt: skip
+        tn,
+        v,
+        1.0 / fo.fine_hz,
+        wrap,
+        mu,
+        f0,
+        slip.get("sigma_n_m", sigma),
+        slip.get("w", 1.0),
+        1.0 / k,
+        e.get("backlash", {}).get("width_m", 0.0),
+        st["k"],
+        st["v_s_m_s"],
+    )
 
 
 def _spring_and_creep(fo: Foreign, t, x, ts) -> np.ndarray:

@@ -210,11 +210,28 @@ def make_tls_pair(directory: str) -> dict[str, str]:
     for who in ("server", "client"):
         cert, key = f"{directory}/{who}.pem", f"{directory}/{who}.key"
         subprocess.run(
-            ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
-             "-keyout", key, "-out", cert, "-subj", "/CN=127.0.0.1",
-             "-addext", "subjectAltName=IP:127.0.0.1"],
-            check=True, capture_output=True, timeout=60,
-        )  # fmt: skip
+            [
+                "openssl",
+                "req",
+                "-x509",
+                "-newkey",
+                "rsa:2048",
+                "-nodes",
+                "-days",
+                "1",
+                "-keyout",
+                key,
+                "-out",
+                cert,
+                "-subj",
+                "/CN=127.0.0.1",
+                "-addext",
+                "subjectAltName=IP:127.0.0.1",
+            ],
+            check=True,
+            capture_output=True,
+            timeout=60,
+        )
         paths[f"{who}_cert"], paths[f"{who}_key"] = cert, key
     return paths
 

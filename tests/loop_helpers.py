@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.base import Driver, Outputs
 from gateway.core.config import Config, load_config
 from sim_plc.image import ProcessImage
 
@@ -71,6 +72,13 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def fresh(out: Outputs, driver: Driver) -> Outputs:
+    """``out`` stamped as computed now from fresh data with a live PLC heartbeat, for a
+    test that drives a driver without the loop (the output gate needs both times)."""
+    now = driver.clock()
+    return out.stamp(now, now)
 
 
 def finite(a: np.ndarray) -> bool:

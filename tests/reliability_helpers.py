@@ -360,8 +360,9 @@ class GatewayRig:
         self.proxy = FaultProxy("127.0.0.1", self.server.port, seed=self.seed, framing=framing)
         self.proxy.start()
         self._stack.callback(self.proxy.stop)
-        self.cfg = gateway_config(plc_cfg, self.proxy.port, self.period_s, self.timeout_s,
-                                  self.registers, self.tls)  # fmt: skip
+        self.cfg = gateway_config(
+            plc_cfg, self.proxy.port, self.period_s, self.timeout_s, self.registers, self.tls
+        )
         self.service = CyclicService(self.cfg, ModbusTcpDriver(self.cfg), history=4096)
         self.registry = make_registry(self.service)
         self.oracle = WriteOracle(self.image, lambda: self.service.stats.cycles)
@@ -432,10 +433,15 @@ def gateway_config(
     import dataclasses
 
     mb = dataclasses.replace(
-        plc_cfg.bus.modbus_tcp, host="127.0.0.1", port=port, timeout_s=timeout_s,
-        reconnect_min_s=0.01, reconnect_max_s=0.2, tls=tls,
+        plc_cfg.bus.modbus_tcp,
+        host="127.0.0.1",
+        port=port,
+        timeout_s=timeout_s,
+        reconnect_min_s=0.01,
+        reconnect_max_s=0.2,
+        tls=tls,
         registers=registers if registers is not None else plc_cfg.bus.modbus_tcp.registers,
-    )  # fmt: skip
+    )
     return dataclasses.replace(
         plc_cfg,
         bus=dataclasses.replace(plc_cfg.bus, driver="modbus_tcp", modbus_tcp=mb),

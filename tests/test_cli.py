@@ -49,7 +49,7 @@ def write_config(tmp_path, edit=None) -> str:
 
 
 def test_check_accepts_the_default_config(capsys) -> None:
-    assert main(["check"]) == 0
+    assert main(["check", "--config", str(DEFAULT_CONFIG_PATH)]) == 0
     out = capsys.readouterr().out
     assert "valid; 8 cables" in out and "plausible setpoints" in out
 
@@ -69,8 +69,9 @@ def test_check_register_count_mismatch_names_file_and_key(tmp_path, capsys) -> N
 
 def test_check_register_overlap_names_the_file(tmp_path, capsys) -> None:
     def overlap(d):
-        d["bus"]["modbus_tcp"]["registers"] = {"wrench": {"address": 120, "count": 6,
-                                                          "type": "float32"}}  # fmt: skip
+        d["bus"]["modbus_tcp"]["registers"] = {
+            "wrench": {"address": 120, "count": 6, "type": "float32"}
+        }
 
     path = write_config(tmp_path, overlap)
     assert main(["check", "--config", path]) == 2
@@ -80,8 +81,10 @@ def test_check_register_overlap_names_the_file(tmp_path, capsys) -> None:
 
 def test_check_missing_tls_file_names_the_key(tmp_path, capsys) -> None:
     def tls(d):
-        d["bus"]["modbus_tcp"]["tls"] = {"certfile": str(tmp_path / "nope.pem"),
-                                         "keyfile": str(tmp_path / "nope.key")}  # fmt: skip
+        d["bus"]["modbus_tcp"]["tls"] = {
+            "certfile": str(tmp_path / "nope.pem"),
+            "keyfile": str(tmp_path / "nope.key"),
+        }
 
     path = write_config(tmp_path, tls)
     assert main(["check", "--config", path]) == 2
@@ -101,13 +104,14 @@ def test_check_warns_about_max_tension_above_the_sensor_range(tmp_path, capsys) 
 @pytest.mark.parametrize(
     ("section", "key", "value", "message"),
     [
-        ("loop", "stale_after_s", -1, r"loop.stale_after_s: must be > 0"),
+        ("loop", "stale_after_s", -1, r"loop.stale_after_s: must be in 0.0001..60, got -1"),
         ("metrics", "port", 99999, r"metrics.port: must be in 0..65535"),
-        ("limits", "max_cable_speed_m_s", 0, r"limits.max_cable_speed_m_s: must be > 0"),
+        ("limits", "max_cable_speed_m_s", 0, r"limits.max_cable_speed_m_s: must be in 1e-06"),
     ],
 )
-def test_impossible_values_are_refused_in_one_line(tmp_path, capsys, section, key, value,
-                                                   message) -> None:  # fmt: skip
+def test_impossible_values_are_refused_in_one_line(
+    tmp_path, capsys, section, key, value, message
+) -> None:
     def bad(d):
         d.setdefault(section, {})[key] = value
 
@@ -121,7 +125,7 @@ def test_impossible_values_are_refused_in_one_line(tmp_path, capsys, section, ke
 
 def test_bad_log_level_is_one_line_and_status_2(capsys) -> None:
     with pytest.raises(SystemExit) as exc:
-        main(["run", "--log-level", "LOUD"])
+        main(["run", "--config", str(DEFAULT_CONFIG_PATH), "--log-level", "LOUD"])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'LOUD' is not a log level" in err[0]
@@ -173,8 +177,14 @@ def test_record_into_a_missing_directory_fails_before_simulating(tmp_path, capsy
 
 def test_diagnose_json_into_a_missing_directory_is_refused(tmp_path, capsys) -> None:
     target = tmp_path / "nonexistent" / "x.json"
-    argv = ["diagnose", str(tmp_path / "rec.csv"), "--model", str(DEFAULT_CONFIG_PATH),
-            "--json", str(target)]  # fmt: skip
+    argv = [
+        "diagnose",
+        str(tmp_path / "rec.csv"),
+        "--model",
+        str(DEFAULT_CONFIG_PATH),
+        "--json",
+        str(target),
+    ]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert f"--json {target}: directory" in err
@@ -193,7 +203,35 @@ def test_the_daemons_modules_never_import_sim_plc() -> None:
         "gateway.service.check, gateway.runtime; "
         "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sim_plc'))"
     )
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=root, timeout=120)  # fmt: skip
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=root, timeout=120
+    )
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "[]"
+
+
+def test_the_stopped_line_has_a_timestamp_like_every_log_line(tmp_path) -> None:
+    """The final ``stopped: ...`` line was the one line without a time."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data["bus"]["driver"] = "virtual"
+    data["metrics"]["enabled"] = False
+    path = tmp_path / "virtual.yaml"
+    path.write_text(yaml.safe_dump(data))
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "run", "--config", str(path), "--cycles", "20"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=root,
+    )
+    assert done.returncode == 0, done.stderr
+    lines = [ln for ln in done.stderr.splitlines() if "stopped: cycles" in ln]
+    assert len(lines) == 1, done.stderr
+    stamp = r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} INFO cdpr_gateway: stopped: cycles 20"
+    assert re.match(stamp, lines[0]), lines[0]

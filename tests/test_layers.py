@@ -16,6 +16,8 @@ ALLOWED_PROJECT_IMPORTS = (
     "gateway.errors",
     "gateway.core.config",
     "gateway.core.resources",
+    "gateway.core.files",
+    "gateway.core.ring",
 )
 PROJECT_PACKAGES = ("drivers", "gateway", "sim_plc", "tests", "bench")
 DRIVER_FILES = sorted(Path(drivers.__file__).parent.glob("*.py"))

@@ -13,9 +13,10 @@ import dataclasses
 import ipaddress
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from gateway.core.configtypes import convert, read_yaml, require
 from gateway.core.registermap import (  # noqa: F401 - re-exported: gateway.core.config is their old home
@@ -29,6 +30,8 @@ from gateway.model.effects.registry import Effects, effect_values
 from gateway.model.effects.registry import to_mapping as effects_to_mapping
 
 Vec3 = tuple[float, float, float]
+Ranges = dict[str, tuple[float, float]]  # per numeric field: (low, high), inclusive
+TWO_PI = 2 * math.pi
 
 DEFAULT_CONFIG_PATH = data_file("default.yaml")  # config/ in a checkout, package data in a wheel
 
@@ -43,6 +46,14 @@ class GeometryConfig:
     gravity_m_s2: float = 9.81
     center_of_mass_m: Vec3 = (0.0, 0.0, 0.0)
     home_pose: tuple[float, float, float, float, float, float] = (0.0, 0.0, 1.5, 0.0, 0.0, 0.0)
+    RANGES: ClassVar[Ranges] = {
+        "frame_anchors_m": (-1e3, 1e3),
+        "platform_anchors_m": (-1e2, 1e2),
+        "platform_mass_kg": (1e-3, 1e5),
+        "gravity_m_s2": (0.0, 100.0),
+        "center_of_mass_m": (-1e2, 1e2),
+        "home_pose": (-1e3, 1e3),
+    }
 
     def __post_init__(self) -> None:
         require(len(self.frame_anchors_m) >= 1, "frame_anchors_m: at least one cable")
@@ -64,6 +75,7 @@ class TensionConfig:
 
     min_n: float = 20.0
     max_n: float = 490.0
+    RANGES: ClassVar[Ranges] = {"min_n": (0.0, 1e6), "max_n": (0.0, 1e6)}
 
     def __post_init__(self) -> None:
         require(0 <= self.min_n < self.max_n, "need 0 <= min_n < max_n")
@@ -75,6 +87,7 @@ class SensorConfig:
 
     range_n: float = 500.0
     adc_full_scale: int = 27648
+    RANGES: ClassVar[Ranges] = {"range_n": (1e-3, 1e6), "adc_full_scale": (1, 32767)}
 
     def __post_init__(self) -> None:
         require(self.range_n > 0, "range_n must be > 0")
@@ -87,6 +100,7 @@ class PulleyConfig:
 
     wrap_deg: float
     mu: float
+    RANGES: ClassVar[Ranges] = {"wrap_deg": (0.0, 180.0), "mu": (0.0, 0.999)}
 
     def __post_init__(self) -> None:
         require(0 <= self.wrap_deg <= 180, "wrap_deg must be in 0..180")
@@ -119,6 +133,13 @@ class FrictionConfig:
     viscous_ns_m: float = 0.0
     pulley_radius_m: float = 0.05
     effects: dict[str, EffectParams] = field(default_factory=dict)
+    # the effects' parameters are checked by the effects registry (effect_values)
+    RANGES: ClassVar[Ranges] = {
+        "sigma_n_m": (1e-6, 1e9),
+        "beta": (1e-3, 100.0),
+        "viscous_ns_m": (0.0, 1e6),
+        "pulley_radius_m": (1e-4, 10.0),
+    }
 
     def __post_init__(self) -> None:
         require(self.sigma_n_m > 0, "sigma_n_m must be > 0")
@@ -174,10 +195,12 @@ class FrictionConfig:
 
 @dataclass(frozen=True)
 class RealtimeConfig:
-    """``loop.realtime``: real-time settings applied at start where the process may
-    (:mod:`gateway.runtime.realtime`); what is refused is logged, never fatal."""
+    """``loop.realtime``: real-time settings ``run`` applies to its loop at start where the
+    process may (:mod:`gateway.runtime.realtime`); what is refused is logged in one line,
+    never fatal. On by default (a 1 kHz service); ``enabled: false`` leaves the process
+    as it was started."""
 
-    enabled: bool = False
+    enabled: bool = True
     policy: Literal["fifo", "rr", "other"] = "fifo"  # SCHED_FIFO, SCHED_RR, SCHED_OTHER
     priority: int = 50  # 1..99 for fifo and rr
     cpus: tuple[int, ...] = ()  # CPU affinity of the cycle's thread; () leaves it as is
@@ -187,6 +210,11 @@ class RealtimeConfig:
     # wake-up (the next deadline, the PLC's reply) is not delayed by leaving a sleep state;
     # None leaves the CPUs' idle states alone
     cpu_dma_latency_us: int | None = 0
+    RANGES: ClassVar[Ranges] = {
+        "priority": (0, 99),
+        "cpus": (0, 4095),
+        "cpu_dma_latency_us": (0, 2_000_000_000),
+    }
 
     def __post_init__(self) -> None:
         if self.policy != "other":
@@ -208,11 +236,26 @@ class LoopConfig:
     stuck_after_s: float = 0.5  # a channel that does not change for this long is stuck
     stale_after_s: float = 0.01  # no fresh read for this long: channels are stale
     heartbeat_timeout_s: float = 0.1  # PLC heartbeat unchanged this long: stop writing, fault
+    # a value goes out good only if computed from PLC data this young when sent (the
+    # output gate, drivers/gate.py); None: 2 periods
+    max_input_age_s: float | None = None
     fixed_point_tol_n: float = 1e-9
     fixed_point_max_iter: int = 8
     overrun_warning_interval_s: float = 10.0
     busy_wait_s: float = 0.0002  # spin this long before each deadline instead of sleeping
     realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
+    RANGES: ClassVar[Ranges] = {
+        "period_s": (1e-4, 1.0),
+        "substitute_max_s": (0.0, 10.0),
+        "stuck_after_s": (1e-3, 3600.0),
+        "stale_after_s": (1e-4, 60.0),
+        "heartbeat_timeout_s": (1e-3, 60.0),
+        "max_input_age_s": (1e-4, 10.0),
+        "fixed_point_tol_n": (1e-15, 1.0),
+        "fixed_point_max_iter": (1, 1000),
+        "overrun_warning_interval_s": (0.1, 86400.0),
+        "busy_wait_s": (0.0, 1.0),
+    }
 
     def __post_init__(self) -> None:
         require(1e-4 <= self.period_s <= 1.0, "period_s must be in 0.0001..1")
@@ -220,6 +263,10 @@ class LoopConfig:
         require(self.stuck_after_s > 0, "stuck_after_s must be > 0")
         require(self.stale_after_s > 0, "stale_after_s must be > 0")
         require(self.heartbeat_timeout_s > 0, "heartbeat_timeout_s must be > 0")
+        require(
+            self.max_input_age_s is None or self.period_s <= self.max_input_age_s <= 10.0,
+            "max_input_age_s must be in period_s..10",
+        )
         require(self.overrun_warning_interval_s > 0, "overrun_warning_interval_s must be > 0")
         require(0 <= self.busy_wait_s < self.period_s, "busy_wait_s must be in 0..period_s")
         require(self.fixed_point_max_iter >= 1, "fixed_point_max_iter must be >= 1")
@@ -247,11 +294,23 @@ class ModbusTcpConfig:
     reconnect_max_s: float = 2.0
     tls: TlsConfig | None = None
     registers: RegisterMap = field(default_factory=RegisterMap)
+    RANGES: ClassVar[Ranges] = {
+        "port": (1, 65535),
+        "unit_id": (0, 255),
+        "timeout_s": (1e-4, 60.0),
+        "connect_timeout_s": (1e-3, 600.0),
+        "reconnect_min_s": (1e-3, 3600.0),
+        "reconnect_max_s": (1e-3, 3600.0),
+    }
 
     def __post_init__(self) -> None:
         require(0 < self.port <= 65535, "port must be in 1..65535")
         require(0 <= self.unit_id <= 255, "unit_id must be in 0..255")
         require(self.timeout_s > 0, "timeout_s must be > 0")
+        require(
+            self.reconnect_min_s <= self.reconnect_max_s,
+            "reconnect_min_s must not exceed reconnect_max_s",
+        )
 
 
 @dataclass(frozen=True)
@@ -267,6 +326,14 @@ class CanopenConfig:
     gateway_eds: str = "gateway.eds"  # relative: beside the config file (left out: shipped)
     analog_eds: str = "analog_in_401.eds"
     plc_eds: str = "plc_master.eds"
+    RANGES: ClassVar[Ranges] = {
+        "bitrate": (10_000, 1_000_000),
+        "gateway_node_id": (1, 127),
+        "analog_node_id": (1, 127),
+        "plc_node_id": (1, 127),
+        "sync_period_s": (1e-4, 1.0),
+        "timeout_s": (1e-4, 10.0),
+    }
 
     def __post_init__(self) -> None:
         require(1 <= self.gateway_node_id <= 127, "gateway_node_id must be in 1..127")
@@ -294,6 +361,7 @@ class MetricsConfig:
     keyfile: str | None = None
     basic_auth_user: str | None = None
     basic_auth_password_sha256: str | None = None
+    RANGES: ClassVar[Ranges] = {"port": (0, 65535)}
 
     def __post_init__(self) -> None:
         require(0 <= self.port <= 65535, "port must be in 0..65535")
@@ -310,6 +378,11 @@ class LimitsConfig:
     max_cable_speed_m_s: float = 10.0
     max_rotation_rad: float = math.pi
     workspace_margin_m: float = 0.5
+    RANGES: ClassVar[Ranges] = {
+        "max_cable_speed_m_s": (1e-6, 100.0),
+        "max_rotation_rad": (1e-6, TWO_PI),
+        "workspace_margin_m": (0.0, 100.0),
+    }
 
     def __post_init__(self) -> None:
         require(self.max_cable_speed_m_s > 0, "max_cable_speed_m_s must be > 0")
@@ -318,8 +391,14 @@ class LimitsConfig:
 
 
 RECORD_KINDS = (
-    "velocity", "tension_sensor", "length", "pose", "mass", "tension_corrected", "status",
-)  # fmt: skip
+    "velocity",
+    "tension_sensor",
+    "length",
+    "pose",
+    "mass",
+    "tension_corrected",
+    "status",
+)
 
 
 @dataclass(frozen=True)
@@ -332,8 +411,22 @@ class RecordConfig:
     columns: tuple[str, ...] = RECORD_KINDS
     buffer_rows: int = 65536  # ring size: 65 s at 1 kHz of disk stall before drops
     batch_s: float = 0.1  # the writer drains the ring this often
+    layout: str = "files"  # or "hive": path is a folder of robot=R/date=D/part-N.parquet
+    robot: str | None = None  # the robot's name in the metadata (and the tree); None: host
+    RANGES: ClassVar[Ranges] = {
+        "rotate_bytes": (4096, 1 << 40),
+        "rotate_s": (1.0, 1e7),
+        "buffer_rows": (16, 1 << 24),
+        "batch_s": (0.001, 10.0),
+    }
 
     def __post_init__(self) -> None:
+        require(self.layout in ("files", "hive"), "layout must be 'files' or 'hive'")
+        require(
+            self.robot is None
+            or re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", self.robot) is not None,
+            "robot must be 1..64 letters, digits, '_', '.', '-' (a folder name of the tree)",
+        )
         require(
             self.rotate_bytes is None or self.rotate_bytes >= 4096, "rotate_bytes must be >= 4096"
         )
@@ -356,7 +449,7 @@ class Config:
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     sim_plc: dict[str, Any] = field(default_factory=dict)
-    source: str = ""
+    source: str = field(default="", metadata={"file": False})  # the file's path, not a key
 
     def __post_init__(self) -> None:
         fr = self.friction

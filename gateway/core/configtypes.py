@@ -6,6 +6,14 @@ plain mapping. Supported field types: ``bool``, ``int``, ``float``, ``str``, ``L
 dataclasses. Unknown keys and missing required keys are errors; a dataclass may check
 its own values in ``__post_init__`` by raising ``ValueError`` and the message is
 prefixed with the file and the dotted key path.
+
+Every numeric key has a range, stated once: a dataclass' ``RANGES`` maps each of its
+``int`` / ``float`` fields (plain, optional or in a tuple) to ``(low, high)``, inclusive,
+and :func:`convert` refuses a value outside it naming the file and the key (a test walks
+the whole config and checks that no numeric field lacks one).
+
+Files are read by :func:`read_yaml` through :func:`gateway.core.files.read_regular`:
+regular files under a size limit only (a device or a FIFO is refused at once).
 """
 
 from __future__ import annotations
@@ -21,12 +29,15 @@ from typing import Any, Literal, TypeVar, get_args, get_origin
 
 import yaml
 
+from gateway.core.files import MAX_YAML_BYTES, read_regular
 from gateway.errors import ConfigError
 
 T = TypeVar("T")
+Range = tuple[float, float]
 
 MAX_YAML_DEPTH = 100  # nesting levels of a YAML document
 MAX_YAML_NODES = 1_000_000  # nodes of a document with every alias expanded
+MAX_ITEMS = 10_000  # items of one list (anchors, pulleys, columns)
 _REPR = reprlib.Repr()
 _REPR.maxlevel, _REPR.maxstring, _REPR.maxother = 2, 60, 60
 _REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 4
@@ -89,7 +100,12 @@ def _join(key: str, name: str | int) -> str:
     return f"{key}.{name}" if key else name
 
 
-def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:
+def _in_range(value: float, rng: Range | None, key: str, source: str) -> None:
+    if rng is not None and not rng[0] <= value <= rng[1]:
+        raise _fail(source, key, f"must be in {rng[0]:g}..{rng[1]:g}, got {_short(value)}")
+
+
+def _convert_value(tp: Any, value: Any, key: str, source: str, rng: Range | None = None) -> Any:
     origin = get_origin(tp)
     if tp is Any:
         return value
@@ -102,7 +118,7 @@ def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:
             if arg is type(None):
                 continue
             try:
-                return _convert_value(arg, value, key, source)
+                return _convert_value(arg, value, key, source, rng)
             except ConfigError as exc:
                 errors.append(str(exc))
         if errors:
@@ -121,13 +137,15 @@ def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:
         if not isinstance(value, (list, tuple)):
             raise _fail(source, key, f"expected a list, got {type(value).__name__}")
         if len(args) == 2 and args[1] is Ellipsis:
+            if len(value) > MAX_ITEMS:
+                raise _fail(source, key, f"more than {MAX_ITEMS} items")
             return tuple(
-                _convert_value(args[0], v, _join(key, i), source) for i, v in enumerate(value)
+                _convert_value(args[0], v, _join(key, i), source, rng) for i, v in enumerate(value)
             )
         if len(value) != len(args):
             raise _fail(source, key, f"expected {len(args)} items, got {len(value)}")
         return tuple(
-            _convert_value(a, v, _join(key, i), source)
+            _convert_value(a, v, _join(key, i), source, rng)
             for i, (a, v) in enumerate(zip(args, value, strict=True))
         )
     if origin is dict:
@@ -142,12 +160,14 @@ def _convert_value(tp: Any, value: Any, key: str, source: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise _fail(source, key, f"expected an integer, got {_short(value)}")
+        _in_range(value, rng, key, source)
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise _fail(source, key, f"expected a number, got {_short(value)}")
         if not math.isfinite(value):
             raise _fail(source, key, f"expected a finite number, got {_short(value)}")
+        _in_range(value, rng, key, source)
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -165,13 +185,15 @@ def convert(cls: type[T], data: Any, key: str = "", source: str = "") -> T:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = [k for k in data if k not in fields]
-    if unknown:
-        known = ", ".join(sorted(fields))
+    if unknown:  # a field with metadata {"file": False} is filled in by the loader
+        known = ", ".join(sorted(n for n, f in fields.items() if f.metadata.get("file", True)))
         raise _fail(source, _join(key, str(unknown[0])), f"unknown key (known here: {known})")
     kwargs: dict[str, Any] = {}
+    ranges: dict[str, Range] = getattr(cls, "RANGES", {})
     for name, field in fields.items():
         if name in data:
-            kwargs[name] = _convert_value(hints[name], data[name], _join(key, name), source)
+            rng = ranges.get(name)
+            kwargs[name] = _convert_value(hints[name], data[name], _join(key, name), source, rng)
         elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
             raise _fail(source, _join(key, name), "required key is missing")
     try:
@@ -188,10 +210,11 @@ def convert(cls: type[T], data: Any, key: str = "", source: str = "") -> T:
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML file whose top level is a mapping; errors name the file and line."""
     path = Path(path)
+    raw = read_regular(path, MAX_YAML_BYTES, "YAML file")
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
     try:
         data = yaml.load(text, Loader=_BoundedLoader)  # a SafeLoader with limits
     except yaml.YAMLError as exc:

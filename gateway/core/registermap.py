@@ -7,7 +7,7 @@ type, word order and scaling. Also importable from :mod:`gateway.core.config`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 from gateway.core.configtypes import require
 
@@ -19,7 +19,9 @@ class RegisterField:
     """A block of ``count`` values of one type starting at holding register ``address``.
 
     ``word_order`` applies to 32-bit types; ``format: s7_analog`` maps 0..adc_full_scale
-    to 0..sensor range; otherwise value = raw * scale.
+    to 0..sensor range; otherwise value = raw * scale. ``invalid``: for integer outputs,
+    the raw value written for "no value" (default: the type's minimum if signed, its
+    maximum if unsigned); float32 writes NaN.
     """
 
     address: int
@@ -28,11 +30,22 @@ class RegisterField:
     word_order: Literal["high_first", "low_first"] = "high_first"
     scale: float = 1.0
     format: Literal["plain", "s7_analog"] = "plain"
+    invalid: int | None = None
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "address": (0, 65535),
+        "count": (1, 125),
+        "scale": (-1e9, 1e9),
+        "invalid": (-(2**31), 2**32 - 1),
+    }
 
     def __post_init__(self) -> None:
         require(0 <= self.address <= 65535, "address must be in 0..65535")
-        require(self.count >= 1, "count must be >= 1")
-        require(self.scale != 0, "scale must not be 0")
+        require(1 <= self.count <= 125, "count must be in 1..125")
+        require(self.scale != 0 and 1e-9 <= abs(self.scale) <= 1e9, "scale must be +-1e-9..1e9")
+        require(
+            self.invalid is None or -(2**31) <= self.invalid < 2**32,
+            "invalid must be a 16- or 32-bit integer",
+        )
 
     @property
     def words(self) -> int:

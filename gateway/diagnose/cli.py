@@ -1,5 +1,5 @@
-"""``cdpr-gateway diagnose RECORDING --model MODEL.yaml --json REPORT.json [--report DIR]
-[--validate OTHER] [--write-model FITTED.yaml]``: see spec/recording.md,
+"""``cdpr-gateway diagnose RECORDING --model MODEL.yaml [--json REPORT.json] [--report DIR]
+[--validate OTHER] [--write-model FITTED.yaml]``: see docs/recording-format.md,
 :mod:`gateway.diagnose.engine` and (the model file's fitted effects)
 :mod:`gateway.diagnose.writemodel`."""
 
@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from gateway.core.cliopts import output_dir
 from gateway.core.config import (
     Config,
     FrictionConfig,
@@ -21,7 +22,7 @@ from gateway.core.config import (
     output_path,
 )
 from gateway.core.configtypes import read_yaml
-from gateway.diagnose import platform
+from gateway.diagnose import heldout, platform, warmup
 from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
@@ -29,14 +30,14 @@ from gateway.recordings.reader import Recording, read_recording
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recording", type=Path, help="recording CSV (.csv or .csv.gz)")
+    parser.add_argument("recording", type=Path, help="recording (.csv, .csv.gz or .parquet)")
     parser.add_argument(
         "--model",
         type=Path,
         required=True,
         help="nominal model YAML: a friction: mapping, or a full config",
     )
-    parser.add_argument("--json", type=Path, required=True, help="write the JSON report here")
+    parser.add_argument("--json", type=Path, help="write the JSON report here")
     parser.add_argument("--report", type=Path, help="write PNG pictures and summary.md here")
     parser.add_argument(
         "--validate",
@@ -48,7 +49,6 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         type=Path,
         help="write the model plus every fitted effect here (friction.effects)",
     )
-    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def load_model(path: Path) -> tuple[object, Config | None]:
@@ -103,18 +103,21 @@ def _without_pose(rec: Recording) -> Recording:
     return dataclasses.replace(rec, pose=None, mass=None)
 
 
-def run_command(command: str, args: argparse.Namespace) -> int:
-    start = time.perf_counter()
+@dataclasses.dataclass
+class _Run:
+    """One diagnosis of a file: the result and what the model writer needs of it."""
 
-    def say(msg: str) -> None:
-        if not args.quiet:
-            print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+    diag: Diagnosis
+    rec: Recording
+    keep_for_model: Callable[[Recording], Recording]
+    model_friction: object
 
-    output_path(args.json, "--json")  # before the work; never creates directories
-    if args.write_model is not None:
-        output_path(args.write_model, "--write-model")
-    model_friction, cfg = load_model(args.model)
-    rec, nominal = _read(args.recording, model_friction, cfg)  # type: ignore[arg-type]
+
+def _diagnose_file(
+    recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
+) -> _Run:
+    model_friction, cfg = load_model(model)
+    rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
@@ -125,23 +128,64 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
-        wrec = None if args.validate is None else _read(args.validate, model_friction, cfg)[0]  # type: ignore[arg-type]
+        wrec = None if validate is None else _read(validate, model_friction, cfg)[0]  # type: ignore[arg-type]
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
         rec, keep_for_model = _slim(rec)
         tp, dm = _tensions(rec, cfg, say)
         rec = _without_pose(rec)
         validation = None
-        if args.validate is not None:
-            vrec = dataclasses.replace(_read(args.validate, model_friction, cfg)[0], length=None)  # type: ignore[arg-type]
+        if validate is not None:
+            vrec = dataclasses.replace(_read(validate, model_friction, cfg)[0], length=None)  # type: ignore[arg-type]
             vtp, vdm = _tensions(vrec, cfg, say)
             validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
-    try:
-        args.json.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
-    except OSError as exc:
-        raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
-    say(f"report in {args.json}")
+    warmup.annotate(diag.report, rec, nominal)  # the start-up transient, said as such
+    return _Run(diag, rec, keep_for_model, model_friction)
+
+
+def report_json(report: dict) -> str:
+    """The text of ``--json REPORT.json``."""
+    return json.dumps(report, indent=1)
+
+
+def diagnose_report(
+    recording: Path,
+    model: Path,
+    validate: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """The report ``diagnose RECORDING --model MODEL [--validate OTHER]`` writes, as a dict
+    (:func:`report_json` gives its text); bad input raises :class:`GatewayError`. The one
+    entry point for a caller that diagnoses files (``cdpr-gateway fleet``)."""
+    return _diagnose_file(Path(recording), Path(model), validate, progress or _silent).diag.report
+
+
+def _silent(msg: str) -> None:
+    pass
+
+
+def run_command(command: str, args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    if args.json is not None:  # before the work; never creates directories
+        output_path(args.json, "--json")
+    if args.write_model is not None:
+        output_path(args.write_model, "--write-model")
+    if args.report is not None:  # a directory: one level is created, now, not after the work
+        output_dir(args.report, "--report")
+    run = _diagnose_file(args.recording, args.model, args.validate, say)
+    diag, rec = run.diag, run.rec
+    if args.json is not None:
+        try:
+            args.json.write_text(report_json(diag.report), encoding="utf-8")
+        except OSError as exc:
+            raise GatewayError(f"{args.json}: cannot write the report: {exc}") from exc
+        say(f"report in {args.json}")
     if args.report is not None:
         from gateway.diagnose.plots import write_report
         from gateway.diagnose.wrench_plots import write_report as write_wrench_report
@@ -152,7 +196,11 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             write_report(diag, args.report, str(args.recording))
         say(f"pictures and summary.md in {args.report}")
     if args.write_model is not None:
-        write_model(args.write_model, args.model, model_friction, diag.report, keep_for_model(rec))  # type: ignore[arg-type]
+        refused = heldout.refusal(diag.report, heldout.motion(rec.t, rec.velocity))
+        if refused is not None:
+            raise GatewayError(f"--write-model {args.write_model}: {refused}")
+        fitted_from = run.keep_for_model(rec)
+        write_model(args.write_model, args.model, run.model_friction, diag.report, fitted_from)  # type: ignore[arg-type]
         say(f"fitted model in {args.write_model}")
     rep = diag.report
     verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"

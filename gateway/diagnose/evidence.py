@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from gateway.diagnose.forward import report_stderr, to_report
-from gateway.diagnose.select import CableOutcome
+from gateway.diagnose.select import Outcome as CableOutcome
 from gateway.model import effects as fx
 
 
@@ -62,10 +62,10 @@ def _confusion(effect: str, outcomes: list[CableOutcome]) -> str:
             (sep if rv.separable else unsep).add(rv.effect)
     if unsep:
         names = ", ".join(sorted(unsep))
+        how = fx.REGISTRY[effect].separate
         return (
-            f"; the held-out data cannot tell it from {names} (both fit about as well, "
-            f"too few fast or two-signed samples to separate them), so the better one is "
-            f"reported"
+            f"; the held-out data cannot tell it from {names} (listed as alternatives: both "
+            f"fit about as well), a recording with {how} would"
         )
     if sep:
         return f"; held out it fits clearly better than {', '.join(sorted(sep))}"

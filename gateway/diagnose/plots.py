@@ -1,12 +1,15 @@
 """``diagnose --report DIR``: PNG pictures (matplotlib, Agg) and a markdown summary.
 
-* ``residual.png``: residual of the nominal model (and of the final one) over time per
-  cable, the located regions shaded;
+* ``residual.png``: residual of the nominal model and of the final one over time per
+  cable, the regions where the final residual concentrates shaded;
 * ``signature_<effect>.png``: per finding, the residual the final model leaves without
   that effect against the effect's own contribution (binned means; on the 1:1 line
   when the effect explains it);
 * ``overlay.png``: measured, nominal and fitted sensor reading around the largest region;
-* ``summary.md``: the verdict, the findings table, where the residual lives.
+* ``unexplained.png``: when the final residual holds structure beyond the catalogue, its
+  binned mean against the signal that explains it;
+* ``summary.md``: the verdict, the findings table with their tests, ambiguities, what lies
+  beyond the catalogue, where the final residual lives.
 """
 
 from __future__ import annotations
@@ -22,7 +25,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from gateway.core.heap import trim_heap
+from gateway.diagnose import signals
 from gateway.diagnose.report import Diagnosis
+from gateway.model import effects as fx
 
 MAX_POINTS = 20000
 SIGNATURE_POINTS = 1_000_000
@@ -78,7 +83,7 @@ def residual_series(diag: Diagnosis) -> Series:
 
 def overlay_series(diag: Diagnosis) -> Series:
     """The predictions of the overlay plot's cable in its window."""
-    i, sel = around_largest_region(diag.t, diag.regions)
+    i, sel = around_largest_region(diag.t, diag.regions_nominal or diag.regions)
     nominal, final = diag.predictions(i)
     return nominal[sel], final[sel]
 
@@ -101,7 +106,7 @@ def residual_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> 
     axes[0, 0].set_title(
         "measured - simulated sensor reading "
         + (
-            "(shaded: located regions)"
+            "(shaded: where the residual left after the findings concentrates)"
             if diag.regions
             else "(no concentrated region: the residual is spread evenly)"
         )
@@ -111,10 +116,14 @@ def residual_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> 
 
 
 def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
-    """Residual without ``effect`` against its contribution, binned, all its cables."""
-    xs, ys = [], []
+    """Left: the residual without ``effect`` against its contribution, binned, all its
+    cables (on the 1:1 line when the effect explains it). Right: the same residual against
+    the signal the effect's module names (:attr:`~gateway.model.effects.Effect.plot`,
+    :data:`gateway.diagnose.signals.SIGNALS`), with the effect's contribution over it."""
+    xs, ys, ss = [], [], []
     cables = [i for i, o in enumerate(diag.outcomes) if effect in o.theta]
     step = max(1, diag.t.size * len(cables) // SIGNATURE_POINTS)
+    name = fx.REGISTRY[effect].plot
     for i in cables:
         fw, final = diag.forwards[i], diag.final_theta(i)
         rest = {k: v for k, v in final.items() if k != effect}
@@ -122,9 +131,11 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
         xs.append(fw.predict(final)[::step] - without)
         fw.clear_cache()
         ys.append(diag.measured[::step, i] - without)
-    x, y = np.concatenate(xs), np.concatenate(ys)
+        ss.append(signals.SIGNALS[name](fw.data)[::step])
+        fw.data.release()
+    x, y, s = np.concatenate(xs), np.concatenate(ys), np.concatenate(ss)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
     mx, my = binned_means(x, y, 40)
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
     sl = thin(x.size)
     ax.plot(x[sl], y[sl], ".", ms=1, alpha=0.2, color="grey")
     ax.plot(mx, my, "o-", color="tab:blue", label="binned mean")
@@ -134,13 +145,46 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
     ax.set_ylabel(f"residual without {effect} (N)")
     ax.set_title(f"signature of {effect}")
     ax.legend(fontsize=8)
+    sx, sy = binned_means(s, y, 40)
+    _, sc = binned_means(s, x, 40)
+    ax2.plot(s[sl], y[sl], ".", ms=1, alpha=0.2, color="grey")
+    ax2.plot(sx, sy, "o-", color="tab:blue", label="residual without it, binned")
+    ax2.plot(sx, sc, "-", color="tab:red", lw=2, label=f"{effect}, fitted")
+    ax2.set_xlabel(f"{name} ({signals.UNITS.get(name, '')})")
+    ax2.set_ylabel("N")
+    ax2.set_title(f"against {name}")
+    ax2.legend(fontsize=8)
+    save(fig, path)
+
+
+def unexplained_plot(diag: Diagnosis, path: Path) -> None:
+    """The final residual's structure beyond the catalogue: its binned mean against the
+    signal that explains most of it on held-out data, with standard errors."""
+    st = diag.structure
+    if st is None:
+        return
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    ax.errorbar(
+        st.centre,
+        st.mean,
+        yerr=2 * st.se,
+        fmt="o-",
+        capsize=3,
+        color="tab:purple",
+        label="final residual, binned mean +- 2 se",
+    )
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlabel(f"{st.signal} ({signals.UNITS.get(st.signal, '')})")
+    ax.set_ylabel("residual after the findings (N)")
+    ax.set_title(f"beyond the catalogue: {100 * st.share:.0f} % of the held-out residual")
+    ax.legend(fontsize=8)
     save(fig, path)
 
 
 def overlay_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> None:
     """Measured, nominal and fitted reading around the largest located region
     (``series``: :func:`overlay_series`)."""
-    i, sel = around_largest_region(diag.t, diag.regions)
+    i, sel = around_largest_region(diag.t, diag.regions_nominal or diag.regions)
     nominal, final = overlay_series(diag) if series is None else series
     fig, ax = plt.subplots(figsize=(10, 4))
     ax.plot(diag.t[sel], diag.measured[sel, i], lw=0.8, label="measured", color="grey")
@@ -173,13 +217,29 @@ def summary(diag: Diagnosis, source: str) -> str:
             f"{f['validation_rmse_after_n']:.3f} N."
         )
     fin = rep["final"]
-    if fin.get("unexplained_n", 0.0) > 2.0 * fin.get("noise_n", 0.0):
+    unexpl = rep.get("unexplained")
+    if unexpl:
+        lines.append(
+            f"Beyond the catalogue: {100 * unexpl['share']:.0f} % of the held-out residual "
+            f"left after the findings is explained by a smooth function of "
+            f"`{unexpl['signal']}` (q = {unexpl['q']:.2g}): {unexpl['reading']} "
+            "(![unexplained](unexplained.png))."
+        )
+    elif fin.get("unexplained_n", 0.0) > 2.0 * fin.get("noise_n", 0.0):
         lines.append(
             f"The held-out residual ({fin['holdout_rmse_n']:.3f} N) is still well above the "
             f"sensor noise estimated from sample-to-sample differences ({fin['noise_n']:.3f} N): "
             "the recording holds a mismatch that none of the candidate effects explains (see "
             "where the residual lives, below), or noise that is not white."
         )
+    for f in rep["findings"]:
+        if f.get("alternatives"):
+            alts = ", ".join(a["effect"] for a in f["alternatives"])
+            lines.append(
+                f"**Ambiguous:** {f['effect']} or {alts} explain the residual about equally "
+                f"well on held-out data; a recording with {f.get('separate_by', 'other motion')} "
+                "would tell them apart."
+            )
     clip = rep.get("clipped", {})
     for i, (count, levels) in enumerate(
         zip(clip.get("per_cable", []), clip.get("levels_n", []), strict=False), 1
@@ -199,14 +259,18 @@ def summary(diag: Diagnosis, source: str) -> str:
         ]
     else:
         lines += [
-            "| # | effect | cables | parameters | held-out RMSE before -> after (N) |",
-            "|---|---|---|---|---|",
+            "| # | effect | cables | parameters | held-out RMSE before -> after (N) | "
+            "held-out z | q |",
+            "|---|---|---|---|---|---|---|",
         ]
         for k, f in enumerate(rep["findings"], 1):
             par = "; ".join(f"{n} = {_fmt(v)}" for n, v in f["parameters"].items())
+            z = f.get("statistic", [])
+            q = f.get("q", [])
             lines.append(
                 f"| {k} | {f['effect']} | {_fmt(f['cables'])} | {par} | "
-                f"{f['holdout_rmse_before_n']:.3f} -> {f['holdout_rmse_after_n']:.3f} |"
+                f"{f['holdout_rmse_before_n']:.3f} -> {f['holdout_rmse_after_n']:.3f} | "
+                f"{_fmt(z)} | {', '.join(f'{x:.2g}' for x in q)} |"
             )
         lines.append("")
         for k, f in enumerate(rep["findings"], 1):
@@ -215,14 +279,17 @@ def summary(diag: Diagnosis, source: str) -> str:
                 f"![signature](signature_{f['effect']}.png)",
                 "",
             ]
+    base = rep.get("baseline", {})
     lines += [
-        "## Where the nominal model's residual lives",
+        "## Where the residual lives (after the findings; the nominal model's beside it)",
         "",
-        "| regime | share of residual energy | share of samples |",
-        "|---|---|---|",
+        "| regime | share of residual energy | nominal model | share of samples |",
+        "|---|---|---|---|",
     ]
     for name, s in rep["regime_shares"].items():
-        lines.append(f"| {name} | {s['energy']:.1%} | {s['samples']:.1%} |")
+        nominal = base.get("regime_shares", {}).get(name, {}).get("energy")
+        nom = f"{nominal:.1%}" if nominal is not None else "-"
+        lines.append(f"| {name} | {s['energy']:.1%} | {nom} | {s['samples']:.1%} |")
     if rep["mismatch"]:
         lines += ["", "Largest regions (shaded in the residual plot):", ""]
     else:
@@ -232,13 +299,28 @@ def summary(diag: Diagnosis, source: str) -> str:
             "residual energy): the mismatch is spread over the whole recording, as a "
             "constant, slowly varying or speed-proportional one is; nothing is shaded.",
         ]
-    for r in rep["mismatch"][:8]:
-        lines.append(
-            f"- cable {r['cable']}, {r['start_s']:.2f}-{r['end_s']:.2f} s, "
-            f"{r['regime']}: {r['share']:.1%} of the residual energy"
-        )
+    lines += [region_line(r) for r in rep["mismatch"][:8]]
+    warm = rep.get("warmup") or {}
+    if warm.get("samples"):
+        lines += [
+            "",
+            f"The first {warm['seconds']:.2f} s (to {warm['until_s']:.2f} s) are the "
+            "diagnosis' warm-up: "
+            f"{warm['treatment']}; {len(warm['regions'])} region(s) inside it are not "
+            "listed above.",
+        ]
     lines += ["", "![residual](residual.png)", "", "![overlay](overlay.png)", ""]
     return "\n".join(lines)
+
+
+def region_line(r: dict[str, Any]) -> str:
+    """One mismatch region for summary.md; cable 0 is the platform (the wrench reference
+    locates regions in the platform's force balance, not on one cable)."""
+    who = "the platform (wrench balance, all cables)" if r["cable"] == 0 else f"cable {r['cable']}"
+    return (
+        f"- {who}, {r['start_s']:.2f}-{r['end_s']:.2f} s, {r['regime']}: "
+        f"{r['share']:.1%} of the residual energy"
+    )
 
 
 def write_files(
@@ -256,6 +338,8 @@ def write_files(
     overlay(diag, directory / "overlay.png")
     for f in diag.report["findings"]:
         signature(diag, f["effect"], directory / f"signature_{f['effect']}.png")
+    if getattr(diag, "structure", None) is not None:
+        unexplained_plot(diag, directory / "unexplained.png")
     (directory / "summary.md").write_text(text, encoding="utf-8")
 
 

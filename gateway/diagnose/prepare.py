@@ -1,5 +1,7 @@
-"""From a recording to one :class:`CableData` per cable: the nominal chain, finite rows,
-the velocity dead band, saturated sensor readings and the held-out time blocks."""
+"""From a recording to what the selection works on: one :class:`CableData` per cable, the
+nominal chain, finite rows, the velocity dead band, saturated sensor readings, the held-out
+time blocks, the warm-up of the friction state, the candidates each cable's motion can
+show, a subset of a long recording, the validation recording's forwards."""
 
 from __future__ import annotations
 
@@ -12,9 +14,11 @@ import numpy as np
 
 from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate
-from gateway.diagnose.forward import CableData, Nominal
+from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.platform import MassSensitivity
 from gateway.errors import RecordingError
+from gateway.model import effects as fx
+from gateway.model.chain import coulomb_coefficients
 from gateway.recordings.reader import Recording
 
 
@@ -157,3 +161,114 @@ def time_blocks(t: np.ndarray) -> tuple[np.ndarray, int]:
     nb += nb % 2
     edges = t[0] + span * np.arange(1, nb) / nb
     return np.searchsorted(edges, t, side="right").astype(np.int64), nb
+
+
+WARMUP_LENGTHS = 4.0
+"""Relaxation lengths ``F_R / sigma`` of cable travel after which the chain state has
+forgotten its unknown start (error ``exp(-4)`` ~ 2 %)."""
+WARMUP_MAX_SHARE = 0.1
+GAP_SPACINGS = 10.0
+"""A step longer than this many median sample spacings is a gap (rows missing): how the
+cable moved in it is unknown, so the friction state after it is too, as at the start."""
+GAP_WARMUP_MAX_SHARE = 0.5
+
+
+def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
+    """(N,) bool: samples the selection may fit and score on (False: warm-up).
+
+    A recording may start in mid-motion with the pulleys' friction state developed, while
+    the simulation starts relaxed; the difference decays as ``exp(-sigma |x| / F_R)`` over
+    the cable travel ``x``. Samples before the cable has travelled ``WARMUP_LENGTHS``
+    relaxation lengths (``F_R``: the largest pulley's Coulomb level at the 99th percentile
+    of the platform tension; ``sigma``: the nominal stiffness) are left out, at most
+    ``WARMUP_MAX_SHARE`` of the samples. The same after every gap (a step longer than
+    ``GAP_SPACINGS`` median spacings: the chain's travel over it, the trapezoid of the two
+    velocities, is a guess), while all warm-ups together leave out at most
+    ``GAP_WARMUP_MAX_SHARE`` of the samples.
+    """
+    n = d.t.size
+    if nom.model == "none" or nom.mu.size == 0 or n < 2:
+        return np.ones(n, bool)
+    lam_pos, lam_neg = coulomb_coefficients(chain_params(nom, {}))  # the model's lambda
+    lam = float(np.max(0.5 * (lam_pos + lam_neg)))  # mean of the two directions
+    f_r = lam * float(np.percentile(np.abs(d.tp), 99))
+    dt = np.diff(d.t)
+    after_gaps = np.nonzero(dt > GAP_SPACINGS * float(np.median(dt)))[0] + 1
+    steps = np.abs(np.diff(d.x))
+    steps[after_gaps - 1] = 0.0  # what x jumps across a gap is no travel the chain stepped
+    travel = np.concatenate(([0.0], np.cumsum(steps)))
+    need = WARMUP_LENGTHS * f_r / nom.sigma_n_m
+    out = np.ones(n, bool)
+    budget = int(GAP_WARMUP_MAX_SHARE * n)
+    for start in (0, *after_gaps.tolist()):
+        if budget <= 0:
+            break
+        end = int(np.searchsorted(travel, travel[start] + need))
+        end = min(end, start + int(WARMUP_MAX_SHARE * n), start + budget)
+        out[start:end] = False
+        budget -= max(end - start, 0)
+    return out
+
+
+SELECTION_BUDGET = 150_000
+"""Samples per cable above which the selection runs on a subset (then refit on all)."""
+WARMUP_S = 1.0
+
+
+def selection_subset(t: np.ndarray, blocks: np.ndarray, budget: int = SELECTION_BUDGET):
+    """For long recordings: samples to select on, their blocks and the scoreable ones.
+
+    Only *training* blocks of the whole recording are used (the held-out blocks stay
+    unseen by selection and fit alike): evenly chosen training blocks up to ``budget``
+    samples, each with ``WARMUP_S`` of the samples before it (simulated, never scored) and
+    split into halves that train and test the selection. None: use everything.
+    """
+    if t.size <= budget:
+        return None
+    train_blocks = np.unique(blocks[blocks % 2 == 0])
+    per_block = t.size / (blocks.max() + 1)
+    take = max(2, int(budget // per_block))
+    chosen = train_blocks[np.unique(np.linspace(0, train_blocks.size - 1, take).astype(int))]
+    idx_parts, blk_parts, use_parts = [], [], []
+    for k, b in enumerate(chosen):
+        members = np.nonzero(blocks == b)[0]
+        lo, hi = members[0], members[-1] + 1
+        warm = int(np.searchsorted(t, t[lo] - WARMUP_S))
+        rows = np.arange(warm, hi)
+        half = lo + (hi - lo) // 2
+        idx_parts.append(rows)
+        blk_parts.append(np.where(rows < half, 2 * k, 2 * k + 1))
+        use_parts.append(rows >= lo)
+    idx = np.concatenate(idx_parts)
+    idx, first = np.unique(idx, return_index=True)
+    return idx, np.concatenate(blk_parts)[first], np.concatenate(use_parts)[first]
+
+
+def candidates_for(has_mass: bool) -> list[str]:
+    """Effects the recording's columns allow (a platform effect needs pose and mass)."""
+    return [e for e in ALL_EFFECTS if has_mass or not fx.REGISTRY[e].needs_mass]
+
+
+def cable_candidates(cands: list[str], d: CableData, nom: Nominal) -> list[str]:
+    """Drop what this cable's motion cannot show: an effect that needs motion on a cable
+    that never moves, one whose module says the motion cannot show it (e.g. a periodic
+    effect over less than half a period of travel: that is an offset)."""
+    moving = bool(np.any(d.v != 0))
+    return [
+        c
+        for c in cands
+        if (moving or not fx.REGISTRY[c].needs_motion) and fx.REGISTRY[c].applicable(d, nom)
+    ]
+
+
+def validation_forwards(validation, nom: Nominal, cables: int):
+    """The validation recording's forwards and its valid (unclipped) samples, or None."""
+    if validation is None:
+        return None
+    vrec, vtp, vdm = finite_rows(*validation)
+    if vrec.cables != cables:
+        raise RecordingError(
+            f"{vrec.source}: has {vrec.cables} cables, the diagnosed recording {cables}"
+        )
+    fws = [Forward(d, nom) for d in cable_data(vrec, vtp, vdm)]
+    return fws, np.column_stack([~clipped_mask(fw.data.ts)[0] for fw in fws])

@@ -1,15 +1,25 @@
-"""Assemble the JSON report of recording.md from the per-cable selections.
+"""Stage 5 of the platform-tension reference: the JSON report of docs/recording-format.md
+from the fitted, tested units.
 
 Beyond the schema's keys the report carries ``skipped_rows`` (rows without a required
-value) and ``regime_shares`` (per regime: share of the nominal residual energy and of the
-samples); ``final`` also carries ``noise_n`` (white noise of the final residual, estimated
-from sample-to-sample differences) and ``unexplained_n`` (the held-out RMSE beyond that
-noise, ``sqrt(holdout^2 - noise^2)``: what no finding explains; large when the recording
-holds physics outside the candidate list, or noise that is not white). ``rmse_*`` are over
-every cable and sample, ``holdout_*`` over the held-out blocks, ``validation_*`` over the
-``--validate`` recording; each finding's before/after are cumulative in the findings'
-order. A standard error that could not be computed (singular Jacobian, parameter at a
-bound) is written as -1.
+value). ``baseline`` describes the nominal model's residual (its RMSE, ``mismatch`` regions
+and ``regime_shares``); the top-level ``mismatch`` and ``regime_shares`` describe the
+**final** model's residual: where what is left lives. ``final`` carries ``noise_n`` (white
+noise of the final residual, :func:`.stats.white_noise`) and ``unexplained_n`` (the
+held-out RMSE beyond that noise). ``unexplained`` (present only when the final residual
+holds structure that a smooth function of some signal explains on held-out blocks beyond
+chance, :mod:`.signals`) names the signal, its share of the residual variance and the
+closest physical reading.
+
+Each finding carries, per cable in ``cables``: ``statistic`` (the held-out z of the model
+with it against the model without it), ``p`` and ``q`` (Benjamini-Hochberg over every
+candidate x cable tried, :mod:`.significance`), ``stderr`` (the larger of the Jacobian's
+and the spread of refits across time blocks), ``stderr_jacobian`` and ``stderr_blocks``;
+``alternatives`` lists the effects of its group the held-out data cannot tell from it (each
+with its parameters and held-out RMSE) and ``separate_by`` the motion that would. ``rmse_*``
+are over every cable and sample, ``holdout_*`` over the held-out blocks, ``validation_*``
+over the ``--validate`` recording; each finding's before/after are cumulative in the
+findings' order. A standard error that could not be computed is written as -1.
 """
 
 from __future__ import annotations
@@ -20,27 +30,32 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gateway.diagnose import locate
+from gateway.core.heap import trim_heap
+from gateway.diagnose import locate, signals
 from gateway.diagnose.evidence import evidence
-from gateway.diagnose.forward import Forward, Nominal, report_stderr, to_report
-from gateway.diagnose.prepare import cable_data, clipped_mask, finite_rows
-from gateway.diagnose.select import CableOutcome
-from gateway.recordings.reader import Recording
+from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
+from gateway.diagnose.select import Outcome, Thresholds
+from gateway.diagnose.significance import Tested, combined_stderr
+from gateway.diagnose.stats import white_noise
+from gateway.model import effects as fx
 
 
 @dataclass
 class Diagnosis:
     """Everything the report and the pictures are made of. The predictions are not held
-    (16 bytes per sample and cable as float64): :meth:`predictions` recomputes a cable's."""
+    (16 bytes per sample and cable as float64): :meth:`predictions` recomputes a cable's.
+    ``regions`` are the final residual's, ``regions_nominal`` the nominal one's."""
 
     report: dict
     t: np.ndarray
     measured: np.ndarray
     regime: np.ndarray
     regions: list[locate.Region]
-    outcomes: list[CableOutcome]
+    outcomes: list[Outcome]
     findings_order: list[str]
     forwards: list[Forward] = field(default_factory=list)
+    regions_nominal: list[locate.Region] = field(default_factory=list)
+    structure: signals.Structure | None = None
 
     def final_theta(self, i: int) -> dict[str, np.ndarray]:
         """Cable ``i``'s (0-based) fitted parameters of the findings (the final model)."""
@@ -61,7 +76,7 @@ def _rmse(res: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float(math.sqrt(np.mean(r**2))) if r.size else 0.0
 
 
-def _subset(outcomes: list[CableOutcome], effects: list[str]) -> list[dict]:
+def _subset(outcomes: list[Outcome], effects: list[str]) -> list[dict]:
     """Per cable, the fitted parameters of those of ``effects`` the cable kept."""
     return [{e: o.theta[e] for e in effects if e in o.theta} for o in outcomes]
 
@@ -96,34 +111,73 @@ def _order(forwards, outcomes, valid) -> list[str]:
     return sorted(effects, key=lambda e: worth[e], reverse=True)
 
 
-def validation_forwards(validation, nom: Nominal, cables: int):
-    """The validation recording's forwards and its valid (unclipped) samples, or None."""
-    if validation is None:
-        return None
-    vrec, vtp, vdm = finite_rows(*validation)
-    if vrec.cables != cables:
-        from gateway.errors import RecordingError
-
-        raise RecordingError(
-            f"{vrec.source}: has {vrec.cables} cables, the diagnosed recording {cables}"
-        )
-    fws = [Forward(d, nom) for d in cable_data(vrec, vtp, vdm)]
-    return fws, np.column_stack([~clipped_mask(fw.data.ts)[0] for fw in fws])
+def _num(v: float) -> float:
+    """JSON-safe float (NaN/inf -> -1, the schema's "could not be computed")."""
+    return float(v) if math.isfinite(v) else -1.0
 
 
-def _finding(effect, outcomes, rmse_pairs, ev) -> dict:
-    cables = [i + 1 for i, o in enumerate(outcomes) if effect in o.theta]
+def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: int) -> dict:
+    cables = [i + 1 for i, u in enumerate(tested) if effect in u.outcome.theta]
     params: dict[str, list[float]] = {}
     errs: dict[str, list[float]] = {}
+    errs_jac: dict[str, list[float]] = {}
+    errs_blk: dict[str, list[float]] = {}
+    stat, ps, qs = [], [], []
     for i in cables:
-        o = outcomes[i - 1]
-        for k, v in to_report(effect, o.theta[effect]).items():
+        o = tested[i - 1].outcome
+        theta, se = o.theta[effect], o.stderr[effect]
+        se_blk = o.stderr_blocks.get(effect, np.full(theta.size, np.nan))
+        for k, v in to_report(effect, theta).items():
             params.setdefault(k, []).append(_num(v))
-        for k, v in report_stderr(effect, o.theta[effect], o.stderr[effect]).items():
-            errs.setdefault(k, []).append(_num(v))
-    out = {"effect": effect, "cables": cables, "parameters": params, "stderr": errs, "evidence": ev}
-    out.update(rmse_pairs)
+        for name, values, target in (
+            ("combined", combined_stderr(se, se_blk), errs),
+            ("jacobian", se, errs_jac),
+            ("blocks", se_blk, errs_blk),
+        ):
+            del name
+            for k, v in report_stderr(effect, theta, values).items():
+                target.setdefault(k, []).append(_num(v))
+        t = o.tests.get(effect, {})
+        stat.append(_num(t.get("z", math.nan)))
+        ps.append(_num(t.get("p", math.nan)))
+        qs.append(_num(t.get("q", math.nan)))
+    out = {
+        "effect": effect,
+        "cables": cables,
+        "parameters": params,
+        "stderr": errs,
+        "stderr_jacobian": errs_jac,
+        "stderr_blocks": errs_blk,
+        "statistic": stat,
+        "p": ps,
+        "q": qs,
+        "evidence": ev,
+    }
+    alts = alternatives(effect, tested, n_test)
+    if alts:
+        out["alternatives"] = alts
+        out["separate_by"] = fx.REGISTRY[effect].separate
+    out.update(pairs)
     return out
+
+
+def alternatives(effect: str, tested: list[Tested], n_test: int) -> list[dict]:
+    """The rivals the held-out data cannot tell from ``effect`` on some of its cables,
+    each with its parameters there and its held-out RMSE (N)."""
+    rows: dict[str, dict] = {}
+    for i, u in enumerate(tested):
+        for rv in u.outcome.rivals.get(effect, []):
+            if rv.separable:
+                continue
+            row = rows.setdefault(
+                rv.effect,
+                {"effect": rv.effect, "cables": [], "parameters": {}, "holdout_rmse_n": []},
+            )
+            row["cables"].append(i + 1)
+            for k, v in to_report(rv.effect, rv.theta).items():
+                row["parameters"].setdefault(k, []).append(_num(v))
+            row["holdout_rmse_n"].append(math.sqrt(rv.holdout_sse / max(n_test, 1)))
+    return list(rows.values())
 
 
 def rmse_pairs(before: Sequence, after: Sequence, validation: bool) -> dict[str, float]:
@@ -141,91 +195,79 @@ def rmse_pairs(before: Sequence, after: Sequence, validation: bool) -> dict[str,
     return pairs
 
 
-def _noise_std(r: np.ndarray) -> float:
-    """White-noise std of one residual column: median absolute first difference / sqrt 2."""
-    return float(np.median(np.abs(np.diff(r)))) / (0.6745 * math.sqrt(2.0))
-
-
 def noise_estimate(resid: np.ndarray) -> float:
-    """White-noise std (N) of a residual (N, m): median absolute first difference / sqrt 2,
-    robust to the slow part of the residual and to outliers; RMS over the cables."""
+    """White-noise std (N) of a residual (N, m), RMS over the cables
+    (:func:`.stats.white_noise` per cable)."""
     if resid.shape[0] < 3:
         return 0.0
-    per = np.array([_noise_std(resid[:, i]) for i in range(resid.shape[1])])
+    per = np.array([white_noise(resid[:, i]) for i in range(resid.shape[1])])
     return float(math.sqrt(np.mean(per**2)))
 
 
-def _num(v: float) -> float:
-    """JSON-safe float (NaN/inf -> a large sentinel is worse than 0 for a stderr: use -1)."""
-    return float(v) if math.isfinite(v) else -1.0
+EXPLAIN_SAMPLES = 150_000
 
 
-def _regimes(forwards: list[Forward]) -> np.ndarray:
-    """(N, m) int8 regimes; each cable's computed acceleration is freed after use."""
-    out = np.empty((forwards[0].data.t.size, len(forwards)), np.int8)
-    for i, fw in enumerate(forwards):
-        out[:, i] = locate.regimes(fw.data.v, fw.data.a)
-        fw.data.release()
-    return out
-
-
-def _baseline(t, forwards, valid, test, regime):
-    """The report's ``baseline`` and the located regions with their
-    :class:`locate.EnergyMap`, computed cable by cable: no (N, m) residual is held."""
-    sse, count = np.zeros(2), np.zeros(2)
-    per_cable = []
-    emap = locate.EnergyMap(t)
-    for i, fw in enumerate(forwards):
-        r = fw.data.ts - fw.predict({})
-        fw.clear_cache()
-        r[~valid[:, i]] = 0.0
-        for j, mask in enumerate((valid[:, i], test[:, i])):
-            rr = r[mask]
-            sse[j] += float(rr @ rr)
-            count[j] += rr.size
-            if j == 0:
-                per_cable.append(_rmse(rr))
-        emap.add(i + 1, r, regime[:, i])
-    rms, hold = (math.sqrt(s / c) if c else 0.0 for s, c in zip(sse, count, strict=True))
-    base = {"rmse_n": rms, "per_cable_rmse_n": per_cable, "holdout_rmse_n": hold}
-    return base, emap.regions(), emap
-
-
-def _final_noise(forwards, thetas, valid) -> float:
-    """The white noise of the final model's residual (:func:`noise_estimate`), cable by
-    cable."""
+def final_residual(prep, forwards, thetas, located, th: Thresholds):
+    """The final model's residual, cable by cable (no (N, m) residual is held): its white
+    noise (RMS over cables), where it lives (:class:`locate.EnergyMap`) and the strongest
+    significant structure a signal explains (:mod:`.signals`: the report's ``unexplained``
+    and the :class:`signals.Structure`, or Nones)."""
     per = np.zeros(len(forwards))
-    for i, (fw, th) in enumerate(zip(forwards, thetas, strict=True)):
-        r = fw.data.ts - fw.predict(th)
+    emap = locate.EnergyMap(prep.rec.t)
+    # the structure search on at most EXPLAIN_SAMPLES samples a cable (evenly thinned: a
+    # smooth function of a signal needs no more; memory and time of a long recording)
+    n = prep.rec.samples
+    idx = np.arange(0, n, max(1, -(-n // EXPLAIN_SAMPLES)))
+    blk = prep.blocks[idx]
+    extra = {k: np.asarray(v, dtype=float)[idx] for k, v in (prep.rec.extra or {}).items()}
+    explainer = signals.Explainer(blk, prep.n_blocks, extra)
+    for i, (fw, th_i) in enumerate(zip(forwards, thetas, strict=True)):
+        r = fw.data.ts - fw.predict(th_i)
         fw.clear_cache()
-        r[~valid[:, i]] = 0.0
-        if r.size >= 3:
-            per[i] = _noise_std(r)
-    return float(math.sqrt(np.mean(per**2))) if valid.shape[0] >= 3 else 0.0
+        r[~prep.valid[:, i]] = 0.0
+        per[i] = white_noise(r[prep.valid[:, i]])
+        emap.add(i + 1, r, located.regime[:, i])
+        use = prep.usable[idx, i]
+        d = fw.data  # thinned: its x and a from the thinned series (not the whole's)
+        thin = CableData(d.t[idx], d.v[idx], d.tp[idx], d.ts[idx], d.t0)
+        explainer.add(thin, r[idx], (blk % 2 == 0) & use, (blk % 2 == 1) & use)
+        del thin, r
+        d.release()
+        trim_heap()
+    noise = float(math.sqrt(np.mean(per**2))) if per.size else 0.0
+    found = explainer.result()
+    st = signals.significant(found, th.fdr)
+    if st is None:
+        return noise, emap, None, None
+    field_ = {
+        "signal": st.signal,
+        "share": st.share,
+        "reading": signals.reading(st),
+        "statistic": _num(st.z),
+        "q": _num(st.q),
+        "plot": "unexplained.png",
+        "curve": {
+            "x": [float(x) for x in st.centre],
+            "y": [float(y) for y in st.mean],
+            "stderr": [float(s) for s in st.se],
+        },
+        "ranking": [{"signal": f.signal, "share": f.share, "q": _num(f.q)} for f in found[:6]],
+    }
+    return noise, emap, field_, st
 
 
-def build_report(
-    rec: Recording,
-    forwards: list[Forward],
-    outcomes: list[CableOutcome],
-    blocks: np.ndarray,
-    validation,
-    nom: Nominal,
-    valid: np.ndarray | None = None,
-    clipped: dict | None = None,
-) -> Diagnosis:
-    """The report dict and the arrays behind it; ``validation``: the validation recording's
-    forwards and valid samples (:func:`validation_forwards`) or None; ``valid`` (N, m):
-    samples scored (False: a clipped reading), ``clipped``: their counts and levels.
-    Memory: besides the recording, (N, m) bool masks and int8 regimes; predictions and
-    residuals exist one cable at a time (:meth:`Diagnosis.predictions` for the plots)."""
-    measured = rec.tension_sensor
-    valid = np.ones(measured.shape, bool) if valid is None else valid
-    test = (blocks % 2 == 1)[:, None] & valid
-    regime = _regimes(forwards)
-    baseline, regions, emap = _baseline(rec.t, forwards, valid, test, regime)
-    vfw, vvalid = validation or (None, None)
+def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnosis:
+    """The report dict and the arrays behind it (module docstring). Memory: besides the
+    recording, (N, m) bool masks and int8 regimes; predictions and residuals exist one cable
+    at a time (:meth:`Diagnosis.predictions` for the plots)."""
+    rec = prep.rec
+    outcomes = [u.outcome for u in fitted]
+    forwards = [Forward(d, prep.nom) for d in prep.datas]
+    valid = prep.valid
+    test = (prep.blocks % 2 == 1)[:, None] & valid
+    vfw, vvalid = prep.validation or (None, None)
     order = _order(forwards, outcomes, valid)
+    n_test = int(np.mean(test.sum(axis=0))) if test.size else 0
 
     def scores(effects: list[str]) -> tuple[float, float, float | None]:
         thetas = _subset(outcomes, effects)
@@ -238,10 +280,11 @@ def build_report(
     for k, effect in enumerate(order):
         after = scores(order[: k + 1])
         pairs = rmse_pairs(before, after, vfw is not None)
-        ev = evidence(effect, outcomes, regime, before[1], after[1])
-        findings.append(_finding(effect, outcomes, pairs, ev))
+        ev = evidence(effect, outcomes, located.regime, before[1], after[1])
+        findings.append(_finding(effect, fitted, pairs, ev, n_test))
         before = after
-    noise = _final_noise(forwards, _subset(outcomes, order), valid)
+    thetas = _subset(outcomes, order)
+    noise, final_loc, unexplained, structure = final_residual(prep, forwards, thetas, located, th)
     final = {
         "rmse_n": before[0],
         "holdout_rmse_n": before[1],
@@ -251,14 +294,34 @@ def build_report(
     if vfw is not None:
         final["validation_rmse_before_n"] = _rmses(vfw, [{} for _ in vfw], [vvalid])[0]
         final["validation_rmse_after_n"] = float(before[2] or 0.0)
+    baseline = {**located.baseline, **located.fields}
     report = {
+        "reference": "platform_tension",
         "cables": rec.cables,
         "samples": rec.samples,
         "skipped_rows": rec.skipped_rows,
         "baseline": baseline,
-        **emap.report_fields(regions),
+        **final_loc.report_fields(final_loc.regions()),
         "findings": findings,
         "final": final,
-        "clipped": clipped or {"per_cable": [0] * rec.cables, "levels_n": [[]] * rec.cables},
+        "clipped": prep.clipped,
+        "significance": {
+            "fdr": th.fdr,
+            "tests": sum(len(o.tests) for o in outcomes),
+            "test": "held-out block z, Student t (blocks - 1), Benjamini-Hochberg",
+        },
     }
-    return Diagnosis(report, rec.t, measured, regime, regions, outcomes, order, forwards)
+    if unexplained is not None:
+        report["unexplained"] = unexplained
+    return Diagnosis(
+        report,
+        rec.t,
+        rec.tension_sensor,
+        located.regime,
+        final_loc.regions(),
+        outcomes,
+        order,
+        forwards,
+        located.regions,
+        structure,
+    )

@@ -1,22 +1,30 @@
-"""Stepwise forward selection of effects on one cable, judged on held-out time blocks.
+"""One selector for both references: stepwise selection of effects, judged on held-out
+time blocks, over a :class:`Unit` the reference gives it.
 
-The recording is cut into ``n_blocks`` time blocks; even blocks train, odd blocks are held
-out, so both halves see every regime of a repeated motion. Each step fits every remaining
-candidate on top of the effects already kept (their nonlinear parameters held, their
-linear ones re-solved with the candidate's), scores it on the held-out blocks, and keeps
-the best one only if
+A unit is what is selected on as one: a cable against its platform tension
+(:class:`gateway.diagnose.reference.CableUnit`), or every cable at once against the
+platform's wrench balance (:class:`gateway.diagnose.wrench.WrenchUnit`). The unit knows its
+candidates, how to fit effects (a quick screen on top of a model, a joint refit) and its
+residual (per sample, or per wrench component); the selector knows only residuals, held-out
+blocks and the tests of :mod:`.stats`.
 
-* it lowers the held-out sum of squares by at least ``rel_min`` of it (relative) and by
-  ``abs_min_n2`` per held-out sample in N^2 (absolute),
-* the lowering is significant against the noise: >= ``z_holdout`` standard errors
-  (:func:`holdout_z`; the error estimated from block sums, so that residuals correlated
-  in time do not inflate it),
-* after a joint refit of every kept effect with it, its parameters differ from the
-  nominal (neutral) values by at least ``z_min`` standard errors.
+Each forward step screens every remaining candidate on top of the kept effects, ranks them
+by held-out sum of squares and keeps the best one if it passes the forward test (lowers the
+held-out SSE by ``rel_min`` and ``abs_min_n2`` per sample and by ``z_screen`` standard
+errors, :func:`.stats.holdout_z`), also after a joint refit. Where no single one passes,
+the best pair of the most promising ones (effects that cancel alone, e.g. an offset and a
+drift of opposite sign). Then swaps (a near-collinear stand-in replaced) and the strict
+backward check (each kept effect against the model refitted without it: ``z_holdout``
+and its parameters ``z_min`` standard errors from the nominal). While the held-out residual
+still holds more than white noise (a test over the held-out blocks, :meth:`Selector.left`,
+not a fixed multiple of the noise), a best-subset search over a short list can undo an
+early greedy choice. A kept effect that nests a simpler one (``Effect.nests``) must beat
+it by the strict test. Finally each kept effect of a group (``Effect.group``) is swapped
+for its rivals: the evidence and the report's alternatives say whether held-out data tells
+them apart.
 
-Confusable effects (the effects of one group, :func:`rivals`: e.g. delay / lowpass /
-inertia) are then each swapped for their rivals and refitted jointly; the held-out
-comparison says whether the data can tell them apart.
+Whether a finding is reported is decided after every unit is selected, by significance
+over every candidate x unit tried (:mod:`gateway.diagnose.significance`).
 """
 
 from __future__ import annotations
@@ -25,31 +33,22 @@ import itertools
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 
-from gateway.diagnose.fit import (
-    FitResult,
-    Spec,
-    best_start,
-    block_sse,
-    joint_fit,
-    linear_refit,
-    spec_for,
-)
-from gateway.diagnose.forward import Forward
+from gateway.diagnose.stats import holdout_z, p_value, sign_test_p, white_noise
 from gateway.model import effects as fx
 
 ROUNDS = 3
 PAIR_POOL = 4
 """Singles (best held-out SSE first) whose pairs are screened when no single passes."""
-PAIR_ABOVE_NOISE = 1.1
-"""Pairs are screened only while the held-out RMSE exceeds the noise by this factor (a
-residual at the noise holds nothing for a pair to explain)."""
 SUBSET_EXTRA = 3
 """Effects besides the kept ones on the best-subset search's short list."""
-FAR_ABOVE_NOISE = 3.0
-"""Held-out RMSE over white noise above which the selection looks further (subsets)."""
+LEFT_P = 0.05
+"""The held-out residual holds more than white noise when its excess over the noise is
+significant at this level (:meth:`Selector.left`: it only decides whether the selection
+looks further; what it finds must pass every test)."""
 
 
 def overlaps(effect: str, kept: Iterable[str]) -> bool:
@@ -72,7 +71,7 @@ def rivals(effect: str) -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class Thresholds:
-    """Acceptance thresholds (see the module docstring)."""
+    """Acceptance thresholds (module docstring; :mod:`.significance` for ``fdr``)."""
 
     rel_min: float = 0.003
     abs_min_n2: float = 1e-6
@@ -81,6 +80,52 @@ class Thresholds:
     z_separate: float = 3.0
     z_min: float = 4.0
     max_effects: int = 6
+    fdr: float = 0.01
+
+
+@dataclass
+class Model:
+    """A selection state of a unit: fitted effects (internal parameters), their recipes
+    and standard errors, and the unit's residual (what the unit compares)."""
+
+    kept: dict[str, np.ndarray]
+    specs: dict[str, Any]
+    stderr: dict[str, np.ndarray]
+    resid: np.ndarray
+
+    def without(self, effect: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        rest = {k: v for k, v in self.kept.items() if k != effect}
+        return rest, {k: self.specs[k] for k in rest}
+
+
+class Unit(Protocol):
+    """What a reference gives the selector for one unit of selection."""
+
+    candidates: list[str]
+    blocks: np.ndarray
+    """(n,) block index of every residual element."""
+    train: np.ndarray
+    test: np.ndarray
+    n_blocks: int
+
+    def empty(self) -> Model: ...
+    def evaluate(self, theta: dict[str, np.ndarray], specs: dict[str, Any]) -> Model:
+        """The model at the values ``theta`` (no fit; standard errors as not known)."""
+        ...
+
+    def screen(self, model: Model, effect: str) -> Model:
+        """``effect`` fitted quickly on top of ``model`` (its linear parameters solved, the
+        kept ones' linear parameters re-solved with it); ``kept`` holds the kept effects'
+        values of ``model`` and the new effect's, ``resid`` the screened fit's."""
+        ...
+
+    def fit(self, theta: dict[str, np.ndarray], specs: dict[str, Any], nfev: int = 60) -> Model:
+        """Every effect of ``theta`` refitted jointly on the training samples."""
+        ...
+
+    def significance(self, model: Model, effect: str) -> float:
+        """How many standard errors ``effect``'s parameters lie from the nominal model."""
+        ...
 
 
 @dataclass
@@ -90,121 +135,115 @@ class Rival:
     effect: str
     holdout_sse: float
     separable: bool
+    theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stderr: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    z: float = 0.0
 
 
 @dataclass
-class Model:
-    """A selection state on one cable: fitted effects, their recipes and errors, prediction."""
-
-    kept: dict[str, np.ndarray]
-    specs: dict[str, Spec]
-    stderr: dict[str, np.ndarray]
-    pred: np.ndarray
-
-
-@dataclass
-class CableOutcome:
-    """What the selection kept on one cable, in the order it was kept."""
+class Outcome:
+    """What the selection kept on one unit, in the order it was kept."""
 
     kept: list[str]
     theta: dict[str, np.ndarray]
     stderr: dict[str, np.ndarray]
-    specs: dict[str, Spec]
+    specs: dict[str, Any]
     rivals: dict[str, list[Rival]] = field(default_factory=dict)
     tried: list[str] = field(default_factory=list)
+    tests: dict[str, dict[str, float]] = field(default_factory=dict)
+    """Per candidate: ``z``, ``p`` (and, once the significance stage ran, ``q``)."""
+    stderr_blocks: dict[str, np.ndarray] = field(default_factory=dict)
 
 
-def holdout_z(sse_a: np.ndarray, sse_b: np.ndarray, cross: np.ndarray) -> float:
-    """How many standard errors model B's held-out SSE lies below model A's.
-
-    ``sse_a``, ``sse_b``: per held-out block; ``cross``: per block ``sum r_b (p_b - p_a)``
-    (residual of B times the difference of the predictions). If B adds nothing real, the
-    decrease ``sum(sse_a - sse_b) = sum(2 r_b d + d^2)`` has its noise in ``2 sum r_b d``,
-    whose variance is estimated from the block sums (robust to residuals correlated within
-    a block).
-    """
-    gain = float(sse_a.sum() - sse_b.sum())
-    noise = 2.0 * math.sqrt(float(np.sum(cross**2)))
-    if noise == 0.0:
-        return math.inf if gain > 0 else 0.0
-    return gain / noise
+CableOutcome = Outcome  # the name the platform-tension reference has used
 
 
-def significance(spec: Spec, theta: np.ndarray, se: np.ndarray, effect: str) -> float:
-    """How many standard errors an effect's parameters lie from the nominal model (the
-    effect module's :meth:`~gateway.model.effects.Effect.significance`)."""
-    return fx.REGISTRY[effect].significance(theta, se, spec.neutral)
+class Selector:
+    """Forward selection, swaps, backward check, subsets, nested and rival checks on one
+    :class:`Unit` (module docstring)."""
 
+    def __init__(self, unit: Unit, th: Thresholds) -> None:
+        self.unit, self.th = unit, th
+        self.candidates = unit.candidates
+        self.screened: tuple[Model | None, dict[str, dict[str, float]]] = (None, {})
+        """The last forward step's add-one tests (:meth:`test`) and the model they were
+        screened on top of (their numbers only: no residual is kept)."""
 
-class CableSelector:
-    """Forward selection for one cable (``fw``) over ``candidates``."""
-
-    def __init__(
-        self,
-        fw: Forward,
-        blocks: np.ndarray,
-        n_blocks: int,
-        candidates: list[str],
-        th: Thresholds,
-        stride: int = 1,
-        usable: np.ndarray | None = None,
-    ) -> None:
-        """``usable`` (N,) bool: samples that may be scored (None: all; warm-up excluded)."""
-        self.fw, self.blocks, self.nb = fw, blocks, n_blocks
-        use = np.ones(blocks.shape, bool) if usable is None else usable
-        self.train = (blocks % 2 == 0) & use
-        self.test = (blocks % 2 == 1) & use
-        self.candidates = candidates
-        self.th = th
-        self.stride = stride
-
-    def _test_sse(self, pred: np.ndarray) -> np.ndarray:
-        sse = block_sse(self.fw.data.ts - pred, self.blocks, self.nb, self.test)
+    # ---- held-out scores ----
+    def test_sse(self, resid: np.ndarray) -> np.ndarray:
+        u = self.unit
+        sse = np.bincount(u.blocks[u.test], weights=resid[u.test] ** 2, minlength=u.n_blocks)
         return sse[1::2]
 
-    def _z(self, pred_a: np.ndarray, pred_b: np.ndarray) -> float:
-        """Held-out z of model B (``pred_b``) over model A."""
-        r_b = self.fw.data.ts - pred_b
+    def z(self, a: Model | np.ndarray, b: Model | np.ndarray) -> float:
+        """Held-out z of model B over model A (models or their residuals)."""
+        ra = a.resid if isinstance(a, Model) else a
+        rb = b.resid if isinstance(b, Model) else b
+        u = self.unit
         cross = np.bincount(
-            self.blocks[self.test], weights=(r_b * (pred_b - pred_a))[self.test], minlength=self.nb
+            u.blocks[u.test], weights=(rb * (ra - rb))[u.test], minlength=u.n_blocks
         )
-        return holdout_z(self._test_sse(pred_a), self._test_sse(pred_b), cross)
+        return holdout_z(self.test_sse(ra), self.test_sse(rb), cross)
 
-    def _accept(self, pred_a: np.ndarray, pred_b: np.ndarray, z_min: float) -> bool:
-        before, after = self._test_sse(pred_a), self._test_sse(pred_b)
+    def p(self, a: Model, b: Model) -> float:
+        """One-sided p-value of B over A (:func:`.stats.p_value`)."""
+        return p_value(self.z(a, b), self.held_out_blocks())
+
+    def held_out_blocks(self) -> int:
+        u = self.unit
+        return int(np.unique(u.blocks[u.test]).size)
+
+    def test(self, a: Model, b: Model) -> dict[str, float]:
+        """The held-out test of B over A: ``z``, ``p`` and the relative held-out ``gain``."""
+        z = self.z(a, b)
+        before = float(self.test_sse(a.resid).sum())
+        gain = (before - float(self.test_sse(b.resid).sum())) / before if before > 0 else 0.0
+        return {"z": float(z), "p": p_value(z, self.held_out_blocks()), "gain": gain}
+
+    def accept(self, a: Model, b: Model, z_min: float) -> bool:
+        before, after = self.test_sse(a.resid), self.test_sse(b.resid)
         gain = float(before.sum() - after.sum())
-        n_test = int(self.test.sum())
+        n_test = int(self.unit.test.sum())
         return (
             gain >= self.th.rel_min * float(before.sum())
             and gain >= self.th.abs_min_n2 * n_test
-            and self._z(pred_a, pred_b) >= z_min
+            and self.z(a, b) >= z_min
         )
 
-    def _screen(
-        self, kept: dict[str, np.ndarray], effect: str, pred: np.ndarray, specs: dict[str, Spec]
-    ):
-        """Fit ``effect`` on top of ``kept`` for ranking.
+    def significant(self, model: Model, effect: str) -> bool:
+        return self.unit.significance(model, effect) >= self.th.z_min
 
-        The best of the effect's starting points (grids, periodogram) with its linear
-        parameters solved by one Gauss-Newton step, then one joint step on the linear
-        parameters of the kept effects and the new one (:func:`linear_refit`); only the
-        effect that is taken is refined by least squares (jointly with the kept ones),
-        which keeps a step cheap.
-        """
-        spec = spec_for(effect, self.fw.data, self.fw.nom, self.fw.data.ts - pred, self.train)
-        start = best_start(self.fw, kept, effect, spec, self.train)
-        theta = {**kept, effect: start}
-        if kept:
-            theta = linear_refit(self.fw, theta, {**specs, effect: spec}, self.train)
-        nan = {effect: np.full(start.size, np.nan)}
-        return spec, FitResult({effect: theta[effect]}, nan, self.fw.predict(theta), True)
+    def left(self, model: Model) -> bool:
+        """The held-out residual holds more than white noise: in more of the held-out
+        blocks than chance allows (a sign test at :data:`LEFT_P`: robust to one block of a
+        load step, and to the few blocks of a short recording) its mean square exceeds the
+        block's own white noise (:func:`.stats.white_noise`, from sample-to-sample
+        differences, which slow structure does not raise), on average by at least what a
+        finding must remove (``rel_min`` of the held-out error)."""
+        u = self.unit
+        r = model.resid
+        ratios = []
+        for b in np.unique(u.blocks[u.test]):
+            rb = r[u.test & (u.blocks == b)]
+            noise = white_noise(rb)
+            if rb.size >= 10 and noise > 0.0:
+                ratios.append(float(np.mean(rb**2)) / noise**2)
+        if len(ratios) < 2:
+            return False
+        ratio = np.asarray(ratios)
+        # an excess below rel_min of the held-out error is one no finding could remove
+        # (the forward test asks that much of every finding): nothing to look for
+        if float(np.mean(ratio)) - 1.0 < self.th.rel_min:
+            return False
+        return sign_test_p(int(np.sum(ratio > 1.0)), ratio.size) < LEFT_P
 
-    def run(self) -> CableOutcome:
+    # ---- the selection ----
+    def run(self) -> Outcome:
         """Rounds of forward steps (pairs where no single passes), swaps and the strict
-        backward check (until a forward pass adds nothing, at most ``ROUNDS``); then, while
-        the held-out residual stays far above the noise, a best-subset search over a short
-        list; then the confusable rivals."""
-        model = Model({}, {}, {}, self.fw.predict({}))
+        backward check (until a forward pass adds nothing, at most ``ROUNDS``); then,
+        while the held-out residual holds more than noise, a best-subset search over a
+        short list; then the nested and the rival checks."""
+        model = self.unit.empty()
         order: list[str] = []
         for _ in range(ROUNDS):
             before = set(model.kept)
@@ -215,56 +254,31 @@ class CableSelector:
         model, order = self._look_further(model, order)
         model, order = self._prefer_nested(model, order)
         order = [e for e in order if e in model.kept] + [e for e in model.kept if e not in order]
-        out = CableOutcome(order, model.kept, model.stderr, model.specs)
-        out.rivals = self._rivals(model.kept, model.specs, model.pred)
+        out = Outcome(order, model.kept, model.stderr, model.specs)
+        out.rivals = self._rivals(model)
+        self.final = model
         return out
 
-    def _fit(self, theta: dict[str, np.ndarray], specs: dict[str, Spec], nfev: int = 60) -> Model:
-        """Joint refit of ``theta`` (linear parts first re-solved together)."""
+    def fit(self, theta: dict[str, np.ndarray], specs: dict[str, Any], nfev: int = 60) -> Model:
         if not theta:
-            return Model({}, {}, {}, self.fw.predict({}))
-        theta = linear_refit(self.fw, theta, specs, self.train)
-        fit = joint_fit(self.fw, theta, specs, self.train, max_nfev=nfev, stride=self.stride)
-        return Model(fit.theta, dict(specs), fit.stderr, fit.pred)
-
-    def _significant(self, model: Model, effect: str) -> bool:
-        return (
-            significance(model.specs[effect], model.kept[effect], model.stderr[effect], effect)
-            >= self.th.z_min
-        )
-
-    def _far_above_noise(self, model: Model) -> bool:
-        return self._above_noise(model, FAR_ABOVE_NOISE)
-
-    def _above_noise(self, model: Model, factor: float) -> bool:
-        """The held-out RMSE is more than ``factor`` times the white noise of the training
-        residual (median absolute first difference): something is unexplained."""
-        r = (self.fw.data.ts - model.pred)[self.train]
-        if r.size < 10:
-            return False
-        noise = float(np.median(np.abs(np.diff(r)))) / 0.6745 / math.sqrt(2.0)
-        test = (self.fw.data.ts - model.pred)[self.test]
-        rms = float(np.sqrt(np.mean(test**2))) if test.size else 0.0
-        return rms > factor * max(noise, 1e-12)
+            return self.unit.empty()
+        return self.unit.fit(theta, specs, nfev)
 
     def _forward(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
-        """Add the best candidate while one passes the (lenient) forward test; where no
-        single one does, the best pair of the most promising singles (effects that cancel
-        alone, e.g. an offset and a drift of opposite sign)."""
+        """Add the best candidate while one passes the forward test; where no single one
+        does, the best pair of the most promising singles."""
         order = list(order)
         while len(model.kept) < self.th.max_effects:
             ranked = []
-            for effect in (c for c in self.candidates if c not in model.kept
-                           and not overlaps(c, model.kept)):  # fmt: skip
-                spec, fit = self._screen(model.kept, effect, model.pred, model.specs)
-                ranked.append((float(self._test_sse(fit.pred).sum()), effect, spec, fit))
+            for effect in self.candidates:
+                if effect in model.kept or overlaps(effect, model.kept):
+                    continue
+                screened = self.unit.screen(model, effect)
+                ranked.append((float(self.test_sse(screened.resid).sum()), effect, screened))
             ranked.sort(key=lambda row: row[0])
+            self.screened = (model, {e: self.test(model, s) for _, e, s in ranked})
             added = self._add_single(model, ranked)
-            if (
-                added is None
-                and len(model.kept) + 2 <= self.th.max_effects
-                and self._above_noise(model, PAIR_ABOVE_NOISE)
-            ):
+            if added is None and len(model.kept) + 2 <= self.th.max_effects and self.left(model):
                 added = self._add_pair(model, ranked)
             if added is None:
                 break
@@ -273,13 +287,11 @@ class CableSelector:
         return model, order
 
     def _add_single(self, model: Model, ranked) -> tuple[Model, list[str]] | None:
-        for _, effect, spec, fit in ranked:
-            if not self._accept(model.pred, fit.pred, self.th.z_screen):
+        for _, effect, screened in ranked:
+            if not self.accept(model, screened, self.th.z_screen):
                 continue
-            joint = self._fit(
-                {**model.kept, effect: fit.theta[effect]}, {**model.specs, effect: spec}
-            )
-            if self._accept(model.pred, joint.pred, self.th.z_screen):
+            joint = self.fit(screened.kept, screened.specs)
+            if self.accept(model, joint, self.th.z_screen):
                 return joint, [effect]
             return None  # the best single fails jointly: stop (as the greedy step did)
         return None
@@ -292,24 +304,27 @@ class CableSelector:
         best: tuple[float, Model, list[str]] | None = None
         for a in range(len(pool)):
             for b in range(a + 1, len(pool)):
-                (_, ea, sa, fa), (_, eb, sb, fb) = pool[a], pool[b]
-                theta = {**model.kept, ea: fa.theta[ea], eb: fb.theta[eb]}
-                joint = self._fit(theta, {**model.specs, ea: sa, eb: sb}, nfev=30)
-                if not self._accept(model.pred, joint.pred, self.th.z_holdout):
+                (_, ea, sa), (_, eb, sb) = pool[a], pool[b]
+                if overlaps(ea, [eb]):
                     continue
-                if not (self._significant(joint, ea) and self._significant(joint, eb)):
+                theta = {**model.kept, ea: sa.kept[ea], eb: sb.kept[eb]}
+                specs = {**model.specs, ea: sa.specs[ea], eb: sb.specs[eb]}
+                joint = self.fit(theta, specs, nfev=30)
+                if not self.accept(model, joint, self.th.z_holdout):
                     continue
-                sse = float(self._test_sse(joint.pred).sum())
+                if not (self.significant(joint, ea) and self.significant(joint, eb)):
+                    continue
+                sse = float(self.test_sse(joint.resid).sum())
                 if best is None or sse < best[0]:
                     best = (sse, joint, [ea, eb])
         return None if best is None else (best[1], best[2])
 
     def _look_further(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
-        """While the held-out residual stays far above the noise (at most ``ROUNDS``
+        """While the held-out residual holds more than white noise (at most ``ROUNDS``
         times): best subset of a short list, then forward steps on top of it and the strict
         check; stops when that changes nothing."""
         for _ in range(ROUNDS):
-            if not self._far_above_noise(model):
+            if not self.left(model):
                 break
             before = set(model.kept)
             model = self._subsets(model)
@@ -319,54 +334,35 @@ class CableSelector:
                 break
         return model, order
 
-    def _prefer_nested(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
-        """A kept effect that reduces to a simpler one (``Effect.nests``) stays only if it
-        passes the strict test against the model with the simpler one in its place: its
-        extra parameters must lower the held-out error beyond chance."""
-        for effect in list(model.kept):
-            for simpler in fx.REGISTRY[effect].nests:
-                if effect not in model.kept or simpler.name in model.kept:
-                    continue
-                rest = {k: v for k, v in model.kept.items() if k != effect}
-                rest_specs = {k: model.specs[k] for k in rest}
-                spec, fit = self._screen(rest, simpler.name, self.fw.predict(rest), rest_specs)
-                trial = self._fit({**rest, simpler.name: fit.theta[simpler.name]},
-                                  {**rest_specs, simpler.name: spec})  # fmt: skip
-                if not self._accept(trial.pred, model.pred, self.th.z_holdout):
-                    model = trial
-                    order = [simpler.name if e == effect else e for e in order]
-        return model, order
-
     def _subsets(self, model: Model) -> Model:
         """Best subset, by held-out SSE, of a short list: the kept effects and the
         ``SUBSET_EXTRA`` best-screened others, every subset of up to ``len(kept) + 2``
         effects fitted jointly from the screened starting values. Undoes an early greedy
         choice that a stand-in made look right (e.g. Coulomb taking the viscous force at
         the typical speed). Kept only if it beats the current model on the forward test."""
-        rest = [c for c in self.candidates if c not in model.kept]
         starts: dict[str, np.ndarray] = dict(model.kept)
-        specs: dict[str, Spec] = dict(model.specs)
+        specs: dict[str, Any] = dict(model.specs)
         screened = []
-        base = self.fw.predict({})
-        for effect in rest:
-            spec, fit = self._screen({}, effect, base, {})
-            screened.append((float(self._test_sse(fit.pred).sum()), effect))
-            starts[effect], specs[effect] = fit.theta[effect], spec
+        empty = self.unit.empty()
+        for effect in (c for c in self.candidates if c not in model.kept):
+            s = self.unit.screen(empty, effect)
+            screened.append((float(self.test_sse(s.resid).sum()), effect))
+            starts[effect], specs[effect] = s.kept[effect], s.specs[effect]
         screened.sort()
         short = list(model.kept) + [e for _, e in screened[:SUBSET_EXTRA]]
-        best, best_sse = model, float(self._test_sse(model.pred).sum())
+        best, best_sse = model, float(self.test_sse(model.resid).sum())
         top = min(len(short), len(model.kept) + 2, self.th.max_effects)
         for size in range(1, top + 1):
             for combo in itertools.combinations(short, size):
                 if set(combo) == set(model.kept) or any(overlaps(e, combo) for e in combo):
                     continue
-                trial = self._fit({e: starts[e] for e in combo}, {e: specs[e] for e in combo}, 30)
-                sse = float(self._test_sse(trial.pred).sum())
+                trial = self.fit({e: starts[e] for e in combo}, {e: specs[e] for e in combo}, 30)
+                sse = float(self.test_sse(trial.resid).sum())
                 if sse < best_sse:
                     best, best_sse = trial, sse
-        if best is model or not self._accept(model.pred, best.pred, self.th.z_screen):
+        if best is model or not self.accept(model, best, self.th.z_screen):
             return model
-        return self._fit(best.kept, best.specs)
+        return self.fit(best.kept, best.specs)
 
     def _backward(self, model: Model) -> Model:
         """Drop, one at a time, the weakest kept effect that fails the strict test.
@@ -379,12 +375,11 @@ class CableSelector:
             weakest: tuple[str, Model] | None = None
             worst = math.inf
             for effect in model.kept:
-                rest = {k: v for k, v in model.kept.items() if k != effect}
-                reduced = self._fit(rest, {k: model.specs[k] for k in rest}, nfev=30)
-                ok = self._accept(
-                    reduced.pred, model.pred, self.th.z_holdout
-                ) and self._significant(model, effect)
-                score = self._z(reduced.pred, model.pred)
+                reduced = self.fit(*model.without(effect), nfev=30)
+                ok = self.accept(reduced, model, self.th.z_holdout) and self.significant(
+                    model, effect
+                )
+                score = self.z(reduced, model)
                 if not ok and score < worst:
                     weakest, worst = (effect, reduced), score
             if weakest is None:
@@ -399,102 +394,64 @@ class CableSelector:
         for effect in list(model.kept):
             if effect not in model.kept:
                 continue
-            rest = {k: v for k, v in model.kept.items() if k != effect}
-            rest_specs = {k: model.specs[k] for k in rest}
+            rest, rest_specs = model.without(effect)
+            base = self.unit.evaluate(rest, rest_specs)
             screened = []
-            for cand in (c for c in self.candidates if c not in model.kept
-                         and not overlaps(c, rest)):  # fmt: skip
-                spec, fit = self._screen(rest, cand, self.fw.predict(rest), rest_specs)
-                screened.append((float(self._test_sse(fit.pred).sum()), cand, spec, fit))
+            for cand in self.candidates:
+                if cand in model.kept or overlaps(cand, rest):
+                    continue
+                s = self.unit.screen(base, cand)
+                screened.append((float(self.test_sse(s.resid).sum()), cand, s))
             screened.sort(key=lambda row: row[0])
-            for _, cand, spec, fit in screened[:2]:  # the two best, each refitted jointly
-                joint = self._fit({**rest, cand: fit.theta[cand]}, {**rest_specs, cand: spec})
-                if self._accept(model.pred, joint.pred, self.th.z_screen) and self._significant(
-                    joint, cand
-                ):
+            for _, cand, s in screened[:2]:  # the two best, each refitted jointly
+                joint = self.fit(s.kept, s.specs)
+                if self.accept(model, joint, self.th.z_screen) and self.significant(joint, cand):
                     model = joint
                     break
         return model
 
-    def _rivals(self, kept, specs, pred) -> dict[str, list[Rival]]:
-        """Swap each confusable kept effect for each rival; compare on held-out blocks."""
-        result: dict[str, list[Rival]] = {}
-        for effect in kept:
-            rows = []
-            for rival in rivals(effect):
-                if rival in kept or rival not in self.candidates:
+    def _prefer_nested(self, model: Model, order: list[str]) -> tuple[Model, list[str]]:
+        """A kept effect that reduces to a simpler one (``Effect.nests``) stays only if it
+        passes the strict test against the model with the simpler one in its place: its
+        extra parameters must lower the held-out error beyond chance."""
+        for effect in list(model.kept):
+            for simpler in fx.REGISTRY[effect].nests:
+                if effect not in model.kept or simpler.name in model.kept:
                     continue
-                rest = {k: v for k, v in kept.items() if k != effect}
-                base_pred = self.fw.predict(rest)
-                spec = spec_for(
-                    rival, self.fw.data, self.fw.nom, self.fw.data.ts - base_pred, self.train
+                if simpler.name not in self.candidates:
+                    continue
+                rest, rest_specs = model.without(effect)
+                base = self.unit.evaluate(rest, rest_specs)
+                s = self.unit.screen(base, simpler.name)
+                trial = self.fit(s.kept, s.specs)
+                if not self.accept(trial, model, self.th.z_holdout):
+                    model = trial
+                    order = [simpler.name if e == effect else e for e in order]
+        return model, order
+
+    def _rivals(self, model: Model) -> dict[str, list[Rival]]:
+        """Swap each kept effect of a group for each rival; compare on held-out blocks."""
+        result: dict[str, list[Rival]] = {}
+        for effect in model.kept:
+            rows = []
+            rest, rest_specs = model.without(effect)
+            for rival in rivals(effect):
+                if rival in model.kept or rival not in self.candidates or overlaps(rival, rest):
+                    continue
+                base = self.unit.evaluate(rest, rest_specs)
+                s = self.unit.screen(base, rival)
+                fit = self.fit(s.kept, s.specs, nfev=30)
+                z = self.z(fit, model)
+                rows.append(
+                    Rival(
+                        rival,
+                        float(self.test_sse(fit.resid).sum()),
+                        z >= self.th.z_separate,
+                        fit.kept[rival],
+                        fit.stderr.get(rival, np.full(fit.kept[rival].size, np.nan)),
+                        z,
+                    )
                 )
-                start = best_start(self.fw, rest, rival, spec, self.train)
-                rest_specs = {k: specs[k] for k in rest}
-                fit = joint_fit(
-                    self.fw,
-                    {**rest, rival: start},
-                    {**rest_specs, rival: spec},
-                    self.train,
-                    max_nfev=30,
-                    stride=self.stride,
-                )
-                separable = self._z(fit.pred, pred) >= self.th.z_separate
-                rows.append(Rival(rival, float(self._test_sse(fit.pred).sum()), separable))
             if rows:
                 result[effect] = rows
         return result
-
-
-def drop_unvalidated(
-    fw: Forward,
-    vfw: Forward,
-    vvalid: np.ndarray,
-    vblocks: np.ndarray,
-    n_vblocks: int,
-    outcome: CableOutcome,
-    train: np.ndarray,
-    th: Thresholds,
-) -> tuple[CableOutcome, list[str]]:
-    """Drop the kept effects that do not lower the error on the validation recording.
-
-    ``vfw``: the same cable of a second recording of the machine (never fitted).
-    Every kept effect, with the parameters fitted here, must lower the validation SSE
-    against the model without it by ``rel_min`` and by ``z_holdout`` standard errors
-    (:func:`holdout_z` over the validation's time blocks); the weakest failing one is
-    dropped, the rest refitted on ``train``, until all pass. Returns the outcome and the
-    dropped effects."""
-    dropped: list[str] = []
-    ts = vfw.data.ts
-    while outcome.kept:
-        full = vfw.predict(outcome.theta)
-        r_full = np.where(vvalid, ts - full, 0.0)
-        sse_full = np.bincount(vblocks, weights=r_full**2, minlength=n_vblocks)
-        worst, worst_z = None, math.inf
-        for effect in outcome.kept:
-            rest = {k: v for k, v in outcome.theta.items() if k != effect}
-            red = vfw.predict(rest)
-            r_red = np.where(vvalid, ts - red, 0.0)
-            sse_red = np.bincount(vblocks, weights=r_red**2, minlength=n_vblocks)
-            cross = np.bincount(
-                vblocks, weights=np.where(vvalid, r_full * (full - red), 0.0), minlength=n_vblocks
-            )
-            z = holdout_z(sse_red, sse_full, cross)
-            gain = float(sse_red.sum() - sse_full.sum())
-            ok = z >= th.z_holdout and gain >= th.rel_min * float(sse_red.sum())
-            if not ok and z < worst_z:
-                worst, worst_z = effect, z
-        if worst is None:
-            break
-        dropped.append(worst)
-        keep = [e for e in outcome.kept if e != worst]
-        theta = {e: outcome.theta[e] for e in keep}
-        specs = {e: outcome.specs[e] for e in keep}
-        stderr = {e: outcome.stderr[e] for e in keep}
-        if theta:
-            stride = max(1, int(train.sum()) // 150_000)
-            fit = joint_fit(fw, theta, specs, train, max_nfev=30, stride=stride)
-            theta, stderr = fit.theta, fit.stderr
-        rivals = {e: r for e, r in outcome.rivals.items() if e in keep}
-        outcome = CableOutcome(keep, theta, stderr, specs, rivals, outcome.tried)
-    return outcome, dropped

@@ -40,6 +40,7 @@ from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose.engine import deadband, nominal_from, time_blocks, warmup_mask
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.platform import require_geometry
+from gateway.diagnose.stats import white_noise_columns
 from gateway.errors import RecordingError
 from gateway.model import chain, kinematics, statics
 from gateway.model import effects as fx
@@ -251,8 +252,9 @@ class WrenchModel:
             for j in range(len(SUBPARAMS[effect])):
                 pert = base_theta[effect].copy()
                 pert[j] += step(effect, j)
-                moved = fx.mass_delta(values_of({**base_theta, effect: pert}, "statics"),
-                                      d.t[rows], self.t0)  # fmt: skip
+                moved = fx.mass_delta(
+                    values_of({**base_theta, effect: pert}, "statics"), d.t[rows], self.t0
+                )
                 dm = (moved - base) / step(effect, j)  # type: ignore[operator]
                 out.append((dm[:, None] * d.dw_dm[rows])[:, :, None])
             return out
@@ -268,8 +270,9 @@ class WrenchModel:
 
 def noise_scale(resid: np.ndarray) -> np.ndarray:
     """Per wrench component (6,), the white-noise std of a residual (N, 6): median absolute
-    first difference / 0.6745 / sqrt 2 (robust to the slow part); the weights of the fit."""
-    s = np.median(np.abs(np.diff(resid, axis=0)), axis=0) / 0.6745 / math.sqrt(2.0)
+    first difference / 0.6745 / sqrt 2 (:func:`.stats.white_noise_columns`: robust to the
+    slow part); the weights of the fit."""
+    s = white_noise_columns(resid)
     floor = 1e-9 * max(float(np.max(s)), 1e-12)
     return np.maximum(s, floor)
 
@@ -351,6 +354,7 @@ def prepare(rec: Recording, cfg: Config | None, friction: FrictionConfig) -> Pre
     blocks, nb = time_blocks(data.t)
     warm = np.ones(data.t.size, bool)
     for i in range(data.cables):
-        warm &= warmup_mask(CableData(data.t, data.v[:, i], data.ts[:, i], data.ts[:, i],
-                                      float(data.t[0])), nom)  # fmt: skip
+        warm &= warmup_mask(
+            CableData(data.t, data.v[:, i], data.ts[:, i], data.ts[:, i], float(data.t[0])), nom
+        )
     return Prepared(model, rows, chol, max(sigma, 1e-12), blocks, nb, warm)

@@ -1,4 +1,4 @@
-"""Selection, fit and report of the wrench reference (:mod:`.wrench`).
+"""The wrench reference (:mod:`.wrench`) as a unit of the one selector, and its report.
 
 Every candidate's per-cable parameters are identified jointly across cables through the
 varying structure matrix. The residual is whitened by the noise the sensors put on the
@@ -8,16 +8,17 @@ wrench (:class:`wrench.Prepared`): generalised least squares.
    candidate's parameters at the nominal model; per candidate and cable its variance
    inflation decides identifiability (:func:`wrench.identifiability`): unidentifiable
    cables are not fitted and the report says so (``identifiability``).
-2. **Selection** on the linearised residual, with the held-out machinery of
-   :mod:`.select` (interleaved time blocks, :func:`select.holdout_z`, the same
-   :class:`select.Thresholds`): forward steps (best held-out candidate, lenient test),
-   then a strict backward check (each kept effect lowers the held-out SSE by >= 0.3 % and
-   >= ``z_holdout`` standard errors against the model refitted without it, and some
-   parameter differs from the nominal by >= ``z_min`` standard errors); until stable.
+2. **Selection**: :class:`WrenchUnit` (the linearised residual, linear least squares) given
+   to :class:`gateway.diagnose.select.Selector`, the same selector and the same held-out
+   tests as the per-cable reference; then the significance stage
+   (:mod:`gateway.diagnose.significance`: BH over every candidate, parameters against
+   their spread across time blocks).
 3. **Refit** of the kept effects by Gauss-Newton on the nonlinear residual (the Jacobian
    recomputed at the estimate), on the training blocks.
 4. **Report**: every ``*_rmse_n`` is the RMS of the force part of the unweighted wrench
-   residual (N, over the three components and the samples); moments in ``wrench``.
+   residual (N, over the three components and the samples); moments in ``wrench``. The
+   balance is one unit: a finding's ``statistic``, ``p`` and ``q`` are one joint test,
+   repeated for each of its cables.
 """
 
 from __future__ import annotations
@@ -31,7 +32,9 @@ from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
-from gateway.diagnose.select import Thresholds, holdout_z, overlaps
+from gateway.diagnose.select import Model, Selector, Thresholds
+from gateway.diagnose.significance import Tested, combined_stderr, decide
+from gateway.diagnose.stats import white_noise_columns
 from gateway.diagnose.wrench import (
     PER_CABLE,
     SUBPARAMS,
@@ -69,17 +72,22 @@ class WrenchDiagnosis(Diagnosis):
     final_pred: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
-class WrenchSelector:
-    """Selection over ``candidates`` on prepared data (see the module docstring)."""
+class WrenchUnit:
+    """The wrench balance as one selection unit (:class:`gateway.diagnose.select.Unit`):
+    every candidate's identifiable per-cable parameters enter the linearised, whitened
+    residual (elements: sample x wrench component), fitted by linear least squares on the
+    training samples (normal equations formed once)."""
 
-    def __init__(self, prep: Prepared, candidates: tuple[str, ...], th: Thresholds) -> None:
-        self.prep, self.th = prep, th
+    def __init__(self, prep: Prepared, candidates: tuple[str, ...]) -> None:
+        self.prep = prep
         self.model = prep.model
         self.rows = prep.rows
-        self.blocks = prep.blocks[self.rows]
+        sample_blocks = prep.blocks[self.rows]
         use = prep.warm[self.rows]
-        self.train = np.repeat((self.blocks % 2 == 0) & use, 6)
-        self.test_s = (self.blocks % 2 == 1) & use
+        self.blocks = np.repeat(sample_blocks, 6)
+        self.n_blocks = prep.n_blocks
+        self.train = np.repeat((sample_blocks % 2 == 0) & use, 6)
+        self.test = np.repeat((sample_blocks % 2 == 1) & use, 6)
         self.r0 = prep.whiten(self.model.residual({})[self.rows]).reshape(-1)
         self.cols: dict[str, list[Col]] = {}
         self.design: dict[str, np.ndarray] = {}
@@ -96,31 +104,30 @@ class WrenchSelector:
             if mats:
                 self.design[e] = np.column_stack(mats)
         self.candidates = [e for e in candidates if e in self.design]
+        self._gram(self.train)
 
-    # ---- linear fits and held-out scores ----
-    def _gram(self) -> None:
-        """Normal equations of every candidate column on the training rows, once."""
+    def _gram(self, train: np.ndarray) -> None:
+        """Normal equations of every candidate column on the samples ``train``."""
         names = list(self.design)
-        d = np.column_stack([self.design[e] for e in names])
-        dt = d[self.train]
+        d = np.column_stack([self.design[e] for e in names]) if names else np.zeros((0, 0))
+        dt = d[train] if names else d
         self._gram_m = dt.T @ dt
-        self._rhs = dt.T @ self.r0[self.train]
-        self._rr = float(self.r0[self.train] @ self.r0[self.train])
+        self._rhs = dt.T @ self.r0[train] if names else np.zeros(0)
+        self._rr = float(self.r0[train] @ self.r0[train])
+        self._dof = int(train.sum())
         edges = np.cumsum([0] + [self.design[e].shape[1] for e in names])
         self._span = {e: np.arange(edges[k], edges[k + 1]) for k, e in enumerate(names)}
 
-    def fit(self, effects: list[str]) -> tuple[dict[str, np.ndarray], dict, np.ndarray]:
+    def linear(self, effects: list[str]) -> tuple[dict[str, np.ndarray], dict, np.ndarray]:
         """Increments and standard errors per effect, and the weighted residual (N*6,)."""
         if not effects:
             return {}, {}, self.r0
-        if not hasattr(self, "_gram_m"):
-            self._gram()
         idx = np.concatenate([self._span[e] for e in effects])
         g, b = self._gram_m[np.ix_(idx, idx)], self._rhs[idx]
         ginv = np.linalg.pinv(g)
         phi = -ginv @ b
         resid = self.r0 + np.column_stack([self.design[e] for e in effects]) @ phi
-        dof = max(int(self.train.sum()) - phi.size, 1)
+        dof = max(self._dof - phi.size, 1)
         s2 = max(self._rr + 2 * float(phi @ b) + float(phi @ g @ phi), 0.0) / dof
         se = np.sqrt(np.maximum(np.diag(ginv) * s2, 0.0))
         sizes = np.cumsum([self.design[e].shape[1] for e in effects])[:-1]
@@ -130,79 +137,46 @@ class WrenchSelector:
             resid,
         )
 
-    def _block_sse(self, resid: np.ndarray) -> np.ndarray:
-        per = np.sum(resid.reshape(-1, 6) ** 2, axis=1)
-        sse = np.bincount(self.blocks[self.test_s], per[self.test_s], self.prep.n_blocks)
-        return sse[1::2]
+    def _model(self, effects: list[str]) -> Model:
+        phi, se, resid = self.linear(effects)
+        return Model(phi, dict.fromkeys(effects), se, resid)
 
-    def z(self, ra: np.ndarray, rb: np.ndarray) -> float:
-        """Held-out z of model B (residual ``rb``) over model A (``ra``)."""
-        cross = np.sum((rb * (ra - rb)).reshape(-1, 6), axis=1)
-        per_block = np.bincount(self.blocks[self.test_s], cross[self.test_s], self.prep.n_blocks)
-        return holdout_z(self._block_sse(ra), self._block_sse(rb), per_block)
+    def empty(self) -> Model:
+        return Model({}, {}, {}, self.r0)
 
-    def accept(self, ra: np.ndarray, rb: np.ndarray, z_min: float) -> bool:
-        before, after = float(self._block_sse(ra).sum()), float(self._block_sse(rb).sum())
-        gain = before - after
-        return gain >= self.th.rel_min * before and self.z(ra, rb) >= z_min
+    def evaluate(self, theta: dict[str, np.ndarray], specs: dict) -> Model:
+        resid = self.r0.copy()
+        for e, phi in theta.items():
+            resid = resid + self.design[e] @ phi
+        nan = {e: np.full(v.size, np.nan) for e, v in theta.items()}
+        return Model(dict(theta), dict(specs), nan, resid)
 
-    # ---- selection ----
-    def run(self) -> list[str]:
-        kept: list[str] = []
-        for _ in range(ROUNDS):
-            before = list(kept)
-            kept = self._forward(kept)
-            kept = self._backward(kept)
-            if kept == before:
-                break
-        return self._prefer_nested(kept)
+    def screen(self, model: Model, effect: str) -> Model:
+        return self._model([*model.kept, effect])
 
-    def _prefer_nested(self, kept: list[str]) -> list[str]:
-        """A kept effect that reduces to a simpler one (``Effect.nests``) stays only if it
-        passes the strict test against the model with the simpler one in its place."""
-        for effect in list(kept):
-            for simpler in fx.REGISTRY[effect].nests:
-                if simpler.name in kept or simpler.name not in self.candidates:
-                    continue
-                trial = [simpler.name if e == effect else e for e in kept]
-                _, _, full = self.fit(kept)
-                _, _, reduced = self.fit(trial)
-                if not self.accept(reduced, full, self.th.z_holdout):
-                    kept = trial
-        return kept
+    def fit(self, theta: dict[str, np.ndarray], specs: dict, nfev: int = 60) -> Model:
+        return self._model(list(theta))
 
-    def _forward(self, kept: list[str]) -> list[str]:
-        kept = list(kept)
-        while len(kept) < self.th.max_effects:
-            _, _, base = self.fit(kept)
-            best = None
-            for e in (c for c in self.candidates if c not in kept and not overlaps(c, kept)):
-                _, _, r = self.fit([*kept, e])
-                sse = float(self._block_sse(r).sum())
-                if self.accept(base, r, self.th.z_screen) and (best is None or sse < best[1]):
-                    best = (e, sse)
-            if best is None:
-                break
-            kept.append(best[0])
-        return kept
+    def refit_on(self, model: Model, mask: np.ndarray, nfev: int = 20) -> dict[str, np.ndarray]:
+        """The kept effects' increments fitted on the elements ``mask`` only."""
+        whole = (self._gram_m, self._rhs, self._rr, self._dof, self._span)
+        self._gram(mask)
+        phi = self.linear(list(model.kept))[0]
+        self._gram_m, self._rhs, self._rr, self._dof, self._span = whole
+        return phi
 
-    def _backward(self, kept: list[str]) -> list[str]:
-        kept = list(kept)
-        while kept:
-            phi, se, full = self.fit(kept)
-            weakest, worst = None, math.inf
-            for e in kept:
-                _, _, reduced = self.fit([k for k in kept if k != e])
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    z_par = float(np.nanmax(np.where(se[e] > 0, np.abs(phi[e]) / se[e], 0.0)))
-                ok = self.accept(reduced, full, self.th.z_holdout) and z_par >= self.th.z_min
-                score = self.z(reduced, full)
-                if not ok and score < worst:
-                    weakest, worst = e, score
-            if weakest is None:
-                break
-            kept.remove(weakest)
-        return kept
+    def contribution(self, theta: dict[str, np.ndarray], effect: str) -> np.ndarray:
+        """What ``effect`` adds to the (whitened, linearised) residual on the training
+        elements."""
+        return (self.design[effect] @ theta[effect])[self.train]
+
+    def significance(self, model: Model, effect: str) -> float:
+        phi, se = model.kept[effect], model.stderr[effect]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return float(np.nanmax(np.where(se > 0, np.abs(phi) / se, 0.0)))
+
+    def release(self) -> None:
+        """Nothing cached beyond the design (kept for the report's refit)."""
 
     # ---- nonlinear refit ----
     def theta_of(self, increments: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -217,8 +191,9 @@ class WrenchSelector:
 
     def refit(self, kept: list[str]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Gauss-Newton on the nonlinear residual; returns theta and the stderr per column."""
-        phi, se, _ = self.fit(kept)
+        phi, se, _ = self.linear(kept)
         theta = self.theta_of(phi)
+        train = self.train
         for _ in range(GN_ITERATIONS if kept else 0):
             r = self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1)
             cols = []
@@ -226,7 +201,7 @@ class WrenchSelector:
                 blocks = [self.prep.whiten(b) for b in self.model.jacobian(theta, e, self.rows)]
                 cols += [blocks[j][:, :, i].reshape(-1) for j, i in self.cols[e]]
             d = np.column_stack(cols)
-            step, *_ = np.linalg.lstsq(d[self.train], -r[self.train], rcond=None)
+            step, *_ = np.linalg.lstsq(d[train], -r[train], rcond=None)
             sizes = np.cumsum([len(self.cols[e]) for e in kept])[:-1]
             for e, inc in zip(kept, np.split(step, sizes), strict=True):
                 for (j, i), dv in zip(self.cols[e], inc, strict=True):
@@ -256,13 +231,13 @@ def _report_values(effect: str, theta: np.ndarray, cables: list[int]) -> dict[st
     return out
 
 
-def _fitted_cables(sel: WrenchSelector, effect: str) -> list[int]:
+def _fitted_cables(sel: WrenchUnit, effect: str) -> list[int]:
     if not _per_cable(effect):
         return list(range(sel.model.data.cables))
     return sorted({i for _, i in sel.cols[effect]})
 
 
-def _stderr_values(sel: WrenchSelector, effect: str, se: np.ndarray, cables: list[int]) -> dict:
+def _stderr_values(sel: WrenchUnit, effect: str, se: np.ndarray, cables: list[int]) -> dict:
     table = {(j, i): float(s) for (j, i), s in zip(sel.cols[effect], se, strict=True)}
     out: dict[str, list[float]] = {}
     for j, name in enumerate(SUBPARAMS[effect]):
@@ -270,7 +245,7 @@ def _stderr_values(sel: WrenchSelector, effect: str, se: np.ndarray, cables: lis
     return out
 
 
-def _identifiability(sel: WrenchSelector) -> dict:
+def _identifiability(sel: WrenchUnit) -> dict:
     """Per candidate: the cables the motion identifies (variance inflation <= VIF_MAX for
     every sub-parameter), the others, the inflations and the block's condition number."""
     out: dict[str, dict] = {}
@@ -294,8 +269,10 @@ def _identifiability(sel: WrenchSelector) -> dict:
 def _order(model: WrenchModel, theta: dict, mask: np.ndarray) -> list[str]:
     """Kept effects by the force residual energy each explains in the final model."""
     full = force_rms(model.residual(theta), mask) ** 2
-    worth = {e: force_rms(model.residual({k: v for k, v in theta.items() if k != e}), mask) ** 2
-             - full for e in theta}  # fmt: skip
+    worth = {
+        e: force_rms(model.residual({k: v for k, v in theta.items() if k != e}), mask) ** 2 - full
+        for e in theta
+    }
     return sorted(theta, key=lambda e: worth[e], reverse=True)
 
 
@@ -331,16 +308,26 @@ def diagnose_wrench(
     thresholds: Thresholds | None = None,
     progress=None,
 ) -> WrenchDiagnosis:
-    """Diagnose ``rec`` against the platform's wrench balance (module docstring)."""
+    """Diagnose ``rec`` against the platform's wrench balance: the pipeline of
+    :mod:`gateway.diagnose.engine` with one unit, every cable at once (module docstring)."""
     say = progress or (lambda _msg: None)
-    prep = prepare(rec, cfg, friction)
+    th = thresholds or Thresholds()
+    prep = prepare(rec, cfg, friction)  # 1. prepare
     data, model = prep.model.data, prep.model
-    say(f"{rec.source}: wrench reference, {data.t.size} samples, sensitivities of "
-        f"{len(WRENCH_EFFECTS)} candidate effects")  # fmt: skip
-    sel = WrenchSelector(prep, WRENCH_EFFECTS, thresholds or Thresholds())
-    kept = sel.run()
+    say(
+        f"{rec.source}: wrench reference, {data.t.size} samples, sensitivities of "
+        f"{len(WRENCH_EFFECTS)} candidate effects"
+    )
+    unit = WrenchUnit(prep, WRENCH_EFFECTS)
+    selector = Selector(unit, th)  # 3. select (2. locate: with the report, on the balance)
+    outcome = selector.run()
+    say(f"wrench reference: selected {', '.join(outcome.kept) or 'nothing'}")
+    tested = Tested(selector, selector.final, outcome)  # 4. fit: significance, refit
+    decide([tested], th, lambda msg: say(f"significance: {msg}"))
+    kept = outcome.kept
     say(f"wrench reference: kept {', '.join(kept) or 'nothing'}")
-    theta, se = sel.refit(kept)
+    theta, se = unit.refit(kept)
+    sel = unit
     test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
     vmodel = None
@@ -361,11 +348,19 @@ def diagnose_wrench(
         cables = _fitted_cables(sel, e)
         values = _report_values(e, theta[e], cables)
         missing = [i + 1 for i in range(data.cables) if i not in cables]
+        test_e = outcome.tests.get(e, {})
+        se_blk = outcome.stderr_blocks.get(e, np.full(se[e].size, np.nan))
         f = {
             "effect": e,
             "cables": [c + 1 for c in cables],
             "parameters": values,
-            "stderr": _stderr_values(sel, e, se[e], cables),
+            "stderr": _stderr_values(sel, e, combined_stderr(se[e], se_blk), cables),
+            "stderr_jacobian": _stderr_values(sel, e, se[e], cables),
+            "stderr_blocks": _stderr_values(sel, e, se_blk, cables),
+            # one joint test over every cable (the balance is one unit)
+            "statistic": [float(test_e.get("z", -1.0))] * len(cables),
+            "p": [float(test_e.get("p", -1.0))] * len(cables),
+            "q": [float(test_e.get("q", -1.0))] * len(cables),
             "evidence": _evidence(e, cables, values, before[1], after[1]) + _missing(missing),
             **rmse_pairs(before, after, vmodel is not None),
         }
@@ -383,7 +378,7 @@ def diagnose_wrench(
 def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchDiagnosis:
     data = prep.model.data
     r_final = final[3]
-    fs = np.median(np.abs(np.diff(r_final[:, :3], axis=0)), axis=0) / 0.6745 / math.sqrt(2)
+    fs = white_noise_columns(r_final[:, :3])
     noise = float(math.sqrt(np.mean(fs**2)))
     fin = {
         "rmse_n": final[0],
@@ -396,18 +391,27 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
         fin["validation_rmse_before_n"] = force_rms(vmodel.residual({}))
         fin["validation_rmse_after_n"] = float(final[2] or 0.0)
     norm0 = np.linalg.norm(r_nominal[:, :3], axis=1)[:, None]
+    norm1 = np.linalg.norm(r_final[:, :3], axis=1)[:, None]
     regime = locate.regimes(data.speed, np.gradient(data.speed, data.t))[:, None]
-    regions = [
-        locate.Region(0, r.start_s, r.end_s, r.regime, r.share)
-        for r in locate.regions(data.t, norm0, regime)
-    ]
+
+    def located(norm: np.ndarray) -> list[locate.Region]:
+        return [
+            locate.Region(0, r.start_s, r.end_s, r.regime, r.share)
+            for r in locate.regions(data.t, norm, regime)
+        ]
+
+    regions, regions_final = located(norm0), located(norm1)
     report = {
         "reference": "wrench",
         "cables": rec.cables,
         "samples": int(data.t.size),
         "skipped_rows": rec.skipped_rows + (rec.samples - int(data.t.size)),
-        "baseline": {"rmse_n": force_rms(r_nominal), "per_cable_rmse_n": []},
-        **locate.report_fields(regions, norm0, regime),
+        "baseline": {
+            "rmse_n": force_rms(r_nominal),
+            "per_cable_rmse_n": [],
+            **locate.report_fields(regions, norm0, regime),
+        },
+        **locate.report_fields(regions_final, norm1, regime),
         "findings": findings,
         "final": fin,
         "identifiability": _identifiability(sel),
@@ -421,5 +425,16 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
     }
     zeros = np.zeros((data.t.size, 3))
     regimes = np.repeat(regime, 3, axis=1)
-    return WrenchDiagnosis(report, data.t, zeros, regimes, regions, [], order, [],
-                           nominal_pred=-r_nominal[:, :3], final_pred=-r_final[:, :3])  # fmt: skip
+    return WrenchDiagnosis(
+        report,
+        data.t,
+        zeros,
+        regimes,
+        regions_final,
+        [],
+        order,
+        [],
+        regions_nominal=regions,
+        nominal_pred=-r_nominal[:, :3],
+        final_pred=-r_final[:, :3],
+    )

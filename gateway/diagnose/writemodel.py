@@ -6,14 +6,14 @@ findings, in the ``friction.effects`` form of docs/physics.md sec. 5 (report nam
 scalar where every cable has the same value, else one value per cable). A cable a finding
 does not name gets the effect's neutral value (a parameter whose absent value is the
 nominal's, e.g. a bearing coefficient, gets the nominal pulleys' mean where some cables
-have a fitted value; it is left out when none has). When ``--model`` was a full config the
-file is that config with its ``friction:`` replaced, else it holds the ``friction:``
-mapping alone. Effects the model already carried are composed with the new findings (each
-effect's ``compose``): the diagnosis ran relative to them (below), so a finding is a
-correction on top. What an effect needs done to a fitted value before it goes into a file
-(a phase fitted against the travel converted to the cable length, a negative level folded
-into its coefficient) is its ``to_model``; values outside what a file admits are clamped;
-both are named in the file's header.
+have a fitted value; it is left out when none has). The file is the ``--model`` file byte
+for byte except its ``friction.effects`` entry (:mod:`gateway.diagnose.modelfile`:
+comments, layout and every other key kept). Effects the model already carried are
+composed with the new findings (each effect's ``compose``): the diagnosis ran relative to
+them (below), so a finding is a correction on top. What an effect needs done to a fitted
+value before it goes into a file (a phase fitted against the travel converted to the cable
+length, a negative level folded into its coefficient) is its ``to_model``; values outside
+what a file admits are clamped; both are named in comments above that entry.
 
 **Reading back** (:func:`relative_to_model`): the diagnosis fits candidates on a nominal
 chain. A model file with ``friction.effects`` is honoured by diagnosing an equivalent
@@ -33,10 +33,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from gateway.core.config import Config, FrictionConfig
 from gateway.core.configtypes import read_yaml
+from gateway.diagnose.modelfile import with_effects
 from gateway.diagnose.platform import mass_sensitivity
 from gateway.errors import ConfigError, GatewayError
 from gateway.model import chain
@@ -165,20 +165,20 @@ def write_model(
     rec: Recording | None = None,
 ) -> FrictionConfig:
     """Write the fitted model file ``path`` (module docstring); returns its friction.
-    Folded and clamped values (:func:`fold_negative_f0`, :func:`clamp_to_admissible`) are
-    named in the file's header."""
+    What was done to fitted values (each effect's ``to_model``, :func:`clamp_to_admissible`)
+    is named in comments above the ``effects`` entry."""
     notes: list[str] = []
     fitted = fitted_friction(friction, report, int(report["cables"]), rec, notes)
-    data = read_yaml(model_path)
-    mapping = _plain(fitted.to_mapping())
-    out = {**data, "friction": mapping} if "geometry" in data else {"friction": mapping}
-    header = (
-        f"# fitted model: {model_path} plus the findings of a diagnosis of "
-        f"{rec.source if rec is not None else 'a recording'} (cdpr-gateway diagnose "
-        "--write-model)\n"
-    ) + "".join(f"# {n}\n" for n in notes)
+    read_yaml(model_path)  # the loader's checks and limits, before the text is taken apart
+    effects = _plain(fitted.to_mapping()).get("effects", {})
+    notes.insert(
+        0,
+        f"{model_path} plus the findings of a diagnosis of "
+        f"{rec.source if rec is not None else 'a recording'}",
+    )
     try:
-        path.write_text(header + yaml.safe_dump(out, sort_keys=False), encoding="utf-8")
+        text = with_effects(Path(model_path).read_text(encoding="utf-8"), effects, notes)
+        path.write_text(text, encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{path}: cannot write the model: {exc.strerror or exc}") from exc
     return fitted

@@ -143,16 +143,22 @@ class ChainParams:
         wrap = np.asarray(wrap_rad, dtype=float).reshape(-1)
         shape = (cables, wrap.size)
         mu_arr = np.broadcast_to(np.asarray(mu, dtype=float), shape).copy()
-        mu_in_arr = mu_arr.copy() if mu_in is None else np.broadcast_to(
-            np.asarray(mu_in, dtype=float), shape).copy()  # fmt: skip
+        mu_in_arr = (
+            mu_arr.copy()
+            if mu_in is None
+            else np.broadcast_to(np.asarray(mu_in, dtype=float), shape).copy()
+        )
         vs = _per_cable(stribeck_v_m_s, cables, "stribeck_v_m_s")
         if np.any(vs <= 0):
             raise ValueError("stribeck_v_m_s must be > 0")
         sigma = _per_cable(sigma_n_m, cables, "sigma_n_m")
         w = np.ones((cables, 1)) if slip_w is None else np.asarray(slip_w, dtype=float)
         w = np.broadcast_to(w, (cables, w.shape[-1])).copy()
-        ks = sigma[:, None].copy() if slip_sigma is None else np.broadcast_to(
-            np.asarray(slip_sigma, dtype=float), w.shape).copy()  # fmt: skip
+        ks = (
+            sigma[:, None].copy()
+            if slip_sigma is None
+            else np.broadcast_to(np.asarray(slip_sigma, dtype=float), w.shape).copy()
+        )
         if np.any(np.abs(w.sum(axis=1) - 1.0) > 1e-9) or np.any(ks <= 0):
             raise ValueError("slip_w: fractions summing to 1; slip_sigma: > 0")
         stretch = _per_cable(stretch_c, cables, "stretch_c")
@@ -245,10 +251,17 @@ class KernelParams(NamedTuple):
 def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20) -> KernelParams:
     """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
     lam_pos, lam_neg = coulomb_coefficients(params)
-    cable = np.column_stack([
-        params.f0_n, params.stribeck_k, params.stribeck_v_m_s, params.viscous_ns_m,
-        params.sigma_n_m, params.stretch_c, params.backlash_m,
-    ])  # fmt: skip
+    cable = np.column_stack(
+        [
+            params.f0_n,
+            params.stribeck_k,
+            params.stribeck_v_m_s,
+            params.viscous_ns_m,
+            params.sigma_n_m,
+            params.stretch_c,
+            params.backlash_m,
+        ]
+    )
     if params.elements > 1 or LAWS[params.model] == LAW_SLIP:
         slip = np.stack([params.slip_w, params.slip_sigma], axis=2)
     else:  # one element: the Dahl state (w = 1, sigma)
@@ -623,8 +636,7 @@ def compensate_kernel(p, t_in, vel, dx_all, st, out):
     n_samples, m = t_in.shape
     if _plain(p):
         f_state = st.f
-        return _compensate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])),
-                                 out)  # fmt: skip
+        return _compensate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])), out)
     worst = 0
     for k in range(n_samples):
         for i in range(m):

@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import nnls
 
 from gateway.errors import InfeasiblePoseError
 from gateway.model.kinematics import rotation_matrices
@@ -212,6 +211,8 @@ def least_distance(null_basis: FloatArray, lower: FloatArray, upper: FloatArray)
     e_mat = np.vstack([g_mat.T, h[None, :] / scale])
     f = np.zeros(e_mat.shape[0])
     f[-1] = 1.0
+    from scipy.optimize import nnls  # here: the daemon's wrench needs no scipy (47 MB RSS)
+
     u, _ = nnls(e_mat, f)
     res = e_mat @ u - f
     if not res[-1] < -1e-12:

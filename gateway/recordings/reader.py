@@ -6,8 +6,10 @@ required columns, text in a number field). A row with a missing required value i
 and counted (``Recording.skipped_rows``), never filled in; a missing optional value is NaN.
 
 Hostile input is bounded before anything is allocated for it: cable indices must be
-contiguous ``1..m`` with ``m <= MAX_CABLES``; a line longer than ``MAX_LINE_CHARS``, more
-than ``MAX_COLUMNS`` columns or ``MAX_METADATA_LINES`` metadata lines, a time step below
+contiguous ``1..m`` with ``m <= MAX_CABLES``, written in ASCII digits without leading
+zeros (``velocity_01``, ``velocity_١`` are refused, not read as cable 1); a line longer
+than ``MAX_LINE_CHARS``, more than ``MAX_COLUMNS`` columns, ``MAX_METADATA_LINES``
+metadata lines or ``MAX_METADATA_CHARS`` characters of metadata in all, a time step below
 ``MIN_STEP_S``, a value beyond ``MAX_ABS_VALUE`` (``MAX_ABS_TIME_S`` for ``t``), a
 non-finite value, fewer than ``min_samples`` kept rows or more than ``max_samples`` rows
 are refused. The body is parsed in chunks of ``CHUNK_ROWS`` lines, each straight into
@@ -34,17 +36,23 @@ import numpy as np
 
 from gateway.core.heap import return_large_frees
 from gateway.errors import RecordingError
-from gateway.recordings.writer import RecordingWriter, format_rows  # noqa: F401 - re-exported
+from gateway.recordings.writer import (  # noqa: F401 - re-exported
+    RecordingWriter,
+    format_rows,
+    open_writer,
+)
 
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
 CABLE_KINDS = ("velocity", "tension_sensor", "tension_platform", "length")
-_CABLE_COLUMN = re.compile(r"^(velocity|tension_sensor|tension_platform|length)_(\d+)$")
+_CABLE_COLUMN = re.compile(r"^(velocity|tension_sensor|tension_platform|length)_(.+)$")
+_CABLE_INDEX = re.compile(r"^[1-9][0-9]*$", re.ASCII)
 _REQUIRED_KINDS = ("velocity", "tension_sensor")
 
 MAX_CABLES = 1024  # cable indices 1..m, m at most this
 MAX_COLUMNS = 8192
 MAX_LINE_CHARS = 1 << 20  # 1 MiB per line (header included)
 MAX_METADATA_LINES = 1000
+MAX_METADATA_CHARS = 1 << 20  # all metadata lines together
 MIN_SAMPLES = 10  # fewer kept rows than this: "too short"
 DEFAULT_MAX_SAMPLES = 20_000_000  # 5.5 h at 1 kHz; read_recording(max_samples=...) to change
 MAX_VALUES = 250_000_000  # samples x columns: 8 bytes each = 2 GB at most
@@ -124,13 +132,18 @@ def _split_header(
 ) -> tuple[dict[str, str], int, list[str]]:
     """Metadata, 1-based line number of the header line, column names."""
     meta: dict[str, str] = {}
-    count = 0
+    count = chars = 0
     for number, text in lines:
         if text.startswith("#"):
             count += 1
+            chars += len(text)
             if count > MAX_METADATA_LINES:
                 raise RecordingError(
                     f"{path}:{number}: more than {MAX_METADATA_LINES} metadata lines"
+                )
+            if chars > MAX_METADATA_CHARS:
+                raise RecordingError(
+                    f"{path}:{number}: metadata of more than {MAX_METADATA_CHARS} characters"
                 )
             body = text[1:].strip()
             if ":" in body:
@@ -166,6 +179,11 @@ def _cable_indices(path: Path, line: int, names: list[str]) -> dict[str, dict[in
         if not match:
             continue
         digits = match.group(2)
+        if not _CABLE_INDEX.match(digits):
+            raise RecordingError(
+                f"{path}:{line}: column {name!r}: cable indices must be contiguous 1..m with "
+                f"m <= {MAX_CABLES}, in ASCII digits without leading zeros"
+            )
         index = int(digits) if len(digits) <= 6 else MAX_CABLES + 1
         if not 1 <= index <= MAX_CABLES:
             raise RecordingError(
@@ -256,9 +274,16 @@ class _Reader:
     """Chunk by chunk checks that need the previous chunk (time steps, counts)."""
 
     def __init__(
-        self, path: Path, names: list[str], required: list[int], max_samples: int, sink: _Columns
+        self,
+        path: Path,
+        names: list[str],
+        required: list[int],
+        max_samples: int,
+        sink: _Columns,
+        where: str = "{path}:{line}",
     ):
         self.path, self.names, self.required = path, names, required
+        self.where = where  # the place of an error: file and line (CSV), or row (Parquet)
         self.t_col = names.index("t")
         self.max_samples = min(max_samples, MAX_VALUES // len(names))
         self.sink = sink
@@ -270,19 +295,25 @@ class _Reader:
         self.limits = limits
 
     def add(self, body: list[str], line_of: list[int]) -> None:
-        data = _parse_chunk(self.path, body, line_of, self.names)
+        self.add_rows(_parse_chunk(self.path, body, line_of, self.names), line_of)
+
+    def at(self, line: int) -> str:
+        return self.where.format(path=self.path, line=line)
+
+    def add_rows(self, data: np.ndarray, line_of: list[int]) -> None:
+        """Check and keep parsed rows (rows, columns); ``line_of`` their line numbers."""
         self._check_values(data, line_of)
         keep = ~np.isnan(data[:, self.required]).any(axis=1)
         rows = np.nonzero(keep)[0]
-        self.skipped += len(body) - rows.size
+        self.skipped += len(data) - rows.size
         if rows.size == 0:
             return
-        kept = data[rows] if rows.size != len(body) else data
+        kept = data[rows] if rows.size != len(data) else data
         self._check_time(kept[:, self.t_col], [line_of[r] for r in rows])
         self.kept += rows.size
         if self.kept > self.max_samples:
             raise RecordingError(
-                f"{self.path}:{line_of[rows[-1]]}: more than {self.max_samples} samples "
+                f"{self.at(line_of[rows[-1]])}: more than {self.max_samples} samples "
                 f"of {len(self.names)} columns (the reader's limits: max_samples, and "
                 f"{MAX_VALUES:.1e} values = {8 * MAX_VALUES / 1e9:.0f} GB to read)"
             )
@@ -299,7 +330,7 @@ class _Reader:
                 if not np.isfinite(value)
                 else (f"{value!r} exceeds the limit {self.limits[c]:g}")
             )
-            raise RecordingError(f"{self.path}:{line_of[r]}: column {self.names[c]!r}: {why}")
+            raise RecordingError(f"{self.at(line_of[r])}: column {self.names[c]!r}: {why}")
 
     def _check_time(self, t: np.ndarray, lines: list[int]) -> None:
         prev = np.concatenate(([self.last_t], t[:-1])) if self.last_t is not None else t[:-1]
@@ -311,11 +342,11 @@ class _Reader:
             r = int(bad[0])
             if steps[r] <= 0:
                 raise RecordingError(
-                    f"{self.path}:{lines[r]}: column 't': {float(cur[r])!r} does not increase "
+                    f"{self.at(lines[r])}: column 't': {float(cur[r])!r} does not increase "
                     f"(previous {float(prev[r])!r})"
                 )
             raise RecordingError(
-                f"{self.path}:{lines[r]}: column 't': time step {float(steps[r]):.3g} s is "
+                f"{self.at(lines[r])}: column 't': time step {float(steps[r]):.3g} s is "
                 f"below the minimum {MIN_STEP_S:g} s"
             )
         self.last_t = float(t[-1])
@@ -346,6 +377,8 @@ def read_recording(
     if not set(first_row_only) <= set(FIRST_ROW_ONLY):
         raise ValueError(f"first_row_only: only {FIRST_ROW_ONLY}, not {first_row_only!r}")
     return_large_frees()  # the result arrays grow by realloc: mremap, not copies
+    if path.suffix == ".parquet":
+        return _read_parquet(path, min_samples, max_samples, first_row_only)
     try:
         with _open_text(path) as fh:
             lines = _lines(path, fh)
@@ -367,16 +400,51 @@ def read_recording(
                 reader.add(body, line_of)
     except (OSError, EOFError, UnicodeDecodeError) as exc:
         raise RecordingError(f"{path}: cannot read: {exc}") from exc
+    return _finish(path, meta, sink, reader, min_samples)
+
+
+def _finish(path: Path, meta: dict[str, str], sink: _Columns, reader: _Reader, min_samples: int):
     if reader.kept == 0:
         raise RecordingError(
-            f"{path}: no data rows" if reader.skipped == 0
+            f"{path}: no data rows"
+            if reader.skipped == 0
             else f"{path}: every row misses a required value"
-        )  # fmt: skip
+        )
     if reader.kept < min_samples:
         raise RecordingError(
             f"{path}: too short: {reader.kept} samples, at least {min_samples} are needed"
         )
     return _assemble(path, meta, sink.finish(), reader.skipped)
+
+
+def _read_parquet(
+    path: Path, min_samples: int, max_samples: int, first_row_only: Collection[str]
+) -> Recording:
+    """A Parquet recording (:mod:`gateway.recordings.parquet`, imported only here: the
+    gateway's cycle process never loads pyarrow): the same layout rules, checks and limits
+    as a CSV, the schema standing for the header and rows numbered from 1."""
+    from gateway.recordings import parquet
+
+    pf, names = parquet.open_checked(path, MAX_COLUMNS)
+    max_rows = min(max_samples, MAX_VALUES // max(len(names), 1))
+    if pf.metadata.num_rows > max_rows:
+        raise RecordingError(
+            f"{path}: {pf.metadata.num_rows} rows of {len(names)} columns "
+            f"exceed the reader's limit of {max_rows} samples"
+        )
+    meta = parquet.parquet_metadata(path, pf, MAX_METADATA_LINES, MAX_LINE_CHARS)
+    try:
+        cables, cols = _layout(path, 0, names)
+    except RecordingError as exc:  # the schema is no line of text
+        raise RecordingError(str(exc).replace(f"{path}:0:", f"{path}: schema:", 1)) from None
+    sink = _Columns(_targets(names, cables, cols), first_row_only)
+    where = "{path}: row {line}"
+    reader = _Reader(path, names, _required_columns(names, cols), max_samples, sink, where)
+    for first, block in parquet.iter_row_groups(path, pf, names):
+        for start in range(0, block.shape[0], 8 * CHUNK_ROWS):
+            part = block[start : start + 8 * CHUNK_ROWS]
+            reader.add_rows(part, list(range(first + start, first + start + len(part))))
+    return _finish(path, meta, sink, reader, min_samples)
 
 
 class _Columns:
@@ -469,6 +537,22 @@ def _assemble(path: Path, meta: dict[str, str], out: dict[str, np.ndarray], skip
     )
 
 
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The metadata of a recording alone: the ``# key: value`` lines of a CSV (read up to
+    the header) or the key-value metadata of a Parquet file's footer."""
+    path = Path(path)
+    try:
+        if path.suffix == ".parquet":
+            from gateway.recordings import parquet
+
+            pf, _ = parquet.open_checked(path, MAX_COLUMNS)
+            return parquet.parquet_metadata(path, pf, MAX_METADATA_LINES, MAX_LINE_CHARS)
+        with _open_text(path) as fh:
+            return _split_header(path, _lines(path, fh))[0]
+    except (OSError, EOFError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{path}: cannot read: {exc}") from exc
+
+
 # --- writing ------------------------------------------------------------------------------
 def recording_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
     """(name, column array) of ``rec`` in the order written."""
@@ -489,9 +573,10 @@ def recording_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
 
 
 def write_recording(path: str | Path, rec: Recording, metadata: dict[str, str] | None = None):
-    """Write ``rec`` as CSV (gzip when the name ends in .gz), ``CHUNK_ROWS`` rows at a time."""
+    """Write ``rec`` as CSV (gzip when the name ends in .gz) or Parquet (``.parquet``),
+    ``CHUNK_ROWS`` rows at a time."""
     columns = recording_columns(rec)
-    writer = RecordingWriter(path, [n for n, _ in columns], {**rec.metadata, **(metadata or {})})
+    writer = open_writer(path, [n for n, _ in columns], {**rec.metadata, **(metadata or {})})
     try:
         chunk = np.empty((min(CHUNK_ROWS, rec.samples), len(columns)))
         for start in range(0, rec.samples, CHUNK_ROWS):

@@ -1,4 +1,5 @@
-"""Writing recording files in whole rows: :class:`RecordingWriter` and :func:`format_rows`.
+"""Writing recording files in whole rows: :class:`RecordingWriter`, :func:`format_rows` and
+:func:`open_writer` (CSV, or Parquet by :mod:`gateway.recordings.parquet` for ``.parquet``).
 
 The CSV (or ``.csv.gz``) layout is docs/recording-format.md's: ``# key: value`` metadata
 lines, the header, then rows; NaN and +-inf are written as empty fields. Used by
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import gzip
 from pathlib import Path
-from typing import IO
+from typing import IO, Protocol
 
 import numpy as np
 
@@ -24,6 +25,22 @@ def format_rows(table: np.ndarray, fmt: str = "%.10g") -> str:
     if "n" in text:  # 'nan', 'inf' (digits and 'e' are all a number can hold otherwise)
         text = text.replace("-inf", "").replace("inf", "").replace("nan", "")
     return text
+
+
+class RowWriter(Protocol):
+    """What the recorder and :func:`gateway.recordings.reader.write_recording` write with."""
+
+    path: Path
+    columns: list[str]
+    rows: int  # rows handed to write_rows
+    bytes: int  # the file's size so far
+
+    @property
+    def rows_on_disk(self) -> int: ...
+
+    def write_rows(self, table: np.ndarray) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class RecordingWriter:
@@ -62,6 +79,11 @@ class RecordingWriter:
         self._fh.write(data)
         self.bytes += len(data)
 
+    @property
+    def rows_on_disk(self) -> int:
+        """Rows written to the file (all of them: a row is never held back)."""
+        return self.rows
+
     def write_rows(self, table: np.ndarray) -> None:
         """Write ``table`` (rows, len(columns)) as whole rows."""
         if table.shape[0]:
@@ -76,3 +98,21 @@ class RecordingWriter:
                 self._fh.close()
         finally:
             self._raw.close()
+
+
+def open_writer(
+    path: str | Path,
+    columns: list[str],
+    metadata: dict[str, str] | None = None,
+    *,
+    compresslevel: int = 6,
+    row_group_rows: int | None = None,
+) -> RowWriter:
+    """The writer the file name asks for: Parquet for ``.parquet`` (pyarrow, imported only
+    then; ``row_group_rows``), else CSV (gzip for ``.gz``; ``compresslevel``)."""
+    if Path(path).suffix == ".parquet":
+        from gateway.recordings.parquet import ROW_GROUP_ROWS, ParquetRecordingWriter
+
+        rows = ROW_GROUP_ROWS if row_group_rows is None else row_group_rows
+        return ParquetRecordingWriter(path, columns, metadata, row_group_rows=rows)
+    return RecordingWriter(path, columns, metadata, compresslevel=compresslevel)

@@ -65,11 +65,15 @@ FLAG_STUCK = 4
 FLAG_STALE = 8
 RANGE_MARGIN = 0.05  # readings down to -5 % of the range are noise around zero, not faults
 MOVING_M_S = 1e-6  # |setpoint velocity| above this counts as moving for the stuck check
-PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples (inertia)
-# The chain's time step is the time since the previous step (overruns: the skipped cycles'
-# cable travel counts), bounded to this many periods: after an outage the setpoint motion
-# in between is unknown, so its travel is not extrapolated from the first velocity after it.
+PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples
+SPACING_OUTLIER = 3.0  # a spacing this far off the average is a hold or a stall, not data
+SPACING_OUTLIER_RUN = 20  # this many in a row: the PLC's period changed, start afresh
+# Heartbeat steps up to this many samples enter the PLC's averaged sample spacing.
 MAX_STEP_PERIODS = 10
+# The chain's time step (the PLC time between the samples it compensates) is bounded to
+# this many periods: after a longer outage the setpoint motion in between is unknown, so its
+# travel is not extrapolated from the velocities before and after it.
+MAX_GAP_PERIODS = 100
 GOOD = int(ChannelStatus.GOOD)
 SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
 INVALID = int(ChannelStatus.INVALID)
@@ -108,10 +112,15 @@ class ChannelState(NamedTuple):
     @staticmethod
     def allocate(cables: int) -> ChannelState:
         return ChannelState(
-            np.full(cables, np.nan), np.zeros(cables), np.full(cables, np.nan),
-            np.full(cables, -np.inf), np.zeros(cables, dtype=np.uint8),
-            np.full(cables, INVALID, dtype=np.uint16), np.zeros(cables), np.zeros(cables),
-        )  # fmt: skip
+            np.full(cables, np.nan),
+            np.zeros(cables),
+            np.full(cables, np.nan),
+            np.full(cables, -np.inf),
+            np.zeros(cables, dtype=np.uint8),
+            np.full(cables, INVALID, dtype=np.uint16),
+            np.zeros(cables),
+            np.zeros(cables),
+        )
 
 
 @njit(cache=True)
@@ -147,15 +156,50 @@ def _validate(lim, st, raw, vel, now, stale):
 
 
 @njit(cache=True)
-def _mark_stale(now, substitute_max, good_at, flags, status):
+def _mark_stale(lim, st, now):
     """A cycle without a fresh read: every channel stale, substituted or invalid."""
     newly = 0
-    for i in range(flags.size):
-        if flags[i] == 0:
+    for i in range(st.flags.size):
+        if st.flags[i] == 0:
             newly += 1
-        flags[i] |= FLAG_STALE
-        status[i] = SUBSTITUTED if now - good_at[i] <= substitute_max else INVALID
+        st.flags[i] |= FLAG_STALE
+        fresh_enough = now - st.good_at[i] <= lim.substitute_max_s
+        st.status[i] = SUBSTITUTED if fresh_enough else INVALID
     return newly
+
+
+@njit(cache=True)
+def _hold_finite(x, last):
+    """Non-finite elements of ``x`` take the last finite value (kept in ``last``)."""
+    for i in range(x.size):
+        if math.isfinite(x[i]):
+            last[i] = x[i]
+        else:
+            x[i] = last[i]
+
+
+@njit(cache=True)
+def _guard_inputs(model_in, used, status):
+    """A cable whose model input is not finite is invalid this cycle and the chain is fed
+    its sensor value instead: nothing non-finite enters the model."""
+    for i in range(model_in.size):
+        if not math.isfinite(model_in[i]):
+            model_in[i] = used[i]
+            status[i] = INVALID
+
+
+@njit(cache=True)
+def _guard_chain(corrected, state, status):
+    """A cable whose chain output or state is not finite is invalid this cycle and its
+    state is relaxed (the Dahl state once stayed NaN for good)."""
+    for i in range(state.shape[0]):
+        bad = not math.isfinite(corrected[i])
+        for j in range(state.shape[1]):
+            bad = bad or not math.isfinite(state[i, j])
+        if bad:
+            state[i, :] = 0.0
+            corrected[i] = np.nan
+            status[i] = INVALID
 
 
 @njit(cache=True)
@@ -184,11 +228,16 @@ class Compensator:
             self.params, lp.period_s, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter
         )
         self.limits = Limits(
-            -RANGE_MARGIN * cfg.sensor.range_n, float(cfg.sensor.range_n), lp.stuck_after_s,
+            -RANGE_MARGIN * cfg.sensor.range_n,
+            float(cfg.sensor.range_n),
+            lp.stuck_after_s,
             lp.substitute_max_s,
-        )  # fmt: skip
+        )
         self.stale_after_s = lp.stale_after_s
-        self.max_step_s = MAX_STEP_PERIODS * lp.period_s
+        self.max_step_s = MAX_GAP_PERIODS * lp.period_s
+        # Modbus polls the PLC: its heartbeat tells a new sample from one read again. On
+        # CANopen each cycle is one SYNC's samples and the heartbeat comes every 10th.
+        self.samples_by_heartbeat = cfg.bus.driver != "canopen"
         self.frame_anchors = np.array(cfg.geometry.frame_anchors_m, dtype=float)
         self.platform_anchors = np.array(cfg.geometry.platform_anchors_m, dtype=float)
         self.channels = ChannelState.allocate(m)
@@ -205,10 +254,14 @@ class Compensator:
         self._velocity_hold = np.zeros(m)  # the one before it (a repeated sample: hold a)
         self._sample_at = math.nan  # when the last new PLC sample arrived
         self._sample_dt = 0.0  # time between the last two new PLC samples
-        self._heartbeat = -1
+        self._heartbeat = math.nan  # the last finite PLC heartbeat
+        self.heartbeat_modulus = 1 << 16  # its register's wrap (0: float32), set by the loop
         self._plc_period_s = math.nan  # the PLC's sample spacing, averaged over samples
+        self._outliers = 0  # spacings in a row too far off the average to move it
+        self._spacings = 0  # spacings averaged so far (a running mean until 1 / gain)
         self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
         self._length_in = np.zeros(m)
+        self._length_last = np.zeros(m)  # the last finite setpoint length per cable
         self._pose_in = np.zeros(6)
         self._stepped_at = math.nan
         self._last_read_time = math.nan
@@ -225,9 +278,13 @@ class Compensator:
             _finish, self.corrected_n, self.used_n, self.status, self.friction_n
         )
         self._wrench = entry_point(
-            wrench_into, self.frame_anchors, self.platform_anchors, self._pose_in,
-            self.corrected_n, self.wrench,
-        )  # fmt: skip
+            wrench_into,
+            self.frame_anchors,
+            self.platform_anchors,
+            self._pose_in,
+            self.corrected_n,
+            self.wrench,
+        )
 
     @property
     def stuck_after_s(self) -> float:
@@ -240,11 +297,14 @@ class Compensator:
     def step(self, inputs: Inputs, now_s: float, out: Outputs) -> None:
         """One cycle on a successful read; fills ``out`` tensions, status and wrench.
 
-        The model's time step is the time since the previous step (0 on the first), so
-        the acceleration (inertia) and the cable travel (Dahl, the trapezoid
-        ``(v_prev + v) / 2 dt`` with the previous cycle's velocity, ``chain.travel_into``)
-        follow the actual samples: a cycle skipped after an overrun loses no travel. The
-        chain's step is bounded to ``MAX_STEP_PERIODS`` periods (after an outage).
+        The model's time step is the PLC's time between the samples it compensates
+        (:meth:`_online_inputs`; 0 on the first), so the acceleration (inertia) and the
+        cable travel (Dahl, the trapezoid ``(v_prev + v) / 2 dt`` with the previous
+        sample's velocity, ``chain.travel_into``) follow the PLC's samples, not the
+        gateway's reads: a sample read twice adds no travel, samples missed in an overrun
+        or a stall (of either side) lose none. Where the heartbeat does not count samples
+        (CANopen: every cycle is a new SYNC) the time since the previous cycle is used.
+        The chain's step is bounded to ``MAX_GAP_PERIODS`` periods (after an outage).
         """
         if inputs.read_time_s != self._last_read_time:
             self._last_read_time = inputs.read_time_s
@@ -261,61 +321,114 @@ class Compensator:
         dt = now - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
         dt = dt if dt > 0.0 else 0.0
         self._stepped_at = now
-        self._online_inputs(now, int(inputs.plc_heartbeat))
+        _hold_finite(self._length_in, self._length_last)  # flagged by plausibility
+        sample_dt = self._online_inputs(now, float(inputs.plc_heartbeat))
+        _guard_inputs(self.model_in_n, self.used_n, self.status)
+        dt = sample_dt if self.samples_by_heartbeat else dt
         self.stepper.step(
             self.model_in_n, self.velocity_m_s, self.corrected_n, min(dt, self.max_step_s)
         )
+        _guard_chain(self.corrected_n, self.stepper.state, self.status)
         if self._finish(self.corrected_n, self.used_n, self.status, self.friction_n):
             self.wrench[:] = np.nan
         else:
             self._wrench(
-                self.frame_anchors, self.platform_anchors, self._pose_in, self.corrected_n,
+                self.frame_anchors,
+                self.platform_anchors,
+                self._pose_in,
+                self.corrected_n,
                 self.wrench,
-            )  # fmt: skip
+            )
         out.tension_corrected_n[:] = self.corrected_n
         out.channel_status[:] = self.status
         out.wrench[:] = self.wrench
 
-    def _online_inputs(self, now: float, heartbeat: int) -> None:
-        """The online path and sensor effects removed. An acceleration (inertia) is the
+    def _heartbeat_steps(self, heartbeat: float) -> int:
+        """PLC samples since the last one by its heartbeat (modulo its register; a float
+        heartbeat by its difference); 0 for the same value, NaN or the first one, and
+        ``MAX_STEP_PERIODS + 1`` for a difference that is no count of samples."""
+        prev = self._heartbeat
+        if not math.isfinite(heartbeat):
+            return 0
+        self._heartbeat = heartbeat
+        if prev != prev:
+            return 0
+        d = heartbeat - prev
+        if self.heartbeat_modulus:
+            return int(d) % self.heartbeat_modulus
+        if d == 0.0:
+            return 0
+        return int(d) if d == int(d) and 0 < d <= MAX_STEP_PERIODS else MAX_STEP_PERIODS + 1
+
+    def _online_inputs(self, now: float, heartbeat: float) -> float:
+        """The online path and sensor effects removed; returns the PLC time (s) since the
+        previous sample, 0 for the same sample again. An acceleration (inertia) is the
         backward difference between *new* PLC samples (a new heartbeat or a new setpoint
         velocity); a cycle that reads the same sample again holds it (a difference of 0
         over one cycle, then of two samples over the next, would swing the inertia term
         between 0 and twice its size). The time between two samples ``k`` heartbeats apart
         is ``k`` times the PLC's sample spacing, averaged over past samples
-        (``PLC_PERIOD_GAIN``): single arrival times carry the bus jitter, which the
-        difference quotient would amplify. Without a counting heartbeat, or across a gap
-        of more than ``MAX_STEP_PERIODS`` samples, the arrival times are used."""
-        steps = (heartbeat - self._heartbeat) & 0xFFFF if self._heartbeat >= 0 else 0
+        (``PLC_PERIOD_GAIN``, :meth:`_spacing`), also across a gap of more than
+        ``MAX_STEP_PERIODS`` samples (a stall of the gateway, or the PLC catching up after
+        one of its own: arrival times are no measure of the PLC's time then). Single
+        arrival times carry the bus jitter, which the difference quotient would amplify.
+        Without a counting heartbeat the arrival times are used."""
+        steps = self._heartbeat_steps(heartbeat)
         new = steps != 0 or _differs(self.velocity_m_s, self._velocity_prev)
-        self._heartbeat = heartbeat
-        if new:
-            dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
-            dt = dt if dt > 0.0 else 0.0
-            if 1 <= steps <= MAX_STEP_PERIODS and dt > 0.0:
-                spacing = dt / steps
-                est = self._plc_period_s
-                est = spacing if est != est else est + PLC_PERIOD_GAIN * (spacing - est)
-                self._plc_period_s = est
-                dt = steps * est
+        if not new:  # the same sample again: the same acceleration, no time passed, a filter
+            # with state not advanced twice
             self._online(
-                self.used_n, self.model_in_n, self.velocity_m_s, self._velocity_prev, dt,
+                self.used_n,
+                self.model_in_n,
+                self._velocity_prev,
+                self._velocity_hold,
+                self._sample_dt,
                 self._length_in,
-            )  # fmt: skip
-            self._velocity_hold[:] = self._velocity_prev
-            self._velocity_prev[:] = self.velocity_m_s
-            self._sample_at, self._sample_dt = now, dt
-        else:  # the same sample again: the same acceleration, a filter not advanced
-            self._online(
-                self.used_n, self.model_in_n, self._velocity_prev, self._velocity_hold,
-                self._sample_dt, self._length_in, False,
-            )  # fmt: skip
+                False,
+            )
+            return 0.0
+        dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
+        dt = dt if dt > 0.0 else 0.0
+        if 1 <= steps <= MAX_STEP_PERIODS and dt > 0.0:
+            self._plc_period_s = self._spacing(dt / steps)
+        if steps >= 1 and self._plc_period_s == self._plc_period_s:
+            dt = steps * self._plc_period_s
+        self._online(
+            self.used_n,
+            self.model_in_n,
+            self.velocity_m_s,
+            self._velocity_prev,
+            dt,
+            self._length_in,
+        )
+        self._velocity_hold[:] = self._velocity_prev
+        self._velocity_prev[:] = self.velocity_m_s
+        self._sample_at, self._sample_dt = now, dt
+        return dt
+
+    def _spacing(self, spacing: float) -> float:
+        """The PLC's averaged sample spacing after one more ``spacing``: the running mean
+        of the first ``1 / PLC_PERIOD_GAIN`` spacings, then an exponential average (a start
+        from one jittered spacing took ~100 samples to settle, and the chain's travel was
+        off by that much meanwhile). A spacing off the average by more than a factor
+        ``SPACING_OUTLIER`` (the PLC held its samples, or this process stalled) does not
+        move it; ``SPACING_OUTLIER_RUN`` of them in a row restart it (the PLC's period
+        changed)."""
+        est = self._plc_period_s
+        if est != est or self._outliers >= SPACING_OUTLIER_RUN:
+            self._outliers = 0
+            self._spacings = 1
+            return spacing
+        if not est / SPACING_OUTLIER <= spacing <= est * SPACING_OUTLIER:
+            self._outliers += 1
+            return est
+        self._outliers = 0
+        self._spacings += 1
+        return est + max(PLC_PERIOD_GAIN, 1.0 / self._spacings) * (spacing - est)
 
     def mark_unread(self, now_s: float) -> None:
         """A cycle whose read failed: flag every channel stale; the model is not stepped."""
-        self.flag_events += _mark_stale(
-            now_s, self.limits.substitute_max_s, self.channels.good_at, self.flags, self.status
-        )
+        self.flag_events += _mark_stale(self.limits, self.channels, float(now_s))
 
     def invalidate_outputs(self, out: Outputs) -> None:
         """Fill ``out`` with 'no value': NaN tensions and wrench, every channel invalid."""

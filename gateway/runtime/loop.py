@@ -30,7 +30,12 @@ waits at most half a period per cycle and spaces attempts with the driver's back
 
 The PLC heartbeat that does not change for ``loop.heartbeat_timeout_s`` stops the tension
 writes: one frame with state FAULT, every channel invalid and NaN tensions is written, then
-nothing until the heartbeat changes again. The gateway heartbeat is +1 per written cycle.
+nothing until the heartbeat changes again. Only a changed value (finite: a NaN heartbeat is
+"not changed") resets this watchdog: failed cycles, reconnects and SYNC timeouts do not,
+and :meth:`CyclicService.plc_heartbeat_age_s` is the true age. Each frame carries the time
+of its data and of the last heartbeat change, which the driver's output gate
+(:mod:`drivers.gate`) checks when it sends it. The gateway heartbeat is +1 per written
+cycle (modulo 2**32; the driver wraps it to its register).
 :meth:`CyclicService.stop` (and every catchable terminating signal, see
 :data:`STOP_SIGNALS`) ends the loop after the current cycle; the last frame written says
 STOPPED (state 0), every channel invalid, NaN tensions.
@@ -120,6 +125,9 @@ class CyclicService:
         self.plausibility = Plausibility(cfg)
         self.stats = LoopStats(history)
         self.pacing: Pacing = make_pacing(driver, cfg.loop, clock, sleep, wall_clock, self.stats)
+        driver.clock = clock  # the output gate and the data's time on the loop's clock
+        driver.output_gate  # noqa: B018 - built (compiled) now, not in the first cycle
+        self.comp.heartbeat_modulus = driver.plc_heartbeat_modulus
         self.notifier = notifier
         self.state = Lifecycle.STOPPED
         self.heartbeat_fault = False
@@ -127,12 +135,15 @@ class CyclicService:
         self._observers: list[Observer] = []
         self._stop = threading.Event()
         self._fault_written = False
-        self._last_hb: int | None = None
-        self._hb_changed_at = math.nan
+        self._last_hb: float | None = None  # the PLC heartbeat's last finite value
+        self._hb_changed_at = -math.inf  # when it last changed (-inf: not seen changing)
+        self._hb_watched_from = math.nan  # when it was first read
+        self._hb_seen_at = math.nan  # when the read that last showed _last_hb was requested
         self._data_at = math.nan  # loop clock of the last successful read
         self._got_data = False
         self._ever_connected = False
         self.last_connect_error = ""  # the cause of the last failed connection attempt
+        self.write_blocked = ""  # why the bus takes no frame now (CANopen NMT), else ""
         self._open = False
         self._failures = 0
         self._pending: Outputs | None = None  # written with the next read (function 23)
@@ -176,6 +187,7 @@ class CyclicService:
         """Run ``cycles`` cycles (``None``: until :meth:`stop`); then write STOPPED."""
         if not self._configured:
             self.configure()
+        self._reporter.ready()  # configured: ready, whether or not the PLC answers yet
         gc.collect()
         gc.freeze()  # everything allocated so far is permanent: no GC pauses scanning it
         # Another thread (metrics scrape, an in-process PLC) holds the GIL for up to the
@@ -231,6 +243,7 @@ class CyclicService:
         comp.step(inputs, t1, self.outputs)
         stats.errors["invalid_value"] = comp.flag_events
         self._watch_heartbeat(t1)
+        self.outputs.stamp(inputs.read_time_s, self._hb_changed_at)  # the gate checks both
         for observer in self._observers:
             observer(inputs, comp, t1)
         t2 = clock()
@@ -241,14 +254,27 @@ class CyclicService:
         return False
 
     def _watch_heartbeat(self, now: float) -> None:
-        hb = self.inputs.plc_heartbeat
-        if hb != self._last_hb:
-            self._last_hb = hb
-            self._hb_changed_at = now
-            if self.heartbeat_fault:
+        """Only a changed, finite heartbeat value resets the watchdog (module doc)."""
+        hb, seen_at = self.inputs.plc_heartbeat, self.inputs.read_time_s
+        if self._hb_watched_from != self._hb_watched_from:
+            self._hb_watched_from = now
+        if not math.isfinite(hb):
+            pass  # NaN / inf: no value, not a change
+        elif self._last_hb is None:
+            self._last_hb, self._hb_seen_at = hb, seen_at  # the watch starts: no change yet
+        elif hb != self._last_hb:
+            # it changed after the old value was last read: date it then (the earliest it
+            # can have been), so a change seen across a stall is as old as the stall
+            self._last_hb, self._hb_changed_at = hb, self._hb_seen_at
+            self._hb_seen_at = seen_at
+            timeout = self.cfg.loop.heartbeat_timeout_s
+            if self.heartbeat_fault and now - self._hb_changed_at <= timeout:
                 self.heartbeat_fault = False
                 self._fault_written = False
-        elif not self.heartbeat_fault and now - self._hb_changed_at > (
+            return
+        else:
+            self._hb_seen_at = seen_at
+        if not self.heartbeat_fault and now - self._heartbeat_since() > (
             self.cfg.loop.heartbeat_timeout_s
         ):
             self.heartbeat_fault = True
@@ -256,6 +282,10 @@ class CyclicService:
 
     def _write(self) -> None:
         out = self.outputs
+        self.write_blocked = self.driver.write_blocked()
+        if self.write_blocked:  # e.g. stopped by the NMT master: connected, not writing
+            self.state = Lifecycle.CONNECTED
+            return
         if self.heartbeat_fault:
             if self._fault_written:
                 return
@@ -264,7 +294,7 @@ class CyclicService:
             self.state = Lifecycle.FAULT
         else:
             out.gateway_state = int(Lifecycle.ACTIVE)
-        out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
+        out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFFFFFF
         try:
             if self.driver.combines_write_and_read and not self.heartbeat_fault:
                 self._pending = out  # goes out with the next cycle's read, one exchange
@@ -285,8 +315,13 @@ class CyclicService:
         return self.clock() - self._data_at
 
     def plc_heartbeat_age_s(self) -> float:
-        """Seconds since the PLC heartbeat last changed (NaN before the first read)."""
-        return self.clock() - self._hb_changed_at
+        """Seconds since the PLC heartbeat last changed, or since it was first read if it
+        has not changed since (NaN before the first read). Errors never reset it."""
+        return self.clock() - self._heartbeat_since()
+
+    def _heartbeat_since(self) -> float:
+        changed = self._hb_changed_at
+        return changed if changed > -math.inf else self._hb_watched_from
 
     # --- connection (reconnect with backoff) --------------------------------------------
     @property
@@ -310,7 +345,6 @@ class CyclicService:
         self.last_error = exc
         self.comp.mark_unread(now)
         self.state = Lifecycle.FAULT
-        self._last_hb = None  # after an outage, watch the PLC heartbeat afresh
         self._failures += 1
         self._pending = None
         if self._failures >= REOPEN_AFTER:
@@ -334,7 +368,6 @@ class CyclicService:
         self._ever_connected = True
         self._pending = None
         self._failures = 0
-        self._last_hb = None  # a restarted PLC: watch its heartbeat afresh
         self.state = Lifecycle.CONNECTED
 
     def _close_driver(self) -> None:
@@ -348,7 +381,7 @@ class CyclicService:
             out = self.outputs
             self.comp.invalidate_outputs(out)
             out.gateway_state = int(Lifecycle.STOPPED)
-            out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFF
+            out.gateway_heartbeat = (out.gateway_heartbeat + 1) & 0xFFFFFFFF
             try:
                 self.driver.write_from(out)
                 self.stats.written += 1
@@ -380,6 +413,7 @@ class _Reporter:
         self.fault_since = math.nan  # loop clock when the current outage began
         self.cause = ""  # the last fault line of the current outage
         self.ready_sent = False
+        self.write_blocked = ""
         notifier = service.notifier
         self.watchdog_s = notifier.watchdog_interval_s if notifier is not None else math.inf
         self.next_watchdog = -math.inf
@@ -388,6 +422,13 @@ class _Reporter:
         svc = self.svc
         if svc.state is not self.state or svc.heartbeat_fault is not self.heartbeat_fault:
             self._state_changed(now)
+        if svc.write_blocked != self.write_blocked:
+            if svc.write_blocked:
+                log.warning("not writing: %s; writing resumes when operational", svc.write_blocked)
+                self._status(f"not writing: {svc.write_blocked}")
+            else:
+                log.warning("writing again: %s is operational", self.write_blocked.split(":")[0])
+            self.write_blocked = svc.write_blocked
         if svc.notifier is not None and now >= self.next_watchdog:
             self.next_watchdog = now + self.watchdog_s
             svc.notifier.notify("WATCHDOG=1")
@@ -426,17 +467,23 @@ class _Reporter:
             if in_outage:
                 log.warning(
                     "recovered: connected to the PLC at %s, active again after %.1f s",
-                    where, now - self.fault_since,
-                )  # fmt: skip
+                    where,
+                    now - self.fault_since,
+                )
                 self.fault_since = math.nan
                 self.cause = ""
                 self.next_check = now  # the next summary (if any) says the state is active
             else:
                 log.info("connected to the PLC at %s; active, writing corrected tensions", where)
             self._status("active")
-            if svc.notifier is not None and not self.ready_sent:
-                self.ready_sent = True
-                svc.notifier.notify("READY=1")
+
+    def ready(self) -> None:
+        """READY=1 once, when the service is configured: a PLC that does not answer yet
+        is retried by the loop (the README's 'ready once configured'), so systemd's start
+        does not wait for it (TimeoutStartSec)."""
+        if self.svc.notifier is not None and not self.ready_sent:
+            self.ready_sent = True
+            self.svc.notifier.notify("READY=1")
 
     def _status(self, line: str) -> None:
         if self.svc.notifier is not None:

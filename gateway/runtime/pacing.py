@@ -11,7 +11,8 @@ answers three questions for it:
 :class:`PeriodicPacing` keeps absolute deadlines (``next += period``), sleeping and then
 busy-waiting the last ``loop.busy_wait_s``; a cycle that ends after the next deadline is an
 overrun and the missed deadlines are skipped (the phase is kept). A (re)connect attempt,
-which may block, re-anchors the schedule.
+which may block, re-anchors the schedule. Only cycles that got the PLC's data are booked
+(as :class:`BusPacing` does): retries while the PLC is unreachable are not cycles.
 
 :class:`BusPacing` is for drivers paced by the bus (CANopen: the PLC's SYNC):
 ``read_into`` itself waits for the next set, so the loop does not wait while the bus is
@@ -72,17 +73,27 @@ class Pacing(ABC):
 
 
 class PeriodicPacing(Pacing):
-    """The loop's own absolute deadlines."""
+    """The loop's own absolute deadlines.
+
+    Only a cycle that got the PLC's data is booked (its lateness, duration and overruns):
+    a wake-up that retries a connection or a read that failed is no cycle of the service,
+    and an attempt that takes most of a period would otherwise count as overruns while
+    nothing runs (the overrun alert fired on a gateway whose PLC was off). Missed deadlines
+    are skipped either way."""
+
+    late = 0.0  # lateness of the current cycle's start, booked by finish() if it had data
 
     def wait(self, bus_open: bool) -> float:
         self.wait_until(self.deadline)
         start = self.clock()
-        self.stats.add_jitter(start - self.deadline)
+        self.late = start - self.deadline
         return start
 
     def finish(self, start: float, end: float, data_at: float | None, reanchor: bool) -> None:
-        period = self.period_s
-        self.stats.add_cycle(end - start)
+        period, booked = self.period_s, data_at is not None
+        if booked:
+            self.stats.add_jitter(self.late)
+            self.stats.add_cycle(end - start)
         if reanchor:  # a (re)connect attempt may block: restart the schedule
             self.deadline = self.clock() + period
             return
@@ -90,7 +101,8 @@ class PeriodicPacing(Pacing):
         if end > self.deadline:
             missed = int((end - self.deadline) // period) + 1
             self.deadline += missed * period
-            self.stats.add_overrun(missed)
+            if booked:
+                self.stats.add_overrun(missed)
 
 
 class BusPacing(Pacing):

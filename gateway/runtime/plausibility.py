@@ -1,6 +1,6 @@
 """Plausibility of the PLC's setpoints, bounded by the robot's geometry and ``limits:``.
 
-A setpoint the robot cannot have is not passed on as good (issue: a pose of 1e20 m gave a
+A setpoint the robot cannot have is not passed on as good (a pose of 1e20 m gave a
 wrench of 1549.6 N written with every channel good). Per cycle, before compensation:
 
 * cable velocity ``|v_i| <= limits.max_cable_speed_m_s``;
@@ -13,11 +13,14 @@ An implausible velocity or length makes that cable's setpoint velocity NaN, so t
 compensator flags the channel (substituted, then invalid). An implausible pose makes the
 pose NaN (the wrench becomes NaN) and every cable's velocity NaN: every channel is flagged,
 because a PLC that sends an impossible pose cannot be trusted for the rest of the frame.
-A non-finite value is left to the compensator's own NaN check (it flags it the same way).
+A non-finite velocity, length or pose is implausible too (every comparison is written so
+that NaN fails it: a NaN cable length once passed and poisoned a fitted eccentricity).
 The loop counts the cycles with an implausible value in ``errors_total{kind="implausible"}``.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -26,18 +29,27 @@ from drivers.base import Inputs
 from gateway.core.config import Config
 
 
-@njit(cache=True)
-def _check(velocity, length, pose, box, speed_max, length_max, rot_max):
-    """Replace implausible setpoints by NaN in place; return how many were implausible.
+class Bounds(NamedTuple):
+    """What the robot can have: ``box`` (2, 3) the position's lower and upper bounds (m),
+    the largest cable speed (m/s), cable length (m) and |rotation| (rad)."""
 
-    ``box``: (2, 3) the position's lower and upper bounds (one array: each array
-    argument costs the call ~0.1 us)."""
+    box: np.ndarray
+    speed_max: float
+    length_max: float
+    rotation_max: float
+
+
+@njit(cache=True)
+def _check(bounds, velocity, length, pose):
+    """Replace implausible setpoints by NaN in place; return how many were implausible.
+    Every comparison is written so that NaN fails it."""
+    box = bounds.box
     bad = 0
     pose_bad = False
     for k in range(3):
-        if pose[k] < box[0, k] or pose[k] > box[1, k]:
+        if not box[0, k] <= pose[k] <= box[1, k]:
             pose_bad = True
-        if abs(pose[3 + k]) > rot_max:
+        if not abs(pose[3 + k]) <= bounds.rotation_max:
             pose_bad = True
     if pose_bad:
         bad += 1
@@ -45,7 +57,7 @@ def _check(velocity, length, pose, box, speed_max, length_max, rot_max):
             pose[k] = np.nan
     for i in range(velocity.size):
         v, lng = velocity[i], length[i]
-        if abs(v) > speed_max or lng < 0.0 or lng > length_max:
+        if not abs(v) <= bounds.speed_max or not 0.0 <= lng <= bounds.length_max:
             bad += 1
             velocity[i] = np.nan
         elif pose_bad:
@@ -67,14 +79,12 @@ class Plausibility:
         self.length_max = float(np.linalg.norm(self.hi - self.lo)) + radius + margin
         self.speed_max = limits.max_cable_speed_m_s
         self.rotation_max = limits.max_rotation_rad
-        self._box = np.ascontiguousarray(np.stack([self.lo, self.hi]))
+        box = np.ascontiguousarray(np.stack([self.lo, self.hi]))
+        self.bounds = Bounds(box, float(self.speed_max), self.length_max, float(self.rotation_max))
 
     def check(self, inputs: Inputs) -> int:
         """Flag implausible setpoints of ``inputs`` (NaN in place); return their number."""
-        bad: int = _check(
-            inputs.velocity_m_s, inputs.length_m, inputs.pose, self._box, self.speed_max,
-            self.length_max, self.rotation_max,
-        )  # fmt: skip
+        bad: int = _check(self.bounds, inputs.velocity_m_s, inputs.length_m, inputs.pose)
         return bad
 
     def describe(self) -> str:

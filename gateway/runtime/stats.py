@@ -2,7 +2,7 @@
 
 The loop writes into :class:`LoopStats` during the cycle (no allocation: bucket counters
 and fixed-size ring buffers); the metrics collector and the demo read it at scrape or
-report time. The driver's own round-trip ring (:class:`drivers.base.RoundtripRing`) is
+report time. The driver's own round-trip ring (:class:`gateway.core.ring.Ring`) is
 merged in by :meth:`LoopStats.add_roundtrip_from`, once per successful read.
 """
 
@@ -13,6 +13,8 @@ from bisect import bisect_left
 from typing import Protocol
 
 import numpy as np
+
+from gateway.core.ring import Ring
 
 CYCLE_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3)
 JITTER_BUCKETS_S = (10e-6, 20e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3)
@@ -41,33 +43,6 @@ class Histogram:
             total += n
             out.append(("+Inf" if bound == math.inf else repr(bound), total))
         return out
-
-
-class Ring:
-    """The last ``size`` values (s); written in the cycle, read for percentiles."""
-
-    def __init__(self, size: int) -> None:
-        self.values = np.zeros(size)
-        self.size = size
-        self.count = 0
-
-    def add(self, value: float) -> None:
-        n = self.count
-        self.values[n % self.size] = value
-        self.count = n + 1
-
-    def last(self) -> float:
-        """The value added last (NaN before the first)."""
-        if self.count == 0:
-            return math.nan
-        return float(self.values[(self.count - 1) % self.values.size])
-
-    def recent(self) -> np.ndarray:
-        return self.values[: min(self.count, self.values.size)]
-
-    def percentile(self, q: float) -> float:
-        data = self.recent()
-        return float(np.percentile(data, q)) if data.size else math.nan
 
 
 class _DriverRing(Protocol):

@@ -19,6 +19,7 @@ not be reached or read (the line says why).
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 from pathlib import Path
 
@@ -26,7 +27,6 @@ import numpy as np
 
 from drivers.base import Driver, Inputs
 from gateway.core.config import (
-    DEFAULT_CONFIG_PATH,
     Config,
     config_warnings,
     exposure_warning,
@@ -35,14 +35,15 @@ from gateway.core.config import (
 from gateway.errors import DriverError, GatewayError
 from gateway.runtime.loop import describe_bus
 from gateway.runtime.plausibility import Plausibility
-from gateway.service.daemon import add_log_level, build_driver, setup_logging
+from gateway.service.daemon import add_config_option, build_driver, setup_logging
+from gateway.service.exporter import FD_RESERVE, MAX_CONNECTIONS, NOFILE_NEEDED, PROCESS_FDS
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
-    parser.add_argument("--connect", action="store_true",
-                        help="also read once from the PLC (writes nothing)")  # fmt: skip
-    add_log_level(parser)
+    add_config_option(parser, why="the file to check")
+    parser.add_argument(
+        "--connect", action="store_true", help="also read once from the PLC (writes nothing)"
+    )
 
 
 def file_problems(cfg: Config) -> list[str]:
@@ -96,6 +97,19 @@ def _eds_problems(cfg: Config) -> list[str]:
     return problems
 
 
+def descriptor_warning() -> list[str]:
+    """The soft RLIMIT_NOFILE below what the gateway with its exporter needs."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= NOFILE_NEEDED:
+        return []
+    return [
+        f"RLIMIT_NOFILE: the soft limit {soft} is below the {NOFILE_NEEDED} descriptors the "
+        f"gateway needs ({MAX_CONNECTIONS} metrics connections, {FD_RESERVE} kept for the "
+        f"bus, ~{PROCESS_FDS} for the process): the metrics port would not answer; raise it "
+        "(ulimit -n, LimitNOFILE= in the unit)"
+    ]
+
+
 def pose_problems(cfg: Config, bounds: Plausibility) -> list[str]:
     inputs = Inputs.allocate(cfg.cables)
     inputs.pose[:] = cfg.geometry.home_pose
@@ -126,9 +140,10 @@ def read_once(driver: Driver, cfg: Config) -> list[str]:
         f"  lengths m         {fmt(inputs.length_m, 4)}",
         f"  pose              {fmt(inputs.pose, 4)}",
         f"  PLC heartbeat     {inputs.plc_heartbeat}",
-        f"  implausible       {implausible} value(s) (NaN above)" if implausible else
-        "  implausible       none",
-    ]  # fmt: skip
+        f"  implausible       {implausible} value(s) (NaN above)"
+        if implausible
+        else "  implausible       none",
+    ]
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
@@ -147,6 +162,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if cfg.metrics.enabled:
         exposed = exposure_warning("metrics.host", cfg.metrics.host, cfg.metrics.port, cfg.source)
         warnings += [exposed] if exposed else []
+        warnings += descriptor_warning()
     for line in warnings:
         print(f"warning: {line}", file=sys.stderr)
     for line in problems:

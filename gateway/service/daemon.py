@@ -1,4 +1,4 @@
-"""``cdpr-gateway run --config FILE [--cycles N] [--seconds N] [--record OUT.csv.gz]
+"""``cdpr-gateway run --config FILE [--cycles N] [--seconds N] [--record OUT.csv.gz|.parquet]
 [--log-level LEVEL]``: the gateway daemon.
 
 Loads and validates the config, builds the driver named in ``bus.driver``, serves the
@@ -8,27 +8,41 @@ terminating signal (SIGTERM, SIGINT, SIGHUP, SIGQUIT, SIGUSR1, SIGUSR2, SIGALRM)
 start is not fatal: the loop retries with backoff and says why. Configuration problems end
 the program with one line naming the file and the key (exit 2).
 
+Real time: ``loop.realtime`` (on by default) is applied to the thread that runs the cycle
+just before it starts, and one line says what was applied and what was refused (never
+fatal); ``enabled: false`` leaves the process as started.
+
 Logging: ``TIME LEVEL LOGGER: message`` on stderr; a start-up banner (version, config
-file, bus, model, real-time settings); the loop logs each state change once (connected,
+file, bus, model, whether real time is tried); the loop logs each state change once (connected,
 active, disconnected/fault with the cause, recovered). Foreign libraries' loggers
 (canopen, can, pymodbus) are quieted to WARNING unless ``--log-level DEBUG``. Under systemd
-(``NOTIFY_SOCKET`` set) the loop sends READY=1 once active and WATCHDOG=1 while it cycles.
+(``NOTIFY_SOCKET`` set) the loop sends READY=1 once configured (before the PLC answers: it
+retries) and WATCHDOG=1 while it cycles, retries included.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import Any
 
 from drivers.base import Driver, Lifecycle, make_driver
 from gateway import __version__
+from gateway.core.cliopts import (  # noqa: F401 - re-exported: their old home
+    FOREIGN_LOGGERS,
+    LOG_FORMAT,
+    LOG_LEVELS,
+    add_config_option,
+    log_level,
+    setup_logging,
+)
 from gateway.core.config import (
-    DEFAULT_CONFIG_PATH,
     Config,
     config_warnings,
     exposure_warning,
@@ -43,44 +57,21 @@ from gateway.service.recorder import Recorder
 
 log = logging.getLogger("cdpr_gateway")
 
-LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
-LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
-FOREIGN_LOGGERS = ("canopen", "can", "pymodbus")
-
-
-def log_level(text: str) -> str:
-    """argparse type for ``--log-level``: one of :data:`LOG_LEVELS`, any case."""
-    level = text.upper()
-    if level not in LOG_LEVELS:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a log level (choose from {', '.join(LOG_LEVELS)})"
-        )
-    return level
-
-
-def add_log_level(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--log-level", type=log_level, default="INFO",
-                        help="DEBUG, INFO, WARNING, ERROR or CRITICAL (default INFO)")  # fmt: skip
-
-
-def setup_logging(level: str) -> None:
-    """The project's log format on stderr; foreign loggers at WARNING unless DEBUG."""
-    logging.basicConfig(stream=sys.stderr, format=LOG_FORMAT)  # no-op if already set up
-    logging.getLogger().setLevel(level)
-    foreign = logging.DEBUG if level == "DEBUG" else logging.WARNING
-    for name in FOREIGN_LOGGERS:
-        logging.getLogger(name).setLevel(foreign)
-
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=str(DEFAULT_CONFIG_PATH), help="YAML config file")
+    add_config_option(
+        parser,
+        why="the PLC to serve; a bundled default would quietly target "
+        "127.0.0.1 ('cdpr-gateway examples' shows the reference config)",
+    )
     parser.add_argument("--cycles", type=int, default=None, help="stop after N cycles")
-    add_log_level(parser)
     parser.add_argument("--seconds", type=float, default=None, help="stop after N seconds")
     parser.add_argument(
-        "--record", default=None, help="record what the gateway sees (CSV, .csv.gz); "
-        "overrides record.path",
-    )  # fmt: skip
+        "--record",
+        default=None,
+        help="record what the gateway sees (.csv, .csv.gz or "
+        ".parquet: the name chooses; with record.layout hive a folder); overrides record.path",
+    )
 
 
 def build_driver(cfg: Config, name: str | None = None, **kwargs: Any) -> Driver:
@@ -130,8 +121,12 @@ def banner(cfg: Config) -> list[str]:
         f"bus: {describe_bus(cfg)} (bus.{cfg.bus.driver})",
         f"model: {describe_model(cfg)}",
         f"loop: period {lp.period_s * 1e3:g} ms, busy-wait {lp.busy_wait_s * 1e6:g} us, "
-        f"PLC heartbeat timeout {lp.heartbeat_timeout_s:g} s; real-time scheduling: "
-        "not configured (default scheduler)",
+        f"PLC heartbeat timeout {lp.heartbeat_timeout_s:g} s; real-time: "
+        + (
+            "tried (loop.realtime; the real-time line says what was applied and refused)"
+            if lp.realtime.enabled
+            else "off (loop.realtime.enabled: false)"
+        ),
     ]
 
 
@@ -159,7 +154,11 @@ def start_recorder(cfg: Config, override: str | None) -> Recorder | None:
         "friction": f"{cfg.friction.model}, {len(cfg.friction.pulleys)} pulleys",
         "period_s": repr(cfg.loop.period_s),
     }
-    recorder = Recorder(rc, cfg.cables, with_mass=with_mass, metadata=meta)
+    if cfg.source and Path(cfg.source).is_file():
+        meta["config_sha256"] = hashlib.sha256(Path(cfg.source).read_bytes()).hexdigest()
+    recorder = Recorder(
+        rc, cfg.cables, with_mass=with_mass, metadata=meta, period_s=cfg.loop.period_s
+    )
     try:
         recorder.start()
     except OSError as exc:
@@ -197,6 +196,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             log.warning("%s", exposed)
     previous = service.install_signal_handlers()
     timer = None
+    rt: realtime.RealtimeReport | None = None
     try:
         service.recorder = start_recorder(cfg, args.record)
         if args.seconds is not None:
@@ -208,6 +208,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         (log.warning if rt.refused else log.info)("%s", rt.line())
         service.run(args.cycles)
     finally:
+        if rt is not None:  # in-process callers (tests, tools) get their process back
+            realtime.undo(rt)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if timer is not None:
@@ -219,7 +221,13 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if service.recorder is not None:
             service.recorder.close()
     assert service.state is Lifecycle.STOPPED
-    print(f"stopped: {summary(service)}", file=sys.stderr, flush=True)
+    say(f"stopped: {summary(service)}")
     if service.recorder is not None:
-        print(summary_record(service.recorder), file=sys.stderr, flush=True)
+        say(summary_record(service.recorder))
     return 0
+
+
+def say(line: str) -> None:
+    """A closing line in the log's format (with its time) whatever the log level."""
+    record = log.makeRecord(log.name, logging.INFO, __file__, 0, line, (), None)
+    print(logging.Formatter(LOG_FORMAT).format(record), file=sys.stderr, flush=True)

@@ -22,6 +22,14 @@ server is built to cost a known, small amount whatever the clients do:
   collection of the registry, not one each; the thread runs at nice 10 and never
   real-time, below the cycle.
 
+* **every request is answered or its connection closed, never the thread**: anything a
+  request raises (a bug, an odd byte) is caught per connection, logged and counted
+  (``failed``); credentials are compared as UTF-8 bytes, whatever their characters;
+* **its own health**: when it stops accepting for want of descriptors it says so once in
+  the log (with the limit to raise); its counters are exported as
+  ``cdpr_gateway_exporter_events_total{event}`` (served, failed, rejected, timed_out,
+  evicted, accept_paused).
+
 TLS (``certfile``/``keyfile``) and HTTP basic auth (``basic_auth_user`` and
 ``basic_auth_password_sha256``, the hex SHA-256 of the password) as configured in
 ``metrics:``. Every path serves the metrics (``/metrics`` by convention); GET and HEAD only.
@@ -42,13 +50,14 @@ import socket
 import ssl
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, Metric
 
 from gateway.core.config import MetricsConfig
-from gateway.errors import ConfigError
+from gateway.errors import ConfigError, TemporaryError
 from gateway.runtime import realtime
 
 log = logging.getLogger("cdpr_gateway.exporter")
@@ -66,6 +75,8 @@ MAX_HEADER_BYTES = 8192
 ACCEPT_PAUSE_S = 0.25  # after EMFILE or with the fd reserve reached
 TICK_S = 0.25  # longest selector wait: deadlines are checked at least this often
 ACCEPT_BATCH = 16  # connections taken per wake-up of the listening socket
+PROCESS_FDS = 64  # what the gateway holds besides the exporter (libraries, bus, recorder)
+NOFILE_NEEDED = PROCESS_FDS + FD_RESERVE + MAX_CONNECTIONS  # check warns below this
 _LISTEN, _WAKE = object(), object()  # selector keys of the listener and the wake-up pipe
 
 
@@ -97,6 +108,7 @@ class ExporterCounters:
     timed_out: int = 0
     evicted: int = 0
     rejected: int = 0  # bad requests, auth failures and failed handshakes
+    failed: int = 0  # requests whose handling raised: answered by closing that connection
     accept_paused: int = 0
     renders: int = 0
     peak_connections: int = 0
@@ -111,27 +123,35 @@ def open_fds() -> int:
 
 
 def _auth_checker(user: str | None, digest: str | None) -> Callable[[str], bool] | None:
+    """Basic auth as bytes: the configured user as UTF-8, the password's SHA-256 over the
+    bytes the client sent (any characters; both compared in constant time)."""
     if user is None or digest is None:
         return None
-    expected = digest.lower()
+    expected = digest.lower().encode("ascii", "replace")
+    user_bytes = user.encode("utf-8")
 
     def check(header: str) -> bool:
         if not header.startswith("Basic "):
             return False
-        try:
-            name, _, password = base64.b64decode(header[6:]).decode().partition(":")
-        except (ValueError, UnicodeDecodeError):
+        try:  # the header was decoded as latin-1: one byte per character
+            token = base64.b64decode(header[6:].encode("latin-1"), validate=True)
+        except ValueError:
             return False
-        got = hashlib.sha256(password.encode()).hexdigest()
-        return hmac.compare_digest(name, user) & hmac.compare_digest(got, expected)
+        name, _, password = token.partition(b":")
+        got = hashlib.sha256(password).hexdigest().encode("ascii")
+        return hmac.compare_digest(name, user_bytes) & hmac.compare_digest(got, expected)
 
     return check
 
 
-def _response(status: str, body: bytes, headers: list[tuple[str, str]], head: bool,
-              keep_alive: bool) -> bytes:  # fmt: skip
-    lines = [f"HTTP/1.1 {status}", f"Content-Length: {len(body)}",
-             "Connection: " + ("keep-alive" if keep_alive else "close")]  # fmt: skip
+def _response(
+    status: str, body: bytes, headers: list[tuple[str, str]], head: bool, keep_alive: bool
+) -> bytes:
+    lines = [
+        f"HTTP/1.1 {status}",
+        f"Content-Length: {len(body)}",
+        "Connection: " + ("keep-alive" if keep_alive else "close"),
+    ]
     lines += [f"{k}: {v}" for k, v in headers]
     return ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + (b"" if head else body)
 
@@ -179,7 +199,9 @@ class MetricsServer:
             self._listener.setblocking(False)
         except OSError as exc:
             self._listener.close()
-            raise ConfigError(
+            # a port in use may be free after a restart; anything else is the config's
+            error = TemporaryError if exc.errno == errno.EADDRINUSE else ConfigError
+            raise error(
                 f"{where}metrics.port: cannot serve metrics on {cfg.host}:{cfg.port}: {exc}"
             ) from exc
         self.host = cfg.host
@@ -190,11 +212,15 @@ class MetricsServer:
         self.cache_s = cache_s
         self.fd_reserve = fd_reserve
         self.counters = ExporterCounters()
+        with contextlib.suppress(ValueError):  # a second exporter on one registry
+            registry.register(_HealthCollector(self.counters))
         self._conns: dict[int, _Conn] = {}
         self._payload = b""
         self._rendered_at = -float("inf")
         self._accepting = False
         self._resume_at = 0.0
+        self._short_logged = False  # the descriptor shortage of this episode was logged
+        self._failures_logged = 0
         self._selector = selectors.DefaultSelector()
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
@@ -243,7 +269,7 @@ class MetricsServer:
                 if key.data is _WAKE:
                     self._wake_r.recv(64)
                 elif key.data is _LISTEN:
-                    self._accept()
+                    self._guarded(self._accept)
                 else:
                     self._service(key.data)
             now = time.monotonic()
@@ -251,6 +277,22 @@ class MetricsServer:
                 self.counters.timed_out += 1
                 self._drop(conn)
             self._maybe_resume()
+
+    def _guarded(self, work: Callable[[], None]) -> None:
+        """Run ``work``; whatever it raises is logged and counted, the thread lives on."""
+        try:
+            work()
+        except Exception:
+            self._failed(None)
+
+    def _failed(self, conn: _Conn | None) -> None:
+        self.counters.failed += 1
+        if self._failures_logged < 10:  # bounded: a flood must not flood the log
+            self._failures_logged += 1
+            log.exception("metrics: a request failed; its connection is closed")
+        if conn is not None and not conn.closed:
+            with contextlib.suppress(Exception):
+                self._drop(conn)
 
     def _set_accepting(self, on: bool) -> None:
         if on and not self._accepting:
@@ -273,7 +315,17 @@ class MetricsServer:
         soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
         return soft != resource.RLIM_INFINITY and open_fds() + 1 > soft - self.fd_reserve
 
-    def _pause(self) -> None:
+    def _pause(self, descriptors: bool = False) -> None:
+        if descriptors and not self._short_logged:
+            self._short_logged = True
+            soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+            log.warning(
+                "metrics: not accepting connections: %d of %d descriptors open, %d kept for "
+                "the bus; raise RLIMIT_NOFILE (LimitNOFILE= in the unit)",
+                open_fds(),
+                soft,
+                self.fd_reserve,
+            )
         self.counters.accept_paused += 1
         self._resume_at = time.monotonic() + ACCEPT_PAUSE_S
         self._set_accepting(False)
@@ -288,7 +340,7 @@ class MetricsServer:
                 self.counters.evicted += 1
                 self._drop(min(idle, key=lambda c: c.accepted))
             if self._fds_short():
-                self._pause()
+                self._pause(descriptors=True)
                 return
             try:
                 sock, _ = self._listener.accept()
@@ -296,8 +348,9 @@ class MetricsServer:
                 return
             except OSError as exc:
                 if exc.errno in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
-                    self._pause()
+                    self._pause(descriptors=exc.errno in (errno.EMFILE, errno.ENFILE))
                 return
+            self._short_logged = False  # accepting again: a new shortage is logged anew
             self._adopt(sock)
 
     def _adopt(self, sock: socket.socket) -> None:
@@ -354,6 +407,8 @@ class MetricsServer:
         except (OSError, ValueError):
             self.counters.rejected += conn.handshaking
             self._drop(conn)
+        except Exception:  # a bug in one request: that connection, never the thread
+            self._failed(conn)
 
     def _interest(self, conn: _Conn, events: int) -> None:
         if not conn.closed:
@@ -405,24 +460,37 @@ class MetricsServer:
         if headers.get("content-length", "0") not in ("", "0") or "transfer-encoding" in headers:
             self._queue(conn, "400 Bad Request", b"no request body\n", [], False, False)
         elif method not in ("GET", "HEAD"):
-            self._queue(conn, "405 Method Not Allowed", b"GET only\n", [("Allow", "GET, HEAD")],
-                        False, False)  # fmt: skip
+            self._queue(
+                conn,
+                "405 Method Not Allowed",
+                b"GET only\n",
+                [("Allow", "GET, HEAD")],
+                False,
+                False,
+            )
         elif self._auth is not None and not self._auth(headers.get("authorization", "")):
             self.counters.rejected += 1
-            self._queue(conn, "401 Unauthorized", b"unauthorized\n",
-                        [("WWW-Authenticate", 'Basic realm="cdpr-gateway"')], head_only,
-                        keep)  # fmt: skip
+            self._queue(
+                conn,
+                "401 Unauthorized",
+                b"unauthorized\n",
+                [("WWW-Authenticate", 'Basic realm="cdpr-gateway"')],
+                head_only,
+                keep,
+            )
         else:
             try:
                 payload = self._render()
             except Exception:  # a collector bug must not end the exporter thread
                 log.exception("metrics: rendering the registry failed")
-                self._queue(conn, "500 Internal Server Error", b"collector failed\n", [],
-                            False, False)  # fmt: skip
+                self._queue(
+                    conn, "500 Internal Server Error", b"collector failed\n", [], False, False
+                )
                 return
             self.counters.served += 1
-            self._queue(conn, "200 OK", payload, [("Content-Type", CONTENT_TYPE_LATEST)],
-                        head_only, keep)  # fmt: skip
+            self._queue(
+                conn, "200 OK", payload, [("Content-Type", CONTENT_TYPE_LATEST)], head_only, keep
+            )
 
     def _render(self) -> bytes:
         now = time.monotonic()
@@ -432,8 +500,15 @@ class MetricsServer:
             self.counters.renders += 1
         return self._payload
 
-    def _queue(self, conn: _Conn, status: str, body: bytes, headers: list[tuple[str, str]],
-               head: bool, keep_alive: bool) -> None:  # fmt: skip
+    def _queue(
+        self,
+        conn: _Conn,
+        status: str,
+        body: bytes,
+        headers: list[tuple[str, str]],
+        head: bool,
+        keep_alive: bool,
+    ) -> None:
         conn.outbox = memoryview(_response(status, body, headers, head, keep_alive))
         conn.close_after = not keep_alive
         self._write(conn)
@@ -450,3 +525,23 @@ class MetricsServer:
         now = time.monotonic()
         conn.deadline, conn.accepted = now + self.timeout_s, now  # keep-alive: next exchange
         conn.heard = bool(conn.inbox)
+
+
+class _HealthCollector:
+    """The exporter's own counters as ``cdpr_gateway_exporter_events_total{event}``."""
+
+    EVENTS = ("served", "failed", "rejected", "timed_out", "evicted", "accept_paused")
+
+    def __init__(self, counters: ExporterCounters) -> None:
+        self.counters = counters
+
+    def collect(self) -> Iterator[Metric]:
+        family = CounterMetricFamily(
+            "cdpr_gateway_exporter_events",
+            "What the metrics exporter did: requests served or failed, clients rejected, "
+            "timed out or evicted, pauses of accepting (descriptors or connection cap).",
+            labels=["event"],
+        )
+        for event in self.EVENTS:
+            family.add_metric([event], float(getattr(self.counters, event)))
+        yield family

@@ -1,4 +1,4 @@
-"""Prometheus metrics, read from the loop's statistics at scrape time (design.md table).
+"""Prometheus metrics, read from the loop's statistics at scrape time (the README's metrics table).
 
 :class:`GatewayCollector` is a custom collector (prometheus_client): it allocates nothing
 in the loop; each scrape turns :class:`gateway.runtime.loop.LoopStats`, the compensator's arrays
@@ -13,6 +13,7 @@ cdpr_gateway_overruns_total               counter                     cycles pas
 cdpr_gateway_record_dropped_total         counter                     samples not recorded
 cdpr_gateway_bus_roundtrip_seconds        histogram  bus              one transaction
 cdpr_gateway_errors_total                 counter    kind             see ``ERROR_KINDS``
+cdpr_gateway_gated_total                  counter    reason           values the gate wrote invalid
 cdpr_gateway_reconnects_total             counter    bus
 cdpr_gateway_connected                    gauge      bus              1 while the bus is up
 cdpr_gateway_tension_raw_newtons          gauge      cable            scaled reading
@@ -31,7 +32,11 @@ writing), 2 active, 3 fault. The two ages are NaN until the first reading.
 Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`;
 ``MetricsServer`` is re-exported here for the daemon.
 
-Cables are labelled 1..m. ``errors_total{kind="invalid_value"}`` counts channels going
+Cables are labelled 1..m. The tension and friction gauges of a channel whose status is 2
+(invalid; every channel during a PLC heartbeat fault) are NaN, never its last good value:
+the series stays (Prometheus' "avoid missing metrics": a series that comes and goes breaks
+``rate``, ``for:`` and dashboards) but carries no number that could pass for a reading, as
+the PLC's registers hold NaN. ``errors_total{kind="invalid_value"}`` counts channels going
 from good to flagged (events, not flagged cycles). Every label value of ``kind`` is
 always present (0 until it happens) so dashboards and alerts see a stable set.
 """
@@ -41,7 +46,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Any
 
-from prometheus_client import CollectorRegistry
+import numpy as np
+from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
@@ -50,6 +56,7 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 
+from drivers.base import ChannelStatus
 from gateway import __version__
 from gateway.runtime.loop import CyclicService
 from gateway.runtime.stats import Histogram
@@ -68,7 +75,7 @@ def _histogram(name: str, doc: str, hist: Histogram, labels: dict[str, str] | No
 
 
 class GatewayCollector(Collector):
-    """Yields the design.md metric families from a running :class:`CyclicService`."""
+    """Yields the metric families of the README's table from a running :class:`CyclicService`."""
 
     def __init__(self, service: CyclicService, bus: str | None = None) -> None:
         self.service = service
@@ -96,21 +103,56 @@ class GatewayCollector(Collector):
         for kind, count in stats.errors.items():
             errors.add_metric([kind], count)
         yield errors
-        yield _labelled(CounterMetricFamily, "reconnects_total", "Bus reconnections.",
-                        "bus", {bus: svc.reconnects})  # fmt: skip
-        yield _labelled(GaugeMetricFamily, "connected", "1 while the bus is up.",
-                        "bus", {bus: 1.0 if svc.bus_up else 0.0})  # fmt: skip
+        gated = CounterMetricFamily(
+            f"{PREFIX}_gated_total",
+            "Values the output gate wrote invalid instead of good, by reason.",
+            labels=["reason"],
+        )
+        for reason, stopped in zip(svc.driver.GATE_REASONS, svc.driver.gated, strict=True):
+            gated.add_metric([reason], float(stopped))
+        yield gated
+        yield _labelled(
+            CounterMetricFamily,
+            "reconnects_total",
+            "Bus reconnections.",
+            "bus",
+            {bus: svc.reconnects},
+        )
+        yield _labelled(
+            GaugeMetricFamily,
+            "connected",
+            "1 while the bus is up.",
+            "bus",
+            {bus: 1.0 if svc.bus_up else 0.0},
+        )
+        status, invalid = channel_status(svc)
         comp = svc.comp
         per_cable = (
-            ("tension_raw_newtons", "Scaled sensor reading.", comp.raw_n),
-            ("tension_corrected_newtons", "Compensated platform tension.", comp.corrected_n),
-            ("friction_newtons", "Estimated friction between sensor and platform.",
-             comp.friction_n),
-            ("channel_status", "0 good, 1 substituted, 2 invalid.", comp.status),
-        )  # fmt: skip
+            (
+                "tension_raw_newtons",
+                "Scaled sensor reading (NaN while invalid).",
+                np.where(invalid, np.nan, comp.raw_n),
+            ),
+            (
+                "tension_corrected_newtons",
+                "Compensated platform tension (NaN while invalid).",
+                np.where(invalid, np.nan, comp.corrected_n),
+            ),
+            (
+                "friction_newtons",
+                "Estimated friction between sensor and platform (NaN while invalid).",
+                np.where(invalid, np.nan, comp.friction_n),
+            ),
+            ("channel_status", "0 good, 1 substituted, 2 invalid.", status),
+        )
         for name, doc, values in per_cable:
-            yield _labelled(GaugeMetricFamily, name, doc, "cable",
-                            {str(i + 1): float(v) for i, v in enumerate(values)})  # fmt: skip
+            yield _labelled(
+                GaugeMetricFamily,
+                name,
+                doc,
+                "cable",
+                {str(i + 1): float(v) for i, v in enumerate(values)},
+            )
         info = GaugeMetricFamily(
             f"{PREFIX}_build_info", "Version and bus.", labels=["version", "bus"]
         )
@@ -133,6 +175,15 @@ class GatewayCollector(Collector):
         )
 
 
+def channel_status(svc: CyclicService) -> tuple[np.ndarray, np.ndarray]:
+    """(status per cable as the PLC was last told it, True where invalid). A heartbeat
+    fault invalidates every channel (the fault frame), whatever the readings were."""
+    status = np.asarray(svc.comp.status, dtype=float).copy()
+    if svc.heartbeat_fault:
+        status[:] = int(ChannelStatus.INVALID)
+    return status, status == int(ChannelStatus.INVALID)
+
+
 def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, float]) -> Metric:
     family = kind(f"{PREFIX}_{name}", doc, labels=[label])
     for value_label, value in values.items():
@@ -141,7 +192,10 @@ def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, floa
 
 
 def make_registry(service: CyclicService, bus: str | None = None) -> CollectorRegistry:
-    """A fresh registry holding only the gateway collector."""
+    """A fresh registry holding the gateway collector and prometheus_client's process
+    collector (``process_resident_memory_bytes``, ``process_cpu_seconds_total``,
+    ``process_open_fds``, ...: read from /proc at scrape time, nothing in the cycle)."""
     registry = CollectorRegistry()
     registry.register(GatewayCollector(service, bus))
+    ProcessCollector(registry=registry)
     return registry

@@ -14,9 +14,12 @@ nice 10 even under a SCHED_FIFO gateway) wakes every ``record.batch_s``, formats
 filled slots as whole CSV rows and frees them. It is a process, not a thread, because
 formatting in the gateway's process held the GIL: the cycle thread waited for it on
 wake-up and overruns went from 0.08 % to 0.46 % of cycles (``python -m bench record``).
-Files rotate at whole-row boundaries after ``record.rotate_bytes`` bytes of text or
+Files rotate at whole-row boundaries after ``record.rotate_bytes`` bytes or
 ``record.rotate_s`` seconds; with rotation every file is numbered (``out-0000.csv.gz``,
 ``out-0001.csv.gz``, ...) and each one is a complete recording (metadata, header, rows).
+A ``.parquet`` path writes Parquet (row groups of :data:`ROW_GROUP_S`, each leaving a
+complete file; pyarrow is imported by the writer process only, never by the gateway's);
+``record.layout: hive`` writes ``path/robot=R/date=YYYY-MM-DD/part-N.parquet``.
 A write that fails (a full disk: ``ENOSPC``) is logged once, the recorder stops (every
 later sample, and what was still in the ring, is counted as dropped), a plain CSV is cut
 back to its last whole row and the file is closed. :meth:`Recorder.close` (after SIGTERM
@@ -38,6 +41,7 @@ import json
 import logging
 import mmap
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -57,6 +61,7 @@ __all__ = ["RECORD_KINDS", "RecordConfig", "Recorder", "ring_columns"]
 log = logging.getLogger("cdpr_gateway.recorder")
 
 PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])  # where ``gateway`` is found
+ROW_GROUP_S = 5.0  # a Parquet recording's row groups: what a killed writer can lose at most
 
 
 def ring_columns(cables: int, with_mass: bool) -> list[tuple[str, str]]:
@@ -94,10 +99,13 @@ class Recorder:
         *,
         with_mass: bool = False,
         metadata: dict[str, str] | None = None,
+        period_s: float = 0.001,
     ) -> None:
         if cfg.path is None:
             raise ValueError("record.path is not set")
         self.cfg = cfg
+        self.robot = cfg.robot or socket.gethostname()
+        self.row_group_rows = max(1, round(ROW_GROUP_S / period_s))
         self.cables = cables
         cols = ring_columns(cables, with_mass)
         keep = {"t", *cfg.columns}
@@ -132,6 +140,7 @@ class Recorder:
             "source": "cdpr-gateway run --record",
             "clock": "t is the loop's monotonic clock in s, 0 at the first sample",
             "started": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "robot": self.robot,
             **(metadata or {}),
         }
         self._proc: subprocess.Popen[str] | None = None
@@ -174,8 +183,9 @@ class Recorder:
     def dropped(self) -> int:
         """Samples not recorded: a full ring, and once the writer stopped (failed, ended)
         every sample it had not written."""
-        written, stopped = self._final if self._final is not None else (
-            self._ctl[WRITTEN], bool(self._ctl[STOP]))  # fmt: skip
+        written, stopped = (
+            self._final if self._final is not None else (self._ctl[WRITTEN], bool(self._ctl[STOP]))
+        )
         return self._dropped + (self._head - written if stopped else 0)
 
     @property
@@ -191,11 +201,20 @@ class Recorder:
         self._proc = self._spawn()
         assert self._proc.stdin is not None and self._proc.stdout is not None
         job = {
-            "fd": self._fd, "rows": self._size, "width": self._width, "select": self._select,
-            "columns": self.columns, "metadata": self.metadata, "path": str(self.cfg.path),
-            "rotate_bytes": self.cfg.rotate_bytes, "rotate_s": self.cfg.rotate_s,
+            "fd": self._fd,
+            "rows": self._size,
+            "width": self._width,
+            "select": self._select,
+            "columns": self.columns,
+            "metadata": self.metadata,
+            "path": str(self.cfg.path),
+            "rotate_bytes": self.cfg.rotate_bytes,
+            "rotate_s": self.cfg.rotate_s,
             "batch_s": self.cfg.batch_s,
-        }  # fmt: skip
+            "layout": self.cfg.layout,
+            "robot": self.robot,
+            "row_group_rows": self.row_group_rows,
+        }
         try:
             self._proc.stdin.write(json.dumps(job) + "\n")
             self._proc.stdin.flush()
@@ -232,10 +251,16 @@ class Recorder:
         def spawn() -> None:
             realtime.below_the_cycle()
             try:
-                result.append(subprocess.Popen(
-                    [sys.executable, "-m", "gateway.service.recorder_proc"], stdin=subprocess.PIPE,
-                    stdout=subprocess.PIPE, pass_fds=(self._fd,), env=env, text=True,
-                ))  # fmt: skip
+                result.append(
+                    subprocess.Popen(
+                        [sys.executable, "-m", "gateway.service.recorder_proc"],
+                        stdin=subprocess.PIPE,
+                        stdout=subprocess.PIPE,
+                        pass_fds=(self._fd,),
+                        env=env,
+                        text=True,
+                    )
+                )
             except OSError as exc:
                 result.append(exc)
 

@@ -1,4 +1,5 @@
-"""The recorder's writer process: drains the shared ring, writes whole CSV rows, rotates.
+"""The recorder's writer process: drains the shared ring, writes whole rows (CSV, or Parquet
+row groups: :func:`gateway.recordings.writer.open_writer` by the file name), rotates.
 
 Started by :class:`gateway.service.recorder.Recorder` as ``python -m
 gateway.service.recorder_proc`` (a fresh interpreter: fork+exec, never a fork of the
@@ -39,6 +40,7 @@ import json
 import logging
 import mmap
 import os
+import re
 import select
 import signal
 import sys
@@ -48,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.recordings.writer import RecordingWriter
+from gateway.recordings.writer import RowWriter, open_writer
 from gateway.runtime import realtime
 
 # control block: int64 slot indices; HEAD on its own cache line, the writer's on another
@@ -71,7 +73,8 @@ class Sink:
         self.ring = ring
         self.ctl = ctl
         self.select = np.array(job["select"], dtype=np.intp)
-        self.writer: RecordingWriter | None = None
+        self.writer: RowWriter | None = None
+        self.done_rows = 0  # rows in files closed already
         self.files = 0
         self.opened_at = 0.0
         self.good_bytes = 0
@@ -97,7 +100,8 @@ class Sink:
             except OSError as exc:
                 self.fail(exc)
                 return
-            ctl[WRITTEN] += count
+            # on disk: a Parquet writer holds rows back until a row group is full
+            ctl[WRITTEN] = self.done_rows + self.writer.rows_on_disk
             ctl[TAIL] = tail + count  # after the copy: the slots are free again
 
     def maybe_rotate(self) -> None:
@@ -106,13 +110,26 @@ class Sink:
         due = (job["rotate_bytes"] is not None and w.bytes >= job["rotate_bytes"]) or (
             job["rotate_s"] is not None and time.monotonic() - self.opened_at >= job["rotate_s"]
         )
-        if due:
+        if due and w.rows > 0:  # a file holds rows (a Parquet footer alone may be 4 kB)
             self.close_file()
             self.open_next()
 
     def path(self, part: int) -> Path:
-        path = Path(self.job["path"])
-        if self.job["rotate_bytes"] is None and self.job["rotate_s"] is None:
+        """The file of part ``part``: ``path`` itself, ``STEM-NNNN.SUFFIX`` when files
+        rotate, or in the Hive layout ``path/robot=R/date=YYYY-MM-DD/part-N.parquet``
+        (N the next number free in that folder, so a restart adds files)."""
+        path, job = Path(self.job["path"]), self.job
+        if job.get("layout") == "hive":
+            day = time.strftime("%Y-%m-%d", time.gmtime())
+            folder = path / f"robot={job['robot']}" / f"date={day}"
+            folder.mkdir(parents=True, exist_ok=True)
+            taken = [
+                int(m.group(1))
+                for p in folder.glob("part-*.parquet")
+                if (m := re.fullmatch(r"part-(\d+)\.parquet", p.name))
+            ]
+            return folder / f"part-{max(taken, default=-1) + 1:04d}.parquet"
+        if job["rotate_bytes"] is None and job["rotate_s"] is None:
             return path
         stem, dot, suffix = path.name.partition(".")
         return path.with_name(f"{stem}-{part:04d}{dot}{suffix}")
@@ -122,7 +139,13 @@ class Sink:
         meta = dict(self.job["metadata"])
         if path != Path(self.job["path"]):
             meta["part"] = str(self.files)
-        self.writer = RecordingWriter(path, self.job["columns"], meta, compresslevel=1)
+        self.writer = open_writer(
+            path,
+            self.job["columns"],
+            meta,
+            compresslevel=1,
+            row_group_rows=self.job.get("row_group_rows"),
+        )
         self.good_bytes = self.writer.bytes
         self.opened_at = time.monotonic()
         self.files += 1
@@ -138,6 +161,9 @@ class Sink:
             if not self.failed:
                 self.writer = w
                 self.fail(exc)
+            return
+        self.done_rows += w.rows_on_disk
+        self.ctl[WRITTEN] = self.done_rows
 
     def fail(self, exc: OSError) -> None:
         """A write failed (disk full): stop, tell the gateway, keep whole rows on disk."""
@@ -155,13 +181,15 @@ class Sink:
         if w is not None:
             self.abandon(w)
 
-    def abandon(self, w: RecordingWriter) -> None:
-        """Close after a failed write; a plain CSV is cut back to its last whole row."""
+    def abandon(self, w: RowWriter) -> None:
+        """Close after a failed write; a plain CSV is cut back to its last whole row (a
+        Parquet writer has put its last footer back itself)."""
         with contextlib.suppress(OSError, ValueError):
-            w._raw.close()  # a buffered file may still flush part of a row here
+            w._raw.close()  # type: ignore[attr-defined]  # may still flush part of a row
         with contextlib.suppress(OSError):
             path = w.path
-            if path.suffix != ".gz" and path.is_file() and path.stat().st_size > self.good_bytes:
+            plain = path.suffix not in (".gz", ".parquet")
+            if plain and path.is_file() and path.stat().st_size > self.good_bytes:
                 os.truncate(path, self.good_bytes)
 
     def log_dropped(self, force: bool = False) -> None:

@@ -39,7 +39,10 @@ def test_default_config_is_the_paper_stand_in() -> None:
         ("friction:\n  sigma: 5\n", r"cfg.yaml: friction.sigma: unknown key"),
         ("friction:\n  pulleys:\n    - {wrap_deg: 90, mu: 0.01, r: 1}\n", r"pulleys\[0\].r"),
         ("friction:\n  model: lugre\n", r"friction.model: 'lugre' is not one of"),
-        ("friction:\n  sigma_n_m: -1\n", r"friction\.sigma_n_m: must be > 0"),
+        (
+            "friction:\n  sigma_n_m: -1\n",
+            r"friction\.sigma_n_m: must be in 1e-06\.\.1e\+09, got -1",
+        ),
         ("loop:\n  period_s: fast\n", r"loop.period_s: expected a number, got 'fast'"),
         ("bus:\n  modbus_tcp:\n    port: 70000\n", r"bus\.modbus_tcp\.port: must be in 1\.\.65535"),
         ("metrics:\n  enabled: 1\n", r"metrics.enabled: expected true or false"),
@@ -91,3 +94,13 @@ def test_listeners_beyond_loopback_are_called_out() -> None:
     assert exposure_warning("metrics.host", "127.0.0.1", 9109) is None
     line = exposure_warning("metrics.host", "0.0.0.0", 9109, "site.yaml")
     assert line is not None and "metrics.host in site.yaml binds 0.0.0.0:9109" in line
+
+
+def test_unknown_key_lists_only_keys_a_file_may_hold(tmp_path):
+    """'source' is filled in by the loader; the error must not offer it."""
+    path = tmp_path / "c.yaml"
+    path.write_text(DEFAULT_CONFIG_PATH.read_text() + "\nsauce: 1\n")
+    with pytest.raises(ConfigError, match=r"sauce: unknown key \(known here: ") as exc:
+        load_config(path)
+    known = str(exc.value).split("known here: ")[1].rstrip(")").split(", ")
+    assert "source" not in known and "geometry" in known and "sim_plc" in known

@@ -31,8 +31,10 @@ def test_the_shipped_files_are_found_through_the_package():
 
 def test_eds_paths_resolve_beside_the_config_file(tmp_path):
     data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
-    data["bus"]["canopen"] = {"gateway_eds": "nodes/my_gateway.eds",
-                              "plc_eds": str(data_file("plc_master.eds"))}  # fmt: skip
+    data["bus"]["canopen"] = {
+        "gateway_eds": "nodes/my_gateway.eds",
+        "plc_eds": str(data_file("plc_master.eds")),
+    }
     path = tmp_path / "site" / "gateway.yaml"
     path.parent.mkdir()
     path.write_text(yaml.safe_dump(data))
@@ -58,10 +60,19 @@ def test_plain_pytest_finds_the_tests_package(tmp_path):
     if not pytest_bin.exists():
         pytest.skip("no pytest script beside this interpreter")
     res = subprocess.run(
-        [str(pytest_bin), "-q", "-p", "no:cacheprovider", "--collect-only",
-         "tests/service/test_deploy.py"],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+        [
+            str(pytest_bin),
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            "--collect-only",
+            "tests/service/test_deploy.py",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     assert "No module named 'tests'" not in res.stdout
 
@@ -77,8 +88,9 @@ def test_the_daemon_modules_load_no_sim_plc():
         "    gateway.cli.main(['run', '--help'])\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] == 'sim_plc'))\n"
     )
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                         text=True, timeout=120)  # fmt: skip
+    res = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip() == "[]"
 
@@ -91,10 +103,59 @@ def test_replicate_exits_1_naming_a_missed_goal(monkeypatch, capsys, tmp_path):
         "hysteresis_after_at_most_2n": {"value": 3.5, "target": "<= 2 N", "met": False},
     }
     monkeypatch.setattr(replicate, "replicate", lambda *a, **k: {"goals": goals})
-    args = argparse.Namespace(config=str(DEFAULT_CONFIG_PATH), out=str(tmp_path),
-                              seconds_limit=1.0, no_plots=True)  # fmt: skip
+    args = argparse.Namespace(
+        config=str(DEFAULT_CONFIG_PATH), out=str(tmp_path), seconds=1.0, no_plots=True
+    )
     assert replicate.run_command("replicate", args) == 1
     err = capsys.readouterr().err
     assert "goal missed: hysteresis_after_at_most_2n" in err
     goals["hysteresis_after_at_most_2n"]["met"] = True
     assert replicate.run_command("replicate", args) == 0
+
+
+def test_building_the_package_warns_about_nothing(tmp_path):
+    """A wheel built from setup.py's package map: no 'Package ... is absent' (the 40-line
+    warning every fresh install printed for gateway.data.calibrate), and every shipped
+    config lands under gateway/data/, the calibrate examples included."""
+    import zipfile
+
+    res = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-w", str(tmp_path), str(ROOT)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stderr
+    out = res.stdout + res.stderr
+    assert "is absent" not in out and "would be ignored" not in out, out
+    (wheel,) = tmp_path.glob("cdpr_gateway-*.whl")
+    prefix = "gateway/data/"
+    built = {n[len(prefix) :] for n in zipfile.ZipFile(wheel).namelist() if n.startswith(prefix)}
+    shipped = {
+        p.relative_to(ROOT / "config").as_posix()
+        for p in (ROOT / "config").rglob("*")
+        if p.is_file()
+    }
+    assert shipped <= built, shipped - built
+
+
+def test_every_runtime_dependency_is_imported_by_the_shipped_code():
+    """[project] dependencies hold what the installed package imports (gateway, drivers,
+    sim_plc); a library only the tests use (pymodbus' client) belongs to ``dev``."""
+    import ast
+    import re
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    names = {re.split(r"[<>=!~ \[;]", d, maxsplit=1)[0].lower() for d in deps}
+    module_of = {"pyyaml": "yaml", "python-can": "can", "prometheus-client": "prometheus_client"}
+    imported: set[str] = set()
+    for package in ("gateway", "drivers", "sim_plc"):
+        for path in (ROOT / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.Import):
+                    imported |= {a.name.split(".")[0] for a in node.names}
+                elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                    imported.add(node.module.split(".")[0])
+    unused = sorted(n for n in names if module_of.get(n, n.replace("-", "_")) not in imported)
+    assert unused == [], f"runtime dependencies nothing shipped imports: {unused}"

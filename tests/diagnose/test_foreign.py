@@ -127,19 +127,44 @@ def test_no_finding_when_nothing_is_missing(fo, nominal):
         (Foreign(effects={"lowpass": {"tau_s": 0.08}}), "lowpass", "tau_s", 0.08, 0.05),
         (Foreign(effects={"viscous": {"c_ns_m": 300.0}}), "viscous", "c_ns_m", 300.0, 0.05),
         (Foreign(effects={"offset": {"c_n": -15.0}}), "offset", "c_n", -15.0, 0.03),
-        (Foreign(tension=2000, noise_n=1.0, effects={"gain": {"g": 0.004}}), "gain", "g",
-         0.004, 0.1),
-        (Foreign(tension=20, noise_n=0.05, effects={"viscous": {"c_ns_m": 2.0}}), "viscous",
-         "c_ns_m", 2.0, 0.1),
-        (Foreign(rig=True, tension=150, model="coulomb", effects={"offset": {"c_n": 1.0}}),
-         "offset", "c_n", 1.0, 0.15),
+        (
+            Foreign(tension=2000, noise_n=1.0, effects={"gain": {"g": 0.004}}),
+            "gain",
+            "g",
+            0.004,
+            0.1,
+        ),
+        (
+            Foreign(tension=20, noise_n=0.05, effects={"viscous": {"c_ns_m": 2.0}}),
+            "viscous",
+            "c_ns_m",
+            2.0,
+            0.1,
+        ),
+        (
+            Foreign(rig=True, tension=150, model="coulomb", effects={"offset": {"c_n": 1.0}}),
+            "offset",
+            "c_n",
+            1.0,
+            0.15,
+        ),
         (Foreign(sigma_n_m=200.0), "presliding", "sigma_n_m", 200.0, 0.1),
         (Foreign(noise="hum", effects={"offset": {"c_n": 1.0}}), "offset", "c_n", 1.0, 0.1),
         (Foreign(t0=1.7e9, effects={"drift": {"k_n_s": 0.05}}), "drift", "k_n_s", 0.05, 0.1),
     ],
-    ids=["delay40ms_100hz", "lowpass80ms", "viscous300", "offset-15", "gain_2kN", "viscous_20N",
-         "rig_coulomb_offset", "presliding_vs_coulomb_nominal", "offset_hum", "drift_epoch"],
-)  # fmt: skip
+    ids=[
+        "delay40ms_100hz",
+        "lowpass80ms",
+        "viscous300",
+        "offset-15",
+        "gain_2kN",
+        "viscous_20N",
+        "rig_coulomb_offset",
+        "presliding_vs_coulomb_nominal",
+        "offset_hum",
+        "drift_epoch",
+    ],
+)
 def test_effect_outside_the_suite_is_named_and_fitted(fo, effect, name, value, rel):
     nominal = "coulomb" if effect == "presliding" else None
     report = _run(fo, nominal)

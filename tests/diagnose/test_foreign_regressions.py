@@ -1,4 +1,4 @@
-"""Regression cases of issue 11 (diagnosis on recordings it has never seen), each made by
+"""Regression cases of the diagnosis on recordings it has never seen, each made by
 the independent generator (:mod:`tests.diagnose_helpers`), short recordings."""
 
 from __future__ import annotations
@@ -19,7 +19,9 @@ from gateway.diagnose.engine import (
 )
 from gateway.diagnose.fit import spec_for
 from gateway.diagnose.forward import CableData, Forward
-from gateway.diagnose.select import CableOutcome, Thresholds, drop_unvalidated
+from gateway.diagnose.reference import CableUnit, validate
+from gateway.diagnose.select import Selector, Thresholds
+from gateway.diagnose.stats import white_noise
 from tests.diagnose_helpers import Foreign, generate, recording_of, run_foreign
 from tests.foreign_cases import P5_MIXED, RIG_AXIS
 
@@ -30,8 +32,14 @@ def _found(diag) -> dict[str, dict]:
 
 def test_rig_without_pulleys_fits_f0_instead_of_crashing():
     """Nominal `none` with no pulleys: the coulomb candidate used to divide by zero."""
-    fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", seconds=15.0,
-                 effects={"coulomb": {"f0_n": 5.0}})  # fmt: skip
+    fo = Foreign(
+        rig=True,
+        tension=150.0,
+        pulleys=(),
+        model="coulomb",
+        seconds=15.0,
+        effects={"coulomb": {"f0_n": 5.0}},
+    )
     found = _found(run_foreign(fo, "none", ()))
     assert list(found) == ["coulomb"]
     assert found["coulomb"]["parameters"]["f0_n"][0] == pytest.approx(5.0, rel=0.05)
@@ -40,8 +48,17 @@ def test_rig_without_pulleys_fits_f0_instead_of_crashing():
 def test_positioning_axis_recovers_all_four_terms():
     """Inertia, viscous, load-independent Coulomb and offset on a rig moving at a few
     constant speeds with many reversals: the joint optimum, not a stand-in."""
-    fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
-                 vmax=0.13, seconds=16.0, rate_hz=250.0, effects=RIG_AXIS)  # fmt: skip
+    fo = Foreign(
+        rig=True,
+        tension=150.0,
+        pulleys=(),
+        model="coulomb",
+        motion="positioning",
+        vmax=0.13,
+        seconds=16.0,
+        rate_hz=250.0,
+        effects=RIG_AXIS,
+    )
     diag = run_foreign(fo, "none", ())
     found = _found(diag)
     assert set(found) == {"inertia", "viscous", "coulomb", "offset"}
@@ -56,8 +73,9 @@ def test_positioning_axis_recovers_all_four_terms():
 def test_pair_found_where_no_single_passes():
     """Offset and drift that cancel in the mean: with the single-effect screen made
     impassable, the pair screen still finds both (and fits them)."""
-    fo = Foreign(model="coulomb", seconds=20.0,
-                 effects={"offset": {"c_n": 0.6}, "drift": {"k_n_s": -0.06}})  # fmt: skip
+    fo = Foreign(
+        model="coulomb", seconds=20.0, effects={"offset": {"c_n": 0.6}, "drift": {"k_n_s": -0.06}}
+    )
     rec = recording_of(generate(fo))
     fr = FrictionConfig(model="coulomb", pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys))
     from gateway.diagnose.engine import diagnose
@@ -78,8 +96,11 @@ def test_noise_free_jittered_recording_gives_no_finding(rate, jitter):
     fo = Foreign(rate_hz=rate, jitter_s=jitter, noise_n=0.0, seconds=15.0)
     cols = generate(fo)
     rec = recording_of(cols)
-    fr = FrictionConfig(model="dahl", pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys),
-                        sigma_n_m=fo.sigma_n_m)  # fmt: skip
+    fr = FrictionConfig(
+        model="dahl",
+        pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys),
+        sigma_n_m=fo.sigma_n_m,
+    )
     assert _found(diagnose(rec, fr)) == {}
     t, v = cols["t"], cols["velocity_1"]
     data = CableData(t, v, cols["tension_platform_1"], cols["tension_sensor_1"], float(t[0]))
@@ -110,14 +131,14 @@ def test_validation_drops_an_effect_that_does_not_generalise():
     train = blocks % 2 == 0
     specs = {e: spec_for(e, d, nom, d.ts, train) for e in ("viscous", "offset")}
     theta = {"viscous": np.array([80.0]), "offset": np.array([-0.02])}
-    stderr = {e: np.array([0.01]) for e in theta}
-    outcome = CableOutcome(["viscous", "offset"], theta, stderr, specs)
-    out, dropped = drop_unvalidated(
-        fw, vfw, np.ones(vd.t.size, bool), *time_blocks(vrec.t), outcome, train, Thresholds()
+    sel = Selector(
+        CableUnit(fw, blocks, int(blocks.max()) + 1, ["viscous", "offset"]), Thresholds()
     )
+    model = sel.unit.evaluate(theta, specs)
+    out, dropped = validate(sel, model, vfw, np.ones(vd.t.size, bool), Thresholds())
     assert dropped == ["offset"]
-    assert out.kept == ["viscous"]
-    assert out.theta["viscous"][0] == pytest.approx(80.0, rel=0.1)
+    assert list(out.kept) == ["viscous"]
+    assert out.kept["viscous"][0] == pytest.approx(80.0, rel=0.1)
 
 
 def test_physical_bounds_on_inertia_viscous_and_gain():
@@ -144,8 +165,13 @@ def test_negative_inertia_is_never_reported_as_physics():
 def test_clipped_readings_are_detected_excluded_counted_and_named():
     from gateway.diagnose.plots import summary
 
-    fo = Foreign(cables=2, seconds=15.0, clip_n=400.0, clip_cables=(2,),
-                 effects={"viscous": {"c_ns_m": 300.0}})  # fmt: skip
+    fo = Foreign(
+        cables=2,
+        seconds=15.0,
+        clip_n=400.0,
+        clip_cables=(2,),
+        effects={"viscous": {"c_ns_m": 300.0}},
+    )
     diag = run_foreign(fo)
     clip = diag.report["clipped"]
     assert clip["per_cable"][0] == 0
@@ -215,22 +241,32 @@ def test_subset_search_undoes_a_stand_in():
     holds the viscous force at the typical speed), the best-subset search reaches the
     joint optimum of the four terms."""
     from gateway.diagnose.engine import cable_candidates, candidates_for
-    from gateway.diagnose.select import CableSelector
 
-    fo = Foreign(rig=True, tension=150.0, pulleys=(), model="coulomb", motion="positioning",
-                 vmax=0.13, seconds=16.0, rate_hz=250.0, effects=RIG_AXIS)  # fmt: skip
+    fo = Foreign(
+        rig=True,
+        tension=150.0,
+        pulleys=(),
+        model="coulomb",
+        motion="positioning",
+        vmax=0.13,
+        seconds=16.0,
+        rate_hz=250.0,
+        effects=RIG_AXIS,
+    )
     rec = recording_of(generate(fo))
     nom = nominal_from(FrictionConfig(model="none", pulleys=()))
     d = cable_data(rec, rec.tension_platform, None)[0]
     fw = Forward(d, nom)
     blocks, nb = time_blocks(rec.t)
-    sel = CableSelector(fw, blocks, nb, cable_candidates(candidates_for(False), d, nom),
-                        Thresholds())  # fmt: skip
-    specs = {e: spec_for(e, d, nom, d.ts, sel.train) for e in ("inertia", "coulomb")}
-    stand_in = sel._fit({"inertia": np.array([95.0]), "coulomb": np.array([0.0, 36.0])}, specs)
-    assert sel._far_above_noise(stand_in)
+    unit = CableUnit(fw, blocks, nb, cable_candidates(candidates_for(False), d, nom))
+    sel = Selector(unit, Thresholds())
+    specs = {e: spec_for(e, d, nom, d.ts, unit.train) for e in ("inertia", "coulomb")}
+    stand_in = sel.fit({"inertia": np.array([95.0]), "coulomb": np.array([0.0, 36.0])}, specs)
+    assert sel.left(stand_in)
     out, _ = sel._look_further(stand_in, ["inertia", "coulomb"])
     assert set(out.kept) == {"inertia", "viscous", "coulomb", "offset"}
     assert out.kept["viscous"][0] == pytest.approx(200.0, rel=0.05)
     assert out.kept["coulomb"][1] == pytest.approx(20.0, rel=0.05)
-    assert not sel._far_above_noise(out)
+    held = out.resid[unit.test]
+    # no longer far above the noise (the stand-in left 3x it; no warm-up mask here)
+    assert np.sqrt(np.mean(held**2)) < 3.0 * white_noise(out.resid[unit.train])

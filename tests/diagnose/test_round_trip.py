@@ -110,7 +110,9 @@ def test_hidden_found_written_and_then_nothing_left(name: str, tmp_path: Path) -
         assert set(friction.effects) == {name}
         written = {p: list(v) for p, v in friction.effect_values(8)[name].items()}
         assert not within_tolerance(name, truth, written), (
-            ref, within_tolerance(name, truth, written))  # fmt: skip
+            ref,
+            within_tolerance(name, truth, written),
+        )
         if any((tolerance(name, p) or ("",))[0] == "angle" for p in truth):
             # a phase L0 / r away from the recording's start is only as good as r there:
             # the written model's contribution over the recorded lengths is what must match

@@ -28,8 +28,14 @@ FAST = {
 
 
 # over ~5 s each: `make test` leaves them to `make test-long` (CI runs both)
-LONG = {"plant_mass_change", "plant_viscous", "gain+coulomb", "stribeck+inertia",
-        "lowpass+inertia", "plant_clean"}  # fmt: skip
+LONG = {
+    "plant_mass_change",
+    "plant_viscous",
+    "gain+coulomb",
+    "stribeck+inertia",
+    "lowpass+inertia",
+    "plant_clean",
+}
 
 
 def _cases():

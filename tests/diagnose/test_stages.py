@@ -12,7 +12,7 @@ from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate
 from gateway.diagnose.engine import nominal_from, time_blocks
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
-from gateway.diagnose.select import holdout_z
+from gateway.diagnose.stats import holdout_z
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate
 
@@ -182,8 +182,12 @@ def test_standstill_recording_finds_offset_not_eccentricity():
     t = np.arange(10000) * 1e-3
     tp = 150 + 20 * np.sin(2 * math.pi * 0.3 * t)
     ts = tp + 0.3 + rng.normal(0, 0.4, t.size)
-    rec = Recording(t=t, velocity=np.zeros((t.size, 1)), tension_sensor=ts[:, None],
-                    tension_platform=tp[:, None])  # fmt: skip
+    rec = Recording(
+        t=t,
+        velocity=np.zeros((t.size, 1)),
+        tension_sensor=ts[:, None],
+        tension_platform=tp[:, None],
+    )
     report = diagnose(rec, FrictionConfig()).report
     assert [f["effect"] for f in report["findings"]] == ["offset"]
     assert report["findings"][0]["parameters"]["c_n"][0] == pytest.approx(0.3, abs=0.03)
@@ -205,12 +209,16 @@ def test_recomputed_predictions_give_the_reported_rmse():
         nominal, final = diag.predictions(i)
         assert (final is nominal) == (not diag.final_theta(i))
         r0, r1 = diag.measured[:, i] - nominal, diag.measured[:, i] - final
-        assert_allclose(math.sqrt(np.mean(r0**2)), diag.report["baseline"]["per_cable_rmse_n"][i],
-                        rtol=1e-12)  # fmt: skip
+        assert_allclose(
+            math.sqrt(np.mean(r0**2)), diag.report["baseline"]["per_cable_rmse_n"][i], rtol=1e-12
+        )
         sse += [r0 @ r0, r1 @ r1]
     n = rec.samples * rec.cables
-    assert_allclose(np.sqrt(sse / n), [diag.report["baseline"]["rmse_n"],
-                    diag.report["final"]["rmse_n"]], rtol=1e-12)  # fmt: skip
+    assert_allclose(
+        np.sqrt(sse / n),
+        [diag.report["baseline"]["rmse_n"], diag.report["final"]["rmse_n"]],
+        rtol=1e-12,
+    )
     nom_thin, fin_thin = residual_series(diag)
     assert nom_thin.shape == fin_thin.shape == (diag.t[thin(diag.t.size)].size, rec.cables)
     assert_allclose(fin_thin[:, 0], diag.predictions(0)[1][thin(diag.t.size)], rtol=0)

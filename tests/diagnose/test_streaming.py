@@ -1,4 +1,4 @@
-"""The memory restructuring (issue 11) keeps every result: streamed forms equal the whole."""
+"""The memory restructuring keeps every result: streamed forms equal the whole."""
 
 from __future__ import annotations
 
@@ -82,10 +82,17 @@ def test_return_large_frees_is_idempotent() -> None:
     assert return_large_frees() == first  # a second call changes nothing
 
 
-@pytest.mark.parametrize("effects", [
-    {"inertia": {"m_eff_kg": 0.3}, "lowpass": {"tau_s": [0.0, 0.01] * 4}, "delay": {"d_s": 0.004}},
-    {"mass_change": {"q_kg_s": 0.01}, "offset": {"c_n": [0.3, -0.2] * 4}},
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "effects",
+    [
+        {
+            "inertia": {"m_eff_kg": 0.3},
+            "lowpass": {"tau_s": [0.0, 0.01] * 4},
+            "delay": {"d_s": 0.004},
+        },
+        {"mass_change": {"q_kg_s": 0.01}, "offset": {"c_n": [0.3, -0.2] * 4}},
+    ],
+)
 def test_reading_batch_equals_the_whole_run_formula(effects: dict) -> None:
     from sim_plc import plant
     from sim_plc.scenarios import Scenario, plant_config

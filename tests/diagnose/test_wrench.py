@@ -1,4 +1,4 @@
-"""Issue 10 part 2: the diagnosis from the wrench balance when there is no platform tension.
+"""The diagnosis from the wrench balance when there is no platform tension.
 
 Recordings come from the soft PLC's plant whose controller distributes tensions by Pott's
 closed form with its own limits (``sim_plc.distribution``), not by the gateway's statics;
@@ -113,8 +113,9 @@ def _pose_problem(pose=(0.1, -0.05, 1.6, 0.02, -0.03, 0.05), mass=40.0):
 
 def test_qp_with_midpoint_target_is_the_gateway_statics():
     a, w = _pose_problem()
-    assert_allclose(qp(a, w, 20.0, 490.0, 255.0), statics.distribute_tensions(a, w, 20.0, 490.0),
-                    atol=1e-7)  # fmt: skip
+    assert_allclose(
+        qp(a, w, 20.0, 490.0, 255.0), statics.distribute_tensions(a, w, 20.0, 490.0), atol=1e-7
+    )
 
 
 @pytest.mark.parametrize(
@@ -273,8 +274,14 @@ def test_standing_platform_leaves_per_cable_effects_unidentifiable():
     tp = platform.platform_tensions(replace(full, t=t, pose=pose, mass=np.full(n, 40.0)), cfg)
     rng = np.random.default_rng(0)
     reading = tp + rng.normal(0, NOISE, tp.shape)
-    rec = Recording(t=t, velocity=np.zeros((n, 8)), tension_sensor=reading, pose=pose,
-                    mass=np.full(n, 40.0), source="still.csv")  # fmt: skip
+    rec = Recording(
+        t=t,
+        velocity=np.zeros((n, 8)),
+        tension_sensor=reading,
+        pose=pose,
+        mass=np.full(n, 40.0),
+        source="still.csv",
+    )
     assert reference_mode(rec) == "wrench"
     rep = diagnose_wrench(rec, cfg.friction, cfg).report
     check_report(rep)
@@ -311,8 +318,19 @@ def test_cli_wrench_mode_writes_report_and_pictures(tmp_path):
     path = tmp_path / "pose_only.csv.gz"
     write_recording(path, rec)
     out = tmp_path / "r.json"
-    rc = main(["diagnose", str(path), "--model", str(DEFAULT_CONFIG_PATH), "--json", str(out),
-               "--report", str(tmp_path / "rep"), "--quiet"])  # fmt: skip
+    rc = main(
+        [
+            "diagnose",
+            str(path),
+            "--model",
+            str(DEFAULT_CONFIG_PATH),
+            "--json",
+            str(out),
+            "--report",
+            str(tmp_path / "rep"),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     report = json.loads(out.read_text())
     check_report(report)

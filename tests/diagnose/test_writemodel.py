@@ -1,5 +1,5 @@
 """``diagnose --write-model``: the fitted model file, read back by ``run`` and
-``diagnose --model`` (issue 10 part 3).
+``diagnose --model``.
 
 The self-consistency tests diagnose a recording, write FITTED.yaml, and diagnose the same
 recording with FITTED.yaml as the model: nothing is left to find (verdict ``none``), in
@@ -177,8 +177,9 @@ def test_self_consistency_wrench_reference(tmp_path, capsys):
 
 
 def test_self_consistency_platform_tension_reference(tmp_path):
-    sc = Scenario("wm", {"viscous": {"c_ns_m": 8.0}, "offset": {"c_n": 1.5}}, cables=1,
-                  seconds=20.0)  # fmt: skip
+    sc = Scenario(
+        "wm", {"viscous": {"c_ns_m": 8.0}, "offset": {"c_n": 1.5}}, cables=1, seconds=20.0
+    )
     rec, model = write_scenario(tmp_path, sc)
     fitted = tmp_path / "fitted.yaml"
     first = _diagnose(rec, model, tmp_path, "first", fitted)
@@ -213,9 +214,14 @@ def test_inadmissible_fitted_values_are_clamped_and_named(tmp_path):
     """A negative f0 (mu and f0 trade off on a cable of nearly constant tension) cannot be
     written: it becomes 0 and the file's header says so."""
     report = _report(
-        [{"effect": "coulomb", "cables": [1, 2], "parameters": {"mu": [0.015, 0.017],
-                                                                "f0_n": [1.2, -0.24]}}]
-    )  # fmt: skip
+        [
+            {
+                "effect": "coulomb",
+                "cables": [1, 2],
+                "parameters": {"mu": [0.015, 0.017], "f0_n": [1.2, -0.24]},
+            }
+        ]
+    )
     out = tmp_path / "fitted.yaml"
     write_model(out, DEFAULT_CONFIG_PATH, load_friction(DEFAULT_CONFIG_PATH), report)
     f0 = load_config(out).friction.effect_values(M)["coulomb"]["f0_n"]
@@ -226,9 +232,14 @@ def test_inadmissible_fitted_values_are_clamped_and_named(tmp_path):
 def test_negative_f0_folds_into_mu_at_the_mean_tension(tmp_path):
     rec, _ = _plant({}, 0.0, 2.0)
     report = _report(
-        [{"effect": "coulomb", "cables": [1, 2], "parameters": {"mu": [0.015, 0.027],
-                                                                "f0_n": [1.2, -9.0]}}]
-    )  # fmt: skip
+        [
+            {
+                "effect": "coulomb",
+                "cables": [1, 2],
+                "parameters": {"mu": [0.015, 0.027], "f0_n": [1.2, -9.0]},
+            }
+        ]
+    )
     out = tmp_path / "fitted.yaml"
     friction = load_friction(DEFAULT_CONFIG_PATH)
     write_model(out, DEFAULT_CONFIG_PATH, friction, report, rec)

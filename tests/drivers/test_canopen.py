@@ -13,6 +13,7 @@ from drivers.base import ChannelStatus, DriverState, make_driver
 from drivers.s7 import S7Analog
 from gateway.errors import DriverInitError, DriverTimeoutError
 from tests.canopen_helpers import CanopenRig, canopen_config, fill_image, rig  # noqa: F401
+from tests.loop_helpers import fresh
 
 EDS_FILES = {
     "config/analog_in_401.eds": 0x10,
@@ -118,7 +119,7 @@ def test_driver_writes_land_in_the_image(rig: CanopenRig) -> None:  # noqa: F811
     out.gateway_heartbeat = 0x1234
     out.gateway_state = 2
     rig.cycle()
-    rig.driver.write_from(out)
+    rig.driver.write_from(fresh(out, rig.driver))
     assert rig.driver.state is DriverState.ACTIVE
     assert rig.plc.poll() == 3
     img = rig.image
@@ -214,7 +215,7 @@ def test_real_time_thread_serves_the_driver(rig: CanopenRig) -> None:  # noqa: F
         except DriverTimeoutError:
             continue
         rig.outputs.gateway_heartbeat = good
-        rig.driver.write_from(rig.outputs)
+        rig.driver.write_from(fresh(rig.outputs, rig.driver))
         good += 1
         if good == 50:
             break

@@ -1,4 +1,4 @@
-"""Faults on the CANopen bus seen through the whole gateway (issue 6).
+"""Faults on the CANopen bus seen through the whole gateway.
 
 A silent analog module (its PDOs lost) and a missing SYNC: the gateway writes nothing
 computed from a failed read (its heartbeat at the PLC stops moving), counts the timeouts,

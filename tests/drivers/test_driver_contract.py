@@ -24,6 +24,7 @@ from drivers.base import (
 )
 from gateway.errors import DriverError, DriverInitError
 from tests.driver_contract_helpers import HARNESSES, DriverHarness
+from tests.loop_helpers import fresh
 
 pytestmark = pytest.mark.loopback
 
@@ -57,7 +58,7 @@ def _fail_io(d: Driver, inputs: Inputs, out: Outputs) -> DriverError:
     for _ in range(MAX_FAILING_CALLS):
         try:
             d.read_into(inputs)
-            d.write_from(out)
+            d.write_from(fresh(out, d))
         except DriverError as exc:
             return exc
     raise AssertionError(f"{d.name}: no DriverError in {MAX_FAILING_CALLS} cycles")
@@ -138,7 +139,7 @@ class DriverContract:
         img = harness.image
         with harness.driver as d:
             out = _outputs(d.cables)
-            d.write_from(out)
+            d.write_from(fresh(out, d))
             assert d.state is DriverState.ACTIVE
             harness.propagate()
             with img.lock:
@@ -154,7 +155,7 @@ class DriverContract:
         harness.propagate()
         with harness.driver as d:
             out, inputs = _outputs(d.cables), Inputs.allocate(d.cables)
-            d.exchange(out, inputs)
+            d.exchange(fresh(out, d), inputs)
             assert inputs.plc_heartbeat == 999
             assert d.state is DriverState.ACTIVE
             harness.propagate()
@@ -172,7 +173,7 @@ class DriverContract:
         assert d.state is DriverState.CONNECTED
         d.read_into(inputs)
         assert d.state is DriverState.CONNECTED
-        d.write_from(out)
+        d.write_from(fresh(out, d))
         assert d.state is DriverState.ACTIVE
         harness.stop()
         _fail_io(d, inputs, out)

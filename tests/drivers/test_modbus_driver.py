@@ -21,6 +21,7 @@ from gateway.errors import (
     DriverIOError,
     DriverTimeoutError,
 )
+from tests.loop_helpers import fresh
 from tests.modbus_helpers import (
     LOCALHOST,
     FakeServer,
@@ -66,11 +67,11 @@ def test_reads_and_writes_against_the_soft_plc(use_fc23: bool) -> None:
             assert_allclose(inputs.pose, img.pose, rtol=1e-7)
             assert inputs.plc_heartbeat == img.plc_heartbeat
             out = _outputs()
-            drv.write_from(out)  # always at once (function 16)
+            drv.write_from(fresh(out, drv))  # always at once (function 16)
             assert drv.state is DriverState.ACTIVE
             assert img.gateway_writes == 1
             img.gateway_heartbeat = 0
-            drv.exchange(out, inputs)  # fc23: one transaction; else 16 then 3
+            drv.exchange(fresh(out, drv), inputs)  # fc23: one transaction; else 16 then 3
             assert img.gateway_writes == 2
             assert_allclose(img.corrected_n, out.tension_corrected_n, rtol=1e-7)
             assert_array_equal(img.channel_status, out.channel_status)
@@ -92,7 +93,7 @@ def test_exchange_is_one_function_23_transaction(use_fc23: bool, functions: list
     with FakeServer(respond) as fake:
         with ModbusTcpDriver(config_for(fake.port, use_fc23=use_fc23)) as drv:
             inputs = Inputs.allocate(8)
-            drv.exchange(_outputs(), inputs)
+            drv.exchange(fresh(_outputs(), drv), inputs)
             assert inputs.plc_heartbeat == 7
             drv.exchange(None, inputs)
         assert [r[7] for r in fake.requests] == functions

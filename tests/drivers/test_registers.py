@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 
 import numpy as np
 import pytest
@@ -151,15 +152,20 @@ def test_s7_round_trip_in_range(counts: list[int]) -> None:
     assert_array_equal(codec.decode(np.zeros(8), raw=True), counts)
 
 
-def test_integer_encode_clips_and_nan_is_zero() -> None:
+def test_integer_encode_writes_the_sentinel_never_a_clipped_value() -> None:
     codec, _ = _codec(RegisterField(0, 3, "uint16"))
-    codec.encode(np.array([-5.0, 70000.0, np.nan]))
-    assert_array_equal(codec.decode(np.zeros(3)), [0, 65535, 0])
-    codec.encode(np.array([1, 2, 3], dtype=np.uint16))  # the fast path
-    assert_array_equal(codec.decode(np.zeros(3)), [1, 2, 3])
-    single, _ = _codec(RegisterField(0, 1, "uint16"))
-    single.encode(123456)
-    assert single.decode_int() == 65535
+    codec.encode(np.array([-5.0, 70000.0, np.nan]))  # none fits: the sentinel, 65535
+    assert_array_equal(codec.decode(np.zeros(3)), [65535, 65535, 65535])
+    codec.encode(np.array([1, 2, 65534], dtype=np.uint16))
+    assert_array_equal(codec.decode(np.zeros(3)), [1, 2, 65534])
+    raw, _ = _codec(RegisterField(0, 1, "uint16"))
+    raw.encode(123456, raw=True)  # raw values (the soft PLC's counts) are clipped
+    assert raw.decode_int() == 65535
+    signed, _ = _codec(RegisterField(0, 2, "int16", invalid=32767))
+    signed.encode(np.array([-32768.0, 32767.0]))  # the sentinel's value itself is refused
+    assert_array_equal(signed.decode(np.zeros(2)), [-32768, 32767])
+    signed.encode(np.array([32766.0, 40000.0]))
+    assert_array_equal(signed.decode(np.zeros(2)), [32766, 32767])
 
 
 def test_decode_fills_the_given_buffer() -> None:
@@ -267,7 +273,7 @@ def test_plant_adc_uses_the_codec() -> None:
     assert_allclose(counts_to_newton(counts, 500.0, 27648), S7Analog(500.0).decode(counts))
 
 
-# --- FieldGroup: the fused codec gives the per-field codecs' results bit for bit ----------
+# --- the one codec against an independent reference (struct, Python floats) ------------
 # Every distinct tuple of value types compiles once (numba, cached on disk): the tests use
 # groups of four fields so that few signatures are compiled; what varies is the data, the
 # field types, word orders, scales, S7 format and raw flags (the plan, not the signature).
@@ -280,6 +286,8 @@ GROUP_FIELDS = st.tuples(
     st.integers(1, 8),
 )
 FOUR_FIELDS = st.lists(GROUP_FIELDS, min_size=4, max_size=4)
+_CODES = {"int16": "h", "uint16": "H", "int32": "i", "uint32": "I", "float32": "f"}
+_SENTINEL = {"int16": -32768, "uint16": 65535, "int32": -(2**31), "uint32": 2**32 - 1}
 
 
 def _group_layout(specs: list[tuple]) -> tuple[list[RegisterField], list[bool], int]:
@@ -301,9 +309,67 @@ def _group_layout(specs: list[tuple]) -> tuple[list[RegisterField], list[bool], 
     return fields, raws, 2 * (address + 1)
 
 
+def _swap(data: bytes, field: RegisterField) -> bytes:
+    """The bytes of one value in high-word-first order (32-bit ``low_first`` swapped)."""
+    if len(data) == 4 and field.word_order == "low_first":
+        return data[2:] + data[:2]
+    return data
+
+
+def _ref_decode(field: RegisterField, buf: bytes, raw: bool) -> list[float]:
+    size = 4 if field.words == 2 * field.count else 2
+    out = []
+    for i in range(field.count):
+        at = 2 * field.address + size * i
+        (v,) = struct.unpack(">" + _CODES[field.type], _swap(buf[at : at + size], field))
+        if field.type == "float32":
+            f32 = np.float32(v)
+            out.append(
+                float(f32) if raw or field.scale == 1.0 else float(f32 * np.float32(field.scale))
+            )
+        elif raw:
+            out.append(float(v))
+        elif field.format == "s7_analog":
+            analog = S7Analog(500.0)
+            ok = analog.min_counts <= v <= analog.max_counts
+            out.append(v * analog.newtons_per_count if ok else math.nan)
+        else:
+            out.append(float(v) if field.scale == 1.0 else v * field.scale)
+    return out
+
+
+def _ref_encode_one(field: RegisterField, x: float, raw: bool) -> bytes:
+    code = _CODES[field.type]
+    if field.type == "float32":
+        f = x if raw else x / field.scale
+        return _swap(struct.pack(">f", np.float32(f)), field)  # numpy's cast: inf beyond
+    lo, hi = {"h": (-32768, 32767), "H": (0, 65535), "i": (-(2**31), 2**31 - 1)}.get(
+        code, (0, 2**32 - 1)
+    )
+    if raw:
+        f = 0 if math.isnan(x) else min(max(np.rint(x), lo), hi)
+    elif field.format == "s7_analog":
+        n = np.rint(x / S7Analog(500.0).newtons_per_count)
+        f = 32767 if math.isnan(n) or n > 32511 else -32768 if n < -4864 else n
+    else:
+        f = np.rint(x / field.scale)
+        s = _SENTINEL[field.type]
+        good_lo, good_hi = (s + 1, hi) if s == lo else (lo, s - 1)
+        f = s if math.isnan(f) or not good_lo <= f <= good_hi else f
+    return _swap(struct.pack(">" + code, int(f)), field)
+
+
+def _ref_encode(field: RegisterField, value, raw: bool, buf: bytearray) -> None:
+    size = 4 if field.words == 2 * field.count else 2
+    values = np.broadcast_to(np.asarray(value, dtype=float), (field.count,))
+    for i, x in enumerate(values):
+        at = 2 * field.address + size * i
+        buf[at : at + size] = _ref_encode_one(field, float(x), raw)
+
+
 @settings(max_examples=80, deadline=None)
 @given(specs=FOUR_FIELDS, data=st.binary(min_size=400, max_size=400))
-def test_group_decode_equals_the_codecs(specs: list[tuple], data: bytes) -> None:
+def test_decode_equals_the_reference(specs: list[tuple], data: bytes) -> None:
     fields, raws, size = _group_layout(specs)
     buf = bytearray(data[:size].ljust(size, b"\x00"))
     codecs = [FieldCodec(f, buf, 0, 0, SENSOR) for f in fields]
@@ -311,8 +377,10 @@ def test_group_decode_equals_the_codecs(specs: list[tuple], data: bytes) -> None
     FieldGroup(codecs, raws).decode(outs)
     for codec, raw, got in zip(codecs, raws, outs, strict=True):
         with np.errstate(all="ignore"):  # numpy warns when it casts a signalling NaN
-            want = codec.decode(np.zeros(codec.count), raw=raw)
-        assert_array_equal(got.view(np.uint64), want.view(np.uint64))  # bit for bit, NaN too
+            want = np.array(_ref_decode(codec.field, bytes(buf), raw))
+            one = codec.decode(np.zeros(codec.count), raw=raw)  # a codec alone: the same
+        assert_array_equal(got, want)  # NaN where NaN
+        assert_array_equal(got.view(np.uint64), one.view(np.uint64))
 
 
 def _floats(n: int) -> st.SearchStrategy[np.ndarray]:
@@ -326,7 +394,7 @@ def _floats(n: int) -> st.SearchStrategy[np.ndarray]:
 
 @settings(max_examples=120, deadline=None)
 @given(specs=FOUR_FIELDS, data=st.data())
-def test_group_encode_equals_the_codecs(specs: list[tuple], data: st.DataObject) -> None:
+def test_encode_equals_the_reference(specs: list[tuple], data: st.DataObject) -> None:
     # the value types of the driver's request: float64 array, uint16 array, int, int
     fields, raws, size = _group_layout(specs)
     counts = [f.count for f in fields]
@@ -339,19 +407,17 @@ def test_group_encode_equals_the_codecs(specs: list[tuple], data: st.DataObject)
         data.draw(st.integers(-(2**33), 2**33)),
         data.draw(st.integers(0, 70000)),
     )
-    for k in (2, 3):  # a scalar fills a field of any count (the codec broadcasts)
-        assert isinstance(values[k], int)
-    one, fused = bytearray(b"\xa5" * size), bytearray(b"\xa5" * size)
-    with np.errstate(all="ignore"):  # the codec's numpy casts warn on overflow (to inf)
+    want, fused = bytearray(b"\xa5" * size), bytearray(b"\xa5" * size)
+    with np.errstate(all="ignore"):  # casts to float32 overflow to inf
         for f, raw, v in zip(fields, raws, values, strict=True):
-            FieldCodec(f, one, 0, 0, SENSOR).encode(v, raw=raw)
+            _ref_encode(f, v, raw, want)
     FieldGroup([FieldCodec(f, fused, 0, 0, SENSOR) for f in fields], raws).encode(values)
-    assert fused == one
+    assert fused == want
 
 
 @settings(max_examples=60, deadline=None)
 @given(specs=FOUR_FIELDS, data=st.data())
-def test_group_encode_float_scalars_and_int_arrays(specs: list[tuple], data: st.DataObject) -> None:
+def test_encode_float_scalars_and_int_arrays(specs: list[tuple], data: st.DataObject) -> None:
     fields, raws, size = _group_layout(specs)
     counts = [f.count for f in fields]
     values = (
@@ -365,12 +431,29 @@ def test_group_encode_float_scalars_and_int_arrays(specs: list[tuple], data: st.
         data.draw(_floats(counts[2])),
         data.draw(_floats(counts[3])),
     )
-    one, fused = bytearray(b"\x5a" * size), bytearray(b"\x5a" * size)
-    with np.errstate(all="ignore"):  # the codec's numpy casts warn on overflow (to inf)
+    want, fused = bytearray(b"\x5a" * size), bytearray(b"\x5a" * size)
+    with np.errstate(all="ignore"):
         for f, raw, v in zip(fields, raws, values, strict=True):
-            FieldCodec(f, one, 0, 0, SENSOR).encode(v, raw=raw)
+            _ref_encode(f, v, raw, want)
     FieldGroup([FieldCodec(f, fused, 0, 0, SENSOR) for f in fields], raws).encode(values)
-    assert fused == one
+    assert fused == want
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    type_=st.sampled_from(["int16", "uint16", "int32", "uint32", "float32"]),
+    value=st.integers(0, 2**40),
+)
+def test_counters_wrap_modulo_their_register(type_: str, value: int) -> None:
+    field = RegisterField(0, 1, type_)  # type: ignore[arg-type]
+    buf = bytearray(8)
+    FieldCodec(field, buf, 0, 0, SENSOR, wrap=True).encode(value)
+    bits = 16 if type_ in ("int16", "uint16") else 32
+    if type_ == "float32":
+        assert struct.unpack(">f", buf[:4])[0] == value % 2**24
+    else:
+        (got,) = struct.unpack(">" + _CODES[type_].upper(), buf[: bits // 8])
+        assert got == value % 2**bits
 
 
 def test_group_refuses_mixed_buffers_and_wrong_sizes() -> None:

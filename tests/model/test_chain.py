@@ -227,8 +227,13 @@ def test_maxwell_slip_with_one_element_is_dahl(sigma, sigma2, beta) -> None:
     vel = 0.1 * np.sin(2 * np.pi * 0.8 * t)[:, None] * np.ones((1, 2))
     tp = 250 + 40 * np.sin(t)[:, None] * np.ones((1, 2))
     dahl = simulate(params("dahl", sigma_n_m=sigma, beta=beta), tp, vel, t)
-    slip = params("maxwell_slip", sigma_n_m=sigma, beta=beta, slip_w=np.array([1.0, 0.0]),
-                  slip_sigma=np.array([sigma, sigma2]))  # fmt: skip
+    slip = params(
+        "maxwell_slip",
+        sigma_n_m=sigma,
+        beta=beta,
+        slip_w=np.array([1.0, 0.0]),
+        slip_sigma=np.array([sigma, sigma2]),
+    )
     assert_allclose(simulate(slip, tp, vel, t), dahl, rtol=0, atol=1e-12)
 
 
@@ -242,8 +247,10 @@ def test_maxwell_slip_relaxes_as_two_exponentials_after_a_reversal() -> None:
     out, back = levels(p, 200.0)
     assert force[n - 1] == pytest.approx(out, abs=1e-9)  # both elements saturated
     x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
-    want = sum(-wq * back + (wq * out + wq * back) * np.exp(-sq * x / back)
-               for wq, sq in ((w, s1), (1 - w, s2)))  # fmt: skip
+    want = sum(
+        -wq * back + (wq * out + wq * back) * np.exp(-sq * x / back)
+        for wq, sq in ((w, s1), (1 - w, s2))
+    )
     assert_allclose(force[n:], want, rtol=0, atol=1e-9)
     dahl = one_pulley("dahl", sigma_n_m=s2)
     assert np.max(np.abs(force - (tp[:, 0] - simulate(dahl, tp, vel, t)[:, 0]))) > 1.0
@@ -315,9 +322,17 @@ def test_the_stretch_takes_no_difference_of_the_readings() -> None:
 def test_compensate_inverts_simulate_with_elements_stretch_and_backlash(
     tp, vel, model, k, width, w
 ) -> None:
-    p = params(model, cables=3, f0_n=1.0, stribeck_k=0.3, viscous_ns_m=5.0,
-               slip_w=np.array([w, 1 - w]), slip_sigma=np.array([5000.0, 500.0]),
-               stretch_c=1.0 / k, backlash_m=width)  # fmt: skip
+    p = params(
+        model,
+        cables=3,
+        f0_n=1.0,
+        stribeck_k=0.3,
+        viscous_ns_m=5.0,
+        slip_w=np.array([w, 1 - w]),
+        slip_sigma=np.array([5000.0, 500.0]),
+        stretch_c=1.0 / k,
+        backlash_m=width,
+    )
     t = np.cumsum(np.full(200, 1e-3))
     ts = simulate(p, tp, vel, t)
     assert_allclose(compensate(p, ts, vel, t), tp, rtol=0, atol=1e-8)
@@ -329,9 +344,14 @@ def test_stepper_matches_batch_with_elements_stretch_and_backlash(forward: bool)
     rng = np.random.default_rng(6)
     vel = 0.2 * np.sin(2 * np.pi * 0.4 * t[:, None] + rng.uniform(0, 6, 3))
     tp = 250 + 80 * np.sin(0.7 * t[:, None]) + rng.normal(0, 1, (t.size, 3))
-    p = params("maxwell_slip", cables=3, slip_w=np.array([0.4, 0.6]),
-               slip_sigma=np.array([8000.0, 800.0]), stretch_c=[1e-4, 0.0, 5e-4],
-               backlash_m=[0.002, 0.001, 0.0])  # fmt: skip
+    p = params(
+        "maxwell_slip",
+        cables=3,
+        slip_w=np.array([0.4, 0.6]),
+        slip_sigma=np.array([8000.0, 800.0]),
+        stretch_c=[1e-4, 0.0, 5e-4],
+        backlash_m=[0.002, 0.001, 0.0],
+    )
     batch = (compensate if forward else simulate)(p, tp, vel, t)
     stepper = ChainStepper(p, 5e-3, forward=forward, tol_n=1e-10, max_iter=20)
     out = np.zeros(3)
@@ -351,8 +371,9 @@ def test_maxwell_slip_force_is_linear_in_the_fractions(w, s1, s2) -> None:
     tp = 200 + 30 * np.sin(2 * t)[:, None]
 
     def force(frac: float) -> np.ndarray:
-        p = one_pulley("maxwell_slip", slip_w=np.array([frac, 1 - frac]),
-                       slip_sigma=np.array([s1, s2]))  # fmt: skip
+        p = one_pulley(
+            "maxwell_slip", slip_w=np.array([frac, 1 - frac]), slip_sigma=np.array([s1, s2])
+        )
         return tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
 
     assert_allclose(force(w), w * force(1.0) + (1 - w) * force(0.0), rtol=0, atol=1e-9)

@@ -40,9 +40,10 @@ def test_an_effect_is_named_in_at_most_three_source_files(name: str) -> None:
 
 def test_the_registry_holds_one_object_per_module() -> None:
     modules = sorted(
-        p.stem for p in (ROOT / "gateway/model/effects").glob("*.py")
+        p.stem
+        for p in (ROOT / "gateway/model/effects").glob("*.py")
         if p.stem not in ("__init__", "base", "forms", "registry")
-    )  # fmt: skip
+    )
     assert sorted(fx.EFFECT_NAMES) == modules
     for name, e in fx.REGISTRY.items():
         assert isinstance(e, Effect) and e.name == name
@@ -59,11 +60,17 @@ def test_every_effect_carries_its_behaviour(name: str) -> None:
     assert set(e.example) == set(e.param_names) or set(e.example) <= set(e.param_names)
     assert e.example, name
     cls = type(e)
-    overrides = {k for k in ("apply_chain", "forward", "inverse", "stepper", "mass_delta")
-                 if getattr(cls, k) is not getattr(Effect, k)}  # fmt: skip
-    want = {"statics": {"mass_delta"}, "chain": {"apply_chain"},
-            "path": {"forward", "inverse", "stepper"},
-            "sensor": {"forward", "inverse", "stepper"}}[e.stage]  # fmt: skip
+    overrides = {
+        k
+        for k in ("apply_chain", "forward", "inverse", "stepper", "mass_delta")
+        if getattr(cls, k) is not getattr(Effect, k)
+    }
+    want = {
+        "statics": {"mass_delta"},
+        "chain": {"apply_chain"},
+        "path": {"forward", "inverse", "stepper"},
+        "sensor": {"forward", "inverse", "stepper"},
+    }[e.stage]
     assert overrides == want, (name, overrides)
     if e.online.compensable and e.stage in ("path", "sensor"):
         assert e.online_kernel is not None, name

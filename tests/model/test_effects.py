@@ -103,10 +103,21 @@ def test_registry_holds_the_catalogue_with_report_names_and_units() -> None:
     for name, params in REPORT_NAMES.items():
         assert {p.name: p.unit for p in fx.REGISTRY[name].params} == params
     assert set(fx.ONLINE_EFFECTS) == {
-        "coulomb", "coulomb_directional", "presliding", "viscous", "stribeck", "inertia",
-        "gain", "offset", "eccentricity", "maxwell_slip", "cable_stretch", "backlash",
-        "sensor_creep", "spring",
-    }  # fmt: skip
+        "coulomb",
+        "coulomb_directional",
+        "presliding",
+        "viscous",
+        "stribeck",
+        "inertia",
+        "gain",
+        "offset",
+        "eccentricity",
+        "maxwell_slip",
+        "cable_stretch",
+        "backlash",
+        "sensor_creep",
+        "spring",
+    }
 
 
 @pytest.mark.parametrize(
@@ -157,8 +168,9 @@ def test_coulomb_mu_is_absolute_per_pulley_for_every_user() -> None:
     users["plant"] = plant_chain(load_sim_config(sim_cfg), 8)
     gw = dataclasses.replace(cfg, friction=dataclasses.replace(UNEVEN, effects=eff))
     users["gateway"] = Compensator(gw).params
-    nom = forward.Nominal("dahl", np.asarray(UNEVEN.wrap_rad), np.asarray(UNEVEN.mu), 500.0,
-                          1.0, 0.0, 0.05)  # fmt: skip
+    nom = forward.Nominal(
+        "dahl", np.asarray(UNEVEN.wrap_rad), np.asarray(UNEVEN.mu), 500.0, 1.0, 0.0, 0.05
+    )
     users["diagnosis"] = forward.chain_params(nom, {"coulomb": np.array([0.05, 0.2])})
     sc = dataclasses.replace(scenarios.Scenario("x", eff), nominal_model="dahl")
     sc_nominal = dataclasses.replace(sc.nominal(), pulleys=UNEVEN.pulleys)
@@ -243,10 +255,8 @@ def test_eccentricity_phase_from_travel_to_length() -> None:
 # --- online compensation: per-cycle against batch -------------------------------------------
 
 ONLINE_CASES = {
-    "coulomb": {"coulomb": {"mu": [0.02, 0.01, 0.03, 0.02, 0.015, 0.02, 0.025, 0.01],
-                            "f0_n": 0.8}},
-    "coulomb_directional": {"coulomb_directional": {"mu_out": 0.025, "mu_in": 0.01,
-                                                    "f0_n": 0.3}},
+    "coulomb": {"coulomb": {"mu": [0.02, 0.01, 0.03, 0.02, 0.015, 0.02, 0.025, 0.01], "f0_n": 0.8}},
+    "coulomb_directional": {"coulomb_directional": {"mu_out": 0.025, "mu_in": 0.01, "f0_n": 0.3}},
     "presliding": {"presliding": {"sigma_n_m": 300.0}},
     "viscous": {"viscous": {"c_ns_m": [6.0, 2.0, 0.0, 1.0, 3.0, 4.0, 5.0, 0.5]}},
     "stribeck": {"stribeck": {"k": 0.5, "v_s_m_s": 0.004}},
@@ -254,24 +264,33 @@ ONLINE_CASES = {
     "gain": {"gain": {"g": [0.002, -0.01, 0.0, 0.01, 0.0, 0.0, 0.03, 0.0]}},
     "offset": {"offset": {"c_n": [0.3, -0.2, 0.0, 1.0, 0.0, 0.0, 0.0, -1.5]}},
     "eccentricity": {"eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7}},
-    "maxwell_slip": {"maxwell_slip": {"sigma_n_m": [5000.0, 3000.0, 8000.0, 5000.0, 2000.0,
-                                                    5000.0, 5000.0, 4000.0], "w": 0.4}},
+    "maxwell_slip": {
+        "maxwell_slip": {
+            "sigma_n_m": [5000.0, 3000.0, 8000.0, 5000.0, 2000.0, 5000.0, 5000.0, 4000.0],
+            "w": 0.4,
+        }
+    },
     "cable_stretch": {"cable_stretch": {"k_n_m": [5e3, 1e4, 2e3, 5e4, 1e4, 5e3, 3e3, 1e4]}},
     "backlash": {"backlash": {"width_m": [0.003, 0.001, 0.0, 0.002, 0.003, 0.004, 0.0, 0.01]}},
-    "sensor_creep": {"sensor_creep": {"c": [0.05, 0.1, 0.0, -0.05, 0.3, 0.05, 0.05, 0.02],
-                                      "tau_s": 0.3}},
-    "spring": {"spring": {"k_n_m": [20.0, -5.0, 0.0, 40.0, 20.0, 10.0, 1.0, 30.0],
-                          "l0_m": 2.01}},
-    "all": {
-        "coulomb": {"f0_n": 0.5}, "viscous": {"c_ns_m": 3.0},
-        "stribeck": {"k": 0.3, "v_s_m_s": 0.005}, "inertia": {"m_eff_kg": 1.5},
-        "gain": {"g": 0.004}, "offset": {"c_n": -0.7},
-        "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7},
-        "maxwell_slip": {"sigma_n_m": 4000.0, "w": 0.5}, "backlash": {"width_m": 0.002},
-        "cable_stretch": {"k_n_m": 5000.0},
-        "sensor_creep": {"c": 0.05, "tau_s": 0.2}, "spring": {"k_n_m": 20.0, "l0_m": 2.0},
+    "sensor_creep": {
+        "sensor_creep": {"c": [0.05, 0.1, 0.0, -0.05, 0.3, 0.05, 0.05, 0.02], "tau_s": 0.3}
     },
-}  # fmt: skip
+    "spring": {"spring": {"k_n_m": [20.0, -5.0, 0.0, 40.0, 20.0, 10.0, 1.0, 30.0], "l0_m": 2.01}},
+    "all": {
+        "coulomb": {"f0_n": 0.5},
+        "viscous": {"c_ns_m": 3.0},
+        "stribeck": {"k": 0.3, "v_s_m_s": 0.005},
+        "inertia": {"m_eff_kg": 1.5},
+        "gain": {"g": 0.004},
+        "offset": {"c_n": -0.7},
+        "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7},
+        "maxwell_slip": {"sigma_n_m": 4000.0, "w": 0.5},
+        "backlash": {"width_m": 0.002},
+        "cable_stretch": {"k_n_m": 5000.0},
+        "sensor_creep": {"c": 0.05, "tau_s": 0.2},
+        "spring": {"k_n_m": 20.0, "l0_m": 2.0},
+    },
+}
 
 
 def _online_signals(n: int, m: int) -> tuple[np.ndarray, ...]:
@@ -316,14 +335,18 @@ def test_online_inverse_per_cycle_equals_batch() -> None:
     t, v, length, reading = _online_signals(n, m)
     values = fx.effect_values(
         {
-            "gain": {"g": [0.01, -0.02, 0.0]}, "offset": {"c_n": [0.5, 0.0, -1.0]},
+            "gain": {"g": [0.01, -0.02, 0.0]},
+            "offset": {"c_n": [0.5, 0.0, -1.0]},
             "inertia": {"m_eff_kg": [2.0, 0.0, 1.0]},
-            "eccentricity": {"a_n": [0.3, 0.2, 0.0], "r_m": [0.03, 0.05, 0.05],
-                             "phi_rad": [0.1, 0.2, 0.0]},
+            "eccentricity": {
+                "a_n": [0.3, 0.2, 0.0],
+                "r_m": [0.03, 0.05, 0.05],
+                "phi_rad": [0.1, 0.2, 0.0],
+            },
             "drift": {"k_n_s": 0.3},  # not online: the per-cycle form leaves it
         },
         m,
-    )  # fmt: skip
+    )
     s = SeriesData(t, v, length, fx.causal_acceleration(t, v), t[0])
     batch = fx.inverse(s, reading, values, online_only=True)
     out, prev, vel, pos = np.empty(m), np.zeros(m), np.zeros(m), np.zeros(m)
@@ -340,10 +363,20 @@ def test_online_inverse_per_cycle_equals_batch() -> None:
 @pytest.mark.parametrize(
     "case",
     [
-        "gain", "offset", "eccentricity", "viscous", "coulomb", "coulomb_directional",
-        "maxwell_slip", "cable_stretch", "backlash", "sensor_creep", "spring", "all",
+        "gain",
+        "offset",
+        "eccentricity",
+        "viscous",
+        "coulomb",
+        "coulomb_directional",
+        "maxwell_slip",
+        "cable_stretch",
+        "backlash",
+        "sensor_creep",
+        "spring",
+        "all",
     ],
-)  # fmt: skip
+)
 def test_compensation_removes_what_the_truth_adds(case: str) -> None:
     """Forward (the plant's batch forms, ``x`` the length) then the gateway's inverse gives
     the platform tension back; inertia within the difference of the two accelerations."""
@@ -434,13 +467,16 @@ def test_forward_per_sample_form_equals_the_batch_form() -> None:
         {
             "inertia": {"m_eff_kg": [2.0, 0.0, 1.0]},
             "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.2},
-            "gain": {"g": [0.01, 0.0, -0.02]}, "offset": {"c_n": 0.5}, "drift": {"k_n_s": 0.3},
-            "lowpass": {"tau_s": [0.004, 0.0, 0.01]}, "delay": {"d_s": [0.0025, 0.004, 0.0]},
+            "gain": {"g": [0.01, 0.0, -0.02]},
+            "offset": {"c_n": 0.5},
+            "drift": {"k_n_s": 0.3},
+            "lowpass": {"tau_s": [0.004, 0.0, 0.01]},
+            "delay": {"d_s": [0.0025, 0.004, 0.0]},
             "sensor_creep": {"c": [0.05, 0.0, -0.1], "tau_s": 0.05},
             "spring": {"k_n_m": [20.0, -3.0, 0.0], "l0_m": 2.0},
         },
         m,
-    )  # fmt: skip
+    )
     batch = fx.forward(series(t, v, length), ts, eff)
     step = fx.ForwardStepper(eff, m, dt)
     t3, v3 = np.zeros(3), np.zeros((3, m))

@@ -1,4 +1,4 @@
-"""Recordings (spec/recording.md): round trips, skipped rows, malformed files refused."""
+"""Recordings (docs/recording-format.md): round trips, skipped rows, malformed files refused."""
 
 from __future__ import annotations
 

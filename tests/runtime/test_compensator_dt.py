@@ -1,21 +1,25 @@
-"""The compensator steps the Dahl chain with the actual time between the samples it
-compensates: a deadline skipped after an overrun loses no cable travel (issue 12)."""
+"""The compensator steps the Dahl chain with the PLC's time between the samples it
+compensates: a deadline skipped after an overrun loses no cable travel; the read
+patterns of a polled PLC are tested in test_compensator_samples.py."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 from numpy.testing import assert_allclose
 
 from drivers.base import Inputs, Outputs
 from gateway.model.chain import ChainStepper
-from gateway.runtime.compensator import MAX_STEP_PERIODS, Compensator
+from gateway.runtime.compensator import MAX_GAP_PERIODS, Compensator
 from tests.loop_helpers import config
 
 PERIOD = 0.001
 
 
 def run(times: list[float]) -> Compensator:
-    """A compensator stepped at the fake-clock ``times`` on one constant moving reading."""
+    """A compensator stepped at the fake-clock ``times`` on one constant moving reading of
+    a PLC that samples every ``PERIOD`` (its heartbeat counts them)."""
     cfg = config(period_s=PERIOD)
     comp = Compensator(cfg)
     inputs = Inputs.allocate(cfg.cables)
@@ -24,6 +28,7 @@ def run(times: list[float]) -> Compensator:
     inputs.velocity_m_s[:] = np.linspace(-0.3, 0.3, cfg.cables)
     inputs.pose[:] = cfg.geometry.home_pose
     for t in times:
+        inputs.plc_heartbeat = round((t - times[0]) / PERIOD) & 0xFFFF
         inputs.read_time_s = t
         comp.step(inputs, t, out)
     return comp
@@ -53,7 +58,27 @@ def test_a_skipped_cycle_steps_the_travel_of_both_periods():
 def test_after_an_outage_the_step_is_bounded():
     t0 = 100.0
     comp = run([t0, t0 + PERIOD, t0 + 2.0])  # 2 s without a step
-    state, _ = one_go(comp, [0.0, PERIOD, MAX_STEP_PERIODS * PERIOD])
+    state, _ = one_go(comp, [0.0, PERIOD, MAX_GAP_PERIODS * PERIOD])
     assert_allclose(comp.stepper.state, state, rtol=0, atol=1e-9)
     unbounded, _ = one_go(comp, [0.0, PERIOD, 2.0 - PERIOD])
     assert np.max(np.abs(comp.stepper.state - unbounded)) > 1e-3
+
+
+def test_on_canopen_every_cycle_is_a_sample():
+    """CANopen: each cycle is one SYNC's samples and the heartbeat comes in a slow PDO
+    (every 10th cycle), so a constant velocity and heartbeat are no repeated read: the
+    chain steps the time since the previous cycle."""
+    cfg = config(period_s=PERIOD)
+    cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, driver="canopen"))
+    comp = Compensator(cfg)
+    inputs, out = Inputs.allocate(cfg.cables), Outputs.allocate(cfg.cables)
+    inputs.tension_raw_n[:] = 200.0
+    inputs.velocity_m_s[:] = 0.1
+    inputs.pose[:] = cfg.geometry.home_pose
+    times = [100.0 + k * PERIOD for k in range(5)]
+    for t in times:
+        inputs.read_time_s = t
+        comp.step(inputs, t, out)
+    state, _ = one_go(comp, [0.0] + [PERIOD] * 4)
+    assert_allclose(comp.stepper.state, state, rtol=0, atol=1e-9)
+    assert np.max(np.abs(state)) > 1e-3  # it moved

@@ -337,7 +337,7 @@ def test_overrun_warnings_are_rate_limited(caplog):
     )
 
 
-# --- plausibility of the setpoints (issue 13.6) -----------------------------------------
+# --- plausibility of the setpoints -----------------------------------------
 
 
 def test_pose_of_1e20_m_is_flagged_counted_and_gives_no_wrench():

@@ -1,4 +1,4 @@
-"""The operator's view of the loop (issue 14): log lines, systemd notifications."""
+"""The operator's view of the loop: log lines, systemd notifications."""
 
 from __future__ import annotations
 
@@ -107,7 +107,7 @@ def test_watchdog_interval_is_half_of_watchdog_usec(notify_socket):
     n.close()
 
 
-def test_loop_sends_ready_once_active_watchdog_while_cycling_and_stopping(notify_socket):
+def test_loop_sends_ready_once_configured_watchdog_while_cycling_and_stopping(notify_socket):
     path, sock = notify_socket
     msgs: list[str] = []
 
@@ -128,7 +128,7 @@ def test_loop_sends_ready_once_active_watchdog_while_cycling_and_stopping(notify
     notifier.close()
     assert notifier.failed == 0
     assert msgs.count("READY=1") == 1
-    assert msgs.index("STATUS=active") < msgs.index("READY=1")
+    assert msgs.index("READY=1") < msgs.index("STATUS=active")  # ready before the PLC answered
     pings = msgs.count("WATCHDOG=1")
     assert 24 <= pings <= 27, pings  # every 0.1 s of a 2.5 s run
     assert any(m.startswith("STATUS=disconnected from the PLC") for m in msgs)

@@ -1,4 +1,4 @@
-"""Every catchable terminating signal ends the daemon with the STOPPED frame (issue 13.5).
+"""Every catchable terminating signal ends the daemon with the STOPPED frame.
 
 A real ``cdpr-gateway run`` subprocess against the soft PLC's Modbus server (in this
 process, loopback): once the gateway writes ACTIVE, the signal is sent; the process exits
@@ -38,7 +38,7 @@ def test_signal_writes_the_stopped_frame(tmp_path: Path, sig: signal.Signals) ->
     with plc_server() as (server, img, _cfg):
         data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
         data["bus"]["modbus_tcp"]["port"] = server.port
-        data["loop"]["heartbeat_timeout_s"] = 60.0  # the test's PLC heartbeat stands still
+        data["loop"]["heartbeat_timeout_s"] = 60.0  # the test moves the PLC heartbeat slowly
         data["metrics"]["enabled"] = False
         path = tmp_path / "gw.yaml"
         path.write_text(yaml.safe_dump(data))
@@ -46,13 +46,18 @@ def test_signal_writes_the_stopped_frame(tmp_path: Path, sig: signal.Signals) ->
         env.pop("NOTIFY_SOCKET", None)
         proc = subprocess.Popen(
             [sys.executable, "-m", "gateway.cli", "run", "--config", str(path)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
-        )  # fmt: skip
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
         try:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and proc.poll() is None:
                 with img.lock:
-                    if img.gateway_state == Lifecycle.ACTIVE and img.gateway_writes > 20:
+                    img.plc_heartbeat = (img.plc_heartbeat + 1) & 0xFFFF  # a live PLC
+                    good = np.all(np.isfinite(img.corrected_n))
+                    if img.gateway_state == Lifecycle.ACTIVE and img.gateway_writes > 20 and good:
                         break
                 time.sleep(0.05)
             with img.lock:

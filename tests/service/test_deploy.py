@@ -22,13 +22,43 @@ DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 
 PROMQL_WORDS = {
     # functions and aggregations used (or plausibly used) in the dashboard and alerts
-    "histogram_quantile", "rate", "irate", "increase", "sum", "max", "min", "avg", "count",
-    "max_over_time", "min_over_time", "avg_over_time", "delta", "deriv", "abs", "topk",
-    "bottomk", "clamp_min", "clamp_max", "changes", "resets", "time", "vector", "label_replace",
+    "histogram_quantile",
+    "rate",
+    "irate",
+    "increase",
+    "sum",
+    "max",
+    "min",
+    "avg",
+    "count",
+    "max_over_time",
+    "min_over_time",
+    "avg_over_time",
+    "delta",
+    "deriv",
+    "abs",
+    "topk",
+    "bottomk",
+    "clamp_min",
+    "clamp_max",
+    "changes",
+    "resets",
+    "time",
+    "vector",
+    "label_replace",
     # keywords
-    "by", "without", "on", "ignoring", "group_left", "group_right", "and", "or", "unless",
-    "offset", "bool",
-}  # fmt: skip
+    "by",
+    "without",
+    "on",
+    "ignoring",
+    "group_left",
+    "group_right",
+    "and",
+    "or",
+    "unless",
+    "offset",
+    "bool",
+}
 LABELS = {"le", "bus", "kind", "cable", "version", "instance", "job"}
 BUILTIN_SERIES = {"up"}
 
@@ -85,13 +115,22 @@ def test_every_dashboard_query_uses_exported_metrics():
     families = {n.removesuffix("_bucket").removesuffix("_sum").removesuffix("_count") for n in used}
     # the dashboard shows every family of the design table
     assert {n.removesuffix("_total") for n in families} >= {
-        "cdpr_gateway_cycle_seconds", "cdpr_gateway_jitter_seconds", "cdpr_gateway_overruns",
-        "cdpr_gateway_bus_roundtrip_seconds", "cdpr_gateway_errors", "cdpr_gateway_reconnects",
-        "cdpr_gateway_connected", "cdpr_gateway_tension_raw_newtons",
-        "cdpr_gateway_tension_corrected_newtons", "cdpr_gateway_friction_newtons",
-        "cdpr_gateway_channel_status", "cdpr_gateway_build_info", "cdpr_gateway_state",
-        "cdpr_gateway_plc_heartbeat_age_seconds", "cdpr_gateway_sample_age_seconds",
-    }  # fmt: skip
+        "cdpr_gateway_cycle_seconds",
+        "cdpr_gateway_jitter_seconds",
+        "cdpr_gateway_overruns",
+        "cdpr_gateway_bus_roundtrip_seconds",
+        "cdpr_gateway_errors",
+        "cdpr_gateway_reconnects",
+        "cdpr_gateway_connected",
+        "cdpr_gateway_tension_raw_newtons",
+        "cdpr_gateway_tension_corrected_newtons",
+        "cdpr_gateway_friction_newtons",
+        "cdpr_gateway_channel_status",
+        "cdpr_gateway_build_info",
+        "cdpr_gateway_state",
+        "cdpr_gateway_plc_heartbeat_age_seconds",
+        "cdpr_gateway_sample_age_seconds",
+    }
 
 
 def test_the_dashboard_works_with_file_provisioning_and_keeps_robots_apart():
@@ -125,7 +164,11 @@ def test_the_dashboard_shows_state_and_tensions_in_newtons():
     state = by_metric["cdpr_gateway_state"]
     mapping = state["fieldConfig"]["defaults"]["mappings"][0]["options"]
     assert {k: v["text"] for k, v in mapping.items()} == {
-        "0": "stopped", "1": "connected", "2": "active", "3": "fault"}  # fmt: skip
+        "0": "stopped",
+        "1": "connected",
+        "2": "active",
+        "3": "fault",
+    }
     assert "cdpr_gateway_plc_heartbeat_age_seconds" in by_metric
     assert "cdpr_gateway_sample_age_seconds" in by_metric
     for name in ("tension_raw_newtons", "tension_corrected_newtons", "friction_newtons"):
@@ -159,8 +202,9 @@ def test_the_alerts_cover_what_issue_14_lists_and_never_sum_robots():
 def test_scrape_config_targets_the_default_exporter():
     prom = yaml.safe_load((DEPLOY / "prometheus.yml").read_text())
     cfg = load_config()
-    targets = [t for job in prom["scrape_configs"] for sc in job["static_configs"]
-               for t in sc["targets"]]  # fmt: skip
+    targets = [
+        t for job in prom["scrape_configs"] for sc in job["static_configs"] for t in sc["targets"]
+    ]
     assert targets == [f"{cfg.metrics.host}:{cfg.metrics.port}"] == ["127.0.0.1:9109"]
 
 
@@ -185,7 +229,7 @@ def test_unit_is_hardened_and_runs_the_daemon():
     assert svc["LoadCredential"] == "tls:/etc/cdpr-gateway/tls"
     # room for the exporter's bounded connections plus its fd reserve for the bus
     assert int(svc["LimitNOFILE"]) >= 4096
-    # real time granted (issue 12)
+    # real time granted
     assert svc["CPUSchedulingPolicy"] == "fifo"
     assert int(svc["LimitRTPRIO"]) >= int(svc["CPUSchedulingPriority"]) > 0
     assert svc["LimitMEMLOCK"] == "infinity"
@@ -208,8 +252,10 @@ def test_promtool_accepts_the_scrape_config_and_rules(tmp_path):
     shutil.copy(DEPLOY / "alerts.yml", tmp_path)
     res = subprocess.run(
         [promtool, "check", "config", str(tmp_path / "prometheus.yml")],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     assert "SUCCESS: 8 rules found" in res.stdout, res.stdout
 
@@ -217,11 +263,20 @@ def test_promtool_accepts_the_scrape_config_and_rules(tmp_path):
 @pytest.mark.external
 def test_promtool_checks_and_unit_tests_the_alerts(tmp_path):
     promtool = _require("promtool")
-    check = subprocess.run([promtool, "check", "rules", str(DEPLOY / "alerts.yml")],
-                           capture_output=True, text=True, timeout=60)  # fmt: skip
+    check = subprocess.run(
+        [promtool, "check", "rules", str(DEPLOY / "alerts.yml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert check.returncode == 0, check.stdout + check.stderr
-    res = subprocess.run([promtool, "test", "rules", "alerts.test.yml"], cwd=DEPLOY,
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    res = subprocess.run(
+        [promtool, "test", "rules", "alerts.test.yml"],
+        cwd=DEPLOY,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     assert "SUCCESS" in res.stdout, res.stdout
     # the test file can fail: a budget below robot-a's 0.5 % makes it fire where it must not
@@ -229,8 +284,13 @@ def test_promtool_checks_and_unit_tests_the_alerts(tmp_path):
     strict = (DEPLOY / "alerts.yml").read_text().replace("[5m]) > 0.02", "[5m]) > 0.001")
     assert strict != (DEPLOY / "alerts.yml").read_text()
     (tmp_path / "alerts.yml").write_text(strict)
-    bad = subprocess.run([promtool, "test", "rules", "alerts.test.yml"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    bad = subprocess.run(
+        [promtool, "test", "rules", "alerts.test.yml"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode != 0 and "CdprGatewayOverrunBudget" in bad.stdout + bad.stderr
 
 

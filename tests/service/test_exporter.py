@@ -1,6 +1,6 @@
 """The bounded metrics exporter (gateway/service/exporter.py) under hostile clients, on loopback.
 
-Regression tests of issue 13 item 2: idle clients no longer cost a thread and an fd each,
+Regression tests: idle clients no longer cost a thread and an fd each,
 slow clients (TLS too) are dropped at a deadline, a burst of scrapes is served from one
 rendering, and the fd reserve stops accepting without spinning. Every load is bounded in
 count and time; speed itself is measured in bench/bench_exporter.py.
@@ -220,11 +220,30 @@ def tls_files(tmp_path_factory) -> tuple[Path, Path]:
     tmp = tmp_path_factory.mktemp("tls")
     cert, key = tmp / "cert.pem", tmp / "key.pem"
     subprocess.run(
-        [openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256",
-         "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1", "-addext",
-         "subjectAltName=IP:127.0.0.1", "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True, timeout=60,
-    )  # fmt: skip
+        [
+            openssl,
+            "req",
+            "-x509",
+            "-newkey",
+            "ec",
+            "-pkeyopt",
+            "ec_paramgen_curve:P-256",
+            "-nodes",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=127.0.0.1",
+            "-addext",
+            "subjectAltName=IP:127.0.0.1",
+            "-keyout",
+            str(key),
+            "-out",
+            str(cert),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
     return cert, key
 
 
@@ -322,3 +341,112 @@ def test_a_failing_collector_answers_500_and_the_exporter_keeps_serving(caplog):
         assert any(t.name == "metrics-http" for t in threading.enumerate())
     finally:
         srv.close()
+
+
+def _raw_get(port: int, headers: bytes = b"") -> bytes:
+    """One request over a raw socket (any bytes in the headers); the reply's first bytes."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(b"GET /metrics HTTP/1.1\r\n" + headers + b"Connection: close\r\n\r\n")
+        return s.recv(64)
+
+
+@pytest.mark.parametrize(
+    "credentials",
+    [
+        "é:s3cret".encode(),  # TypeError in compare_digest killed the thread
+        b"prom:\xff\xfe",  # not UTF-8
+        "prom:sécret".encode("latin-1"),
+        b"\x00:\x00",
+        "ü" * 200 + ":x",
+    ],
+)
+def test_any_credentials_get_an_answer_and_the_exporter_lives_on(registry, credentials):
+    import base64
+    import hashlib
+
+    raw = credentials if isinstance(credentials, bytes) else credentials.encode()
+    digest = hashlib.sha256("sécret".encode()).hexdigest()
+    cfg = MetricsConfig(
+        host="127.0.0.1", port=0, basic_auth_user="prömetheus", basic_auth_password_sha256=digest
+    )
+    srv = MetricsServer(cfg, registry, timeout_s=2.0)
+    try:
+        token = base64.b64encode(raw)
+        assert _raw_get(srv.port, b"Authorization: Basic " + token + b"\r\n").startswith(
+            b"HTTP/1.1 401"
+        )
+        good = base64.b64encode("prömetheus:sécret".encode())
+        reply = _raw_get(srv.port, b"Authorization: Basic " + good + b"\r\n")
+        assert reply.startswith(b"HTTP/1.1 200"), reply  # non-ASCII credentials work too
+    finally:
+        srv.close()
+
+
+def test_an_unexpected_error_in_one_request_costs_only_that_connection(registry, caplog):
+    srv = MetricsServer(MetricsConfig(host="127.0.0.1", port=0), registry, timeout_s=2.0)
+    calls = {"n": 0}
+    real = srv._respond
+
+    def sometimes_broken(conn, request):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise TypeError("a bug in one request's handling")
+        return real(conn, request)
+
+    srv._respond = sometimes_broken  # type: ignore[method-assign]
+    try:
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as s:
+            s.sendall(b"GET /metrics HTTP/1.1\r\nConnection: close\r\n\r\n")
+            assert s.recv(64) == b""  # that connection is closed
+        assert scrape(srv.port).startswith(b"# HELP")  # the thread lives on
+        assert srv.counters.failed == 1
+        assert "TypeError" in caplog.text
+    finally:
+        srv.close()
+
+
+def test_running_out_of_descriptors_is_logged_once(registry, caplog):
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    srv = MetricsServer(
+        MetricsConfig(host="127.0.0.1", port=0), registry, fd_reserve=soft - open_fds() + 4
+    )
+    try:
+        clients = connect_idle(srv.port, 1)
+        assert wait_until(lambda: srv.counters.accept_paused >= 3, 5.0)
+        lines = [r for r in caplog.records if "descriptors" in r.getMessage()]
+        assert len(lines) == 1, [r.getMessage() for r in lines]
+        assert "RLIMIT_NOFILE" in lines[0].getMessage() or "LimitNOFILE" in lines[0].getMessage()
+        for c in clients:
+            c.close()
+    finally:
+        srv.close()
+
+
+def test_check_warns_when_the_descriptor_limit_is_too_low():
+    """under ``prlimit --nofile=48`` the metrics port never answered and
+    nothing said why; ``check`` now warns before the gateway runs."""
+    import os
+    import resource
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+
+    def low_limit() -> None:
+        _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (48, hard))
+
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    done = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "check", "--config", "config/default.yaml"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+        preexec_fn=low_limit,
+        cwd=root,
+    )
+    assert done.returncode == 0, done.stderr
+    warnings = [ln for ln in done.stderr.splitlines() if "RLIMIT_NOFILE" in ln]
+    assert len(warnings) == 1 and "48" in warnings[0], done.stderr

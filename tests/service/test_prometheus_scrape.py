@@ -72,11 +72,15 @@ def test_prometheus_scrapes_the_gateway(tmp_path: Path):
         f"    static_configs: [{{targets: ['127.0.0.1:{exporter.port}']}}]\n"
     )
     proc = subprocess.Popen(
-        [binary, f"--config.file={tmp_path / 'prometheus.yml'}",
-         f"--storage.tsdb.path={tmp_path / 'data'}",
-         f"--web.listen-address=127.0.0.1:{web_port}"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
+        [
+            binary,
+            f"--config.file={tmp_path / 'prometheus.yml'}",
+            f"--storage.tsdb.path={tmp_path / 'data'}",
+            f"--web.listen-address=127.0.0.1:{web_port}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + WAIT_S
         buckets = wait_for(web_port, "cdpr_gateway_cycle_seconds_bucket", proc, deadline)

@@ -200,9 +200,12 @@ def test_a_write_cut_by_the_kernel_leaves_whole_rows(tmp_path: Path) -> None:
     as a disk filling up does: the plain CSV is cut back to its last whole row."""
     path = tmp_path / "cut.csv"
     proc = subprocess.run(
-        [sys.executable, "-c", SMALL_FILE, str(path)], cwd=ROOT, capture_output=True,
-        text=True, timeout=60,
-    )  # fmt: skip
+        [sys.executable, "-c", SMALL_FILE, str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 0, proc.stderr
     written, dropped, failed = proc.stdout.split(maxsplit=2)
     assert "File too large" in failed and "recording stopped" in proc.stderr

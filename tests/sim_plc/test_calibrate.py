@@ -25,9 +25,29 @@ AFTER_MAX = 1.15  # issue 10: the after RMSE within 1.15x the noise floor
 
 def test_examples_hide_one_effect_each_behind_the_closed_form():
     names = {p.stem for p in EXAMPLES.glob("*.yaml")}
-    assert names == {"viscous", "offset", "gain", "coulomb_f0", "coulomb_directional", "inertia",
-                     "mass_change", "maxwell_slip", "cable_stretch", "backlash", "sensor_creep",
-                     "spring"}  # fmt: skip
+    small = {
+        "viscous",
+        "offset",
+        "gain",
+        "coulomb_f0",
+        "coulomb_directional",
+        "inertia",
+        "mass_change",
+        "maxwell_slip",
+        "cable_stretch",
+        "backlash",
+        "sensor_creep",
+        "spring",
+    }
+    large = {
+        "viscous_60",
+        "offset_large",
+        "gain_large",
+        "coulomb_f0_large",
+        "inertia_large",
+        "mass_change_large",
+    }
+    assert names == small | large
     for path in EXAMPLES.glob("*.yaml"):
         sim = read_yaml(path)["sim_plc"]
         assert sim["distribution"]["method"] == "closed_form"
@@ -55,8 +75,15 @@ def test_config_without_platform_mass_is_refused_in_one_line(tmp_path, capsys):
 
 
 def test_bad_seconds_is_refused(tmp_path, capsys):
-    argv = ["calibrate", "--config", str(EXAMPLES / "viscous.yaml"), "--seconds", "0",
-            "--out", str(tmp_path)]  # fmt: skip
+    argv = [
+        "calibrate",
+        "--config",
+        str(EXAMPLES / "viscous.yaml"),
+        "--seconds",
+        "0",
+        "--out",
+        str(tmp_path),
+    ]
     assert main(argv) == 2
     assert "--seconds" in capsys.readouterr().err
 
@@ -66,8 +93,15 @@ def test_bad_seconds_is_refused(tmp_path, capsys):
 @pytest.mark.long
 def test_calibrate_viscous_closed_form_closes_the_loop(tmp_path, capsys):
     out = tmp_path / "cal"
-    argv = ["calibrate", "--config", str(EXAMPLES / "viscous.yaml"), "--seconds", str(SECONDS),
-            "--out", str(out)]  # fmt: skip
+    argv = [
+        "calibrate",
+        "--config",
+        str(EXAMPLES / "viscous.yaml"),
+        "--seconds",
+        str(SECONDS),
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 0
     result = json.loads((out / "calibration.json").read_text())
     assert result["reference"] == "wrench"

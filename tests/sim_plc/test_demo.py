@@ -61,8 +61,11 @@ def test_run_sigterm_stops_cleanly(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "gateway.cli", "run", "--config", str(path)],
-        stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT,
-    )  # fmt: skip
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=ROOT,
+    )
     lines: list[str] = []
     ready = threading.Event()
 
@@ -89,13 +92,15 @@ def test_run_sigterm_stops_cleanly(tmp_path):
     text = "".join(lines)
     assert re.search(r"metrics on http://127\.0\.0\.1:\d+/metrics", text)
     assert "stopped: cycles" in text
-    # issue 14: timestamps and logger names, the start-up banner, the state change
+    # timestamps and logger names, the start-up banner, the state change
     stamp = r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} (INFO|WARNING) cdpr_gateway(\.loop)?: "
-    assert re.search(stamp + r"cdpr-gateway \S+ starting; config " + re.escape(str(path)), text,
-                     re.MULTILINE), text  # fmt: skip
+    assert re.search(
+        stamp + r"cdpr-gateway \S+ starting; config " + re.escape(str(path)), text, re.MULTILINE
+    ), text
     assert re.search(stamp + r"bus: virtual \(bus\.virtual\)", text, re.MULTILINE)
     assert re.search(stamp + r"model: dahl, 3 pulleys", text, re.MULTILINE)
-    assert re.search(stamp + r"loop: period 1 ms, .*real-time scheduling", text, re.MULTILINE)
+    assert re.search(stamp + r"loop: period 1 ms, .*real-time: tried", text, re.MULTILINE)
+    assert re.search(stamp + r"real-time: applied .*; refused ", text, re.MULTILINE)
     assert re.search(stamp + r"connected to the PLC at virtual", text, re.MULTILINE)
 
 
@@ -123,7 +128,7 @@ def test_demo_offline_with_the_plant(capsys):
     assert re.search(r"noise floor 0\.500 N .* corrected RMSE [\d.]+x the floor", out), out
 
 
-# --- the demo's scoring off the cycle (issue 12) ------------------------------------------
+# --- the demo's scoring off the cycle ------------------------------------------
 def fake_cycle(cables: int, hb: int, value: float) -> tuple[Inputs, SimpleNamespace]:
     inputs = Inputs.allocate(cables)
     inputs.plc_heartbeat = hb

@@ -138,9 +138,18 @@ def test_unsupported_function_is_illegal_function(port: int, function: int) -> N
         (rw_pdu(0, 126, 116, [0]), 23),
         (rw_pdu(0, 8, 100, [0] * 122), 23),
     ],
-    ids=["fc3-0", "fc4-0", "fc3-126", "fc4-126", "fc16-0", "fc16-124", "fc23-r0", "fc23-r126",
-         "fc23-w122"],
-)  # fmt: skip
+    ids=[
+        "fc3-0",
+        "fc4-0",
+        "fc3-126",
+        "fc4-126",
+        "fc16-0",
+        "fc16-124",
+        "fc23-r0",
+        "fc23-r126",
+        "fc23-w122",
+    ],
+)
 def test_count_out_of_range_is_illegal_value(port: int, pdu: bytes, function: int) -> None:
     assert _exception(_reply_after(port, mbap(2, pdu)), function) == ILLEGAL_VALUE
 
@@ -241,15 +250,25 @@ def test_pipelined_requests_in_one_segment_all_answered_in_order(port: int, n: i
 
 
 def test_pipelined_mix_of_good_and_bad_requests_answered_in_order(port: int) -> None:
-    pdus = [read_pdu(0, 2), read_pdu(60, 1), write_pdu(0, [1]), bytes((0x41, 0, 0)),
-            read_pdu(0, 126), rw_pdu(0, 1, 100, [7])]  # fmt: skip
+    pdus = [
+        read_pdu(0, 2),
+        read_pdu(60, 1),
+        write_pdu(0, [1]),
+        bytes((0x41, 0, 0)),
+        read_pdu(0, 126),
+        rw_pdu(0, 1, 100, [7]),
+    ]
     with connect(port) as sock:
         sock.sendall(b"".join(mbap(50 + k, p) for k, p in enumerate(pdus)))
         replies = [recv_frame(sock) for _ in pdus]
     assert [r[:2] for r in replies] == [struct.pack(">H", 50 + k) for k in range(len(pdus))]
     assert [r[7] for r in replies] == [3, 0x83, 0x90, 0xC1, 0x83, 23]
-    assert [r[8] for r in replies[1:5]] == [ILLEGAL_ADDRESS, ILLEGAL_ADDRESS, ILLEGAL_FUNCTION,
-                                             ILLEGAL_VALUE]  # fmt: skip
+    assert [r[8] for r in replies[1:5]] == [
+        ILLEGAL_ADDRESS,
+        ILLEGAL_ADDRESS,
+        ILLEGAL_FUNCTION,
+        ILLEGAL_VALUE,
+    ]
 
 
 @pytest.mark.parametrize("cut", [1, 6, 7, 9, 11])

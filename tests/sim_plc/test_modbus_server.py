@@ -195,8 +195,7 @@ def test_mbpoll_reads_what_the_gateway_wrote(served, client) -> None:
 def test_connections_beyond_the_limit_are_closed_and_counted() -> None:
     limited = ModbusPlcServer(load_config(), filled_image(), LOCALHOST, 0, max_connections=2)
     with limited:
-        socks = [socket.create_connection((LOCALHOST, limited.port), timeout=2)
-                 for _ in range(3)]  # fmt: skip
+        socks = [socket.create_connection((LOCALHOST, limited.port), timeout=2) for _ in range(3)]
         try:
             for s in socks[:2]:  # the first two are served
                 assert raw_transaction(s, b"\x03\x00\x34\x00\x01", tid=3)[:2] == b"\x03\x02"

@@ -41,8 +41,9 @@ def test_noise_off_statics_and_chain_agree_with_model_to_1e_9() -> None:
         w = statics.gravity_wrench(
             sp.mass[k], geo.gravity_m_s2, s.pose[k]
         ) + statics.inertial_wrench(sp.mass[k], s.acceleration[k, :3])
-        tau = statics.distribute_tensions(kinematics.structure_matrix(a, b, s.pose[k]), w,
-                                          lim.min_n, lim.max_n)  # fmt: skip
+        tau = statics.distribute_tensions(
+            kinematics.structure_matrix(a, b, s.pose[k]), w, lim.min_n, lim.max_n
+        )
         assert_allclose(sp.tension_true[k], tau, atol=1e-9)
         assert_allclose(sp.a_mat[k] @ tau + w, 0.0, atol=1e-9)
     analog = sensor_batch(model, sp, np.zeros((t.size, 8)))
@@ -102,8 +103,18 @@ def test_record_command_round_trips_through_the_reader(tmp_path, capsys) -> None
 def test_record_seed_gives_another_recording_of_the_same_machine(tmp_path) -> None:
     paths = [tmp_path / "a.csv", tmp_path / "b.csv"]
     for path, seed in zip(paths, ("1", "2"), strict=True):
-        argv = ["record", "--config", str(REPLICATE_YAML), "--seconds", "0.3", "--out",
-                str(path), "--quiet", "--seed", seed]  # fmt: skip
+        argv = [
+            "record",
+            "--config",
+            str(REPLICATE_YAML),
+            "--seconds",
+            "0.3",
+            "--out",
+            str(path),
+            "--quiet",
+            "--seed",
+            seed,
+        ]
         assert cli.main(argv) == 0
     a, b = (read_recording(p) for p in paths)
     assert (a.metadata["seed"], b.metadata["seed"]) == ("1", "2")

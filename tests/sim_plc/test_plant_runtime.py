@@ -131,8 +131,9 @@ def test_sim_plc_serves_then_ends_cleanly(monkeypatch, capsys) -> None:
         return FakeServer(), f"{bus} on {host}:{port}"
 
     monkeypatch.setattr(sim_cli, "_server", fake_server)
-    args = argparse.Namespace(config=str(REPLICATE_YAML), host="127.0.0.1", port=0,
-                              bus=None, seconds=0.3)  # fmt: skip
+    args = argparse.Namespace(
+        config=str(REPLICATE_YAML), host="127.0.0.1", port=0, bus=None, seconds=0.3
+    )
     assert sim_cli.run_command("sim-plc", args) == 0
     out = capsys.readouterr()
     assert "sim-plc: serving modbus_tcp on 127.0.0.1:0" in out.out
@@ -148,8 +149,18 @@ def test_sim_plc_subprocess_serves_modbus_and_stops_on_sigterm() -> None:
     from pymodbus.client import ModbusTcpClient
 
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, "-m", "gateway.cli", "sim-plc", "--config", str(REPLICATE_YAML),
-           "--host", "127.0.0.1", "--port", "0"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "gateway.cli",
+        "sim-plc",
+        "--config",
+        str(REPLICATE_YAML),
+        "--host",
+        "127.0.0.1",
+        "--port",
+        "0",
+    ]
     with subprocess.Popen(
         cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     ) as proc:
@@ -205,9 +216,13 @@ def test_sim_plc_realtime_flag_reports_one_line(monkeypatch, capsys, tmp_path) -
     import yaml
 
     data = yaml.safe_load(REPLICATE_YAML.read_text())
-    data.setdefault("loop", {})["realtime"] = {"policy": "other", "priority": 0,
-                                               "lock_memory": False, "gc_off": False,
-                                               "cpu_dma_latency_us": None}  # fmt: skip
+    data.setdefault("loop", {})["realtime"] = {
+        "policy": "other",
+        "priority": 0,
+        "lock_memory": False,
+        "gc_off": False,
+        "cpu_dma_latency_us": None,
+    }
     path = tmp_path / "rt.yaml"
     path.write_text(yaml.safe_dump(data))
 
@@ -216,8 +231,15 @@ def test_sim_plc_realtime_flag_reports_one_line(monkeypatch, capsys, tmp_path) -
             pass
 
     monkeypatch.setattr(sim_cli, "_server", lambda *a, **k: (FakeServer(), "fake on x:0"))
-    args = argparse.Namespace(config=str(path), host="127.0.0.1", port=0, bus=None,
-                              seconds=0.2, realtime=True, chunks_in_process=True)  # fmt: skip
+    args = argparse.Namespace(
+        config=str(path),
+        host="127.0.0.1",
+        port=0,
+        bus=None,
+        seconds=0.2,
+        realtime=True,
+        chunks_in_process=True,
+    )
     assert sim_cli.run_command("sim-plc", args) == 0
     err = capsys.readouterr().err
     lines = [x for x in err.splitlines() if x.startswith("sim-plc: real-time")]
@@ -230,8 +252,11 @@ def test_sim_plc_fifo_with_the_chunk_worker_serves_then_stops(monkeypatch, capsy
     import yaml
 
     data = yaml.safe_load(REPLICATE_YAML.read_text())
-    data.setdefault("loop", {})["realtime"] = {"lock_memory": False, "gc_off": False,
-                                               "cpu_dma_latency_us": None}  # fmt: skip
+    data.setdefault("loop", {})["realtime"] = {
+        "lock_memory": False,
+        "gc_off": False,
+        "cpu_dma_latency_us": None,
+    }
     path = tmp_path / "rt.yaml"
     path.write_text(yaml.safe_dump(data))
 
@@ -240,13 +265,22 @@ def test_sim_plc_fifo_with_the_chunk_worker_serves_then_stops(monkeypatch, capsy
             pass
 
     monkeypatch.setattr(sim_cli, "_server", lambda *a, **k: (FakeServer(), "fake on x:0"))
-    args = argparse.Namespace(config=str(path), host="127.0.0.1", port=0, bus=None,
-                              seconds=0.3, realtime=True, chunks_in_process=False)  # fmt: skip
+    args = argparse.Namespace(
+        config=str(path),
+        host="127.0.0.1",
+        port=0,
+        bus=None,
+        seconds=0.3,
+        realtime=True,
+        chunks_in_process=False,
+    )
     before = os.sched_getscheduler(0)
     assert sim_cli.run_command("sim-plc", args) == 0
     assert os.sched_getscheduler(0) == before  # undone at the end (in process)
     err = capsys.readouterr().err
     line = next(x for x in err.splitlines() if x.startswith("sim-plc: real-time"))
-    assert ("SCHED_FIFO priority 50, chunk worker SCHED_FIFO priority 1" in line
-            or "refused SCHED_FIFO priority 50: not permitted" in line), line  # fmt: skip
+    assert (
+        "SCHED_FIFO priority 50, chunk worker SCHED_FIFO priority 1" in line
+        or "refused SCHED_FIFO priority 50: not permitted" in line
+    ), line
     assert "stopped after" in err

@@ -15,8 +15,15 @@ from tests.plant_helpers import REPLICATE_YAML
 @pytest.fixture(scope="module")
 def result(tmp_path_factory) -> tuple[dict, object]:
     out = tmp_path_factory.mktemp("replicate")
-    argv = ["replicate", "--out", str(out), "--config", str(REPLICATE_YAML),
-            "--seconds-limit", "15"]  # fmt: skip
+    argv = [
+        "replicate",
+        "--out",
+        str(out),
+        "--config",
+        str(REPLICATE_YAML),
+        "--seconds-limit",
+        "15",
+    ]
     assert cli.main(argv) == 0
     return json.loads((out / "replication.json").read_text()), out
 

@@ -39,9 +39,15 @@ class Backlash(Effect):
     stage = "chain"
     order = 20
     params = (
-        Param("width_m", "m", 0.0, low=0.0, step=1e-4,
-              doc="travel after a reversal before the friction starts to change"),
-    )  # fmt: skip
+        Param(
+            "width_m",
+            "m",
+            0.0,
+            low=0.0,
+            step=1e-4,
+            doc="travel after a reversal before the friction starts to change",
+        ),
+    )
     physics = "the friction state driven through a dead zone of width b in the travel"
     online = Online(True, "the chain's travel through the dead zone (the setpoint's)")
     needs_motion = True

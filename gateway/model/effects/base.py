@@ -341,10 +341,11 @@ class Effect:
     def neutral(self, nom: NominalChain) -> dict[str, float]:
         """Report values meaning "nothing beyond the nominal model"."""
         return {
-            p.name: nominal_value(nom, p.nominal) if p.nominal and math.isnan(p.default)
+            p.name: nominal_value(nom, p.nominal)
+            if p.nominal and math.isnan(p.default)
             else p.default
             for p in self.params
-        }  # fmt: skip
+        }
 
     def present(self, values: Values, nom: NominalChain) -> np.ndarray:
         """(m,) bool: the cables on which ``values`` differ from the nominal model."""

@@ -55,8 +55,17 @@ class CableStretch(Effect):
     name = "cable_stretch"
     stage = "chain"
     order = 30
-    params = (Param("k_n_m", "N/m", INF, low=0.0, low_open=True, step=1e3,
-                    doc="axial stiffness of the cable between winch and pulleys"),)  # fmt: skip
+    params = (
+        Param(
+            "k_n_m",
+            "N/m",
+            INF,
+            low=0.0,
+            low_open=True,
+            step=1e3,
+            doc="axial stiffness of the cable between winch and pulleys",
+        ),
+    )
     physics = "travel driving the friction state: setpoint travel - dF / k (stretch)"
     online = Online(True, "the chain's travel minus the friction's stretch change")
     needs_motion = True

@@ -89,10 +89,18 @@ class Coulomb(Effect):
     name = "coulomb"
     stage = "chain"
     params = (
-        Param("mu", "1", float("nan"), low=0.0, high=0.5, step=1e-3, nominal="mu_mean",
-              doc="bearing coefficient of every pulley (absolute)"),
+        Param(
+            "mu",
+            "1",
+            float("nan"),
+            low=0.0,
+            high=0.5,
+            step=1e-3,
+            nominal="mu_mean",
+            doc="bearing coefficient of every pulley (absolute)",
+        ),
         Param("f0_n", "N", 0.0, low=0.0, step=0.1, doc="load-independent level of the chain"),
-    )  # fmt: skip
+    )
     physics = "- sgn(v) (lambda T + f0): per-pulley mu (absolute), load-independent f0"
     online = Online(True, "the chain's Coulomb level")
     needs_motion = True

@@ -38,12 +38,28 @@ class CoulombDirectional(Effect):
     name = "coulomb_directional"
     stage = "chain"
     params = (
-        Param("mu_out", "1", float("nan"), low=0.0, high=0.5, step=1e-3, nominal="mu_mean",
-              doc="bearing coefficient of every pulley paying out (v > 0), absolute"),
-        Param("mu_in", "1", float("nan"), low=0.0, high=0.5, step=1e-3, nominal="mu_mean",
-              doc="bearing coefficient of every pulley hauled in (v < 0), absolute"),
+        Param(
+            "mu_out",
+            "1",
+            float("nan"),
+            low=0.0,
+            high=0.5,
+            step=1e-3,
+            nominal="mu_mean",
+            doc="bearing coefficient of every pulley paying out (v > 0), absolute",
+        ),
+        Param(
+            "mu_in",
+            "1",
+            float("nan"),
+            low=0.0,
+            high=0.5,
+            step=1e-3,
+            nominal="mu_mean",
+            doc="bearing coefficient of every pulley hauled in (v < 0), absolute",
+        ),
         Param("f0_n", "N", 0.0, low=0.0, step=0.1, doc="load-independent level of the chain"),
-    )  # fmt: skip
+    )
     physics = (
         "- sgn(v) (lambda_s T + f0), lambda_s from mu_out paying out (v > 0) and from "
         "mu_in hauling in (v < 0), per pulley, absolute"

@@ -80,8 +80,9 @@ class Delay(Effect):
         return np.stack([np.interp(t + d[i], t, y[:, i]) for i in range(y.shape[1])], axis=1)
 
     def stepper(self, p: Values, cables: int, period_s: float) -> _Stepper:
-        return _Stepper(np.broadcast_to(np.asarray(p["d_s"], dtype=float), (cables,)).copy(),
-                        period_s)  # fmt: skip
+        return _Stepper(
+            np.broadcast_to(np.asarray(p["d_s"], dtype=float), (cables,)).copy(), period_s
+        )
 
     def spec(self, d: FitData, nom: NominalChain, resid: np.ndarray, mask: np.ndarray) -> Spec:
         return time_spec(d)

@@ -107,10 +107,18 @@ class Eccentricity(Effect):
     order = 20
     params = (
         Param("a_n", "N", 0.0, step=0.1, doc="amplitude"),
-        Param("r_m", "m", float("nan"), low=0.0, low_open=True, step=1e-3,
-              nominal="pulley_radius_m", doc="radius of the pulley (travel per radian)"),
+        Param(
+            "r_m",
+            "m",
+            float("nan"),
+            low=0.0,
+            low_open=True,
+            step=1e-3,
+            nominal="pulley_radius_m",
+            doc="radius of the pulley (travel per radian)",
+        ),
         Param("phi_rad", "rad", 0.0, step=0.1, doc="phase at x = 0"),
-    )  # fmt: skip
+    )
     physics = "+ a sin(x / r + phi), x the cable length"
     online = Online(True, "x the setpoint length")
     online_kernel = inverse_step
@@ -183,9 +191,11 @@ class Eccentricity(Effect):
             return
         ph, r = values["phi_rad"], values["r_m"]
         values["phi_rad"] = np.array(
-            [phase_at_length(float(ph[i]), float(r[i]), float(ctx.length0[i]))
-             for i in range(ph.size)]
-        )  # fmt: skip
+            [
+                phase_at_length(float(ph[i]), float(r[i]), float(ctx.length0[i]))
+                for i in range(ph.size)
+            ]
+        )
 
 
 EFFECT = Eccentricity()

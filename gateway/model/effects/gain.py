@@ -43,8 +43,7 @@ class Gain(Effect):
     name = "gain"
     stage = "sensor"
     order = 10
-    params = (Param("g", "1", 0.0, low=-1.0, low_open=True, step=1e-3,
-                    doc="relative scale error"),)  # fmt: skip
+    params = (Param("g", "1", 0.0, low=-1.0, low_open=True, step=1e-3, doc="relative scale error"),)
     physics = "(1 + g) T_s"
     online = Online(True, "divide by 1 + g")
     online_kernel = inverse_step

@@ -59,8 +59,16 @@ class Inertia(Effect):
     name = "inertia"
     stage = "path"
     order = 10
-    params = (Param("m_eff_kg", "kg", 0.0, step=1.0, truth_low=0.0,
-                    doc="effective rotating mass at the cable"),)  # fmt: skip
+    params = (
+        Param(
+            "m_eff_kg",
+            "kg",
+            0.0,
+            step=1.0,
+            truth_low=0.0,
+            doc="effective rotating mass at the cable",
+        ),
+    )
     physics = "- m_eff a"
     online = Online(True, "a from the setpoint velocity, backward difference over the cycle's dt")
     online_kernel = inverse_step

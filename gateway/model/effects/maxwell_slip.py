@@ -59,12 +59,26 @@ class MaxwellSlip(Effect):
     stage = "chain"
     order = 10  # after presliding: it sets the law and the stiffness
     params = (
-        Param("sigma_n_m", "N/m", float("nan"), low=0.0, low_open=True, step=50.0,
-              nominal="sigma_n_m",
-              doc="stiffness scale: the stiff element's (the soft one's is 1/10 of it)"),
-        Param("w", "1", 1.0, low=0.0, high=1.0, step=0.05,
-              doc="fraction of the Coulomb level held by the stiff element"),
-    )  # fmt: skip
+        Param(
+            "sigma_n_m",
+            "N/m",
+            float("nan"),
+            low=0.0,
+            low_open=True,
+            step=50.0,
+            nominal="sigma_n_m",
+            doc="stiffness scale: the stiff element's (the soft one's is 1/10 of it)",
+        ),
+        Param(
+            "w",
+            "1",
+            1.0,
+            low=0.0,
+            high=1.0,
+            step=0.05,
+            doc="fraction of the Coulomb level held by the stiff element",
+        ),
+    )
     physics = (
         "two Dahl elements per pulley: levels w F_R and (1 - w) F_R, relaxation lengths "
         "F_R / sigma and 10 F_R / sigma"

@@ -26,8 +26,9 @@ from gateway.model.effects.base import (
 class Presliding(Effect):
     name = "presliding"
     stage = "chain"
-    params = (Param("sigma_n_m", "N/m", 500.0, low=0.0, low_open=True, step=50.0,
-                    doc="Dahl stiffness"),)  # fmt: skip
+    params = (
+        Param("sigma_n_m", "N/m", 500.0, low=0.0, low_open=True, step=50.0, doc="Dahl stiffness"),
+    )
     physics = "Dahl pre-sliding with stiffness sigma instead of the Coulomb chain"
     online = Online(True, "the chain runs Dahl")
     needs_motion = True

@@ -59,10 +59,25 @@ from gateway.model.effects.forms import causal_acceleration
 from gateway.model.fastcall import entry_point
 
 MODULES = (
-    coulomb, coulomb_directional, presliding, viscous, stribeck, inertia, delay, lowpass,
-    gain, offset, drift, eccentricity, mass_change, maxwell_slip, cable_stretch, backlash,
-    sensor_creep, spring,
-)  # fmt: skip
+    coulomb,
+    coulomb_directional,
+    presliding,
+    viscous,
+    stribeck,
+    inertia,
+    delay,
+    lowpass,
+    gain,
+    offset,
+    drift,
+    eccentricity,
+    mass_change,
+    maxwell_slip,
+    cable_stretch,
+    backlash,
+    sensor_creep,
+    spring,
+)
 """The catalogue's order (reports and the model file list effects in it)."""
 REGISTRY: dict[str, Effect] = {mod.EFFECT.name: mod.EFFECT for mod in MODULES}
 EFFECT_NAMES: tuple[str, ...] = tuple(REGISTRY)
@@ -195,8 +210,9 @@ def chain_params(
         stribeck_k=np.zeros(cables),
         stribeck_v_m_s=np.full(cables, 0.01),
         viscous_ns_m=np.broadcast_to(
-            np.asarray(nominal.viscous_ns_m, dtype=float), (cables,)).copy(),
-    )  # fmt: skip
+            np.asarray(nominal.viscous_ns_m, dtype=float), (cables,)
+        ).copy(),
+    )
     for e in ordered(eff, "chain"):
         if online_only and not e.online.compensable:
             continue
@@ -286,8 +302,15 @@ class OnlineInverse:
     that sample, so a repeated sample does not advance it twice).
     """
 
-    def __init__(self, eff: Effects, cables: int, out: np.ndarray, v: np.ndarray,
-                 v_prev: np.ndarray, length: np.ndarray) -> None:  # fmt: skip
+    def __init__(
+        self,
+        eff: Effects,
+        cables: int,
+        out: np.ndarray,
+        v: np.ndarray,
+        v_prev: np.ndarray,
+        length: np.ndarray,
+    ) -> None:
         self.steps = []
         self.stateful: list[tuple[np.ndarray, np.ndarray]] = []  # (rows, their saved copy)
         for e in reversed(ordered(eff, "path", "sensor")):
@@ -298,11 +321,22 @@ class OnlineInverse:
             self.steps.append((entry, p))
             if e.online_state:
                 self.stateful.append((p, p.copy()))
-        self.names = tuple(e.name for e in reversed(ordered(eff, "path", "sensor"))
-                           if e.online.compensable and e.online_kernel is not None)  # fmt: skip
+        self.names = tuple(
+            e.name
+            for e in reversed(ordered(eff, "path", "sensor"))
+            if e.online.compensable and e.online_kernel is not None
+        )
 
-    def __call__(self, y_in: np.ndarray, out: np.ndarray, v: np.ndarray, v_prev: np.ndarray,
-                 dt: float, length: np.ndarray, new: bool = True) -> None:  # fmt: skip
+    def __call__(
+        self,
+        y_in: np.ndarray,
+        out: np.ndarray,
+        v: np.ndarray,
+        v_prev: np.ndarray,
+        dt: float,
+        length: np.ndarray,
+        new: bool = True,
+    ) -> None:
         for p, saved in self.stateful:
             if new:
                 saved[:] = p
@@ -328,7 +362,12 @@ def compensate_online(
     chain (sensor -> platform) with ``dt`` from ``t``.
     """
     t = np.asarray(t, dtype=float)
-    s = SeriesData(t, velocity, np.asarray(length, dtype=float),
-                   causal_acceleration(t, velocity), float(t[0]) if t.size else 0.0)  # fmt: skip
+    s = SeriesData(
+        t,
+        velocity,
+        np.asarray(length, dtype=float),
+        causal_acceleration(t, velocity),
+        float(t[0]) if t.size else 0.0,
+    )
     ts = inverse(s, np.asarray(reading, dtype=float), eff, online_only=True)
     return compensate(params, ts, velocity, t)

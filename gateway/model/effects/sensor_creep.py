@@ -104,11 +104,19 @@ class SensorCreep(Effect):
     stage = "sensor"
     order = 5  # first: the creep is in the strain gauge, before gain and zero
     params = (
-        Param("c", "1", 0.0, low=-1.0, high=1.0, step=0.01,
-              doc="fraction of a load change that arrives by creep"),
-        Param("tau_s", "s", 1.0, low=0.0, low_open=True, step=0.05,
-              doc="time constant of the creep"),
-    )  # fmt: skip
+        Param(
+            "c",
+            "1",
+            0.0,
+            low=-1.0,
+            high=1.0,
+            step=0.01,
+            doc="fraction of a load change that arrives by creep",
+        ),
+        Param(
+            "tau_s", "s", 1.0, low=0.0, low_open=True, step=0.05, doc="time constant of the creep"
+        ),
+    )
     physics = "(1 - c) T_s + c 1/(tau s + 1) T_s"
     online = Online(True, "exact causal inverse of the discrete creep, per cycle")
     online_kernel = inverse_step

@@ -59,7 +59,7 @@ class Spring(Effect):
     params = (
         Param("k_n_m", "N/m", 0.0, step=1.0, doc="stiffness: force per metre of cable length"),
         Param("l0_m", "m", 0.0, step=0.01, doc="the length at which the force is zero"),
-    )  # fmt: skip
+    )
     physics = "+ k (x - l0), x the cable length"
     online = Online(True, "x the setpoint length")
     online_kernel = inverse_step
@@ -115,8 +115,7 @@ class Spring(Effect):
     def spec(self, d: FitData, nom: NominalChain, resid: np.ndarray, mask: np.ndarray) -> Spec:
         """``(k, k l0)`` both linear; scales 1 N/m and 1 N."""
         spec = self.linear_spec(nom)
-        return Spec(spec.neutral, spec.lower, spec.upper, (0, 1), np.array([1.0, 1.0]),
-                    spec.starts)  # fmt: skip
+        return Spec(spec.neutral, spec.lower, spec.upper, (0, 1), np.array([1.0, 1.0]), spec.starts)
 
     def compose(self, old: Values, new: Values, ctx: Compose) -> Values:
         """Two springs are one: ``k = k_old + k_new`` and ``k l0`` adds the same way."""

@@ -30,9 +30,16 @@ class Stribeck(Effect):
     stage = "chain"
     params = (
         Param("k", "1", 0.0, low=0.0, step=0.05, doc="excess of the level at standstill"),
-        Param("v_s_m_s", "m/s", 0.01, low=0.0, low_open=True, step=1e-3,
-              doc="speed over which the excess fades"),
-    )  # fmt: skip
+        Param(
+            "v_s_m_s",
+            "m/s",
+            0.01,
+            low=0.0,
+            low_open=True,
+            step=1e-3,
+            doc="speed over which the excess fades",
+        ),
+    )
     physics = "Coulomb level times 1 + k exp(-(v / v_s)^2)"
     online = Online(True, "with v_set")
     needs_motion = True
@@ -43,7 +50,7 @@ class Stribeck(Effect):
     )
     plot = "v"
     separate = "slow travel (below v_s) held for longer than a reversal"
-    example = {"k": 1.2, "v_s_m_s": 0.012}
+    example = {"k": 2.0, "v_s_m_s": 0.012}
 
     def apply_chain(self, draft: ChainDraft, p: Values) -> None:
         draft.stribeck_k = np.asarray(p["k"], dtype=float).copy()

@@ -25,8 +25,16 @@ from gateway.model.effects.base import (
 class Viscous(Effect):
     name = "viscous"
     stage = "chain"
-    params = (Param("c_ns_m", "N s/m", 0.0, step=1.0, truth_low=0.0,
-                    doc="viscous coefficient added to the nominal"),)  # fmt: skip
+    params = (
+        Param(
+            "c_ns_m",
+            "N s/m",
+            0.0,
+            step=1.0,
+            truth_low=0.0,
+            doc="viscous coefficient added to the nominal",
+        ),
+    )
     physics = "- c v (added to the nominal viscous_ns_m)"
     online = Online(True, "+ c v_set")
     needs_motion = True

@@ -1,0 +1,366 @@
+"""The platform-tension reference as the selector's strategy: one :class:`CableUnit` per
+cable, the cable's sensor reading against the nominal chain run from its platform tension
+(:class:`gateway.diagnose.forward.Forward`), fitted by :mod:`gateway.diagnose.fit`.
+
+(The other reference, the platform's wrench balance, is :class:`gateway.diagnose.wrench.
+WrenchUnit`: every cable at once.)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gateway.core.heap import trim_heap
+from gateway.diagnose import locate
+from gateway.diagnose.fit import best_start, joint_fit, linear_refit, spec_for
+from gateway.diagnose.forward import CableData, Forward, Nominal
+from gateway.diagnose.prepare import (
+    SELECTION_BUDGET,
+    Sensitivity,
+    cable_candidates,
+    cable_data,
+    candidates_for,
+    clipped_mask,
+    finite_rows,
+    nominal_from,
+    selection_subset,
+    time_blocks,
+    validation_forwards,
+    warmup_mask,
+)
+from gateway.diagnose.select import Model, Selector, Thresholds
+from gateway.diagnose.significance import Tested, decide, harmonize, retire, score
+from gateway.diagnose.stats import holdout_z
+from gateway.errors import RecordingError
+from gateway.model import effects as fx
+from gateway.recordings.reader import Recording
+
+
+class CableUnit:
+    """One cable for the selector (:class:`gateway.diagnose.select.Unit`): residual =
+    measured reading - the model's prediction, per sample."""
+
+    def __init__(
+        self,
+        fw: Forward,
+        blocks: np.ndarray,
+        n_blocks: int,
+        candidates: list[str],
+        usable: np.ndarray | None = None,
+        stride: int = 1,
+    ) -> None:
+        """``usable`` (N,) bool: samples that may be fitted and scored (None: all; False:
+        warm-up and clipped readings)."""
+        self.fw, self.blocks, self.n_blocks = fw, blocks, n_blocks
+        use = np.ones(blocks.shape, bool) if usable is None else usable
+        self.train = (blocks % 2 == 0) & use
+        self.test = (blocks % 2 == 1) & use
+        self.candidates = candidates
+        self.stride = stride
+
+    def _resid(self, theta: dict[str, np.ndarray]) -> np.ndarray:
+        return self.fw.data.ts - self.fw.predict(theta)
+
+    def empty(self) -> Model:
+        return Model({}, {}, {}, self._resid({}))
+
+    def evaluate(self, theta: dict[str, np.ndarray], specs: dict[str, Any]) -> Model:
+        nan = {e: np.full(v.size, np.nan) for e, v in theta.items()}
+        return Model(dict(theta), dict(specs), nan, self._resid(theta))
+
+    def screen(self, model: Model, effect: str) -> Model:
+        """The best of the effect's starting points (grids, periodogram) with its linear
+        parameters solved by one Gauss-Newton step, then one joint step on the linear
+        parameters of the kept effects and the new one (:func:`fit.linear_refit`), which
+        keeps a step cheap: only what is taken is refined by least squares."""
+        fw = self.fw
+        spec = spec_for(effect, fw.data, fw.nom, model.resid, self.train)
+        start = best_start(fw, model.kept, effect, spec, self.train)
+        theta = {**model.kept, effect: start}
+        specs = {**model.specs, effect: spec}
+        if model.kept:
+            theta = linear_refit(fw, theta, specs, self.train)
+        stderr = {**model.stderr, effect: np.full(start.size, np.nan)}
+        return Model({**model.kept, effect: theta[effect]}, specs, stderr, self._resid(theta))
+
+    def fit(self, theta: dict[str, np.ndarray], specs: dict[str, Any], nfev: int = 60) -> Model:
+        """Joint refit of ``theta`` (linear parts first re-solved together)."""
+        theta = linear_refit(self.fw, theta, specs, self.train)
+        f = joint_fit(self.fw, theta, specs, self.train, max_nfev=nfev, stride=self.stride)
+        return Model(f.theta, dict(specs), f.stderr, self.fw.data.ts - f.pred)
+
+    def refit_on(self, model: Model, mask: np.ndarray, nfev: int = 20) -> dict[str, np.ndarray]:
+        """The kept effects refitted on the samples ``mask`` only (from the model's values):
+        a refit for the standard errors across time blocks."""
+        stride = max(1, int(mask.sum()) // 150_000)
+        f = joint_fit(self.fw, model.kept, model.specs, mask, max_nfev=nfev, stride=stride)
+        return f.theta
+
+    def contribution(self, theta: dict[str, np.ndarray], effect: str) -> np.ndarray:
+        """What ``effect`` adds to the prediction of ``theta`` on the training samples."""
+        rest = {k: v for k, v in theta.items() if k != effect}
+        fw = self.fw
+        return (fw.predict(theta) - fw.predict(rest))[self.train]
+
+    def release(self) -> None:
+        self.fw.clear_cache()
+
+    def significance(self, model: Model, effect: str) -> float:
+        return fx.REGISTRY[effect].significance(
+            model.kept[effect], model.stderr[effect], model.specs[effect].neutral
+        )
+
+
+# ---- the platform-tension reference: stages -------------------------------------------------
+@dataclass
+class PlatformPrepared:
+    """A recording ready for the per-cable selection: the nominal chain, one
+    :class:`CableData` per cable, blocks, the samples each cable may fit and score
+    (``usable``: past its warm-up, not clipped), its candidates, a subset for long
+    recordings, the validation recording's forwards."""
+
+    rec: Recording
+    nom: Nominal
+    datas: list[CableData]
+    blocks: np.ndarray
+    n_blocks: int
+    valid: np.ndarray
+    usable: np.ndarray
+    candidates: list[list[str]]
+    subset: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    validation: tuple[list[Forward], np.ndarray] | None
+    clipped: dict
+
+
+class PlatformReference:
+    """The strategy of the platform-tension reference (``tension_platform_i`` columns, or
+    platform tensions from pose and mass): one unit per cable."""
+
+    name = "platform_tension"
+
+    def __init__(self, tp: np.ndarray | None = None, dtp_dm: Sensitivity = None) -> None:
+        self.tp, self.dtp_dm = tp, dtp_dm
+
+    def prepare(self, rec: Recording, friction, validation, say) -> PlatformPrepared:
+        tp = rec.tension_platform if self.tp is None else self.tp
+        if tp is None:
+            raise RecordingError(f"{rec.source}: no platform tensions")
+        nom = nominal_from(friction)
+        rec, tp, dtp_dm = finite_rows(rec, tp, self.dtp_dm)
+        datas = cable_data(rec, tp, dtp_dm)
+        blocks, nb = time_blocks(rec.t)
+        valid = np.empty((rec.samples, rec.cables), bool)
+        usable = np.empty((rec.samples, rec.cables), bool)
+        levels, cands = [], []
+        all_cands = candidates_for(dtp_dm is not None)
+        for i, d in enumerate(datas):
+            mask, at = clipped_mask(d.ts)
+            valid[:, i] = ~mask
+            levels.append(at)
+            if at:
+                say(f"cable {i + 1}: {int(mask.sum())} clipped readings excluded")
+            usable[:, i] = warmup_mask(d, nom) & valid[:, i]
+            cands.append(cable_candidates(all_cands, d, nom))
+            d.release()
+        clipped = {
+            "per_cable": [int((~valid[:, i]).sum()) for i in range(rec.cables)],
+            "levels_n": levels,
+        }
+        return PlatformPrepared(
+            rec,
+            nom,
+            datas,
+            blocks,
+            nb,
+            valid,
+            usable,
+            cands,
+            selection_subset(rec.t, blocks),
+            validation_forwards(validation, nom, rec.cables),
+            clipped,
+        )
+
+    def units(self, prep: PlatformPrepared, say) -> Iterator[tuple[int, CableUnit]]:
+        """One selection unit per cable (on the subset of a long recording); the cable's
+        cached simulations and computed series are freed when the caller moves on."""
+        for i, d in enumerate(prep.datas):
+            where = "" if prep.subset is None else f" on {prep.subset[0].size} of {d.t.size}"
+            say(
+                f"cable {i + 1}/{len(prep.datas)}: {len(prep.candidates[i])} candidate "
+                f"effects{where}"
+            )
+            unit = self.unit(prep, i)
+            yield i, unit
+            unit.release()
+            d.release()
+            trim_heap()  # the cable's many freed temporaries leave the process
+
+    def unit(self, prep: PlatformPrepared, i: int) -> CableUnit:
+        """Cable ``i``'s selection unit: every sample, or the subset of a long recording
+        (whose pieces join across gaps: the friction state warms up after each join as
+        after the start, by travel)."""
+        d, cands = prep.datas[i], prep.candidates[i]
+        if prep.subset is None:
+            return CableUnit(
+                Forward(d, prep.nom), prep.blocks, prep.n_blocks, cands, prep.usable[:, i]
+            )
+        idx, sub_blocks, use = prep.subset
+        sub = d.subset(idx)
+        d.release()
+        use = use & prep.usable[idx, i] & warmup_mask(sub, prep.nom)
+        return CableUnit(Forward(sub, prep.nom), sub_blocks, int(sub_blocks.max()) + 1, cands, use)
+
+    def full_unit(self, prep: PlatformPrepared, i: int) -> CableUnit:
+        """Cable ``i`` on every sample (thinned scoring in the fit of a long recording)."""
+        fw = Forward(prep.datas[i], prep.nom)
+        train = (prep.blocks % 2 == 0) & prep.usable[:, i]
+        stride = max(1, int(train.sum()) // SELECTION_BUDGET)
+        return CableUnit(
+            fw, prep.blocks, prep.n_blocks, prep.candidates[i], prep.usable[:, i], stride
+        )
+
+    def locate(self, prep: PlatformPrepared) -> Located:
+        """Regimes and where the nominal model's residual lives (cable by cable)."""
+        return locate_residual(prep, [{} for _ in prep.datas])
+
+    def release(self, unit: CableUnit) -> None:
+        unit.fw.clear_cache()
+
+
+@dataclass
+class Located:
+    """Regimes (N, m) and where a model's residual lives: the regions of concentrated
+    energy, their share, and the regime shares (:class:`locate.EnergyMap`)."""
+
+    regime: np.ndarray
+    regions: list[locate.Region]
+    fields: dict
+    baseline: dict
+
+
+def locate_residual(prep: PlatformPrepared, thetas: list[dict[str, np.ndarray]]) -> Located:
+    """Where the residual of the model ``thetas`` (per cable) lives, cable by cable (no
+    (N, m) residual is held); with the RMSE on every valid and every held-out sample."""
+    n, m = prep.rec.samples, prep.rec.cables
+    regime = np.empty((n, m), np.int8)
+    emap = locate.EnergyMap(prep.rec.t)
+    sse, count = np.zeros(2), np.zeros(2)
+    per_cable = []
+    test = (prep.blocks % 2 == 1)[:, None] & prep.valid
+    for i, d in enumerate(prep.datas):
+        regime[:, i] = locate.regimes(d.v, d.a)
+        fw = Forward(d, prep.nom)
+        r = d.ts - fw.predict(thetas[i])
+        fw.clear_cache()
+        r[~prep.valid[:, i]] = 0.0
+        for j, mask in enumerate((prep.valid[:, i], test[:, i])):
+            rr = r[mask]
+            sse[j] += float(rr @ rr)
+            count[j] += rr.size
+            if j == 0:
+                per_cable.append(float(np.sqrt(np.mean(rr**2))) if rr.size else 0.0)
+        emap.add(i + 1, r, regime[:, i])
+    rms, hold = (float(np.sqrt(s / c)) if c else 0.0 for s, c in zip(sse, count, strict=True))
+    regions = emap.regions()
+    baseline = {"rmse_n": rms, "per_cable_rmse_n": per_cable, "holdout_rmse_n": hold}
+    return Located(regime, regions, emap.report_fields(regions), baseline)
+
+
+# ---- select and fit, unit by unit ----------------------------------------------------------
+def select_units(
+    ref: PlatformReference, prep: PlatformPrepared, th: Thresholds, say
+) -> list[Tested]:
+    """Stage 3, with the per-unit half of stage 4: the selector over each cable (on the
+    subset of a long recording), checked against the validation recording, then scored
+    (every candidate tested, block refits) while its data is at hand; then only its
+    numbers are kept (memory: one cable's series at a time)."""
+    out = []
+    for i, unit in ref.units(prep, say):
+        sel = Selector(unit, th)
+        outcome = sel.run()
+        say(f"cable {i + 1}/{len(prep.datas)}: selected {', '.join(outcome.kept) or 'nothing'}")
+        model = sel.final
+        if prep.validation is not None and model.kept:
+            vfws, vvalid = prep.validation
+            model, dropped = validate(sel, model, vfws[i], vvalid[:, i], th)
+            if dropped:
+                say(f"cable {i + 1}: {', '.join(dropped)} did not lower the validation error")
+        u = Tested(sel, model, outcome, index=i)
+        score(u)
+        retire(u)
+        out.append(u)
+    return out
+
+
+def fit_units(
+    ref: PlatformReference, prep: PlatformPrepared, tested: list[Tested], th: Thresholds, say
+) -> list[Tested]:
+    """Stage 4: the significance stage over every cable and candidate (q-values over all
+    of them; a cable whose finding fails is rebuilt, refitted and scored again), then the
+    survivors refitted on all training samples. A long recording was selected on a subset
+    of its training blocks (each split in halves that train and test): the significance
+    stage tests there too, on samples the fits never saw, and the recording's own
+    held-out blocks stay unseen for the report's scores."""
+
+    def rebuild(u: Tested) -> tuple[Selector, Model]:
+        unit = ref.unit(prep, u.index)
+        return Selector(unit, th), unit.evaluate(u.model.kept, u.model.specs)
+
+    decide(tested, th, lambda msg: say(f"significance: {msg}"), rebuild)
+    harmonize(tested)
+    if prep.subset is not None:
+        for i, u in enumerate(tested):
+            o = u.outcome
+            if o.kept:
+                unit = ref.full_unit(prep, i)
+                full = unit.fit(o.theta, o.specs, nfev=20)
+                o.theta, o.stderr = full.kept, full.stderr
+                unit.release()
+    for i, u in enumerate(tested):
+        say(f"cable {i + 1}/{len(tested)}: kept {', '.join(u.outcome.kept) or 'nothing'}")
+    return tested
+
+
+def validate(
+    sel: Selector, model: Model, vfw: Forward, ok: np.ndarray, th: Thresholds
+) -> tuple[Model, list[str]]:
+    """Drop the kept effects that do not lower the error on the validation recording.
+
+    Every kept effect, with the parameters fitted here, must lower the validation SSE
+    against the model without it by ``rel_min`` and by ``z_holdout`` standard errors
+    (:func:`.stats.holdout_z` over the validation's time blocks); the weakest failing one
+    is dropped and the rest refitted, until all pass. ``vfw``: the same cable of the
+    validation recording (never fitted), ``ok`` its valid samples."""
+    vblocks, nvb = time_blocks(vfw.data.t)
+    ts = vfw.data.ts
+    dropped: list[str] = []
+    while model.kept:
+        full = vfw.predict(model.kept)
+        r_full = np.where(ok, ts - full, 0.0)
+        sse_full = np.bincount(vblocks, weights=r_full**2, minlength=nvb)
+        worst, worst_z = None, np.inf
+        for effect in model.kept:
+            rest = {k: v for k, v in model.kept.items() if k != effect}
+            red = vfw.predict(rest)
+            r_red = np.where(ok, ts - red, 0.0)
+            sse_red = np.bincount(vblocks, weights=r_red**2, minlength=nvb)
+            cross = np.bincount(
+                vblocks, weights=np.where(ok, r_full * (full - red), 0.0), minlength=nvb
+            )
+            z = holdout_z(sse_red, sse_full, cross)
+            gain = float(sse_red.sum() - sse_full.sum())
+            if (
+                not (z >= th.z_holdout and gain >= th.rel_min * float(sse_red.sum()))
+                and z < worst_z
+            ):
+                worst, worst_z = effect, z
+        if worst is None:
+            break
+        dropped.append(worst)
+        model = sel.fit(*model.without(worst), nfev=30)
+    vfw.clear_cache()
+    return model, dropped

@@ -1,0 +1,159 @@
+"""``cdpr-gateway fleet RECORDINGS... --model MODEL.yaml --out DIR [--scheduler ADDRESS]
+[--workers N]``: every recording diagnosed as a task on dask.distributed.
+
+RECORDINGS are files (``.csv``, ``.csv.gz``, ``.parquet``), globs (``'runs/*.parquet'``,
+``**`` recursive) or folders (a Hive tree ``robot=R/date=D/part-N.parquet``: every
+recording under it). Writes ``DIR/reports/NNN-NAME.json`` (each the bytes ``diagnose
+--json`` writes for that recording alone), ``DIR/fleet.parquet`` and ``DIR/fleet.csv``
+(:mod:`gateway.fleet.table`), ``DIR/plots/robot-R.png`` and ``DIR/fleet.md``
+(:mod:`gateway.fleet.plots`). A line per finished recording on stderr; a recording that
+fails is listed and the job goes on; the exit status is 0 when the job ran (1 when every
+recording failed), 2 on bad arguments or a missing ``fleet`` extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import sys
+import time
+from pathlib import Path
+
+from gateway.core.config import output_path
+from gateway.errors import GatewayError
+from gateway.fleet.task import TaskResult
+
+SUFFIXES = (".csv", ".csv.gz", ".parquet")
+MAX_RECORDINGS = 100_000
+
+
+def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "recordings", nargs="+", help="recording files, globs or folders (a Hive tree)"
+    )
+    parser.add_argument("--model", type=Path, required=True, help="nominal model YAML")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument(
+        "--scheduler",
+        help="address of a running dask scheduler (tcp://HOST:8786) instead of a local "
+        "cluster; its workers need cdpr-gateway installed and must see the recordings and "
+        "the model at the paths given here",
+    )
+    parser.add_argument(
+        "--workers", type=int, default=2, help="local cluster: worker processes (default 2)"
+    )
+
+
+def expand(args: list[str]) -> list[str]:
+    """Absolute paths of the recordings named (files, globs, folders), sorted, unique."""
+    found: dict[str, None] = {}
+    for arg in args:
+        path = Path(arg)
+        if path.is_dir():
+            hits = [p for p in path.rglob("*") if p.is_file() and p.name.endswith(SUFFIXES)]
+        elif glob.has_magic(arg):
+            hits = [Path(p) for p in glob.glob(arg, recursive=True)]
+            hits = [p for p in hits if p.is_file() and p.name.endswith(SUFFIXES)]
+        elif path.is_file():
+            hits = [path]
+        else:
+            raise GatewayError(f"{arg}: no such recording")
+        if not hits:
+            raise GatewayError(f"{arg}: no recordings ({', '.join(SUFFIXES)}) there")
+        for p in sorted(hits):
+            found[str(p.resolve())] = None
+        if len(found) > MAX_RECORDINGS:
+            raise GatewayError(f"more than {MAX_RECORDINGS} recordings")
+    return list(found)
+
+
+def _name(i: int, recording: str) -> str:
+    stem = Path(recording).name
+    for suffix in SUFFIXES[::-1]:
+        stem = stem.removesuffix(suffix)
+    parent = Path(recording).parent.name
+    label = f"{parent}-{stem}" if parent.startswith("date=") or stem.startswith("part-") else stem
+    return f"{i:03d}-{''.join(c if c.isalnum() or c in '-_.=' else '_' for c in label)}.json"
+
+
+def _verdict(res: TaskResult) -> tuple[str, str]:
+    """(verdict, 'RMSE before -> after') of one result, for the terminal and fleet.md."""
+    import json
+
+    if res.report_json is None:
+        return "FAILED", ""
+    rep = json.loads(res.report_json)
+    verdict = ", ".join(f["effect"] for f in rep["findings"]) or "none"
+    return verdict, f"{rep['baseline']['rmse_n']:.3f} -> {rep['final']['rmse_n']:.3f}"
+
+
+def run_command(command: str, args: argparse.Namespace) -> int:
+    from gateway.fleet.run import import_distributed, run_tasks
+
+    if not 1 <= args.workers <= 256:
+        raise GatewayError("--workers must be in 1..256")
+    import_distributed()  # a missing extra is one line, before anything else
+    recordings = expand(args.recordings)
+    model = args.model.resolve()
+    if not model.is_file():
+        raise GatewayError(f"--model {args.model}: no such file")
+    args.out.mkdir(parents=True, exist_ok=True)
+    output_path(args.out / "fleet.md", "--out")
+    (args.out / "reports").mkdir(exist_ok=True)
+    t0 = time.perf_counter()
+
+    def progress(done: int, res: TaskResult) -> None:
+        if not args.quiet:
+            verdict, rmse = _verdict(res)
+            what = f"{verdict} (RMSE {rmse} N)" if res.report_json else f"FAILED: {res.error}"
+            print(
+                f"[{done:{len(str(len(recordings)))}d}/{len(recordings)}] {res.recording}: "
+                f"{what}, {res.seconds:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    results, where = run_tasks(recordings, str(model), args.scheduler, args.workers, progress)
+    wall = time.perf_counter() - t0
+    return _write_outputs(args.out, results, where, wall, str(args.model))
+
+
+def _write_outputs(
+    out: Path, results: list[TaskResult], where: str, wall: float, model: str
+) -> int:
+    from gateway.fleet.plots import write_plots, write_summary
+    from gateway.fleet.table import table_rows, write_table
+
+    named = [(res, _name(i, res.recording)) for i, res in enumerate(results)]
+    for res, name in named:
+        if res.report_json is not None:
+            (out / "reports" / name).write_text(res.report_json, encoding="utf-8")
+    rows = table_rows([(res, name if res.report_json else "") for res, name in named])
+    write_table(rows, out)
+    plots = write_plots(rows, out / "plots")
+    summary = []
+    for res, name in named:
+        verdict, rmse = _verdict(res)
+        summary.append(
+            {
+                "robot": res.robot,
+                "start": res.start,
+                "recording": res.recording,
+                "verdict": verdict,
+                "rmse": rmse,
+                "error": res.error,
+                "report": f"reports/{name}" if res.report_json else "",
+            }
+        )
+    summary.sort(key=lambda r: (r["robot"], r["start"], r["recording"]))
+    info = {"cluster": where, "wall": f"{wall:.1f} s", "model": model}
+    write_summary(out / "fleet.md", summary, plots, info)
+    failed = sum(1 for r in results if r.error)
+    print(
+        f"fleet: {len(results)} recordings, {failed} failed, {wall:.1f} s on {where}; "
+        f"table, fleet.md and plots in {out}"
+    )
+    for res in results:
+        if res.error:
+            print(f"  failed: {res.recording}: {res.error}")
+    return 1 if failed == len(results) else 0

@@ -1,0 +1,109 @@
+"""The tasks on dask.distributed: a LocalCluster on this machine, or an existing scheduler.
+
+One task per recording (:func:`gateway.fleet.task.diagnose_task`), results taken as they
+finish (a line each on ``progress``); a task that fails in Dask itself (a worker killed
+over its memory limit, a lost worker) becomes an error of that recording, never the end
+of the job. Workers run one task at a time (``threads_per_worker=1``; the diagnosis is
+numpy and numba, one core each), so a worker's memory limit is one recording's figure
+plus the worker's own: :data:`TASK_MEMORY_BYTES` (``diagnose`` of 10 min x 1 kHz x 8
+cables peaks at 373 MB from CSV.gz, 422 MB from Parquet with pyarrow loaded,
+docs/recording-format.md "Memory") + :data:`WORKER_BASE_BYTES` (a worker with the
+libraries loaded; a worker over 95 % of its limit is restarted by Dask and that
+recording is listed as failed).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from gateway.errors import GatewayError
+from gateway.fleet.task import TaskResult, diagnose_task, recording_identity
+
+TASK_MEMORY_BYTES = 400 << 20  # one diagnosis of 10 min x 1 kHz x 8 cables
+WORKER_BASE_BYTES = 250 << 20  # a dask worker with numpy, scipy, numba, matplotlib loaded
+WORKER_MEMORY_BYTES = TASK_MEMORY_BYTES + WORKER_BASE_BYTES
+EXTRA_HINT = "pip install 'cdpr-gateway[fleet]'"
+
+
+def import_distributed() -> Any:
+    """``distributed``, or a one-line error naming the extra that brings it."""
+    try:
+        import distributed
+    except ImportError as exc:
+        raise GatewayError(
+            f"fleet needs dask.distributed, which is not installed ({exc.name}): {EXTRA_HINT}"
+        ) from None
+    return distributed
+
+
+def _client(distributed: Any, scheduler: str | None, workers: int) -> tuple[Any, Any, str]:
+    """(client, cluster or None, a line saying where the tasks run)."""
+    if scheduler is not None:
+        try:
+            client = distributed.Client(scheduler, timeout="20s", set_as_default=False)
+        except (OSError, TimeoutError) as exc:
+            raise GatewayError(f"--scheduler {scheduler}: cannot connect: {exc}") from exc
+        n = len(client.scheduler_info().get("workers", {}))
+        return client, None, f"scheduler {scheduler} with {n} workers"
+    cluster = distributed.LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        memory_limit=WORKER_MEMORY_BYTES,
+        silence_logs=40,
+    )
+    client = distributed.Client(cluster, set_as_default=False)
+    mb = WORKER_MEMORY_BYTES >> 20
+    return client, cluster, f"LocalCluster of {workers} workers ({mb} MiB each) on 127.0.0.1"
+
+
+def run_tasks(
+    recordings: list[str],
+    model: str,
+    scheduler: str | None,
+    workers: int,
+    progress: Callable[[int, TaskResult], None],
+) -> tuple[list[TaskResult], str]:
+    """Every recording's result in the order of ``recordings``, and where they ran."""
+    distributed = import_distributed()
+    client, cluster, where = _client(distributed, scheduler, workers)
+    try:
+        futures = {
+            client.submit(diagnose_task, rec, model, key=f"diagnose-{i}-{rec}", pure=False): i
+            for i, rec in enumerate(recordings)
+        }
+        results: list[TaskResult | None] = [None] * len(recordings)
+        finished = distributed.as_completed(futures, loop=client.loop)
+        for done, future in enumerate(finished, start=1):
+            i = futures[future]
+            results[i] = _result(future, recordings[i])
+            progress(done, results[i])  # type: ignore[arg-type]
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return [r for r in results if r is not None], where
+
+
+def _result(future: Any, recording: str) -> TaskResult:
+    t0 = time.perf_counter()
+    try:
+        res: TaskResult = future.result()
+        return res
+    except Exception as exc:  # the task never returned: a lost or killed worker
+        robot, start = recording_identity(Path(recording), {})
+        return TaskResult(
+            recording,
+            robot,
+            start,
+            None,
+            f"{type(exc).__name__}: {exc}",
+            time.perf_counter() - t0,
+            "",
+            0.0,
+        )

@@ -1,0 +1,85 @@
+"""What one worker does with one recording: its diagnosis, never an exception.
+
+:func:`diagnose_task` runs in a Dask worker (imported there by name: the worker must have
+this package installed, and the recording and model must be at paths it sees). Whatever
+goes wrong with one recording -- a malformed file, a diagnosis that fails -- comes back as
+an ``error`` in the result instead of an exception, so the job lists it and goes on (an
+exception would make Dask retry the task or fail the gather).
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import re
+import resource
+import socket
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+from gateway.errors import GatewayError
+
+_HIVE = re.compile(r"^(robot|date)=(.+)$")
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    """One recording's outcome: the report's text (``diagnose --json``'s bytes) or an
+    error line; robot and start time from the metadata (or the Hive path, or the file)."""
+
+    recording: str
+    robot: str
+    start: str  # ISO 8601, UTC
+    report_json: str | None
+    error: str | None
+    seconds: float  # wall time of the diagnosis
+    worker: str  # host:pid
+    peak_rss_mb: float  # the worker process's peak RSS so far
+
+
+def recording_identity(path: Path, meta: dict[str, str]) -> tuple[str, str]:
+    """(robot, start): metadata ``robot`` / ``started``, else the Hive folders
+    ``robot=R`` / ``date=D``, else the parent folder's name / the file's time."""
+    hive = {m.group(1): m.group(2) for part in path.parts if (m := _HIVE.match(part))}
+    robot = meta.get("robot") or hive.get("robot") or path.parent.name or "unknown"
+    start = meta.get("started") or hive.get("date")
+    if not start:
+        try:
+            mtime = path.stat().st_mtime
+        except OSError:
+            mtime = 0.0
+        start = datetime.datetime.fromtimestamp(mtime, datetime.UTC).isoformat(timespec="seconds")
+    return robot, start
+
+
+def diagnose_task(recording: str, model: str) -> TaskResult:
+    """Diagnose ``recording`` against ``model`` as ``diagnose`` does; never raises."""
+    from gateway.diagnose.cli import diagnose_report, report_json
+    from gateway.recordings.reader import read_metadata
+
+    path = Path(recording)
+    t0 = time.perf_counter()
+    report: str | None = None
+    error: str | None = None
+    robot, start = recording_identity(path, {})
+    try:
+        robot, start = recording_identity(path, read_metadata(path))
+        report = report_json(diagnose_report(path, Path(model)))
+    except GatewayError as exc:
+        error = str(exc)
+    except Exception as exc:  # a bug shows its place, but one recording never ends the job
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        error = f"{type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})"
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return TaskResult(
+        recording=recording,
+        robot=robot,
+        start=start,
+        report_json=report,
+        error=error,
+        seconds=time.perf_counter() - t0,
+        worker=f"{socket.gethostname()}:{os.getpid()}",
+        peak_rss_mb=peak,
+    )

@@ -1,0 +1,253 @@
+"""The diagnosis on real recordings, blind, and the least-squares baseline beside it.
+
+``python -m sim_plc.realsuite DATA [--table docs/diagnose-suite.md]`` (``DATA``: the
+directory holding ``emps/`` and ``davinci/``, :mod:`sim_plc.realdata`; ``python -m bench
+real`` runs it on the shared data and prints the same) diagnoses:
+
+* **EMPS** against a blank model (no friction law, no pulleys), ``--validate`` with the
+  pulses recording; the fitted inertia, viscous and Coulomb level against the published
+  identification (targets 5/10/10 %, :data:`sim_plc.realdata.EMPS_TARGETS`).
+* **da Vinci** against a blank model (:data:`sim_plc.realdata.DAVINCI_MODEL`): fitted on
+  the first 9 trials of ``Tool_4_Maryland_L_4``, ``--validate`` with its other 6; the
+  fitted model then predicts those 6 and the 4 trials of ``Tool_4_Maryland_L_2`` (never
+  seen), scored by :func:`sim_plc.realdata.rmse` like the baseline (:mod:`sim_plc.baseline`,
+  fitted on the same 9). Whether the diagnosis names the same effects when fitted on
+  either validation set instead is reported too.
+
+Each run writes its section "## Real recordings" of the table file (the rest is kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from gateway.core.config import FrictionConfig
+from gateway.diagnose.engine import diagnose
+from gateway.diagnose.writemodel import fitted_friction
+from gateway.recordings.reader import Recording
+from sim_plc import baseline, realdata
+from sim_plc.suitedoc import replace_section
+
+HEADING = "## Real recordings (blind)"
+
+
+def _diagnose(fit: Recording, model: FrictionConfig, validation: Recording | None) -> dict:
+    start = time.perf_counter()
+    val = None if validation is None else (validation, validation.tension_platform, None)
+    report = diagnose(fit, model, validation=val).report
+    fitted = fitted_friction(model, report, fit.cables, fit, [])
+    return {"report": report, "fitted": fitted, "seconds": time.perf_counter() - start}
+
+
+def _parameters(report: dict) -> dict[str, dict[str, float]]:
+    return {
+        f["effect"]: {k: float(v[0]) for k, v in f["parameters"].items()}
+        for f in report["findings"]
+    }
+
+
+def run_emps(root: Path) -> dict[str, Any]:
+    """EMPS blind (module docstring): parameters, their errors against the published ones,
+    RMSE before -> after on the fit (held-out blocks) and the validation recording."""
+    sets = realdata.emps_sets(root)
+    res = _diagnose(sets.fit, realdata.EMPS_MODEL, sets.validation)
+    params = _parameters(res["report"])
+    got = {
+        "m_eff_kg": params.get("inertia", {}).get("m_eff_kg"),
+        "c_ns_m": params.get("viscous", {}).get("c_ns_m"),
+        "f0_n": params.get("coulomb", {}).get("f0_n"),
+        # the sensor reads minus the motor force: its offset is minus the motor's
+        "offset_n": None if "offset" not in params else -params["offset"]["c_n"],
+    }
+    errors = {
+        k: (None if got[k] is None else abs(got[k] - ref) / abs(ref))  # type: ignore[operator]
+        for k, ref in realdata.EMPS_PUBLISHED.items()
+    }
+    met = all(
+        errors[k] is not None and errors[k] <= tol  # type: ignore[operator]
+        for k, tol in realdata.EMPS_TARGETS.items()
+    )
+    fin = res["report"]["final"]
+    return {
+        "found": [f["effect"] for f in res["report"]["findings"]],
+        "got": got,
+        "errors": errors,
+        "met": met,
+        "holdout": (res["report"]["baseline"]["holdout_rmse_n"], fin["holdout_rmse_n"]),
+        "validation": (fin["validation_rmse_before_n"], fin["validation_rmse_after_n"]),
+        "validation_predicted": realdata.rmse(
+            sets.validation, realdata.predict(sets.validation, res["fitted"])
+        ),
+        "unexplained": res["report"].get("unexplained"),
+        "seconds": res["seconds"],
+    }
+
+
+def run_davinci(root: Path, refits: bool = True) -> dict[str, Any]:
+    """da Vinci blind and the baseline (module docstring)."""
+    sets = realdata.davinci_sets(root)
+    model = realdata.DAVINCI_MODEL
+    res = _diagnose(sets.fit, model, sets.validation)
+    assert sets.other is not None
+    scored = {
+        name: {
+            "before": realdata.rmse(rec, realdata.predict(rec, model)),
+            "tool": realdata.rmse(rec, realdata.predict(rec, res["fitted"])),
+        }
+        for name, rec in (
+            ("fit", sets.fit),
+            ("validation", sets.validation),
+            ("other_series", sets.other),
+        )
+    }
+    start = time.perf_counter()
+    base = baseline.fit(sets.fit)
+    base_s = time.perf_counter() - start
+    for name, rec in (
+        ("fit", sets.fit),
+        ("validation", sets.validation),
+        ("other_series", sets.other),
+    ):
+        scored[name]["baseline"] = realdata.rmse(rec, baseline.predict(base.theta, rec)[:, None])
+    fin = res["report"]["final"]
+    out: dict[str, Any] = {
+        "found": [f["effect"] for f in res["report"]["findings"]],
+        "parameters": _parameters(res["report"]),
+        "validation_report": (fin["validation_rmse_before_n"], fin["validation_rmse_after_n"]),
+        "scored": scored,
+        "baseline": base.as_dict(),
+        "baseline_seconds": base_s,
+        "unexplained": res["report"].get("unexplained"),
+        "seconds": res["seconds"],
+    }
+    if refits:  # the same effects when fitted on either validation set instead?
+        out["refits"] = {
+            name: [f["effect"] for f in _diagnose(rec, model, None)["report"]["findings"]]
+            for name, rec in (("validation", sets.validation), ("other_series", sets.other))
+        }
+    return out
+
+
+def _params_text(params: dict[str, dict[str, float]]) -> str:
+    return "; ".join(
+        f"{e} " + ", ".join(f"{k} {v:.4g}" for k, v in p.items()) for e, p in params.items()
+    )
+
+
+def _fmt(x: float | None, spec: str = ".3f") -> str:
+    return "none" if x is None else format(x, spec)
+
+
+def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
+    """The markdown section (HEADING) of both machines."""
+    pub, got, err = realdata.EMPS_PUBLISHED, emps["got"], emps["errors"]
+    lines = [
+        HEADING,
+        "",
+        "Written by `python -m bench real` (`sim_plc/realsuite.py`; the data are read where "
+        "they lie and never copied into the project). Converters: `sim_plc/realdata.py`; "
+        "baseline: `sim_plc/baseline.py`. RMSE in N.",
+        "",
+        '**EMPS** (prismatic axis, one "cable" without pulleys; blank model; fit '
+        "`DATA_EMPS.mat`, `--validate` with `DATA_EMPS_PULSES.mat`): found "
+        f"{', '.join(emps['found']) or 'none'}; targets "
+        f"{'met' if emps['met'] else '**not met**'} (inertia/viscous/Coulomb within "
+        "5/10/10 % of the published identification).",
+        "",
+        "| parameter | published | blind diagnosis | error | target |",
+        "|---|---|---|---|---|",
+    ]
+    names = {
+        "m_eff_kg": "inertia (kg)",
+        "c_ns_m": "viscous (N s/m)",
+        "f0_n": "Coulomb (N)",
+        "offset_n": "offset of the motor force (N)",
+    }
+    for key, label in names.items():
+        tol = realdata.EMPS_TARGETS.get(key)
+        e = err[key]
+        lines.append(
+            f"| {label} | {pub[key]:.2f} | {_fmt(got[key], '.2f')} | "
+            f"{'none' if e is None else f'{100 * e:.1f} %'} | "
+            f"{'-' if tol is None else f'{100 * tol:.0f} %'} |"
+        )
+    h, v = emps["holdout"], emps["validation"]
+    lines += [
+        "",
+        f"Held-out RMSE {h[0]:.2f} -> {h[1]:.2f}; validation (pulses) {v[0]:.2f} -> "
+        f"{v[1]:.2f} (the fitted model's prediction of the whole validation recording: "
+        f"{emps['validation_predicted']:.2f}); {emps['seconds']:.0f} s.",
+        "",
+        "**da Vinci** (cable-and-pulley transmission, one cable over a 5 mm capstan; blank "
+        "model: one 180 deg pulley, mu 0, Coulomb law; fit: the first 9 trials of "
+        "`Tool_4_Maryland_L_4`, `--validate` with its other 6; `Tool_4_Maryland_L_2` never "
+        f"seen): found {', '.join(dv['found']) or 'none'} ({_params_text(dv['parameters'])}), "
+        f"{dv['seconds']:.0f} s. The diagnosis' own validation figure: "
+        f"{dv['validation_report'][0]:.2f} -> {dv['validation_report'][1]:.2f}.",
+        "",
+        "| recording | before (T_s = T_p) | blind diagnosis | least-squares baseline | "
+        "target (the issue's baseline) |",
+        "|---|---|---|---|---|",
+    ]
+    targets = realdata.DAVINCI_TARGETS_N
+    rows = (
+        ("fit", "L_4, 9 fit trials"),
+        ("validation", "L_4, 6 validation trials"),
+        ("other_series", "L_2, 4 trials (another series)"),
+    )
+    for key, label in rows:
+        s = dv["scored"][key]
+        tgt = targets.get(key)
+        mark = "" if tgt is None else (" (met)" if s["tool"] <= tgt else " (**not met**)")
+        lines.append(
+            f"| {label} | {s['before']:.2f} | {s['tool']:.2f}{mark} | {s['baseline']:.2f} | "
+            f"{'-' if tgt is None else f'<= {tgt:.2f}'} |"
+        )
+    b = dv["baseline"]
+    lines += [
+        "",
+        "Scored on every sample after the first 0.5 s of each trial, each trial simulated "
+        "from a relaxed state (`sim_plc.realdata.rmse`), for both models. Baseline "
+        "(Dahl with level `mu |T_p| + f0`, gain, viscous, spring in the spindle position, "
+        f"constant; `scipy.optimize.least_squares`, {dv['baseline_seconds']:.0f} s): "
+        + ", ".join(f"{k} {v:.4g}" for k, v in b.items())
+        + ".",
+    ]
+    if "refits" in dv:
+        refit = dv["refits"]
+        same = all(sorted(r) == sorted(dv["found"]) for r in refit.values())
+        lines += [
+            "",
+            "Fitted on either validation set instead: "
+            + "; ".join(
+                f"{k.replace('_', ' ')}: {', '.join(v) or 'none'}" for k, v in refit.items()
+            )
+            + f" ({'the same effects' if same else '**not the same effects**'}).",
+        ]
+    for name, res in (("EMPS", emps), ("da Vinci", dv)):
+        unexplained = res.get("unexplained")
+        lines += ["", f"{name}: `unexplained`: {unexplained if unexplained else 'none reported'}."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m sim_plc.realsuite", description=__doc__)
+    ap.add_argument("data", type=Path, help="directory with emps/ and davinci/")
+    ap.add_argument("--table", type=Path, help="write the section into this file")
+    ap.add_argument("--no-refits", action="store_true", help="skip the two refits (~2 min)")
+    args = ap.parse_args(argv)
+    emps = run_emps(args.data)
+    dv = run_davinci(args.data, refits=not args.no_refits)
+    text = table(emps, dv)
+    print(text)
+    if args.table:
+        replace_section(args.table, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

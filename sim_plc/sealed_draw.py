@@ -1,0 +1,126 @@
+"""Drawing the sealed scenarios (``sim_plc/scenarios_sealed.yaml``) once, from a seed.
+
+The tuning suite (``scenarios.yaml``) fixes one motion (the oscillation), 1 kHz, 0.4 N of
+noise and mostly two cables. The sealed draw gives each tuning scenario a twin with every
+generator setting the suite has changed: point-to-point moves (two in three), rates of
+250-2000 Hz, noise of 0.25-0.6 N, one to four cables (a rig stays a rig), uneven sampling
+(one in five), other seeds; and its effects at other sizes: each parameter's change from
+its absent value (the registry's ``neutral``) times 0.7-1.5, or the value itself where that
+would leave it under half or over twice its tuning size (a speed scale, not a correction),
+a phase drawn anew. A twin on the soft PLC's plant keeps the plant and draws its sizes and
+seed. Code that serves every effect: no effect is named here.
+
+``python -m sim_plc.scenarios --seal SEED`` writes the file; a new draw is a reseal
+(:mod:`sim_plc.sealing`): the doc records the new hash and why.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from gateway.diagnose.prepare import nominal_from
+from gateway.model import effects as fx
+from sim_plc.scenarios import SUITE_FILE, Scenario, suite
+
+Draw = dict[str, Any]
+
+
+def _value(param: fx.Param, tuning: float, neutral: float, f: float, rng) -> float:
+    if param.unit == "rad":
+        return float(rng.uniform(0.0, 2.0 * math.pi))
+    if tuning == neutral:  # absent on this cable: stays absent
+        return tuning
+    value = neutral + (tuning - neutral) * f
+    if tuning > 0 and not 0.5 * tuning <= value <= 2.0 * tuning:
+        value = tuning * f
+    return value
+
+
+def effects_draw(sc: Scenario, cables: int, rng: np.random.Generator) -> Draw:
+    """``sc``'s effects at other sizes (module docstring), per-cable lists over ``cables``."""
+    nom = nominal_from(sc.nominal())
+    out: Draw = {}
+    for name, params in sc.effects.items():
+        eff = fx.REGISTRY[name]
+        neutral = eff.neutral(nom)
+        drawn: Draw = {}
+        for p in eff.params:
+            if p.name not in params:
+                continue
+            given = params[p.name]
+            f = float(rng.uniform(0.7, 1.5))
+            if isinstance(given, tuple):
+                per = [
+                    _value(p, float(given[i % len(given)]), neutral[p.name], f, rng)
+                    for i in range(cables)
+                ]
+                drawn[p.name] = [round(x, 6) for x in per]
+            else:
+                drawn[p.name] = round(_value(p, float(given), neutral[p.name], f, rng), 6)
+        out[name] = drawn
+    return out
+
+
+def _settings(sc: Scenario, rng: np.random.Generator, seed: int) -> Draw:
+    """Generator settings other than the tuning suite's (``sc``'s rig or plant kept)."""
+    if sc.plant:
+        return {
+            "plant": True,
+            "cables": sc.cables,
+            "seconds": sc.seconds,
+            "slow": sc.slow,
+            "seed": seed,
+        }
+    out: Draw = {
+        "seed": seed,
+        "motion": "moves" if rng.uniform() < 2 / 3 else "oscillation",
+        "rate_hz": float(rng.choice([250.0, 500.0, 1000.0, 2000.0])),
+        "noise_n": round(float(rng.uniform(0.25, 0.6)), 3),
+    }
+    if sc.rig:
+        out["rig"] = True
+    else:
+        out["cables"] = int(rng.choice([1, 2, 3, 4]))
+    if rng.uniform() < 0.2:
+        out["uneven"] = True
+    if sc.nominal_model != Scenario.nominal_model:
+        out["nominal_model"] = sc.nominal_model
+    if not sc.edges:
+        out["edges"] = False
+    return out
+
+
+def draw(seed: int) -> list[Draw]:
+    """The sealed twins of the tuning scenarios for ``seed`` (module docstring)."""
+    rng = np.random.default_rng(seed)
+    base = seed % 997 * 10 + 1000  # far from the tuning seeds (and their +500, +1000)
+    cases = []
+    for k, sc in enumerate(suite()):
+        settings = _settings(sc, rng, base + k)
+        cables = 1 if settings.get("rig") else int(settings.get("cables", sc.cables))
+        case: Draw = {"name": f"sealed_{sc.name}"}
+        if sc.effects:
+            case["effects"] = effects_draw(sc, cables, rng)
+        cases.append({**case, **settings})
+    return cases
+
+
+def write(path: Path, seed: int) -> None:
+    """Write the sealed file of ``seed`` (one flow-style line per case)."""
+    header = (
+        f"# The sealed diagnosis scenarios: drawn once from {SUITE_FILE.name} by `python -m "
+        f"sim_plc.scenarios --seal {seed}`\n# (sim_plc/sealed_draw.py); scored like the "
+        "tuning suite (its tolerances), never tuned on.\n# Not to be edited or redrawn "
+        "quietly: docs/diagnose-suite.md records this file's SHA-256 (## Seals).\n"
+        "scenarios:\n"
+    )
+    body = "".join(
+        "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
+        for case in draw(seed)
+    )
+    path.write_text(header + body, encoding="utf-8")

@@ -1,0 +1,128 @@
+"""Findings by significance, uncertainty from the data, ambiguity said, and what lies
+beyond the catalogue (gateway/diagnose/stats.py, significance.py, signals.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gateway.diagnose.engine import diagnose
+from gateway.diagnose.stats import bh_qvalues, jackknife_se, p_value, sign_test_p
+from gateway.model.chain import simulate
+from gateway.recordings.reader import Recording
+from sim_plc.scenarios import Scenario, _truth_chain, make_recording, motion
+from tests.diagnose_helpers import check_report
+
+
+@given(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=60))
+@settings(max_examples=200)
+def test_bh_qvalues_are_monotone_and_at_least_p(ps: list[float]) -> None:
+    q = bh_qvalues(ps)
+    p = np.asarray(ps)
+    assert np.all(q >= p - 1e-15) and np.all(q <= 1.0)
+    order = np.argsort(p)
+    assert np.all(np.diff(q[order]) >= -1e-15)  # the same order as the p-values
+
+
+def test_bh_matches_the_step_up_rule() -> None:
+    p = np.array([0.001, 0.008, 0.039, 0.041, 0.042, 0.06, 0.074, 0.205, 0.212, 0.216])
+    q = bh_qvalues(p)
+    rejected = set(np.flatnonzero(q <= 0.05))
+    k = max(i for i in range(1, 11) if sorted(p)[i - 1] <= 0.05 * i / 10)  # the rule itself
+    assert rejected == set(np.argsort(p)[:k])
+
+
+def test_p_value_takes_the_blocks_degrees_of_freedom() -> None:
+    assert p_value(3.0, 5) > p_value(3.0, 20) > 1 - 0.99865  # fewer blocks: less evidence
+    assert p_value(-1.0, 10) > 0.5
+    assert p_value(math.inf, 10) == 0.0 and p_value(math.nan, 10) == 1.0
+    assert sign_test_p(10, 10) == pytest.approx(0.5**10)
+    assert sign_test_p(0, 10) == 1.0
+
+
+def test_jackknife_of_a_mean_is_its_standard_error() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(400,))
+    groups = np.array([np.mean(np.delete(x, np.s_[k::8])) for k in range(8)])[:, None]
+    assert jackknife_se(groups)[0] == pytest.approx(np.std(x) / math.sqrt(400), rel=0.6)
+
+
+def _diag(sc: Scenario):
+    rec = make_recording(sc)
+    return diagnose(rec, sc.nominal()).report
+
+
+def test_every_finding_carries_its_test_and_both_errors() -> None:
+    rep = _diag(Scenario("v", {"viscous": {"c_ns_m": 6.0}}, seconds=20.0))
+    check_report(rep)
+    (f,) = rep["findings"]
+    assert f["effect"] == "viscous"
+    for key in ("statistic", "p", "q"):
+        assert len(f[key]) == len(f["cables"])
+    assert all(q <= rep["significance"]["fdr"] for q in f["q"])
+    assert all(z > 4 for z in f["statistic"])
+    se, jac, blk = (f[k]["c_ns_m"] for k in ("stderr", "stderr_jacobian", "stderr_blocks"))
+    assert np.all(np.asarray(se) >= np.asarray(jac)) and np.all(np.asarray(se) >= np.asarray(blk))
+    assert rep["significance"]["tests"] >= 2 * 10  # every candidate on both cables
+
+
+def test_a_coefficient_at_its_nominal_value_is_not_a_finding() -> None:
+    """The issue's case: a Coulomb mu equal to the nominal's (0.015) with f0 ~ 0 fitted on
+    a clean recording must not be reported as missing physics."""
+    for seed in (11, 12, 13):
+        rep = _diag(Scenario("clean", {}, seed=seed, seconds=20.0))
+        assert rep["findings"] == [], [f["effect"] for f in rep["findings"]]
+        assert "unexplained" not in rep
+
+
+def test_delay_and_lowpass_without_fast_edges_are_said_to_be_alternatives() -> None:
+    """Without fast load steps a delay and a low-pass fit about as well: the report says so
+    (one finding, the other as an alternative, and the motion that would separate them)."""
+    rep = _diag(Scenario("lag", {"delay": {"d_s": 0.004}}, edges=False, seconds=20.0))
+    named = [f["effect"] for f in rep["findings"]]
+    assert len(named) == 1 and named[0] in ("delay", "lowpass"), named
+    f = rep["findings"][0]
+    alts = {a["effect"] for a in f.get("alternatives", [])}
+    assert alts & ({"delay", "lowpass"} - {f["effect"]}), f.get("alternatives")
+    assert f["separate_by"] and "faster" in f["separate_by"]
+    assert "cannot tell it from" in f["evidence"]
+
+
+def test_unexplained_names_a_temperature_column_outside_the_catalogue() -> None:
+    """A sensor zero that follows the temperature (a strain gauge's thermal drift, which
+    the catalogue has no effect for): the report names the temperature column first."""
+    sc = Scenario("thermal", {}, seed=4, seconds=30.0)
+    t, v, tp = motion(sc)
+    temp = 25.0 + 4.0 * np.sin(2 * np.pi * t / 17.0) + 2.0 * np.sin(2 * np.pi * t / 5.3)
+    ts = simulate(_truth_chain(sc, 2), tp, v, t) + 0.3 * (temp - 25.0)[:, None]
+    ts = ts + np.random.default_rng(5).normal(0.0, 0.4, ts.shape)
+    rec = Recording(
+        t=t,
+        velocity=v,
+        tension_sensor=ts,
+        tension_platform=tp,
+        extra={"temperature_c": temp},
+        metadata={},
+    )
+    rep = diagnose(rec, sc.nominal()).report
+    check_report(rep)
+    un = rep["unexplained"]
+    assert un["signal"] == "column temperature_c", un["ranking"]
+    assert un["share"] > 0.3
+    assert "temperature_c" in un["reading"]
+    clean = diagnose(
+        Recording(
+            t=t,
+            velocity=v,
+            tension_sensor=ts - 0.3 * (temp - 25.0)[:, None],
+            tension_platform=tp,
+            extra={"temperature_c": temp},
+            metadata={},
+        ),
+        sc.nominal(),
+    ).report
+    assert "unexplained" not in clean

@@ -1,0 +1,311 @@
+"""``cdpr-gateway fleet``: each task's report is the bytes ``diagnose`` writes for that
+recording alone, the table holds every finding of every report, a bad recording is listed
+and never ends the job -- on a LocalCluster and against a real ``dask scheduler`` with two
+``dask worker`` processes on 127.0.0.1."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from gateway.cli import main
+from gateway.errors import GatewayError
+from gateway.fleet.cli import expand
+from gateway.fleet.table import table_rows
+from gateway.fleet.task import TaskResult
+
+ROOT = Path(__file__).resolve().parents[2]
+MODEL = ROOT / "config" / "default.yaml"
+HIDDEN = ("gain", "offset", "viscous")  # config/calibrate/*.yaml
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Three short recordings of robots hiding different effects (Parquet and CSV.gz, one
+    in a Hive tree) and one broken file."""
+    d = tmp_path_factory.mktemp("fleet-recordings")
+    out = []
+    for i, effect in enumerate(HIDDEN):
+        name = f"{effect}.parquet" if i != 1 else f"{effect}.csv.gz"
+        path = d / ("robot=r-offset/date=2026-01-02" if i == 1 else "") / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        assert (
+            main(
+                [
+                    "record",
+                    "--config",
+                    str(ROOT / "config" / "calibrate" / f"{effect}.yaml"),
+                    "--seconds",
+                    "6",
+                    "--out",
+                    str(path),
+                    "--quiet",
+                    "--robot",
+                    f"r-{effect}",
+                ]
+            )
+            == 0
+        )
+        out.append(path)
+    (d / "broken.csv").write_text("t,velocity_1\n0,1\n")
+    return [*out, d / "broken.csv"]
+
+
+def single_reports(recs: list[Path], tmp: Path) -> dict[str, bytes]:
+    """``diagnose REC --json`` of each good recording alone, the file's bytes."""
+    out = {}
+    for i, rec in enumerate(recs[:-1]):
+        assert (
+            main(
+                [
+                    "diagnose",
+                    str(rec),
+                    "--model",
+                    str(MODEL),
+                    "--json",
+                    str(tmp / f"{i}.json"),
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
+        out[str(rec.resolve())] = (tmp / f"{i}.json").read_bytes()
+    return out
+
+
+def check_fleet_output(out: Path, recs: list[Path], singles: dict[str, bytes]) -> None:
+    table = pq.read_table(out / "fleet.parquet").to_pylist()
+    by_rec: dict[str, list[dict]] = {}
+    for row in table:
+        by_rec.setdefault(row["recording"], []).append(row)
+    assert set(by_rec) == {str(r.resolve()) for r in recs}
+    broken = by_rec.pop(str(recs[-1].resolve()))
+    assert broken[0]["status"] == "failed" and "has no column" in broken[0]["error"]
+    for rec, rows in by_rec.items():
+        report_bytes = (out / "reports" / rows[0]["report"]).read_bytes()
+        assert report_bytes == singles[rec]  # the same bytes as diagnose alone
+        report = json.loads(report_bytes)
+        expect = [(f["effect"], c) for f in report["findings"] for c in f["cables"]]
+        assert [(r["effect"], r["cable"]) for r in rows] == (expect or [("none", 0)])
+        for r in rows:
+            if r["effect"] == "none":
+                continue
+            f = next(f for f in report["findings"] if f["effect"] == r["effect"])
+            k = f["cables"].index(r["cable"])
+            for name, values in f["parameters"].items():
+                assert r[name] == values[k] and r[f"{name}_stderr"] == f["stderr"][name][k]
+            assert r["rmse_after_n"] == f["rmse_after_n"]
+            assert r["baseline_rmse_n"] == report["baseline"]["rmse_n"]
+    robots = {r["robot"] for rows in by_rec.values() for r in rows}
+    assert robots == {f"r-{e}" for e in HIDDEN}
+    hive = next(rows for rec, rows in by_rec.items() if "robot=r-offset" in rec)
+    assert hive[0]["start"].startswith("20")  # the metadata's start, not the folder's date
+    text = (out / "fleet.md").read_text()
+    assert "1 failed" in text and "broken.csv" in text
+    plots = sorted(p.name for p in (out / "plots").iterdir())  # the broken file's robot too
+    assert plots == sorted([f"robot-r-{e}.png" for e in HIDDEN] + ["robot-fleet-recordings0.png"])
+    csv_lines = (out / "fleet.csv").read_text().splitlines()
+    assert len(csv_lines) == len(table) + 1
+
+
+@pytest.mark.long
+def test_fleet_on_a_local_cluster_matches_diagnose_alone(
+    recordings: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    singles = single_reports(recordings, tmp_path)
+    out = tmp_path / "fleet"
+    code = main(
+        ["fleet", *map(str, recordings), "--model", str(MODEL), "--out", str(out), "--workers", "2"]
+    )
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert captured.err.count("/4] ") == 4  # a line per finished recording
+    assert "LocalCluster of 2 workers" in captured.out and "1 failed" in captured.out
+    check_fleet_output(out, recordings, singles)
+
+
+def _start(cmd: list[str], log: Path) -> subprocess.Popen[bytes]:
+    with open(log, "wb") as fh:
+        return subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
+
+
+def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+    for p in procs:
+        try:
+            p.wait(20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(10)
+
+
+@pytest.mark.long
+def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
+    recordings: list[Path], tmp_path: Path
+) -> None:
+    dask = str(Path(sys.executable).parent / "dask")
+    sched_file = tmp_path / "scheduler.json"
+    procs = [
+        _start(
+            [
+                dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched_file),
+            ],
+            tmp_path / "scheduler.log",
+        )
+    ]
+    try:
+        deadline = time.monotonic() + 60
+        while not sched_file.exists() and time.monotonic() < deadline:
+            assert procs[0].poll() is None, (tmp_path / "scheduler.log").read_text()
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        for i in range(2):
+            procs.append(
+                _start(
+                    [
+                        dask,
+                        "worker",
+                        address,
+                        "--host",
+                        "127.0.0.1",
+                        "--nthreads",
+                        "1",
+                        "--memory-limit",
+                        "650MiB",
+                        "--no-dashboard",
+                    ],
+                    tmp_path / f"worker{i}.log",
+                )
+            )
+        wait = textwrap.dedent(f"""
+            from distributed import Client
+            with Client("{address}", timeout="30s") as c:
+                c.wait_for_workers(2, timeout=90)
+                print(len(c.scheduler_info()["workers"]))
+        """)
+        ready = subprocess.run(
+            [sys.executable, "-c", wait], capture_output=True, text=True, timeout=120
+        )
+        assert ready.stdout.strip() == "2", ready.stderr
+        out = tmp_path / "fleet"
+        run = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "gateway.cli",
+                "fleet",
+                *map(str, recordings),
+                "--model",
+                str(MODEL),
+                "--out",
+                str(out),
+                "--scheduler",
+                address,
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert run.returncode == 0, run.stderr
+        assert f"scheduler {address} with 2 workers" in run.stdout
+    finally:
+        _stop(procs)
+    check_fleet_output(out, recordings, single_reports(recordings, tmp_path))
+
+
+def test_a_missing_fleet_extra_is_one_line_naming_it(tmp_path: Path) -> None:
+    args = ["fleet", str(MODEL), "--model", str(MODEL), "--out", str(tmp_path)]
+    code = (
+        "import sys; sys.modules['distributed'] = None; from gateway.cli import main; "
+        f"sys.exit(main({args!r}))"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert res.returncode == 2
+    assert res.stderr.count("\n") == 1 and "cdpr-gateway[fleet]" in res.stderr, res.stderr
+
+
+def test_recordings_are_files_globs_or_trees(tmp_path: Path) -> None:
+    tree = tmp_path / "tree" / "robot=a" / "date=2026-01-01"
+    tree.mkdir(parents=True)
+    for name in ("part-0000.parquet", "part-0001.parquet", "notes.txt"):
+        (tree / name).write_bytes(b"")
+    (tmp_path / "x.csv.gz").write_bytes(b"")
+    got = expand([str(tmp_path / "tree"), str(tmp_path / "*.csv.gz"), str(tmp_path / "x.csv.gz")])
+    assert [Path(p).name for p in got] == ["part-0000.parquet", "part-0001.parquet", "x.csv.gz"]
+    with pytest.raises(GatewayError, match="no such recording"):
+        expand([str(tmp_path / "missing.csv")])
+    with pytest.raises(GatewayError, match="no recordings"):
+        expand([str(tmp_path / "*.mcap")])
+
+
+def test_the_table_has_a_row_per_finding_and_cable_and_keeps_the_rest() -> None:
+    report = {
+        "reference": "platform_tension",
+        "samples": 100,
+        "baseline": {"rmse_n": 2.0},
+        "final": {"rmse_n": 1.0},
+        "findings": [
+            {
+                "effect": "offset",
+                "cables": [2, 5],
+                "parameters": {"c_n": [1.5, -2.0]},
+                "stderr": {"c_n": [0.1, 0.2]},
+                "rmse_before_n": 2.0,
+                "rmse_after_n": 1.2,
+            },
+            {
+                "effect": "mass_change",
+                "cables": [0],
+                "parameters": {"q_kg_s": [0.02]},
+                "stderr": {"q_kg_s": [0.001]},
+                "rmse_before_n": 1.2,
+                "rmse_after_n": 1.0,
+            },
+        ],
+    }
+    none = {**report, "findings": []}
+    res = [
+        TaskResult("a", "r", "2026", json.dumps(report), None, 1.0, "w", 1.0),
+        TaskResult("b", "r", "2026", json.dumps(none), None, 1.0, "w", 1.0),
+        TaskResult("c", "r", "2026", None, "c: broken", 0.0, "w", 1.0),
+    ]
+    rows = table_rows([(r, r.recording + ".json") for r in res])
+    assert [(r["recording"], r["effect"], r["cable"], r["rank"]) for r in rows] == [
+        ("a", "offset", 2, 1),
+        ("a", "offset", 5, 1),
+        ("a", "mass_change", 0, 2),
+        ("b", "none", 0, 0),
+        ("c", "", 0, 0),
+    ]
+    assert rows[1]["c_n"] == -2.0 and rows[1]["c_n_stderr"] == 0.2
+    assert rows[2]["q_kg_s"] == 0.02 and math.isnan(rows[2].get("c_n", math.nan))
+    assert rows[4]["status"] == "failed" and rows[4]["error"] == "c: broken"

@@ -1,0 +1,84 @@
+"""The README's commands run as written from a wheel install in an empty directory: the
+wheel is built and installed into a fresh venv by .ci/wheel-check (the same
+machinery CI uses), then every ``cdpr-gateway ...`` line of the README's ``sh`` blocks runs,
+in order, in an empty directory with that venv first on PATH and no PYTHONPATH."""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+pytestmark = [pytest.mark.long]
+
+
+def readme_commands(text: str) -> list[str]:
+    """Every ``cdpr-gateway`` command of the README's ``sh`` blocks, and every install of
+    an extra (``pip install 'cdpr-gateway[EXTRA]'``), continuation lines joined, comments
+    dropped, in order."""
+    commands: list[str] = []
+    for block in re.findall(r"```sh\n(.*?)```", text, re.S):
+        joined = re.sub(r"\\\n\s*", " ", block)
+        for line in joined.splitlines():
+            line = line.split(" #", 1)[0].strip()
+            if line.startswith(("cdpr-gateway ", "pip install 'cdpr-gateway[")):
+                commands.append(line)
+    return commands
+
+
+def extra_requirements(extra: str) -> list[str]:
+    """The requirements of an optional dependency group of pyproject.toml."""
+    import tomllib
+
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    return list(data["project"]["optional-dependencies"][extra])
+
+
+def test_the_readme_lists_the_commands_a_wheel_user_needs() -> None:
+    commands = readme_commands((ROOT / "README.md").read_text())
+    assert commands[0] == "cdpr-gateway examples config", commands  # before any --config
+    used = {c.split()[1] for c in commands if c.startswith("cdpr-gateway ")}
+    assert {"examples", "record", "diagnose", "calibrate"} <= used, commands
+
+
+@pytest.mark.timeout(1800)  # a wheel installed into a fresh venv, then calibrate's 4 x 30 s
+def test_readme_commands_run_from_a_wheel_in_an_empty_directory(tmp_path: Path) -> None:
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NOTIFY_SOCKET")}
+    install = tmp_path / "install"
+    res = subprocess.run(
+        [str(ROOT / ".ci" / "wheel-check"), sys.executable],
+        env={**env, "WHEEL_CHECK_VENV": str(install), "WHEEL_CHECK_DEMO": "0"},
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    env["PATH"] = f"{install / 'venv' / 'bin'}{os.pathsep}{env.get('PATH', '')}"
+    for command in readme_commands((ROOT / "README.md").read_text()):
+        print(f"README: {command}", flush=True)  # with -s: where a slow run is
+        argv = shlex.split(command)
+        if argv[0] == "pip":  # the extra's requirements into the wheel's venv (the wheel
+            # itself is not on the package index here)
+            extra = re.fullmatch(r"cdpr-gateway\[(\w+)\]", argv[2]).group(1)  # type: ignore[union-attr]
+            argv = [
+                str(install / "venv" / "bin" / "python"),
+                "-m",
+                "pip",
+                "install",
+                "-q",
+                *extra_requirements(extra),
+            ]
+        run = subprocess.run(argv, cwd=empty, env=env, capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, f"{command}\n{run.stdout}\n{run.stderr}"
+        assert "Traceback" not in run.stderr, command
+        if command.startswith("cdpr-gateway diagnose"):
+            assert run.stdout.startswith("verdict: viscous"), run.stdout
+    assert (empty / "cal" / "calibration.json").is_file()
