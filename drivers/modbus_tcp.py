@@ -91,7 +91,7 @@ class ModbusTcpDriver(Driver):
     def __init__(self, config: Any) -> None:
         super().__init__(config)
         self.mb: ModbusTcpConfig = config.bus.modbus_tcp
-        self.where = f"modbus_tcp {self.mb.host}:{self.mb.port} unit {self.mb.unit_id}"
+        self.where = self.mb.endpoint
         self.layout = layout_map(self.mb.registers)
         self._check_counts()
         check_outputs(self.mb.registers, config.sensor)

@@ -2,9 +2,16 @@
 
 Hypothesis runs without a per-example deadline: the machines are shared and noisy, and
 speed is measured in benchmarks (make bench), never asserted in tests.
+
+Two profiles: ``cdpr`` (the default) draws new examples on every run, so a developer's runs
+keep exploring; ``ci`` (``HYPOTHESIS_PROFILE=ci``, set by ``.ci/run``) draws the same
+examples every time, so a submission is judged on one reproducible set and a new find
+shows up on a developer's machine first, with its failing example printed.
 """
 
 from __future__ import annotations
+
+import os
 
 from hypothesis import HealthCheck, settings
 
@@ -14,4 +21,5 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
     print_blob=True,
 )
-settings.load_profile("cdpr")
+settings.register_profile("ci", parent=settings.get_profile("cdpr"), derandomize=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "cdpr"))

@@ -32,6 +32,7 @@ from tests.modbus_helpers import filled_image, plc_server
 CANOPEN_SYNC_PERIOD_S = 0.002  # the soft PLC's SYNC thread: easy on a shared machine
 CANOPEN_READ_TIMEOUT_S = 0.1
 CANOPEN_SETTLE_S = 0.02  # ~10 SYNC cycles: what the image holds is on the bus
+CONTRACT_MODBUS_TIMEOUT_S = 5.0
 
 
 @dataclass
@@ -48,6 +49,11 @@ HarnessFactory = Callable[[], contextlib.AbstractContextManager[DriverHarness]]
 @contextlib.contextmanager
 def modbus_tcp_harness() -> Iterator[DriverHarness]:
     with plc_server(filled_image()) as (server, image, cfg):
+        # the contract is about behaviour, not latency: a reply may wait out a stall of the
+        # shared CI machine (a 1-s timeout once failed a reopen there); a stopped server
+        # still fails at once (connection refused or reset), so no test waits this long
+        mb = dataclasses.replace(cfg.bus.modbus_tcp, timeout_s=CONTRACT_MODBUS_TIMEOUT_S)
+        cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, modbus_tcp=mb))
         yield DriverHarness(make_driver(cfg, "modbus_tcp"), image, stop=server.stop)
 
 

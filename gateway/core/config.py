@@ -312,6 +312,11 @@ class ModbusTcpConfig:
             "reconnect_min_s must not exceed reconnect_max_s",
         )
 
+    @property
+    def endpoint(self) -> str:
+        """``modbus_tcp 127.0.0.1:5020 unit 1``: the server's one name in logs and errors."""
+        return f"modbus_tcp {self.host}:{self.port} unit {self.unit_id}"
+
 
 @dataclass(frozen=True)
 class CanopenConfig:
@@ -343,6 +348,11 @@ class CanopenConfig:
         require(len(ids) == 3, "gateway_node_id, analog_node_id and plc_node_id must differ")
         require(self.sync_period_s > 0, "sync_period_s must be > 0")
         require(self.timeout_s is None or self.timeout_s > 0, "timeout_s must be > 0")
+
+    @property
+    def endpoint(self) -> str:
+        """``canopen virtual:cdpr node 32``: the gateway's node in logs and errors."""
+        return f"canopen {self.interface}:{self.channel} node {self.gateway_node_id}"
 
 
 @dataclass(frozen=True)

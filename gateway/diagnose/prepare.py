@@ -5,7 +5,6 @@ show, a subset of a long recording, the validation recording's forwards."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
@@ -13,7 +12,7 @@ from functools import partial
 import numpy as np
 
 from gateway.core.config import FrictionConfig
-from gateway.diagnose import locate
+from gateway.diagnose import locate, stats
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.platform import MassSensitivity
 from gateway.errors import RecordingError
@@ -56,8 +55,7 @@ def velocity_noise(v: np.ndarray) -> float:
     """
     if v.size < 5:
         return 0.0
-    d2 = np.diff(v, 2)
-    return float(np.median(np.abs(d2)) / 0.6745 / math.sqrt(6.0))
+    return stats.white_noise(v, order=2)
 
 
 def deadband(v: np.ndarray) -> np.ndarray:

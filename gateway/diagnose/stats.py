@@ -40,14 +40,17 @@ MAD_SIGMA = 0.6745
 """Median absolute deviation of a standard normal."""
 
 
-def white_noise(r: np.ndarray) -> float:
-    """White-noise std of a residual series (N,): the median absolute first difference
-    over ``0.6745 sqrt 2``; robust to the slow part of the residual and to outliers. The
-    one estimator of the diagnosis (per cable, per wrench component, of a final model)."""
+def white_noise(r: np.ndarray, order: int = 1) -> float:
+    """White-noise std of a residual series (N,): the median absolute difference of
+    ``order`` over ``0.6745 sqrt(C(2 order, order))`` (the std of white noise's differences:
+    ``sqrt 2`` for the first, ``sqrt 6`` for the second); robust to the slow part of the
+    series (the second difference also to ramps) and to outliers. The one estimator of the
+    diagnosis (per cable, per wrench component, of a final model, of a velocity column)."""
     r = np.asarray(r, dtype=float)
-    if r.size < 3:
+    if r.size < order + 2:
         return 0.0
-    return float(np.median(np.abs(np.diff(r)))) / (MAD_SIGMA * math.sqrt(2.0))
+    spread = math.sqrt(math.comb(2 * order, order))
+    return float(np.median(np.abs(np.diff(r, order)))) / (MAD_SIGMA * spread)
 
 
 def white_noise_columns(r: np.ndarray) -> np.ndarray:

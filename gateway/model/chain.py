@@ -617,8 +617,11 @@ def _compensate_plain(p, t_in, vel, dx_all, f_state, out):
                         it += 1
                         f_new, d_b = _pulley(p, i, j, t_b, f_old, dx, strib)
                         step = (t_b - t_a - f_new) / (1.0 - d_b)
+                        t_prev = t_b
                         t_b -= step
-                        if step * step * _NEWTON_CURVATURE <= p.tol:
+                        # the curvature bound holds on one side of T = 0 (|T| has its kink
+                        # there): a step that crossed it or landed on it is not confirmed
+                        if step * step * _NEWTON_CURVATURE <= p.tol and t_prev * t_b > 0.0:
                             break
                     f_state[i, j] = t_b - t_a
                     worst = max(worst, it)

@@ -90,11 +90,9 @@ def describe_bus(cfg: Config) -> str:
     bus = cfg.bus.driver
     if bus == "modbus_tcp":
         m = cfg.bus.modbus_tcp
-        tls = " (TLS)" if m.tls is not None else ""
-        return f"modbus_tcp {m.host}:{m.port} unit {m.unit_id}{tls}"
+        return m.endpoint + (" (TLS)" if m.tls is not None else "")
     if bus == "canopen":
-        c = cfg.bus.canopen
-        return f"canopen {c.interface}:{c.channel} node {c.gateway_node_id}"
+        return cfg.bus.canopen.endpoint
     return bus
 
 

@@ -45,6 +45,7 @@ def test_rig_without_pulleys_fits_f0_instead_of_crashing():
     assert found["coulomb"]["parameters"]["f0_n"][0] == pytest.approx(5.0, rel=0.05)
 
 
+@pytest.mark.long  # ~5 s
 def test_positioning_axis_recovers_all_four_terms():
     """Inertia, viscous, load-independent Coulomb and offset on a rig moving at a few
     constant speeds with many reversals: the joint optimum, not a stand-in."""
@@ -236,6 +237,7 @@ def test_summary_explains_when_no_region_concentrates_the_residual():
     assert "Largest regions" in text and "cable 1, 1.00-2.00 s, reversal" in text
 
 
+@pytest.mark.long  # ~5 s
 def test_subset_search_undoes_a_stand_in():
     """Started from the greedy dead end of the issue (inertia and a Coulomb level that
     holds the viscous force at the typical speed), the best-subset search reaches the

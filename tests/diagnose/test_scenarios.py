@@ -27,14 +27,24 @@ FAST = {
 }
 
 
-# over ~5 s each: `make test` leaves them to `make test-long` (CI runs both)
+# `make test` runs each effect alone, the clean recordings and the 1-cable rig; the
+# combinations, the per-cable variants and the 8-cable plant go to `make test-long` (CI
+# runs both), which keeps `make test` near 4 minutes on a loaded 2-core machine
 LONG = {
     "plant_mass_change",
     "plant_viscous",
+    "plant_clean",
     "gain+coulomb",
     "stribeck+inertia",
     "lowpass+inertia",
-    "plant_clean",
+    "viscous+offset",
+    "gain+eccentricity",
+    "offset+drift",
+    "delay+drift",
+    "uneven_viscous",
+    "offset_per_cable",
+    "eccentricity_cable2",
+    "rig_gain",
 }
 
 

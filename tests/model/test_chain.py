@@ -165,6 +165,18 @@ def test_compensate_inverts_simulate(tp, vel, model, viscous) -> None:
     assert_allclose(compensate(p, ts, vel, t), tp, rtol=0, atol=1e-9)
 
 
+def test_compensate_inverts_simulate_where_the_tension_crosses_zero() -> None:
+    """Found by the property above: a platform tension of -1.2e-7 N between 17 N samples
+    was returned 1.1e-9 N off. |T| has its kink at 0, where Newton's curvature bound
+    (one small step confirms convergence) does not hold; a step across 0 is not final."""
+    tp = np.full((200, 3), 17.0)
+    tp[5, 0] = -1.1920929e-07
+    vel = np.full((200, 3), 0.5)
+    p = params("dahl", cables=3, viscous_ns_m=0.0, f0_n=1.0, stribeck_k=0.3)
+    t = np.cumsum(np.full(200, 1e-3))
+    assert_allclose(compensate(p, simulate(p, tp, vel, t), vel, t), tp, rtol=0, atol=1e-12)
+
+
 def test_stepper_matches_batch_and_converges_in_two_passes() -> None:
     cfg = load_config()
     p = ChainParams.from_friction(cfg.friction, cfg.cables)

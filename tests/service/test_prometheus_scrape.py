@@ -20,7 +20,7 @@ from gateway.runtime.loop import CyclicService
 from gateway.service.metrics import MetricsServer, make_registry
 from tests.loop_helpers import Wobble, config, free_port, live_image
 
-pytestmark = [pytest.mark.external, pytest.mark.loopback]
+pytestmark = [pytest.mark.external, pytest.mark.loopback, pytest.mark.long]  # ~6 s
 WAIT_S = 90.0
 
 
