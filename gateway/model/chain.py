@@ -471,8 +471,11 @@ def _through(p, st, i, forward, t_known, v, strib, d_raw, dst):
                 else:
                     f_new, d_b, _ = _elements(p, i, j, t_b, st.f, dx, strib, st.scratch, n)
                 step = (t_b - t_a - f_new) / (1.0 - d_b)
+                t_prev = t_b
                 t_b -= step
-                if step * step * _NEWTON_CURVATURE <= p.tol:
+                # as in _compensate_plain: a step that crossed or landed on T = 0 (the kink
+                # of |T|) is not confirmed by the curvature bound
+                if step * step * _NEWTON_CURVATURE <= p.tol and t_prev * t_b > 0.0:
                     break
             if coulomb:
                 dst[i, j, 0] = t_b - t_a
