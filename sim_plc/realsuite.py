@@ -229,8 +229,7 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
             + f" ({'the same effects' if same else '**not the same effects**'}).",
         ]
     for name, res in (("EMPS", emps), ("da Vinci", dv)):
-        unexplained = res.get("unexplained")
-        lines += ["", f"{name}: `unexplained`: {unexplained if unexplained else 'none reported'}."]
+        lines += ["", f"{name}: `unexplained`: {_unexplained_text(res.get('unexplained'))}"]
     return "\n".join(lines) + "\n"
 
 
@@ -251,3 +250,16 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _unexplained_text(u: dict | None) -> str:
+    """The report's ``unexplained`` entry in words: the signal, its share and q, the reading,
+    and the next signals of the ranking."""
+    if not u:
+        return "none reported."
+    others = ", ".join(f"`{r['signal']}` {r['share']:.0%}" for r in u.get("ranking", [])[1:4])
+    return (
+        f"`{u['signal']}` explains {u['share']:.0%} of the final residual's variance on "
+        f"held-out blocks (q {u['q']:.1e}): {u['reading']}."
+        + (f" Next: {others}." if others else "")
+    )

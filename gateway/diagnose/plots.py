@@ -16,12 +16,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
 from gateway.core.heap import trim_heap
@@ -30,8 +26,20 @@ from gateway.diagnose.report import Diagnosis
 from gateway.model import effects as fx
 
 MAX_POINTS = 20000
-SIGNATURE_POINTS = 1_000_000
-"""Samples (all cables) a signature plot bins: every k-th beyond that (memory)."""
+SIGNATURE_POINTS = 200_000
+"""Samples (all cables) a signature plot bins: every k-th beyond that (memory; 40 bins)."""
+
+
+def pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend, imported on first use: the series a report
+    shows are computed before it is loaded (it holds ~35 MiB), so the peak of a 10-min
+    8-cable report is the diagnosis', not the diagnosis' plus matplotlib's."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def thin(n: int) -> slice:
@@ -42,7 +50,7 @@ def save(fig: Any, path: Path) -> None:
     """Lay out, write at 90 dpi and close ``fig``."""
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
+    pyplot().close(fig)
     trim_heap()  # a figure's many small blocks, freed, would stay resident
 
 
@@ -92,7 +100,7 @@ def residual_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> 
     """Residual over time per cable, regions shaded (``series``: :func:`residual_series`)."""
     m = diag.measured.shape[1]
     nominal, final = residual_series(diag) if series is None else series
-    fig, axes = plt.subplots(m, 1, figsize=(10, 1.8 * m + 1), sharex=True, squeeze=False)
+    fig, axes = pyplot().subplots(m, 1, figsize=(10, 1.8 * m + 1), sharex=True, squeeze=False)
     sl = thin(diag.t.size)
     for i, ax in enumerate(axes[:, 0]):
         y = diag.measured[sl, i]
@@ -115,11 +123,22 @@ def residual_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> 
     save(fig, path)
 
 
-def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
-    """Left: the residual without ``effect`` against its contribution, binned, all its
-    cables (on the 1:1 line when the effect explains it). Right: the same residual against
-    the signal the effect's module names (:attr:`~gateway.model.effects.Effect.plot`,
-    :data:`gateway.diagnose.signals.SIGNALS`), with the effect's contribution over it."""
+class SignatureSeries(NamedTuple):
+    """What a signature plot shows: the effect's contribution ``x``, the residual without it
+    ``y`` and the module's plot signal ``s``, thinned to :data:`MAX_POINTS` (the scatter),
+    and their binned means over every sample kept (:data:`SIGNATURE_POINTS`)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    s: np.ndarray
+    lim: tuple[float, float]
+    by_x: tuple[np.ndarray, np.ndarray]
+    by_s: tuple[np.ndarray, np.ndarray]
+    fitted_by_s: np.ndarray
+
+
+def signature_series(diag: Diagnosis, effect: str) -> SignatureSeries:
+    """The signature of ``effect`` over all its cables, computed one cable at a time."""
     xs, ys, ss = [], [], []
     cables = [i for i, o in enumerate(diag.outcomes) if effect in o.theta]
     step = max(1, diag.t.size * len(cables) // SIGNATURE_POINTS)
@@ -127,29 +146,48 @@ def signature_plot(diag: Diagnosis, effect: str, path: Path) -> None:
     for i in cables:
         fw, final = diag.forwards[i], diag.final_theta(i)
         rest = {k: v for k, v in final.items() if k != effect}
-        without = fw.predict(rest)[::step]
+        without = fw.predict(rest)[::step].copy()
         xs.append(fw.predict(final)[::step] - without)
         fw.clear_cache()
         ys.append(diag.measured[::step, i] - without)
-        ss.append(signals.SIGNALS[name](fw.data)[::step])
+        ss.append(np.array(signals.SIGNALS[name](fw.data)[::step]))
         fw.data.release()
+        trim_heap()
     x, y, s = np.concatenate(xs), np.concatenate(ys), np.concatenate(ss)
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
-    mx, my = binned_means(x, y, 40)
     sl = thin(x.size)
-    ax.plot(x[sl], y[sl], ".", ms=1, alpha=0.2, color="grey")
-    ax.plot(mx, my, "o-", color="tab:blue", label="binned mean")
-    lim = [float(x.min()), float(x.max())]
-    ax.plot(lim, lim, "k--", lw=1, label="1:1")
+    sx, sy = binned_means(s, y, 40)
+    return SignatureSeries(
+        x=x[sl].copy(),
+        y=y[sl].copy(),
+        s=s[sl].copy(),
+        lim=(float(x.min()), float(x.max())),
+        by_x=binned_means(x, y, 40),
+        by_s=(sx, sy),
+        fitted_by_s=binned_means(s, x, 40)[1],
+    )
+
+
+def signature_plot(
+    diag: Diagnosis, effect: str, path: Path, series: SignatureSeries | None = None
+) -> None:
+    """Left: the residual without ``effect`` against its contribution, binned, all its
+    cables (on the 1:1 line when the effect explains it). Right: the same residual against
+    the signal the effect's module names (:attr:`~gateway.model.effects.Effect.plot`,
+    :data:`gateway.diagnose.signals.SIGNALS`), with the effect's contribution over it
+    (``series``: :func:`signature_series`)."""
+    sig = signature_series(diag, effect) if series is None else series
+    name = fx.REGISTRY[effect].plot
+    fig, (ax, ax2) = pyplot().subplots(1, 2, figsize=(11, 4.5))
+    ax.plot(sig.x, sig.y, ".", ms=1, alpha=0.2, color="grey")
+    ax.plot(*sig.by_x, "o-", color="tab:blue", label="binned mean")
+    ax.plot(sig.lim, sig.lim, "k--", lw=1, label="1:1")
     ax.set_xlabel(f"{effect} contribution (N)")
     ax.set_ylabel(f"residual without {effect} (N)")
     ax.set_title(f"signature of {effect}")
     ax.legend(fontsize=8)
-    sx, sy = binned_means(s, y, 40)
-    _, sc = binned_means(s, x, 40)
-    ax2.plot(s[sl], y[sl], ".", ms=1, alpha=0.2, color="grey")
-    ax2.plot(sx, sy, "o-", color="tab:blue", label="residual without it, binned")
-    ax2.plot(sx, sc, "-", color="tab:red", lw=2, label=f"{effect}, fitted")
+    ax2.plot(sig.s, sig.y, ".", ms=1, alpha=0.2, color="grey")
+    ax2.plot(*sig.by_s, "o-", color="tab:blue", label="residual without it, binned")
+    ax2.plot(sig.by_s[0], sig.fitted_by_s, "-", color="tab:red", lw=2, label=f"{effect}, fitted")
     ax2.set_xlabel(f"{name} ({signals.UNITS.get(name, '')})")
     ax2.set_ylabel("N")
     ax2.set_title(f"against {name}")
@@ -163,7 +201,7 @@ def unexplained_plot(diag: Diagnosis, path: Path) -> None:
     st = diag.structure
     if st is None:
         return
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    fig, ax = pyplot().subplots(figsize=(6.5, 4.5))
     ax.errorbar(
         st.centre,
         st.mean,
@@ -186,7 +224,7 @@ def overlay_plot(diag: Diagnosis, path: Path, series: Series | None = None) -> N
     (``series``: :func:`overlay_series`)."""
     i, sel = around_largest_region(diag.t, diag.regions_nominal or diag.regions)
     nominal, final = overlay_series(diag) if series is None else series
-    fig, ax = plt.subplots(figsize=(10, 4))
+    fig, ax = pyplot().subplots(figsize=(10, 4))
     ax.plot(diag.t[sel], diag.measured[sel, i], lw=0.8, label="measured", color="grey")
     ax.plot(diag.t[sel], nominal, lw=1.0, label="nominal model")
     ax.plot(diag.t[sel], final, lw=1.0, label="fitted model")
@@ -345,15 +383,16 @@ def write_files(
 
 def write_report(diag: Diagnosis, directory: Path, source: str) -> None:
     """Write the pictures and ``summary.md`` into ``directory`` (created if needed). The
-    predictions the residual and overlay plots show are computed first (one cable at a
-    time), so that no chain simulation runs while a figure exists."""
+    series every plot shows are computed first (one cable at a time), so that no chain
+    simulation runs while a figure exists or matplotlib is loaded."""
     text = summary(diag, source)
     res, ovl = residual_series(diag), overlay_series(diag)
+    sigs = {f["effect"]: signature_series(diag, f["effect"]) for f in diag.report["findings"]}
     write_files(
         diag,
         directory,
         text,
         lambda d, path: residual_plot(d, path, res),
         lambda d, path: overlay_plot(d, path, ovl),
-        signature_plot,
+        lambda d, effect, path: signature_plot(d, effect, path, sigs[effect]),
     )

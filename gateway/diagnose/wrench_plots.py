@@ -18,7 +18,7 @@ import numpy as np
 from gateway.diagnose.plots import (
     around_largest_region,
     binned_means,
-    plt,
+    pyplot,
     save,
     summary,
     thin,
@@ -31,7 +31,7 @@ AXES = ("x", "y", "z")
 
 def residual_plot(diag: WrenchDiagnosis, path: Path) -> None:
     sl = thin(diag.t.size)
-    fig, axes = plt.subplots(3, 1, figsize=(10, 6.5), sharex=True)
+    fig, axes = pyplot().subplots(3, 1, figsize=(10, 6.5), sharex=True)
     for k, ax in enumerate(axes):
         ax.plot(diag.t[sl], -diag.nominal_pred[sl, k], lw=0.5, label="nominal")
         ax.plot(diag.t[sl], -diag.final_pred[sl, k], lw=0.5, label="fitted")
@@ -47,7 +47,7 @@ def residual_plot(diag: WrenchDiagnosis, path: Path) -> None:
 def signature_plot(diag: WrenchDiagnosis, effect: str, path: Path) -> None:
     x, y = diag.signatures[effect]
     mx, my = binned_means(x, y, 30)
-    fig, ax = plt.subplots(figsize=(5, 4.5))
+    fig, ax = pyplot().subplots(figsize=(5, 4.5))
     ax.plot(mx, my, "o-", ms=3, label="binned means")
     lim = float(np.max(np.abs(np.concatenate([mx, my, [1e-9]]))))
     ax.plot([-lim, lim], [-lim, lim], "k--", lw=0.8, label="1:1")
@@ -59,7 +59,7 @@ def signature_plot(diag: WrenchDiagnosis, effect: str, path: Path) -> None:
 
 def overlay_plot(diag: WrenchDiagnosis, path: Path) -> None:
     _, sel = around_largest_region(diag.t, diag.regions)
-    fig, ax = plt.subplots(figsize=(10, 4))
+    fig, ax = pyplot().subplots(figsize=(10, 4))
     ax.plot(diag.t[sel], np.linalg.norm(diag.nominal_pred[sel], axis=1), lw=0.8, label="nominal")
     ax.plot(diag.t[sel], np.linalg.norm(diag.final_pred[sel], axis=1), lw=0.8, label="fitted")
     ax.set_xlabel("t (s)")
