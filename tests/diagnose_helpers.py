@@ -146,6 +146,117 @@ def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: n
     return out
 
 
+DRIVE_EFFECTS = ("maxwell_slip", "cable_stretch", "backlash")
+"""Effects the foreign generator runs through :func:`_chain_drive` (docs/physics.md sec. 3)."""
+
+
+@njit(cache=True)
+def _chain_drive(tp, v, dt, wrap, mu, f0, sigma, w1, k_inv, width, sk, svs):  # pragma: no cover
+    """Sensor tension (N,) of a presliding chain whose state may have two elements
+    (Maxwell-slip), a stretching cable and a dead zone in its drive, written from
+    docs/physics.md sec. 3 and 4 (not from :mod:`gateway.model`), explicit Euler like
+    :func:`_chain`:
+
+    * each pulley carries two elements, ``dF_q/dx = w_q sigma_q (1 - F_q / (w_q F_R) s)``
+      with ``w = (w1, 1 - w1)``, ``sigma = (sigma, sigma / 10)`` (``w1 = 1``: Dahl);
+    * the drive of a (sub-)step of setpoint travel ``dx`` is ``d' = dx - dF / k`` with
+      ``dF = S d`` the Euler change of the pulleys' friction ``F = sum_j F_j``
+      (``S = sum_j sum_q w_q sigma_q (1 - F_q / (w_q F_R) s)``), so ``d' = dx / (1 + S / k)``;
+    * through the play operator of width ``b``: the gap ``g`` (0 at the start) moves by the
+      travel while ``|g + dx| <= b / 2`` and the drive stands; beyond, the drive is
+      ``(g + dx - b/2) / (1 + S / k)`` (or ``+ b/2``) and ``g`` sits at the edge.
+
+    Levels ``(mu F_N + f0 / p) (1 + sk exp(-(v/svs)^2))`` from the law of cosines on the
+    previous step's sensor-side tension of each pulley and its platform side this step
+    (the friction of the pulleys nearer the platform from the previous step)."""
+    n, p = tp.size, wrap.size
+    out = np.empty(n)
+    f0 = f0 / p
+    ws = np.array([w1, 1.0 - w1])
+    sig = np.array([sigma, sigma / 10.0])
+    f = np.zeros((p, 2))
+    prev = np.full(p, tp[0])
+    fr = np.zeros(p)
+    gap = 0.0
+    half = 0.5 * width
+    for k in range(n):
+        strib = 1.0 + sk * math.exp(-((v[k] / svs) ** 2))
+        tj = tp[k]
+        for j in range(p - 1, -1, -1):  # levels, platform to sensor
+            tb = prev[j]
+            fn = math.sqrt(max(tb * tb - 2.0 * tb * tj * math.cos(wrap[j]) + tj * tj, 0.0))
+            fr[j] = (mu[j] * fn + f0) * strib
+            tj = tj - (f[j, 0] + f[j, 1])
+        dx = v[k] * dt
+        big = 0.0
+        for j in range(p):
+            if fr[j] > 0:
+                big = max(big, sigma * abs(dx) / fr[j])
+        sub = max(1, math.ceil(big / 0.05))
+        for _ in range(sub):
+            step = dx / sub
+            if abs(gap + step) <= half:
+                gap += step
+                continue
+            edge = half if gap + step > 0 else -half
+            raw = gap + step - edge
+            gap = edge
+            s = 1.0 if raw > 0 else -1.0
+            slope = 0.0
+            for j in range(p):
+                if fr[j] > 0:
+                    for q in range(2):
+                        if ws[q] > 0:
+                            slope += ws[q] * sig[q] * (1.0 - f[j, q] / (ws[q] * fr[j]) * s)
+            d = raw / (1.0 + slope * k_inv)
+            for j in range(p):
+                for q in range(2):
+                    if fr[j] > 0 and ws[q] > 0:
+                        f[j, q] += ws[q] * sig[q] * (1.0 - f[j, q] / (ws[q] * fr[j]) * s) * d
+                    else:
+                        f[j, q] = 0.0
+        tj = tp[k]
+        for j in range(p - 1, -1, -1):
+            tj = tj - (f[j, 0] + f[j, 1])
+            prev[j] = tj
+        out[k] = tj
+    return out
+
+
+def _drive_chain(fo: Foreign, tn, v, wrap, mu, f0, sigma, st) -> np.ndarray:
+    """The chain of :func:`_chain_drive` with ``fo``'s Maxwell-slip, stretch and backlash."""
+    e = fo.effects
+    slip = e.get("maxwell_slip", {})
+    k = e.get("cable_stretch", {}).get("k_n_m", math.inf)
+    return _chain_drive(
+        tn,
+        v,
+        1.0 / fo.fine_hz,
+        wrap,
+        mu,
+        f0,
+        slip.get("sigma_n_m", sigma),
+        slip.get("w", 1.0),
+        1.0 / k,
+        e.get("backlash", {}).get("width_m", 0.0),
+        st["k"],
+        st["v_s_m_s"],
+    )
+
+
+def _spring_and_creep(fo: Foreign, t, x, ts) -> np.ndarray:
+    """docs/physics.md sec. 4: ``spring`` (path) ``+ k (x - l0)`` with ``x`` the travel since
+    the first sample (a foreign recording has no lengths), then ``sensor_creep`` (the first
+    sensor effect) ``(1 - c) T + c 1/(tau s + 1) T`` with the generator's own filter."""
+    e = fo.effects
+    if "spring" in e:
+        ts = ts + e["spring"]["k_n_m"] * (x - e["spring"].get("l0_m", 0.0))
+    if "sensor_creep" in e:
+        c, tau = e["sensor_creep"]["c"], e["sensor_creep"].get("tau_s", 1.0)
+        ts = (1.0 - c) * ts + c * _lowpass_fast(t, ts, tau)
+    return ts
+
+
 def _motion(fo: Foreign, t: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
     """Fine-grid velocity (m/s) and platform tension (N) for one cable."""
     n = t.size
@@ -196,6 +307,7 @@ def _effects(fo: Foreign, t, v, x, ts) -> np.ndarray:
     if "eccentricity" in e:
         p = e["eccentricity"]
         ts = ts + p["a_n"] * np.sin(x / p["r_m"] + p.get("phi_rad", 0.0))
+    ts = _spring_and_creep(fo, t, x, ts)
     if "gain" in e:
         ts = ts * (1 + e["gain"]["g"])
     if "offset" in e:
@@ -277,7 +389,10 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
         # viscous bearing friction at the platform end of the path (docs/physics.md: the
         # last pulley's tension is T_p - c v), then the pulleys towards the sensor
         tn = tp - fo.effects.get("viscous", {}).get("c_ns_m", 0.0) * v
-        ts = _chain(tn, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
+        if any(n in fo.effects for n in DRIVE_EFFECTS) and (dahl or "maxwell_slip" in fo.effects):
+            ts = _drive_chain(fo, tn, v, wrap, mu, f0, sigma, st)
+        else:
+            ts = _chain(tn, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
         ts = _effects(fo, fine, v, x, ts)
         sens = np.interp(ts_out, fine, ts) + _noise(fo, ts_out, rng)
         if fo.noise in ("quant", "mixed"):

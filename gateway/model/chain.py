@@ -6,6 +6,12 @@ Per pulley ``T_j = T_{j-1} + F_j`` where ``F_j`` is
 * ``coulomb``: ``sgn(v) F_Rj`` (eq. 8, 11, 12),
 * ``dahl``: the pre-sliding state stepped with :func:`friction.dahl_step` over the
   cable travel of each step (eq. 14), carried between calls,
+* ``maxwell_slip``: ``K`` Dahl elements in parallel (generalised Maxwell-slip): element
+  ``q`` holds the fraction ``w_q`` of the Coulomb level and has the stiffness
+  ``w_q sigma_q``, each stepped like the Dahl state; ``F_j`` is their sum (one element
+  with ``w = 1`` is ``dahl``). An element is carried per unit fraction, ``G_q`` with the
+  whole level ``F_R`` and the stiffness ``sigma_q`` (``F_q = w_q G_q`` exactly: the Dahl
+  step is homogeneous in level and stiffness), so ``F_j`` is linear in the fractions,
 * ``none``: 0,
 
 with the Coulomb level ``F_Rj = (lambda_ij(s) |T_j| + f0_i / n) S_i(v)`` (physics.md:
@@ -17,26 +23,34 @@ a load-independent part (seals, preload; split evenly over the pulleys) and
 at the platform end: ``T_p = T_n + c v``. ``|T|`` makes the law hold for push forces too
 (a single-axis test rig).
 
-Cable travel (:func:`travel_into`, the one definition every form uses): the trapezoid over
-the actual sample times, ``dx_k = (v_{k-1} + v_k) / 2 (t_k - t_{k-1})``, ``dx_0 = 0``; the
-Dahl state advances by ``dx_k`` and takes its direction from it, while the Coulomb sign,
-the Stribeck factor and the viscous term take the sample's own ``v_k``. (Stepping with
-``v_k dt_k`` instead makes an error of the order ``a dt^2 / 2`` per step that sampling
-jitter turns into noise: 0.13 N RMS on a noise-free 100 Hz +-2 ms recording.)
+Cable travel (the one definition every form uses): the setpoint travel
+(:func:`travel_into`), the trapezoid over the actual sample times,
+``dx_k = (v_{k-1} + v_k) / 2 (t_k - t_{k-1})``, ``dx_0 = 0``; then, per cable, in the
+kernels (:func:`_step_cable`): minus the stretch change ``(F_k - F_{k-1}) c`` of the cable
+between winch and pulleys (compliance ``c = 1 / k``; ``F = sum_j F_j`` the tension the
+pulleys hold back, so the stretch the friction itself causes), then through the play
+operator of width ``b`` (:func:`_play`, backlash: the drive stands still until the
+setpoint has travelled ``b`` back across the gap). The Dahl and Maxwell-slip states
+advance by that travel and take their direction from it, while the Coulomb sign, the
+Stribeck factor and the viscous term take the sample's own ``v_k``.
+(Stepping with ``v_k dt_k`` instead makes an error of the order ``a dt^2 / 2`` per step
+that sampling jitter turns into noise: 0.13 N RMS on a noise-free 100 Hz +-2 ms recording.)
 
 Simulation (platform -> sensor) is explicit: ``F_Rj`` follows from the known platform-side
 tension, so each pulley is one exact Dahl step. Compensation (sensor -> platform) is
 implicit in ``T_j``: Newton's iteration seeded with the previous cycle (``T_{j-1} +
 F_old``) converges to 1e-9 N in one or two passes at 1 kHz (tests check it), stopping at
-``tol_n`` or after ``max_iter`` passes.
+``tol_n`` or after ``max_iter`` passes. With a stretching cable the travel depends on the
+friction the step produces: both directions solve for the drive per sample by a bracketed
+secant (:func:`_step_cable`), and both read the same drive, so each inverts the other.
 
 * :func:`compensate` / :class:`ChainStepper`: sensor reading ``T_s`` and setpoint velocity
   -> platform tension ``T_p`` (what the gateway does each cycle).
 * :func:`simulate`: platform tension and velocity -> the sensor reading ``T_s`` (the plant).
 
 Two compiled kernels (:func:`compensate_kernel`, :func:`simulate_kernel`) share the pulley
-step and read their parameters from one :class:`KernelParams`; ``compensate(simulate(T))``
-returns ``T``.
+step and read their parameters from one :class:`KernelParams` and their state from one
+:class:`ChainState`; ``compensate(simulate(T))`` returns ``T``.
 """
 
 from __future__ import annotations
@@ -51,12 +65,14 @@ from numba import njit
 from gateway.model.fastcall import entry_point
 from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step, dahl_step_slope
 
-LAWS = {"none": 0, "coulomb": 1, "dahl": 2}
+LAWS = {"none": 0, "coulomb": 1, "dahl": 2, "maxwell_slip": 3}
 """The law table: a friction law's name -> its code in the compiled pulley step
-(:func:`_pulley` dispatches on it). A new chain-side law is one row here and its branch
-there; the effects that switch a chain to it say so in their module."""
+(:func:`_pulley` dispatches on it; the multi-element law in :func:`_slip`). A new
+chain-side law is one row here and its branch there; the effects that switch a chain to
+it say so in their module."""
 LAW_NONE, LAW_COULOMB, LAW_DAHL = LAWS["none"], LAWS["coulomb"], LAWS["dahl"]
-ModelName = Literal["none", "coulomb", "dahl"]
+LAW_SLIP = LAWS["maxwell_slip"]
+ModelName = Literal["none", "coulomb", "dahl", "maxwell_slip"]
 
 
 def _per_cable(value: float | np.ndarray, cables: int, name: str) -> np.ndarray:
@@ -76,7 +92,13 @@ class ChainParams:
     ``mu`` (m, n) the bearing coefficient paying out (v > 0), ``mu_in`` (m, n) hauling in
     (v < 0; the same as ``mu`` unless a direction-dependent effect sets it);
     ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,).
-    ``beta``: Dahl shape exponent.
+    ``beta``: Dahl shape exponent. ``slip_w``, ``slip_sigma`` (m, K): the Maxwell-slip
+    elements' fractions of the level (summing to 1 per cable; a fraction outside [0, 1]
+    is the linear extension a fit's finite difference may step to) and stiffnesses per
+    unit fraction (N/m; read by ``maxwell_slip`` only; default one element, ``w = 1``,
+    ``sigma_n_m``).
+    ``stretch_c`` (m,): compliance (m/N) of the cable between winch and sensor pulley (0:
+    rigid); ``backlash_m`` (m,): width of the dead zone in the travel (0: none).
     """
 
     model: ModelName
@@ -89,6 +111,10 @@ class ChainParams:
     stribeck_v_m_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     viscous_ns_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     mu_in: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slip_w: np.ndarray = field(default_factory=lambda: np.ones((0, 1)))
+    slip_sigma: np.ndarray = field(default_factory=lambda: np.ones((0, 1)))
+    stretch_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    backlash_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @staticmethod
     def build(
@@ -104,9 +130,14 @@ class ChainParams:
         stribeck_k: float | np.ndarray = 0.0,
         stribeck_v_m_s: float | np.ndarray = 0.01,
         viscous_ns_m: float | np.ndarray = 0.0,
+        slip_w: np.ndarray | None = None,
+        slip_sigma: np.ndarray | None = None,
+        stretch_c: float | np.ndarray = 0.0,
+        backlash_m: float | np.ndarray = 0.0,
     ) -> ChainParams:
         """Broadcast scalars and per-pulley (n,) or per-cable-per-pulley (m, n) ``mu``
-        (``mu_in`` None: the same as ``mu``)."""
+        (``mu_in`` None: the same as ``mu``); ``slip_w``, ``slip_sigma`` (K,) or (m, K)
+        (None: one element, ``w = 1`` at ``sigma_n_m``)."""
         if model not in LAWS:
             raise ValueError(f"model must be one of {sorted(LAWS)}, got {model!r}")
         wrap = np.asarray(wrap_rad, dtype=float).reshape(-1)
@@ -120,17 +151,35 @@ class ChainParams:
         vs = _per_cable(stribeck_v_m_s, cables, "stribeck_v_m_s")
         if np.any(vs <= 0):
             raise ValueError("stribeck_v_m_s must be > 0")
+        sigma = _per_cable(sigma_n_m, cables, "sigma_n_m")
+        w = np.ones((cables, 1)) if slip_w is None else np.asarray(slip_w, dtype=float)
+        w = np.broadcast_to(w, (cables, w.shape[-1])).copy()
+        ks = (
+            sigma[:, None].copy()
+            if slip_sigma is None
+            else np.broadcast_to(np.asarray(slip_sigma, dtype=float), w.shape).copy()
+        )
+        if np.any(np.abs(w.sum(axis=1) - 1.0) > 1e-9) or np.any(ks <= 0):
+            raise ValueError("slip_w: fractions summing to 1; slip_sigma: > 0")
+        stretch = _per_cable(stretch_c, cables, "stretch_c")
+        play = _per_cable(backlash_m, cables, "backlash_m")
+        if np.any(stretch < 0) or np.any(play < 0):
+            raise ValueError("stretch_c and backlash_m must be >= 0")
         return ChainParams(
             model=model,
             wrap_rad=wrap,
             mu=mu_arr,
             mu_in=mu_in_arr,
-            sigma_n_m=_per_cable(sigma_n_m, cables, "sigma_n_m"),
+            sigma_n_m=sigma,
             beta=float(beta),
             f0_n=_per_cable(f0_n, cables, "f0_n"),
             stribeck_k=_per_cable(stribeck_k, cables, "stribeck_k"),
             stribeck_v_m_s=vs,
             viscous_ns_m=_per_cable(viscous_ns_m, cables, "viscous_ns_m"),
+            slip_w=w,
+            slip_sigma=ks,
+            stretch_c=stretch,
+            backlash_m=play,
         )
 
     @staticmethod
@@ -159,6 +208,11 @@ class ChainParams:
     def pulleys(self) -> int:
         return int(self.wrap_rad.size)
 
+    @property
+    def elements(self) -> int:
+        """State elements per pulley: the Maxwell-slip law's ``K``, else 1."""
+        return int(self.slip_w.shape[1]) if LAWS[self.model] == LAW_SLIP else 1
+
 
 _NEWTON_CURVATURE = 1.0
 """Bound, in 1/N, on |g''/(2 g')| for the pulley equation g(T) = T - T_a - F(T): F depends on
@@ -168,21 +222,26 @@ Newton's next correction is at most this times step^2, so a pass whose correctio
 step^2 * bound <= tol leaves an error below tol: no confirming pass is needed."""
 
 
+F0, STRIB_K, STRIB_V, VISCOUS, SIGMA, STRETCH, PLAY = range(7)
+"""Columns of :attr:`KernelParams.cable`."""
+
+
 class KernelParams(NamedTuple):
     """What the compiled kernels read, as one numba-compatible structure.
 
-    ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0;
-    ``f0``, ``strib_k``, ``strib_v``, ``viscous``, ``sigma`` (m,); ``beta``; ``law``
-    (:data:`LAWS`); Newton's ``tol`` (N^2 on the squared step) and ``max_iter``.
+    ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0; ``cable``
+    (m, 7): per cable ``f0``, the Stribeck ``k`` and ``v_s``, ``viscous``, ``sigma``, the
+    stretch compliance ``c`` (m/N) and the backlash width (m) (columns :data:`F0` ..
+    :data:`PLAY`; one array: every array of the structure costs unboxing time per call);
+    ``slip`` (m, K, 2): per Maxwell-slip element its fraction ``w`` and stiffness per unit
+    fraction; ``beta``; ``law`` (:data:`LAWS`); Newton's ``tol`` (N^2 on the squared step)
+    and ``max_iter``.
     """
 
     lam_pos: np.ndarray
     lam_neg: np.ndarray
-    f0: np.ndarray
-    strib_k: np.ndarray
-    strib_v: np.ndarray
-    viscous: np.ndarray
-    sigma: np.ndarray
+    cable: np.ndarray
+    slip: np.ndarray
     beta: float
     law: int
     tol: float
@@ -192,14 +251,26 @@ class KernelParams(NamedTuple):
 def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20) -> KernelParams:
     """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
     lam_pos, lam_neg = coulomb_coefficients(params)
+    cable = np.column_stack(
+        [
+            params.f0_n,
+            params.stribeck_k,
+            params.stribeck_v_m_s,
+            params.viscous_ns_m,
+            params.sigma_n_m,
+            params.stretch_c,
+            params.backlash_m,
+        ]
+    )
+    if params.elements > 1 or LAWS[params.model] == LAW_SLIP:
+        slip = np.stack([params.slip_w, params.slip_sigma], axis=2)
+    else:  # one element: the Dahl state (w = 1, sigma)
+        slip = np.stack([np.ones(params.cables), params.sigma_n_m], axis=1)[:, None, :]
     return KernelParams(
         lam_pos=lam_pos,
         lam_neg=lam_neg,
-        f0=params.f0_n,
-        strib_k=params.stribeck_k,
-        strib_v=params.stribeck_v_m_s,
-        viscous=params.viscous_ns_m,
-        sigma=params.sigma_n_m,
+        cable=np.ascontiguousarray(cable),
+        slip=np.ascontiguousarray(slip),
         beta=float(params.beta),
         law=LAWS[params.model],
         tol=float(tol_n),
@@ -207,10 +278,45 @@ def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20)
     )
 
 
+class ChainState(NamedTuple):
+    """What the kernels carry from one sample to the next (updated in place).
+
+    ``f`` (m, n, K): each state element of each pulley (K = 1 but for the Maxwell-slip
+    law, whose elements are carried per unit fraction: a pulley's friction force is
+    ``sum_q w_q f[i, j, q]``, :meth:`pulley_forces`); ``gap`` (m,): where the drive stands
+    in the backlash's dead zone (in ``[-b/2, b/2]``, 0 at the start); ``scratch``
+    (m, n + 1, K): room for trial steps (rows ``0..n-1``: a cable's trial states, row
+    ``n``: one pulley's Newton trial), so that no step allocates.
+    """
+
+    f: np.ndarray
+    gap: np.ndarray
+    scratch: np.ndarray
+
+    @staticmethod
+    def relaxed(params: ChainParams) -> ChainState:
+        """The state of a chain at rest: every element force zero."""
+        m, n, k = params.cables, params.pulleys, params.elements
+        return ChainState(np.zeros((m, n, k)), np.zeros(m), np.zeros((m, n + 1, k)))
+
+    def reset(self) -> None:
+        """Every pulley relaxed, the drive centred in its dead zone."""
+        self.f[:] = 0.0
+        self.gap[:] = 0.0
+
+    def pulley_forces(self, p: KernelParams) -> np.ndarray:
+        """(m, n) friction force of each pulley (its elements weighted by their
+        fractions), N."""
+        if self.f.shape[2] == 1:
+            return self.f[:, :, 0].copy()
+        return np.einsum("ijq,iq->ij", self.f, p.slip[:, :, 0])
+
+
 @njit(cache=True, inline="always")
 def _pulley(p, i, j, t_b, f_old, dx, strib):
     """Friction force of pulley ``j`` of cable ``i`` whose platform-side tension is
-    ``t_b``, and dF/dt_b, by the chain's law (:data:`LAWS`).
+    ``t_b``, and dF/dt_b, by the chain's law (:data:`LAWS`; ``maxwell_slip``:
+    :func:`_slip`).
 
     ``dx``: the step's cable travel (Dahl) or, for Coulomb, anything with the sign of
     the sample's velocity (only its sign is read); ``strib``: the Stribeck factor."""
@@ -219,14 +325,14 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
         return (0.0 if law == LAW_COULOMB else f_old), 0.0
     s = 1.0 if dx > 0.0 else -1.0
     lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
-    fr = (lam * abs(t_b) + p.f0[i] / p.lam_pos.shape[1]) * strib
+    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
     dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
     if law == LAW_COULOMB:
         return s * fr, s * dfr
     # LAW_DAHL
     if fr <= FR_FLOOR_N:
         return 0.0, 0.0
-    sigma = p.sigma[i]
+    sigma = p.cable[i, SIGMA]
     if p.beta == 1.0:
         f_new, slope = dahl_step_slope(f_old, fr, dx, sigma)
         return f_new, slope * dfr
@@ -235,18 +341,64 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
 
 
 @njit(cache=True, inline="always")
+def _elements(p, i, j, t_b, f, dx, strib, out, row):
+    """The presliding laws (Dahl, Maxwell-slip) of pulley ``j`` of cable ``i`` whose
+    platform-side tension is ``t_b``, for the drive ``dx``: its elements ``f[i, j]`` (per
+    unit fraction; Dahl: one with ``w = 1``) stepped into ``out[i, row]``. Returns the
+    force ``sum_q w_q G_q``, its derivative in ``t_b`` and in ``dx`` (at fixed ``t_b``).
+    Element ``q`` per unit fraction is a Dahl state with the whole level ``F_R`` and the
+    stiffness ``sigma_q`` (its relaxation length ``F_R / sigma_q``)."""
+    k_el = f.shape[2]
+    total = 0.0
+    if dx == 0.0:
+        for q in range(k_el):
+            out[i, row, q] = f[i, j, q]
+            total += p.slip[i, q, 0] * f[i, j, q]
+        return total, 0.0, 0.0
+    s = 1.0 if dx > 0.0 else -1.0
+    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
+    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
+    dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    if fr <= FR_FLOOR_N:
+        for q in range(k_el):
+            out[i, row, q] = 0.0
+        return 0.0, 0.0, 0.0
+    slope = 0.0
+    ddx = 0.0
+    for q in range(k_el):
+        w = p.slip[i, q, 0]
+        sigma = p.slip[i, q, 1]
+        g = f[i, j, q]
+        e = math.exp(-sigma * abs(dx) / fr)
+        if p.beta == 1.0:
+            rest = g - s * fr
+            g_new = s * fr + rest * e
+            sl = s * (1.0 - e) + rest * e * sigma * abs(dx) / (fr * fr)
+            ddx += w * sigma * (1.0 - s * g / fr) * e
+        else:
+            g_new = dahl_step(g, fr, dx, sigma, p.beta)
+            sl = s * (1.0 - e)  # quasi-Newton slopes
+            ddx += w * sigma * e
+        out[i, row, q] = g_new
+        total += w * g_new
+        slope += w * sl
+    return total, slope * dfr, ddx
+
+
+@njit(cache=True, inline="always")
 def _stribeck(p, i, v):
-    if p.strib_k[i] == 0.0:
+    if p.cable[i, STRIB_K] == 0.0:
         return 1.0
-    return 1.0 + p.strib_k[i] * math.exp(-((v / p.strib_v[i]) ** 2))
+    return 1.0 + p.cable[i, STRIB_K] * math.exp(-((v / p.cable[i, STRIB_V]) ** 2))
 
 
 @njit(cache=True)
 def travel_into(vel, dt, v_prev, dx):
-    """Cable travel of each step (m), the trapezoid over the actual sample spacing:
+    """Setpoint travel of each step (m), the trapezoid over the actual sample spacing:
     ``dx[k, i] = (v_prev[i] + vel[k, i]) / 2 * dt[k]`` with ``v_prev`` the velocity of the
     step before, updated in place (so a per-cycle caller carries it). ``vel``, ``dx``
-    (N, m); ``dt`` (N,); ``v_prev`` (m,)."""
+    (N, m); ``dt`` (N,); ``v_prev`` (m,). The kernels drive the friction state with it
+    through :func:`_step_cable` (stretch, backlash)."""
     for k in range(vel.shape[0]):
         for i in range(vel.shape[1]):
             dx[k, i] = 0.5 * (v_prev[i] + vel[k, i]) * dt[k]
@@ -254,17 +406,202 @@ def travel_into(vel, dt, v_prev, dx):
 
 
 @njit(cache=True, inline="always")
+def _play(gap, d, width):
+    """The play operator: the drive's position in the dead zone ``gap`` moved by ``d``;
+    returns (the drive's travel, the new gap). Inside ``[-width/2, width/2]`` nothing
+    moves; at an edge the drive follows."""
+    g = gap + d
+    half = 0.5 * width
+    if g > half:
+        return g - half, half
+    if g < -half:
+        return g + half, -half
+    return 0.0, g
+
+
+@njit(cache=True, inline="always")
 def _direction(law, v, dx):
-    """What sets the pulley's direction: the velocity for Coulomb, the travel for Dahl."""
+    """What sets the pulley's direction: the velocity for Coulomb, the travel for Dahl
+    and Maxwell-slip."""
     return v if law == LAW_COULOMB else dx
 
 
+@njit(cache=True, inline="always")
+def _chain_force(p, f, i):
+    """Cable ``i``'s pulleys' friction, ``sum_j F_j``, from the element states ``f``."""
+    total = 0.0
+    for j in range(f.shape[1]):
+        for q in range(f.shape[2]):
+            total += p.slip[i, q, 0] * f[i, j, q]
+    return total
+
+
+@njit(cache=True, inline="always")
+def _through(p, st, i, forward, t_known, v, strib, d_raw, dst):
+    """Cable ``i`` through its pulleys for one sample whose drive before the dead zone is
+    ``d_raw``: from the sensor side (``forward``: ``t_known`` the sensor-side tension,
+    Newton per pulley) or from the platform side (``t_known`` the platform tension,
+    explicit). The element states come from ``st.f`` and go to ``dst`` (``st.f``: commit;
+    ``st.scratch``: a trial). Returns the other end's tension, the pulleys' friction
+    ``F = sum_j F_j``, ``dF / d(d_raw)`` at fixed tensions, and the most Newton passes."""
+    n = p.lam_pos.shape[1]
+    d = d_raw
+    moving = 1.0
+    if p.cable[i, PLAY] != 0.0:
+        d = _play(st.gap[i], d_raw, p.cable[i, PLAY])[0]
+        moving = 1.0 if d != 0.0 else 0.0
+    coulomb = p.law == LAW_COULOMB
+    dx = v if coulomb else d
+    worst = 0
+    force = 0.0
+    slope_d = 0.0
+    if p.law == LAW_NONE:
+        out = t_known + p.cable[i, VISCOUS] * v if forward else t_known - p.cable[i, VISCOUS] * v
+        return out, 0.0, 0.0, 0
+    if forward:
+        t_a = t_known
+        for j in range(n):
+            f_old = _chain_force_pulley(p, st.f, i, j)
+            t_b = t_a + f_old
+            it = 0
+            while it < p.max_iter:
+                it += 1
+                if coulomb:
+                    f_new, d_b = _pulley(p, i, j, t_b, f_old, dx, strib)
+                else:
+                    f_new, d_b, _ = _elements(p, i, j, t_b, st.f, dx, strib, st.scratch, n)
+                step = (t_b - t_a - f_new) / (1.0 - d_b)
+                t_prev = t_b
+                t_b -= step
+                # as in _compensate_plain: a step that crossed or landed on T = 0 (the kink
+                # of |T|) is not confirmed by the curvature bound
+                if step * step * _NEWTON_CURVATURE <= p.tol and t_prev * t_b > 0.0:
+                    break
+            if coulomb:
+                dst[i, j, 0] = t_b - t_a
+            else:
+                f_new, _, dd = _elements(p, i, j, t_b, st.f, dx, strib, dst, j)
+                slope_d += dd
+            worst = max(worst, it)
+            t_a = t_b
+        force = t_a - t_known
+        return t_a + p.cable[i, VISCOUS] * v, force, slope_d * moving, worst
+    t_b = t_known - p.cable[i, VISCOUS] * v
+    for j in range(n - 1, -1, -1):
+        if coulomb:
+            f_new, _ = _pulley(p, i, j, t_b, st.f[i, j, 0], dx, strib)
+            dst[i, j, 0] = f_new
+        else:
+            f_new, _, dd = _elements(p, i, j, t_b, st.f, dx, strib, dst, j)
+            slope_d += dd
+        t_b -= f_new
+        force += f_new
+    return t_b, force, slope_d * moving, 0
+
+
+@njit(cache=True, inline="always")
+def _chain_force_pulley(p, f, i, j):
+    """Pulley ``j`` of cable ``i``'s friction force from its elements."""
+    total = 0.0
+    for q in range(f.shape[2]):
+        total += p.slip[i, q, 0] * f[i, j, q]
+    return total
+
+
+@njit(cache=True)
+def _step_cable(p, st, i, forward, t_known, v, strib, dx_set):
+    """One sample of cable ``i`` (general path): with a stretching cable the drive ``d``
+    solves ``g(d) = d - dx_set + (F(d) - F_old) c = 0`` (``F`` the pulleys' friction after
+    the step, ``F_old`` before it) by Newton's iteration from ``dx_set`` with the slope
+    ``1 + c dF/dd``, kept inside the bracket its own steps find (bisection where a step
+    leaves it: ``g`` has kinks where the drive changes sign or meets the dead zone's edge).
+    ``g`` rises with slope >= 1 wherever the friction grows with its travel, so the root
+    is unique. The states of the last evaluation (at the root) are committed and the dead
+    zone moved. Returns the other end's tension and the most Newton passes."""
+    c = p.cable[i, STRETCH]
+    if c == 0.0 or p.law == LAW_NONE or p.law == LAW_COULOMB:
+        out, _, _, worst = _through(p, st, i, forward, t_known, v, strib, dx_set, st.f)
+        if p.cable[i, PLAY] != 0.0:
+            st.gap[i] = _play(st.gap[i], dx_set, p.cable[i, PLAY])[1]
+        return out, worst
+    f_old = _chain_force(p, st.f, i)
+    lo, hi = -math.inf, math.inf
+    d = dx_set
+    out, worst = 0.0, 0
+    for _ in range(4 * p.max_iter + 20):
+        out, force, slope, worst = _through(p, st, i, forward, t_known, v, strib, d, st.scratch)
+        g = d - dx_set + c * (force - f_old)
+        if g == 0.0:
+            break
+        if g > 0.0:
+            hi = min(hi, d)
+        else:
+            lo = max(lo, d)
+        gp = 1.0 + c * slope
+        nxt = d - g / (gp if gp > 0.5 else 1.0)
+        if not lo < nxt < hi and math.isfinite(lo) and math.isfinite(hi):
+            nxt = 0.5 * (lo + hi)
+        if abs(nxt - d) <= 1e-16 + 1e-12 * abs(nxt):
+            break  # the next step is below the precision: d (just evaluated) is the root
+        d = nxt
+    # commit the states of the last evaluation, at the root d
+    for j in range(st.f.shape[1]):
+        for q in range(st.f.shape[2]):
+            st.f[i, j, q] = st.scratch[i, j, q]
+    if p.cable[i, PLAY] != 0.0:
+        st.gap[i] = _play(st.gap[i], d, p.cable[i, PLAY])[1]
+    return out, worst
+
+
+@njit(cache=True, inline="always")
+def _rigid(p):
+    """True when the chain has a presliding state and no cable stretches: its drive is
+    explicit (the setpoint travel, through a dead zone where there is one)."""
+    if p.law != LAW_DAHL and p.law != LAW_SLIP:
+        return False
+    for i in range(p.cable.shape[0]):  # noqa: SIM110 (numba: a plain loop)
+        if p.cable[i, STRETCH] != 0.0:
+            return False
+    return True
+
+
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
-def compensate_kernel(p, t_in, vel, dx_all, f_state, out):
-    """Sensor -> platform for (N, m) ``t_in``, ``vel``, travel ``dx_all`` (:func:`travel_into`)
-    and ``out``; ``f_state`` (m, n) in/out. Each pulley's implicit equation by Newton, seeded
-    with the previous cycle's force. Returns the largest number of Newton passes any pulley
-    needed."""
+def _simulate_rigid(p, t_in, vel, dx_all, st, out):
+    """:func:`simulate_kernel` for a :func:`_rigid` chain (the general path's explicit
+    case, without its per-sample solve)."""
+    n_samples, m = t_in.shape
+    n = p.lam_pos.shape[1]
+    f_state = st.f
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            dx = dx_all[k, i]
+            width = p.cable[i, PLAY]
+            if width != 0.0:
+                dx, st.gap[i] = _play(st.gap[i], dx, width)
+            t_b = t_in[k, i] - p.cable[i, VISCOUS] * v
+            strib = _stribeck(p, i, v)
+            for j in range(n - 1, -1, -1):
+                t_b -= _elements(p, i, j, t_b, f_state, dx, strib, f_state, j)[0]
+            out[k, i] = t_b
+    return 0
+
+
+@njit(cache=True, inline="always")
+def _plain(p):
+    """True when the chain is one-element (not Maxwell-slip) and every cable's travel is
+    the setpoint's (no stretch, no dead zone): the kernels' fast path."""
+    if p.law == LAW_SLIP:
+        return False
+    for i in range(p.cable.shape[0]):
+        if p.cable[i, STRETCH] != 0.0 or p.cable[i, PLAY] != 0.0:
+            return False
+    return True
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _compensate_plain(p, t_in, vel, dx_all, f_state, out):
+    """:func:`compensate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
     n = p.lam_pos.shape[1]
     worst = 0
@@ -292,21 +629,40 @@ def compensate_kernel(p, t_in, vel, dx_all, f_state, out):
                     f_state[i, j] = t_b - t_a
                     worst = max(worst, it)
                     t_a = t_b
-            out[k, i] = t_a + p.viscous[i] * v
+            out[k, i] = t_a + p.cable[i, VISCOUS] * v
     return worst
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"})
-def simulate_kernel(p, t_in, vel, dx_all, f_state, out):
-    """Platform -> sensor, same arguments as :func:`compensate_kernel`; explicit (each
-    pulley's Coulomb level follows from its known platform-side tension)."""
+def compensate_kernel(p, t_in, vel, dx_all, st, out):
+    """Sensor -> platform for (N, m) ``t_in``, ``vel``, setpoint travel ``dx_all``
+    (:func:`travel_into`) and ``out``; ``st`` (:class:`ChainState`) in/out. Each pulley's
+    implicit equation by Newton, seeded with the previous cycle's force. Returns the largest
+    number of Newton passes any pulley needed."""
+    n_samples, m = t_in.shape
+    if _plain(p):
+        f_state = st.f
+        return _compensate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])), out)
+    worst = 0
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            strib = _stribeck(p, i, v)
+            out[k, i], it = _step_cable(p, st, i, True, t_in[k, i], v, strib, dx_all[k, i])
+            worst = max(worst, it)
+    return worst
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _simulate_plain(p, t_in, vel, dx_all, f_state, out):
+    """:func:`simulate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
     n = p.lam_pos.shape[1]
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
             dx = _direction(p.law, v, dx_all[k, i])
-            t_b = t_in[k, i] - p.viscous[i] * v
+            t_b = t_in[k, i] - p.cable[i, VISCOUS] * v
             if p.law != LAW_NONE:
                 strib = _stribeck(p, i, v)
                 for j in range(n - 1, -1, -1):
@@ -314,6 +670,25 @@ def simulate_kernel(p, t_in, vel, dx_all, f_state, out):
                     f_state[i, j] = f_new
                     t_b -= f_new
             out[k, i] = t_b
+    return 0
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def simulate_kernel(p, t_in, vel, dx_all, st, out):
+    """Platform -> sensor, same arguments as :func:`compensate_kernel`; explicit (each
+    pulley's Coulomb level follows from its known platform-side tension) but for a
+    stretching cable (:func:`_step_cable`)."""
+    n_samples, m = t_in.shape
+    if _plain(p):
+        f_state = st.f
+        return _simulate_plain(p, t_in, vel, dx_all, f_state.reshape((m, f_state.shape[1])), out)
+    if _rigid(p):
+        return _simulate_rigid(p, t_in, vel, dx_all, st, out)
+    for k in range(n_samples):
+        for i in range(m):
+            v = vel[k, i]
+            strib = _stribeck(p, i, v)
+            out[k, i] = _step_cable(p, st, i, False, t_in[k, i], v, strib, dx_all[k, i])[0]
     return 0
 
 
@@ -360,9 +735,9 @@ def travel(t: np.ndarray | float, velocity: np.ndarray) -> np.ndarray:
     return dx
 
 
-def new_state(params: ChainParams) -> np.ndarray:
-    """Friction state (m, n), N: relaxed (every pulley force zero)."""
-    return np.zeros((params.cables, params.pulleys))
+def new_state(params: ChainParams) -> ChainState:
+    """Friction state of ``params``' chain: relaxed (every pulley force zero)."""
+    return ChainState.relaxed(params)
 
 
 def _run_batch(
@@ -371,7 +746,7 @@ def _run_batch(
     tension: np.ndarray,
     velocity: np.ndarray,
     t: np.ndarray | float,
-    state: np.ndarray | None,
+    state: ChainState | None,
     tol_n: float,
     max_iter: int,
 ) -> np.ndarray:
@@ -406,14 +781,14 @@ def simulate(
     tension_platform: np.ndarray,
     velocity: np.ndarray,
     t: np.ndarray | float,
-    state: np.ndarray | None = None,
+    state: ChainState | None = None,
     tol_n: float = 1e-10,
     max_iter: int = 20,
 ) -> np.ndarray:
     """Sensor reading (N, m) from platform tension and cable velocity, both (N, m).
 
-    ``t``: sample times (N,) in s, or a constant period. ``state`` (m, n): friction
-    state carried in and updated in place (relaxed if None).
+    ``t``: sample times (N,) in s, or a constant period. ``state``
+    (:class:`ChainState`): carried in and updated in place (relaxed if None).
     """
     return _run_batch(params, False, tension_platform, velocity, t, state, tol_n, max_iter)
 
@@ -423,7 +798,7 @@ def compensate(
     tension_sensor: np.ndarray,
     velocity: np.ndarray,
     t: np.ndarray | float,
-    state: np.ndarray | None = None,
+    state: ChainState | None = None,
     tol_n: float = 1e-10,
     max_iter: int = 20,
 ) -> np.ndarray:
@@ -434,10 +809,10 @@ def compensate(
 class ChainStepper:
     """Per-cycle form: one sample for every cable on preallocated buffers.
 
-    The friction state and the previous step's velocity (for the travel,
-    :func:`travel_into`) are carried between calls. ``step`` allocates nothing. The first
-    step after construction or :meth:`reset` has no previous velocity: it takes its own
-    (``dx = v dt``; the batch form takes no travel at its first sample, ``dt = 0``).
+    The friction state (:attr:`chain_state`) and the previous step's velocity (for the
+    travel, :func:`travel_into`) are carried between calls. ``step`` allocates nothing. The
+    first step after construction or :meth:`reset` has no previous velocity: it takes its
+    own (``dx = v dt``; the batch form takes no travel at its first sample, ``dt = 0``).
     """
 
     def __init__(
@@ -452,7 +827,7 @@ class ChainStepper:
         self.params = params
         self.forward = forward
         self.period_s = float(period_s)
-        self.state = new_state(params)
+        self.chain_state = new_state(params)
         self.iterations = 0
         self._in = np.zeros((1, m))
         self._vel = np.zeros((1, m))
@@ -463,20 +838,27 @@ class ChainStepper:
         self._dt = np.array([self.period_s])
         self._p = kernel_params(params, tol_n, max_iter)
         self._travel = entry_point(travel_into, self._vel, self._dt, self._v_prev, self._dx)
+        # a plain chain steps its (m, n) forces directly (a view of the state): the kernel's
+        # fast path without the per-call check
+        if _plain(self._p):
+            kernel = _compensate_plain if forward else _simulate_plain
+            self._held: ChainState | np.ndarray = self.chain_state.f.reshape(m, params.pulleys)
+        else:
+            kernel = compensate_kernel if forward else simulate_kernel
+            self._held = self.chain_state
         self._kernel = entry_point(
-            compensate_kernel if forward else simulate_kernel,
-            self._p,
-            self._in,
-            self._vel,
-            self._dx,
-            self.state,
-            self._out,
+            kernel, self._p, self._in, self._vel, self._dx, self._held, self._out
         )
+
+    @property
+    def state(self) -> np.ndarray:
+        """(m, n) friction force of each pulley (N): the sum of its state elements."""
+        return self.chain_state.pulley_forces(self._p)
 
     def reset(self) -> None:
         """Relax every pulley (e.g. after a long outage when the real state is unknown);
         the next step has no previous velocity."""
-        self.state[:] = 0.0
+        self.chain_state.reset()
         self._primed = False
 
     def step(
@@ -492,7 +874,7 @@ class ChainStepper:
         self._dt[0] = self.period_s if dt < 0.0 else dt  # own buffers: types fixed
         self._travel(self._vel, self._dt, self._v_prev, self._dx)
         self.iterations = self._kernel(
-            self._p, self._in, self._vel, self._dx, self.state, self._out
+            self._p, self._in, self._vel, self._dx, self._held, self._out
         )
         out[:] = self._out[0]
         return self.iterations

@@ -31,7 +31,8 @@ per-cycle model can undo are removed (:class:`gateway.model.effects.OnlineInvers
 effect's compiled per-cycle inverse, e.g. an acceleration from the backward difference of
 the setpoint velocity over the time since the last new sample, a pulley phase from the
 setpoint length), and the chain (``ChainStepper``, sensor -> platform; the nominal friction
-with the fitted chain-side effects, :func:`gateway.model.effects.chain_params`) with the
+with the fitted chain-side effects it compensates online,
+:func:`gateway.model.effects.chain_params`) with the
 setpoint velocities gives the corrected platform tensions ``T_p``. An effect that cannot be
 undone causally is not compensated (each effect's ``online`` says why; docs/physics.md).
 :attr:`Compensator.friction_n` is ``T_p`` minus the sensor value fed to the model (the
@@ -222,7 +223,7 @@ class Compensator:
         fr = cfg.friction
         self.cables = m
         values = fr.effect_values(m)
-        self.params = fx.chain_params(fr, values, m)
+        self.params = fx.chain_params(fr, values, m, online_only=True)
         self.stepper = ChainStepper(
             self.params, lp.period_s, True, lp.fixed_point_tol_n, lp.fixed_point_max_iter
         )
@@ -374,7 +375,8 @@ class Compensator:
         Without a counting heartbeat the arrival times are used."""
         steps = self._heartbeat_steps(heartbeat)
         new = steps != 0 or _differs(self.velocity_m_s, self._velocity_prev)
-        if not new:  # the same sample again: the same acceleration, no time passed
+        if not new:  # the same sample again: the same acceleration, no time passed, a filter
+            # with state not advanced twice
             self._online(
                 self.used_n,
                 self.model_in_n,
@@ -382,6 +384,7 @@ class Compensator:
                 self._velocity_hold,
                 self._sample_dt,
                 self._length_in,
+                False,
             )
             return 0.0
         dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0

@@ -18,6 +18,7 @@ from gateway.model.chain import (
     simulate,
     travel,
 )
+from gateway.model.effects import displacement
 from tests.model_reference import coulomb_gain
 
 WRAPS = np.radians([90.0, 60.0, 30.0])
@@ -203,3 +204,210 @@ def test_shape_errors_are_clear() -> None:
         simulate(params(), np.zeros((5, 3)), np.zeros((5, 3)), 1e-3)
     with pytest.raises(ValueError, match="model must be one of"):
         ChainParams.build("lugre", 1, WRAPS, 0.01)  # type: ignore[arg-type]
+
+
+# ---- the presliding state's variants: Maxwell-slip elements, stretch, backlash ----------
+
+ONE = np.radians([90.0])
+
+
+def one_pulley(model: str = "dahl", **kw: object) -> ChainParams:
+    return ChainParams.build(model, 1, ONE, 0.02, **kw)  # type: ignore[arg-type]
+
+
+def reversal(n: int = 4000, v: float = 0.05, tension: float = 200.0):
+    """Out for n samples at 1 kHz, then in: the friction force F = T_p - T_s of the second
+    half and the travel since the reversal (trapezoid, as the chain steps)."""
+    t = np.arange(2 * n) * 1e-3
+    vel = np.where(np.arange(2 * n) < n, v, -v)[:, None]
+    return t, np.full((2 * n, 1), tension), vel
+
+
+def levels(p: ChainParams, tension: float) -> tuple[float, float]:
+    lam_pos, lam_neg = (float(c[0, 0]) for c in coulomb_coefficients(p))
+    return lam_pos * tension, lam_neg * tension
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    sigma=st.floats(50.0, 1e5),
+    sigma2=st.floats(10.0, 1e4),
+    beta=st.sampled_from([1.0, 0.6, 1.5]),
+)
+def test_maxwell_slip_with_one_element_is_dahl(sigma, sigma2, beta) -> None:
+    t = np.arange(3000) * 1e-3
+    vel = 0.1 * np.sin(2 * np.pi * 0.8 * t)[:, None] * np.ones((1, 2))
+    tp = 250 + 40 * np.sin(t)[:, None] * np.ones((1, 2))
+    dahl = simulate(params("dahl", sigma_n_m=sigma, beta=beta), tp, vel, t)
+    slip = params(
+        "maxwell_slip",
+        sigma_n_m=sigma,
+        beta=beta,
+        slip_w=np.array([1.0, 0.0]),
+        slip_sigma=np.array([sigma, sigma2]),
+    )
+    assert_allclose(simulate(slip, tp, vel, t), dahl, rtol=0, atol=1e-12)
+
+
+def test_maxwell_slip_relaxes_as_two_exponentials_after_a_reversal() -> None:
+    """Element q holds w_q of the level L and relaxes over L / sigma_q: after a reversal
+    ``F(x) = sum_q (-w_q L + (F_q0 + w_q L) exp(-sigma_q x / L))``."""
+    w, s1, s2, n = 0.3, 20000.0, 1500.0, 4000
+    p = one_pulley("maxwell_slip", slip_w=np.array([w, 1 - w]), slip_sigma=np.array([s1, s2]))
+    t, tp, vel = reversal(n)
+    force = tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+    out, back = levels(p, 200.0)
+    assert force[n - 1] == pytest.approx(out, abs=1e-9)  # both elements saturated
+    x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
+    want = sum(
+        -wq * back + (wq * out + wq * back) * np.exp(-sq * x / back)
+        for wq, sq in ((w, s1), (1 - w, s2))
+    )
+    assert_allclose(force[n:], want, rtol=0, atol=1e-9)
+    dahl = one_pulley("dahl", sigma_n_m=s2)
+    assert np.max(np.abs(force - (tp[:, 0] - simulate(dahl, tp, vel, t)[:, 0]))) > 1.0
+
+
+def test_backlash_holds_the_friction_for_its_width_after_a_reversal() -> None:
+    """The drive stands in the dead zone until the setpoint has travelled the width back;
+    then the Dahl state relaxes over the travel beyond it."""
+    width, sigma, n = 0.004, 800.0, 4000
+    p = one_pulley("dahl", sigma_n_m=sigma, backlash_m=width)
+    t, tp, vel = reversal(n)
+    force = tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+    back = levels(p, 200.0)[1]
+    x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
+    held = x <= width
+    assert held.sum() > 70 and np.all(force[n:][held] == force[n - 1])
+    f0 = force[n - 1]
+    want = -back + (f0 + back) * np.exp(-sigma * (x - width) / back)
+    assert_allclose(force[n:][~held], want[~held], rtol=0, atol=1e-9)
+    # the first motion from the centred start needs half the width
+    x0 = displacement(t, vel[:, 0])[:n]
+    assert np.all(force[:n][x0 <= width / 2] == 0.0) and force[n - 1] > 0
+
+
+def test_cable_stretch_puts_the_cable_in_series_with_the_presliding_state() -> None:
+    """The drive is the setpoint travel minus ``(F - F_0) c``: the force after a reversal
+    is the Dahl curve of that drive (checked sample by sample), softer than without
+    stretch."""
+    sigma, k, n = 800.0, 400.0, 4000
+    p = one_pulley("dahl", sigma_n_m=sigma, stretch_c=1.0 / k)
+    t, tp, vel = reversal(n)
+    force = tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+    out, back = levels(p, 200.0)
+    assert force[n - 1] == pytest.approx(out, abs=1e-8)
+    x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
+    drive = x - (force[n - 1] - force[n:]) / k  # the reversal lowers F: the drive lags
+    want = -back + (force[n - 1] + back) * np.exp(-sigma * drive / back)
+    assert_allclose(force[n:], want, rtol=0, atol=1e-8)
+    rigid = tp[:, 0] - simulate(one_pulley("dahl", sigma_n_m=sigma), tp, vel, t)[:, 0]
+    assert np.all(force[n + 1 : n + 200] > rigid[n + 1 : n + 200])  # softer: F falls later
+
+
+def test_the_stretch_takes_no_difference_of_the_readings() -> None:
+    """Compensating noisy readings through a stretching chain: the drive comes from the
+    model's friction, not from differences of the readings, so sensor noise of 0.5 N at
+    1 kHz (0.07 mm per step at k = 1e4 N/m were it differenced, against 0.03 mm of
+    setpoint travel) leaves the estimate as unbiased as on a rigid chain."""
+    n, m = 20000, 2
+    t = np.arange(n) * 1e-3
+    vel = 0.03 * np.sign(np.sin(2 * np.pi * 0.2 * t))[:, None] * np.ones((1, m))
+    tp = np.full((n, m), 250.0)
+    noise = np.random.default_rng(9).normal(0.0, 0.5, (n, m))
+    for c in (0.0, 1e-4):
+        p = params("dahl", cables=m, stretch_c=c)
+        ts = simulate(p, tp, vel, t)
+        err = compensate(p, ts + noise, vel, t) - tp
+        assert abs(float(np.mean(err))) < 0.02, c
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    tp=arrays(np.float64, (200, 3), elements=st.floats(-800, 800)),
+    vel=arrays(np.float64, (200, 3), elements=st.floats(-0.5, 0.5)),
+    model=st.sampled_from(["dahl", "maxwell_slip"]),
+    k=st.one_of(st.just(np.inf), st.floats(100.0, 1e6)),
+    width=st.one_of(st.just(0.0), st.floats(1e-5, 0.02)),
+    w=st.floats(0.0, 1.0),
+)
+def test_compensate_inverts_simulate_with_elements_stretch_and_backlash(
+    tp, vel, model, k, width, w
+) -> None:
+    p = params(
+        model,
+        cables=3,
+        f0_n=1.0,
+        stribeck_k=0.3,
+        viscous_ns_m=5.0,
+        slip_w=np.array([w, 1 - w]),
+        slip_sigma=np.array([5000.0, 500.0]),
+        stretch_c=1.0 / k,
+        backlash_m=width,
+    )
+    t = np.cumsum(np.full(200, 1e-3))
+    ts = simulate(p, tp, vel, t)
+    assert_allclose(compensate(p, ts, vel, t), tp, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("model", ["dahl", "maxwell_slip"])
+def test_the_general_step_inverts_simulate_where_the_tension_crosses_zero(model: str) -> None:
+    """The per-cable step with elements and stretch (``_through``) keeps the plain path's
+    guard: a Newton step across T = 0 (the kink of |T|) is not final. Without it a soft
+    cable (k = 500 N/m) at 0.05 m/s was returned 2-3e-9 N off at the -1.2e-7 N samples;
+    with it the stretch solve's own precision (< 2e-12 N) is left."""
+    tp = np.full((200, 3), 17.0)
+    tp[5, 0] = tp[50, 1] = tp[120, 2] = -1.19e-07
+    vel = np.full((200, 3), 0.05)
+    p = params(
+        model,
+        cables=3,
+        viscous_ns_m=0.0,
+        f0_n=1.0,
+        slip_w=np.array([0.5, 0.5]),
+        slip_sigma=np.array([5000.0, 500.0]),
+        stretch_c=1.0 / 500.0,
+    )
+    t = np.cumsum(np.full(200, 1e-3))
+    assert_allclose(compensate(p, simulate(p, tp, vel, t), vel, t), tp, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("forward", [True, False])
+def test_stepper_matches_batch_with_elements_stretch_and_backlash(forward: bool) -> None:
+    t = jittered()
+    rng = np.random.default_rng(6)
+    vel = 0.2 * np.sin(2 * np.pi * 0.4 * t[:, None] + rng.uniform(0, 6, 3))
+    tp = 250 + 80 * np.sin(0.7 * t[:, None]) + rng.normal(0, 1, (t.size, 3))
+    p = params(
+        "maxwell_slip",
+        cables=3,
+        slip_w=np.array([0.4, 0.6]),
+        slip_sigma=np.array([8000.0, 800.0]),
+        stretch_c=[1e-4, 0.0, 5e-4],
+        backlash_m=[0.002, 0.001, 0.0],
+    )
+    batch = (compensate if forward else simulate)(p, tp, vel, t)
+    stepper = ChainStepper(p, 5e-3, forward=forward, tol_n=1e-10, max_iter=20)
+    out = np.zeros(3)
+    for k in range(t.size):
+        stepper.step(tp[k], vel[k], out, t[k] - t[k - 1] if k else 0.0)
+        assert_allclose(out, batch[k], rtol=0, atol=1e-9, err_msg=f"sample {k}")
+    assert stepper.state.shape == (3, 3)  # per pulley: the sum of its elements
+
+
+@settings(max_examples=20, deadline=None)
+@given(w=st.floats(-0.5, 1.5), s1=st.floats(100.0, 1e5), s2=st.floats(10.0, 1e4))
+def test_maxwell_slip_force_is_linear_in_the_fractions(w, s1, s2) -> None:
+    """The elements are carried per unit fraction: the force is ``w F(1) + (1 - w) F(0)``
+    for any ``w`` (the fit's finite differences may step past [0, 1])."""
+    t = np.arange(2000) * 1e-3
+    vel = 0.08 * np.sin(2 * np.pi * 1.1 * t)[:, None]
+    tp = 200 + 30 * np.sin(2 * t)[:, None]
+
+    def force(frac: float) -> np.ndarray:
+        p = one_pulley(
+            "maxwell_slip", slip_w=np.array([frac, 1 - frac]), slip_sigma=np.array([s1, s2])
+        )
+        return tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+
+    assert_allclose(force(w), w * force(1.0) + (1 - w) * force(0.0), rtol=0, atol=1e-9)

@@ -90,6 +90,11 @@ REPORT_NAMES = {
     "drift": {"k_n_s": "N/s"},
     "eccentricity": {"a_n": "N", "r_m": "m", "phi_rad": "rad"},
     "mass_change": {"q_kg_s": "kg/s"},
+    "maxwell_slip": {"sigma_n_m": "N/m", "w": "1"},
+    "cable_stretch": {"k_n_m": "N/m"},
+    "backlash": {"width_m": "m"},
+    "sensor_creep": {"c": "1", "tau_s": "s"},
+    "spring": {"k_n_m": "N/m", "l0_m": "m"},
 }
 
 
@@ -107,6 +112,11 @@ def test_registry_holds_the_catalogue_with_report_names_and_units() -> None:
         "gain",
         "offset",
         "eccentricity",
+        "maxwell_slip",
+        "cable_stretch",
+        "backlash",
+        "sensor_creep",
+        "spring",
     }
 
 
@@ -254,6 +264,18 @@ ONLINE_CASES = {
     "gain": {"gain": {"g": [0.002, -0.01, 0.0, 0.01, 0.0, 0.0, 0.03, 0.0]}},
     "offset": {"offset": {"c_n": [0.3, -0.2, 0.0, 1.0, 0.0, 0.0, 0.0, -1.5]}},
     "eccentricity": {"eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7}},
+    "maxwell_slip": {
+        "maxwell_slip": {
+            "sigma_n_m": [5000.0, 3000.0, 8000.0, 5000.0, 2000.0, 5000.0, 5000.0, 4000.0],
+            "w": 0.4,
+        }
+    },
+    "cable_stretch": {"cable_stretch": {"k_n_m": [5e3, 1e4, 2e3, 5e4, 1e4, 5e3, 3e3, 1e4]}},
+    "backlash": {"backlash": {"width_m": [0.003, 0.001, 0.0, 0.002, 0.003, 0.004, 0.0, 0.01]}},
+    "sensor_creep": {
+        "sensor_creep": {"c": [0.05, 0.1, 0.0, -0.05, 0.3, 0.05, 0.05, 0.02], "tau_s": 0.3}
+    },
+    "spring": {"spring": {"k_n_m": [20.0, -5.0, 0.0, 40.0, 20.0, 10.0, 1.0, 30.0], "l0_m": 2.01}},
     "all": {
         "coulomb": {"f0_n": 0.5},
         "viscous": {"c_ns_m": 3.0},
@@ -262,6 +284,11 @@ ONLINE_CASES = {
         "gain": {"g": 0.004},
         "offset": {"c_n": -0.7},
         "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7},
+        "maxwell_slip": {"sigma_n_m": 4000.0, "w": 0.5},
+        "backlash": {"width_m": 0.002},
+        "cable_stretch": {"k_n_m": 5000.0},
+        "sensor_creep": {"c": 0.05, "tau_s": 0.2},
+        "spring": {"k_n_m": 20.0, "l0_m": 2.0},
     },
 }
 
@@ -334,7 +361,21 @@ def test_online_inverse_per_cycle_equals_batch() -> None:
 
 
 @pytest.mark.parametrize(
-    "case", ["gain", "offset", "eccentricity", "viscous", "coulomb", "coulomb_directional", "all"]
+    "case",
+    [
+        "gain",
+        "offset",
+        "eccentricity",
+        "viscous",
+        "coulomb",
+        "coulomb_directional",
+        "maxwell_slip",
+        "cable_stretch",
+        "backlash",
+        "sensor_creep",
+        "spring",
+        "all",
+    ],
 )
 def test_compensation_removes_what_the_truth_adds(case: str) -> None:
     """Forward (the plant's batch forms, ``x`` the length) then the gateway's inverse gives
@@ -431,6 +472,8 @@ def test_forward_per_sample_form_equals_the_batch_form() -> None:
             "drift": {"k_n_s": 0.3},
             "lowpass": {"tau_s": [0.004, 0.0, 0.01]},
             "delay": {"d_s": [0.0025, 0.004, 0.0]},
+            "sensor_creep": {"c": [0.05, 0.0, -0.1], "tau_s": 0.05},
+            "spring": {"k_n_m": [20.0, -3.0, 0.0], "l0_m": 2.0},
         },
         m,
     )
@@ -442,3 +485,49 @@ def test_forward_per_sample_form_equals_the_batch_form() -> None:
         t3[1:], v3[1], v3[2] = (t[k], t[k + 1]), v[k], v[k + 1]
         got = step.step(fx.Sample(k, t[k], t3, v3, length[k]), ts[k])
         assert_allclose(got, batch[k], rtol=0, atol=1e-9, err_msg=f"sample {k}")
+
+
+def test_a_repeated_plc_sample_does_not_advance_an_online_filter() -> None:
+    """The gateway reads the same PLC sample again (same heartbeat, same values): a
+    stateful online inverse (the creep's filter) starts again from its state before that
+    sample, so the result equals reading it once."""
+    base = load_config()
+    eff = {"sensor_creep": {"c": 0.2, "tau_s": 0.05}, "offset": {"c_n": 0.3}}
+    cfg = dataclasses.replace(base, friction=dataclasses.replace(base.friction, effects=eff))
+    m, n = cfg.cables, 300
+    t, v, length, reading = _online_signals(n, m)
+    once, twice = Compensator(cfg), Compensator(cfg)
+    inp, out = Inputs.allocate(m), Outputs.allocate(m)
+    inp.pose[:] = cfg.geometry.home_pose
+    a, b = np.empty((n, m)), np.empty((n, m))
+    for k in range(n):
+        inp.tension_raw_n[:], inp.velocity_m_s[:], inp.length_m[:] = reading[k], v[k], length[k]
+        inp.plc_heartbeat, inp.read_time_s = k % 65536, t[k]
+        once.step(inp, t[k], out)
+        a[k] = once.model_in_n
+        twice.step(inp, t[k], out)
+        if k % 3 == 0:  # every third sample read again half a cycle later
+            twice.step(inp, t[k] + 0.4e-3, out)
+        b[k] = twice.model_in_n
+    assert_allclose(b, a, rtol=0, atol=1e-12)
+    assert np.max(np.abs(a - (reading - 0.3))) > 0.05  # the creep's inverse acts
+
+
+def test_a_rigid_cable_among_stretching_ones_is_written_as_a_number(tmp_path) -> None:
+    """``cable_stretch`` found on some cables: the others (k = inf, absent) are written as
+    ``K_MAX``, which a model file can hold and the chain takes as rigid."""
+    from gateway.model.effects import cable_stretch
+    from gateway.model.effects.base import ModelFile
+
+    values = {"k_n_m": np.array([5000.0, np.inf, 8000.0])}
+    fr = load_config().friction
+    cable_stretch.EFFECT.to_model(values, ModelFile(fr, None, None))
+    assert_allclose(values["k_n_m"], [5000.0, cable_stretch.K_MAX, 8000.0])
+    written = dataclasses.replace(
+        fr, effects=FrictionConfig.effects_mapping({"cable_stretch": values})
+    )
+    path = tmp_path / "fitted.yaml"
+    path.write_text(yaml.safe_dump({"friction": written.to_mapping()}))
+    back = load_friction(path)
+    params = fx.chain_params(back, back.effect_values(3), 3)
+    assert_allclose(params.stretch_c, [1 / 5000.0, 0.0, 1 / 8000.0])

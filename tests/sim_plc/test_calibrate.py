@@ -33,6 +33,11 @@ def test_examples_hide_one_effect_each_behind_the_closed_form():
         "coulomb_directional",
         "inertia",
         "mass_change",
+        "maxwell_slip",
+        "cable_stretch",
+        "backlash",
+        "sensor_creep",
+        "spring",
     }
     large = {
         "viscous_60",

@@ -155,6 +155,29 @@ def test_step_agrees_with_batch_across_chunks() -> None:
     assert_allclose(out[:-1], rec.tension_sensor[:-1], atol=1e-9)
 
 
+def test_step_agrees_with_batch_with_the_transmission_effects() -> None:
+    """Maxwell-slip elements, cable stretch, backlash, creep and a spring hidden at once:
+    the soft PLC's per-cycle plant gives the batch recording's readings."""
+    effects = {
+        "maxwell_slip": {"sigma_n_m": 5000.0, "w": 0.4},
+        "cable_stretch": {"k_n_m": [5000.0, 2e4, 5000.0, 5000.0, 1e4, 5000.0, 5000.0, 3000.0]},
+        "backlash": {"width_m": 0.002},
+        "sensor_creep": {"c": 0.05, "tau_s": 0.1},
+        "spring": {"k_n_m": 20.0, "l0_m": 2.8},
+    }
+    cfg = cyclic_config(effects, noise_std_n=0.5)
+    n = 700
+    rec = make_recording(cfg, None, n * 0.001)
+    plant, image = Plant(cfg, chunk=64), ProcessImage(8)
+    out = np.empty((n, 8))
+    for k in range(n):
+        plant.step(image)
+        out[k] = plant.model.reading(plant.counts)
+    assert_allclose(out, rec.tension_sensor, atol=1e-9)
+    clean = make_recording(cyclic_config(None, noise_std_n=0.5), None, n * 0.001)
+    assert np.nanmax(np.abs(rec.tension_sensor - clean.tension_sensor)) > 1.0
+
+
 def test_heartbeat_wraps_at_16_bits() -> None:
     plant, image = Plant(make_config()), ProcessImage(8)
     image.plc_heartbeat = 65535

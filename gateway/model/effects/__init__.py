@@ -2,7 +2,8 @@
 
 Each module (``coulomb``, ``coulomb_directional``, ``presliding``, ``viscous``, ``stribeck``,
 ``inertia``, ``eccentricity``, ``gain``, ``offset``, ``drift``, ``lowpass``, ``delay``,
-``mass_change``) defines one :class:`~.base.Effect` object carrying every behaviour the
+``mass_change``, ``maxwell_slip``, ``cable_stretch``, ``backlash``, ``sensor_creep``,
+``spring``) defines one :class:`~.base.Effect` object carrying every behaviour the
 project needs of that effect (:mod:`.base` lists them); :mod:`.registry` collects them, and
 everything that serves all effects loops over it. (The signal helpers ``delay`` and
 ``lowpass`` are in :mod:`.forms`: the package's names ``delay`` and ``lowpass`` are the

@@ -242,7 +242,11 @@ class ChainDraft:
 
     ``law``: a key of :data:`gateway.model.chain.LAWS`; ``mu_out`` / ``mu_in`` (m, n): the
     bearing coefficient of each pulley paying out (v > 0) and hauling in (v < 0);
-    ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,).
+    ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,);
+    ``slip_w``, ``slip_sigma`` (m, K) the elements of a multi-element presliding law (None:
+    one, the Dahl state); ``stretch_c`` (m,) the compliance (m/N) and ``backlash_m`` (m,)
+    the dead zone of the travel that drives the friction state
+    (:class:`gateway.model.chain.ChainParams` says what each means).
     """
 
     law: str
@@ -255,6 +259,10 @@ class ChainDraft:
     stribeck_k: np.ndarray
     stribeck_v_m_s: np.ndarray
     viscous_ns_m: np.ndarray
+    slip_w: np.ndarray | None = None
+    slip_sigma: np.ndarray | None = None
+    stretch_c: np.ndarray | float = 0.0
+    backlash_m: np.ndarray | float = 0.0
 
     def needs_friction(self) -> None:
         """A friction effect on a frictionless nominal chain switches it to Coulomb."""
@@ -318,6 +326,9 @@ class Effect:
     """A size that a 30-s test recording of the soft PLC shows clearly."""
     online_kernel: ClassVar[Any] = None
     """Per-cycle inverse, ``kernel(p (k, m), y (m,), v, v_prev, dt, length)`` in place."""
+    online_state: ClassVar[int] = 0
+    """Rows of ``p`` after the parameters that the online kernel keeps its state in (a
+    filter's last input and output; zeros at the start); 0: stateless."""
 
     # ---- parameters ----
     @property

@@ -32,7 +32,7 @@ class Presliding(Effect):
     physics = "Dahl pre-sliding with stiffness sigma instead of the Coulomb chain"
     online = Online(True, "the chain runs Dahl")
     needs_motion = True
-    group = "presliding"
+    group = "reversal"
     look = (
         "the residual is concentrated just after each reversal, over a few mm of travel "
         "(plot residual against travel since the last reversal)"

@@ -25,6 +25,8 @@ import numpy as np
 
 from gateway.model.chain import ChainParams, ModelName, compensate
 from gateway.model.effects import (
+    backlash,
+    cable_stretch,
     coulomb,
     coulomb_directional,
     delay,
@@ -34,8 +36,11 @@ from gateway.model.effects import (
     inertia,
     lowpass,
     mass_change,
+    maxwell_slip,
     offset,
     presliding,
+    sensor_creep,
+    spring,
     stribeck,
     viscous,
 )
@@ -67,6 +72,11 @@ MODULES = (
     drift,
     eccentricity,
     mass_change,
+    maxwell_slip,
+    cable_stretch,
+    backlash,
+    sensor_creep,
+    spring,
 )
 """The catalogue's order (reports and the model file list effects in it)."""
 REGISTRY: dict[str, Effect] = {mod.EFFECT.name: mod.EFFECT for mod in MODULES}
@@ -120,8 +130,9 @@ def effect_values(
     Errors are ``ValueError`` whose message starts with the dotted key (``where.effect.p``).
     A parameter whose absent value is its nominal (:attr:`~.base.Param.nominal`) takes
     the nominal ``pulley_radius_m`` when it names it, else stays NaN (the nominal, e.g.
-    ``coulomb.mu``: the pulleys keep theirs); only such a parameter may be NaN. A
-    platform effect has one value (shape (1,)).
+    ``coulomb.mu``: the pulleys keep theirs); only such a parameter may be NaN, and only a
+    parameter whose absent value is infinite (a stiffness) may be infinite. A platform
+    effect has one value (shape (1,)).
     """
     nominals = {"pulley_radius_m": float(pulley_radius_m)}
     out: Effects = {}
@@ -147,7 +158,8 @@ def effect_values(
             given = params.get(prm.name)  # absent or null: the default
             v = _values(default if given is None else given, size, f"{key}.{prm.name}")
             nan_means_nominal = math.isnan(prm.default) and not substituted
-            if not nan_means_nominal and not np.all(np.isfinite(v)):
+            finite_or_absent = np.isfinite(v) | (v == prm.default)  # an absent k = inf
+            if not nan_means_nominal and not np.all(finite_or_absent):
                 raise ValueError(f"{key}.{prm.name}: values must be finite")
             reason = prm.check(v)
             if reason:
@@ -175,8 +187,12 @@ def to_mapping(eff: Effects) -> dict[str, dict[str, float | list[float]]]:
 
 
 # ---- the chain ----------------------------------------------------------------------------
-def chain_params(nominal: NominalChain, eff: Effects, cables: int) -> ChainParams:
-    """The nominal chain with the chain-side effects of ``eff`` applied, ``cables`` wide.
+def chain_params(
+    nominal: NominalChain, eff: Effects, cables: int, online_only: bool = False
+) -> ChainParams:
+    """The nominal chain with the chain-side effects of ``eff`` applied, ``cables`` wide
+    (only the ones the gateway compensates online with ``online_only``: the gateway's
+    chain).
 
     ``nominal.mu``: per pulley (n,) or (m, n); each chain-side effect edits the chain in
     the catalogue's order (:meth:`~.base.Effect.apply_chain`).
@@ -198,6 +214,8 @@ def chain_params(nominal: NominalChain, eff: Effects, cables: int) -> ChainParam
         ).copy(),
     )
     for e in ordered(eff, "chain"):
+        if online_only and not e.online.compensable:
+            continue
         e.apply_chain(draft, eff[e.name])
     law: ModelName = draft.law  # type: ignore[assignment]
     return ChainParams.build(
@@ -212,6 +230,10 @@ def chain_params(nominal: NominalChain, eff: Effects, cables: int) -> ChainParam
         stribeck_k=draft.stribeck_k,
         stribeck_v_m_s=draft.stribeck_v_m_s,
         viscous_ns_m=draft.viscous_ns_m,
+        slip_w=draft.slip_w,
+        slip_sigma=draft.slip_sigma,
+        stretch_c=draft.stretch_c,
+        backlash_m=draft.backlash_m,
     )
 
 
@@ -260,8 +282,10 @@ class ForwardStepper:
 
 
 def online_params(e: Effect, values: Values, cables: int) -> np.ndarray:
-    """An online kernel's parameters: (k, m), one row per parameter of ``e``."""
+    """An online kernel's parameters: (k, m), one row per parameter of ``e``, then its
+    :attr:`~.base.Effect.online_state` rows (zeros)."""
     rows = [np.broadcast_to(np.asarray(values[n], dtype=float), (cables,)) for n in e.param_names]
+    rows += [np.zeros(cables)] * e.online_state
     return np.ascontiguousarray(np.stack(rows))
 
 
@@ -273,7 +297,9 @@ class OnlineInverse:
     ``y_in``, ``out`` (m,): the validated reading and the chain's sensor-side input;
     ``v``, ``v_prev`` (m,): this and the previous PLC sample's setpoint velocity; ``length``
     (m,): the setpoint cable length; ``dt``: the time between the two samples (s; <= 0 on
-    the first).
+    the first); ``new``: False when the cycle reads the same PLC sample again (an effect
+    with state, :attr:`~.base.Effect.online_state`, then starts again from its state before
+    that sample, so a repeated sample does not advance it twice).
     """
 
     def __init__(
@@ -286,12 +312,15 @@ class OnlineInverse:
         length: np.ndarray,
     ) -> None:
         self.steps = []
+        self.stateful: list[tuple[np.ndarray, np.ndarray]] = []  # (rows, their saved copy)
         for e in reversed(ordered(eff, "path", "sensor")):
             if not e.online.compensable or e.online_kernel is None:
                 continue
             p = online_params(e, eff[e.name], cables)
             entry = entry_point(e.online_kernel, p, out, v, v_prev, 0.0, length)
             self.steps.append((entry, p))
+            if e.online_state:
+                self.stateful.append((p, p.copy()))
         self.names = tuple(
             e.name
             for e in reversed(ordered(eff, "path", "sensor"))
@@ -306,7 +335,13 @@ class OnlineInverse:
         v_prev: np.ndarray,
         dt: float,
         length: np.ndarray,
+        new: bool = True,
     ) -> None:
+        for p, saved in self.stateful:
+            if new:
+                saved[:] = p
+            else:
+                p[:] = saved
         out[:] = y_in
         for entry, p in self.steps:
             entry(p, out, v, v_prev, dt, length)
