@@ -26,6 +26,7 @@ SKIP = {("spring", "l0_m")}
 travel at that row): a length is off by that travel, the stiffness is not."""
 
 
+@pytest.mark.long  # ~2 s each, 5 effects
 @pytest.mark.parametrize("name", list(CASES))
 def test_the_foreign_generator_hides_it_and_the_diagnosis_names_it(name: str) -> None:
     truth = CASES[name]

@@ -27,9 +27,10 @@ FAST = {
 }
 
 
-# `make test` runs each effect alone, the clean recordings and the 1-cable rig; the
-# combinations, the per-cable variants and the 8-cable plant go to `make test-long` (CI
-# runs both), which keeps `make test` near 4 minutes on a loaded 2-core machine
+# `make test` runs one effect of each stage alone (chain, path, sensor), the clean
+# recordings and the 1-cable rig; the other effects, the combinations, the per-cable
+# variants and the 8-cable plant go to `make test-long` (CI runs both), which keeps
+# `make test` near 4 minutes on a 2-core machine
 LONG = {
     "plant_mass_change",
     "plant_viscous",
@@ -45,6 +46,13 @@ LONG = {
     "offset_per_cable",
     "eccentricity_cable2",
     "rig_gain",
+    "stribeck",
+    "lowpass",
+    "gain",
+    "inertia",
+    "drift",
+    "eccentricity",
+    "uneven_delay",
 }
 
 

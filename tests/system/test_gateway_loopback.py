@@ -83,6 +83,7 @@ def rms(a: np.ndarray) -> float:
     return float(np.sqrt(np.mean(a**2)))
 
 
+@pytest.mark.long  # ~6 s; make test's demo tests check the same against the soft PLC
 def test_corrected_tracks_the_true_tension_far_better_than_raw():
     cfg = load_config()
     plc = SoftPlc(str(cfg.source), "modbus_tcp")
