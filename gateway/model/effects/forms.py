@@ -69,6 +69,27 @@ def lowpass(t: np.ndarray, y: np.ndarray, tau_s: float | np.ndarray) -> np.ndarr
     return out.reshape(y.shape)
 
 
+class LowpassStepper:
+    """The per-sample form of :func:`lowpass`: ``step(k, t, y)`` advances the filter by one
+    sample (``k = 0`` starts it at rest on ``y``) and returns its state, the filtered value
+    (owned by the stepper: copy it to keep it)."""
+
+    def __init__(self, tau: np.ndarray) -> None:
+        self.tau = tau
+        self.y_in = np.zeros(tau.size)
+        self.out = np.zeros(tau.size)
+        self.t_prev = 0.0
+
+    def step(self, k: int, t: float, y: np.ndarray) -> np.ndarray:
+        if k == 0:
+            self.out[:] = y
+        else:
+            lowpass_step_into(self.y_in, y, self.out, t - self.t_prev, self.tau, self.out)
+        self.y_in[:] = y
+        self.t_prev = t
+        return self.out
+
+
 def causal_acceleration(t: np.ndarray, velocity: np.ndarray) -> np.ndarray:
     """``a_k = (v_k - v_{k-1}) / (t_k - t_{k-1})``, ``a_0 = 0`` (and 0 where dt <= 0): the
     acceleration a cycle can know (no look-ahead)."""

@@ -22,7 +22,7 @@ from gateway.model.effects.base import (
     Values,
     speeds,
 )
-from gateway.model.effects.forms import lowpass, lowpass_step_into
+from gateway.model.effects.forms import LowpassStepper, lowpass
 
 TIME_GRID = (1, 2, 3, 5, 8, 13, 20, 35, 60, 100, 200)
 """Starting points of a time constant or a delay, in sample periods."""
@@ -43,22 +43,13 @@ def time_spec(d: FitData) -> Spec:
 
 class _Stepper:
     def __init__(self, tau: np.ndarray) -> None:
-        self.tau = tau
         self.active = bool(np.any(tau > 0))
-        self.y_in = np.zeros(tau.size)
-        self.y_out = np.zeros(tau.size)
-        self.t_prev = 0.0
+        self.filter = LowpassStepper(tau)
 
     def step(self, s: Sample, y: np.ndarray) -> np.ndarray:
         if not self.active:
             return y
-        if s.k == 0:
-            self.y_out[:] = y
-        else:
-            lowpass_step_into(self.y_in, y, self.y_out, s.t - self.t_prev, self.tau, self.y_out)
-        self.y_in[:] = y
-        self.t_prev = s.t
-        return self.y_out.copy()
+        return self.filter.step(s.k, s.t, y).copy()
 
 
 class Lowpass(Effect):

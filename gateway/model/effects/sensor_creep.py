@@ -38,7 +38,7 @@ from gateway.model.effects.base import (
     Values,
     speeds,
 )
-from gateway.model.effects.forms import lowpass, lowpass_step_into
+from gateway.model.effects.forms import LowpassStepper, lowpass
 
 TAUS_S = (0.1, 0.3, 1.0, 3.0)
 """Starting points of the fit's time constant (s)."""
@@ -81,22 +81,14 @@ def _inverse_batch(t, y, p, out):
 
 class _Stepper:
     def __init__(self, c: np.ndarray, tau: np.ndarray) -> None:
-        self.c, self.tau = c, tau
+        self.c = c
         self.active = bool(np.any((c != 0) & (tau > 0)))
-        self.y_in = np.zeros(c.size)
-        self.s = np.zeros(c.size)
-        self.t_prev = 0.0
+        self.filter = LowpassStepper(tau)
 
     def step(self, s: Sample, y: np.ndarray) -> np.ndarray:
         if not self.active:
             return y
-        if s.k == 0:
-            self.s[:] = y
-        else:
-            lowpass_step_into(self.y_in, y, self.s, s.t - self.t_prev, self.tau, self.s)
-        self.y_in[:] = y
-        self.t_prev = s.t
-        return (1.0 - self.c) * y + self.c * self.s
+        return (1.0 - self.c) * y + self.c * self.filter.step(s.k, s.t, y)
 
 
 class SensorCreep(Effect):
