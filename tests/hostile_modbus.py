@@ -27,13 +27,13 @@ import dataclasses
 import socket
 import ssl
 import struct
-import subprocess
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from gateway.core.config import Config, load_config
+from tests.tls_helpers import self_signed
 
 LOCALHOST = "127.0.0.1"
 MODES = (
@@ -208,31 +208,8 @@ def make_tls_pair(directory: str) -> dict[str, str]:
     client. Paths by name: server_cert, server_key, client_cert, client_key."""
     paths = {}
     for who in ("server", "client"):
-        cert, key = f"{directory}/{who}.pem", f"{directory}/{who}.key"
-        subprocess.run(
-            [
-                "openssl",
-                "req",
-                "-x509",
-                "-newkey",
-                "rsa:2048",
-                "-nodes",
-                "-days",
-                "1",
-                "-keyout",
-                key,
-                "-out",
-                cert,
-                "-subj",
-                "/CN=127.0.0.1",
-                "-addext",
-                "subjectAltName=IP:127.0.0.1",
-            ],
-            check=True,
-            capture_output=True,
-            timeout=60,
-        )
-        paths[f"{who}_cert"], paths[f"{who}_key"] = cert, key
+        cert, key = self_signed(directory, who)
+        paths[f"{who}_cert"], paths[f"{who}_key"] = str(cert), str(key)
     return paths
 
 

@@ -26,6 +26,7 @@ from gateway.core.config import MetricsConfig
 from gateway.service.exporter import MetricsServer, open_fds
 from gateway.service.metrics import make_registry
 from tests.service.test_metrics import ran_service
+from tests.tls_helpers import self_signed
 
 pytestmark = pytest.mark.loopback
 
@@ -217,34 +218,7 @@ def tls_files(tmp_path_factory) -> tuple[Path, Path]:
     openssl = shutil.which("openssl")
     if openssl is None:
         pytest.skip("openssl not installed")
-    tmp = tmp_path_factory.mktemp("tls")
-    cert, key = tmp / "cert.pem", tmp / "key.pem"
-    subprocess.run(
-        [
-            openssl,
-            "req",
-            "-x509",
-            "-newkey",
-            "ec",
-            "-pkeyopt",
-            "ec_paramgen_curve:P-256",
-            "-nodes",
-            "-days",
-            "1",
-            "-subj",
-            "/CN=127.0.0.1",
-            "-addext",
-            "subjectAltName=IP:127.0.0.1",
-            "-keyout",
-            str(key),
-            "-out",
-            str(cert),
-        ],
-        check=True,
-        capture_output=True,
-        timeout=60,
-    )
-    return cert, key
+    return self_signed(tmp_path_factory.mktemp("tls"), "server")
 
 
 def test_a_slow_tls_client_is_dropped_during_the_handshake(registry, tls_files):

@@ -14,6 +14,7 @@ from gateway.errors import ConfigError, TemporaryError
 from gateway.runtime.loop import CyclicService
 from gateway.service.metrics import MetricsServer, make_registry
 from tests.loop_helpers import FakeClock, config, live_image
+from tests.tls_helpers import self_signed
 
 # the README's metrics table: name -> (type, labels)
 DESIGN_TABLE = {
@@ -197,35 +198,11 @@ def test_half_configured_basic_auth_is_a_config_error():
 def test_tls_exporter(tmp_path):
     import shutil
     import ssl
-    import subprocess
 
     openssl = shutil.which("openssl")
     if openssl is None:
         pytest.skip("openssl not installed")
-    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(
-        [
-            openssl,
-            "req",
-            "-x509",
-            "-newkey",
-            "rsa:2048",
-            "-nodes",
-            "-days",
-            "1",
-            "-subj",
-            "/CN=127.0.0.1",
-            "-addext",
-            "subjectAltName=IP:127.0.0.1",
-            "-keyout",
-            str(key),
-            "-out",
-            str(cert),
-        ],
-        check=True,
-        capture_output=True,
-        timeout=60,
-    )
+    cert, key = self_signed(tmp_path, "server")
     reg = make_registry(ran_service(3))
     cfg = MetricsConfig(host="127.0.0.1", port=0, certfile=str(cert), keyfile=str(key))
     server = MetricsServer(cfg, reg)
