@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench import stop_process
+from tests.dask_helpers import dask_cluster
 
 ROOT = Path(__file__).resolve().parent.parent
 MODEL = ROOT / "config" / "default.yaml"
@@ -98,60 +98,6 @@ def _fleet(paths: list[Path], out: Path, *extra: str) -> tuple[float, dict[str, 
     return wall, reports, res.stdout.strip().splitlines()[0]
 
 
-def _cluster(tmp: Path) -> tuple[list[subprocess.Popen], str]:
-    dask = str(Path(sys.executable).parent / "dask")
-    sched = tmp / "scheduler.json"
-    log = open(tmp / "dask.log", "wb")  # noqa: SIM115 - the processes write to it
-    procs = [
-        subprocess.Popen(
-            [
-                dask,
-                "scheduler",
-                "--host",
-                "127.0.0.1",
-                "--port",
-                "0",
-                "--no-dashboard",
-                "--scheduler-file",
-                str(sched),
-            ],
-            stdout=log,
-            stderr=log,
-            env=_env(),
-        )
-    ]
-    deadline = time.monotonic() + 60
-    while not sched.exists() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    address = json.loads(sched.read_text())["address"]
-    for _ in range(2):
-        procs.append(
-            subprocess.Popen(
-                [
-                    dask,
-                    "worker",
-                    address,
-                    "--host",
-                    "127.0.0.1",
-                    "--nthreads",
-                    "1",
-                    "--memory-limit",
-                    "650MiB",
-                    "--no-dashboard",
-                ],
-                stdout=log,
-                stderr=log,
-                env=_env(),
-            )
-        )
-    wait = (
-        f"from distributed import Client\nwith Client('{address}', timeout='30s') as c:\n"
-        "    c.wait_for_workers(2, timeout=90)\n"
-    )
-    subprocess.run([sys.executable, "-c", wait], check=True, timeout=120, env=_env())
-    return procs, address
-
-
 def run() -> None:
     seconds = float(os.environ.get("BENCH_FLEET_SECONDS", "120"))
     count = int(os.environ.get("BENCH_FLEET_COUNT", "12"))
@@ -173,12 +119,8 @@ def run() -> None:
             f"  fleet, LocalCluster(2 workers):           {local:.1f} s "
             f"({seq / local:.2f}x); load {os.getloadavg()[0]:.2f}"
         )
-        procs, address = _cluster(tmp)
-        try:
+        with dask_cluster(tmp, workers=2) as address:
             ext, ext_reports, _ = _fleet(paths, tmp / "ext", "--scheduler", address)
-        finally:
-            for p in procs:
-                stop_process(p)
         print(
             f"  fleet, dask scheduler + 2 dask workers:    {ext:.1f} s "
             f"({seq / ext:.2f}x); load {os.getloadavg()[0]:.2f}"

@@ -7,11 +7,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
-import textwrap
-import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -22,6 +19,7 @@ from gateway.errors import GatewayError
 from gateway.fleet.cli import expand
 from gateway.fleet.table import table_rows
 from gateway.fleet.task import TaskResult
+from tests.dask_helpers import dask_cluster
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = ROOT / "config" / "default.yaml"
@@ -133,86 +131,12 @@ def test_fleet_on_a_local_cluster_matches_diagnose_alone(
     check_fleet_output(out, recordings, singles)
 
 
-def _start(cmd: list[str], log: Path) -> subprocess.Popen[bytes]:
-    with open(log, "wb") as fh:
-        return subprocess.Popen(
-            cmd,
-            cwd=ROOT,
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            env={**os.environ, "PYTHONPATH": str(ROOT)},
-        )
-
-
-def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.terminate()
-    for p in procs:
-        try:
-            p.wait(20)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(10)
-
-
 @pytest.mark.long
 def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
     recordings: list[Path], tmp_path: Path
 ) -> None:
-    dask = str(Path(sys.executable).parent / "dask")
-    sched_file = tmp_path / "scheduler.json"
-    procs = [
-        _start(
-            [
-                dask,
-                "scheduler",
-                "--host",
-                "127.0.0.1",
-                "--port",
-                "0",
-                "--no-dashboard",
-                "--scheduler-file",
-                str(sched_file),
-            ],
-            tmp_path / "scheduler.log",
-        )
-    ]
-    try:
-        deadline = time.monotonic() + 60
-        while not sched_file.exists() and time.monotonic() < deadline:
-            assert procs[0].poll() is None, (tmp_path / "scheduler.log").read_text()
-            time.sleep(0.1)
-        address = json.loads(sched_file.read_text())["address"]
+    with dask_cluster(tmp_path, workers=2) as address:
         assert address.startswith("tcp://127.0.0.1:")
-        for i in range(2):
-            procs.append(
-                _start(
-                    [
-                        dask,
-                        "worker",
-                        address,
-                        "--host",
-                        "127.0.0.1",
-                        "--nthreads",
-                        "1",
-                        "--memory-limit",
-                        "650MiB",
-                        "--no-dashboard",
-                    ],
-                    tmp_path / f"worker{i}.log",
-                )
-            )
-        wait = textwrap.dedent(f"""
-            from distributed import Client
-            with Client("{address}", timeout="30s") as c:
-                c.wait_for_workers(2, timeout=90)
-                print(len(c.scheduler_info()["workers"]))
-        """)
-        ready = subprocess.run(
-            [sys.executable, "-c", wait], capture_output=True, text=True, timeout=120
-        )
-        assert ready.stdout.strip() == "2", ready.stderr
         out = tmp_path / "fleet"
         run = subprocess.run(
             [
@@ -235,8 +159,6 @@ def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
         )
         assert run.returncode == 0, run.stderr
         assert f"scheduler {address} with 2 workers" in run.stdout
-    finally:
-        _stop(procs)
     check_fleet_output(out, recordings, single_reports(recordings, tmp_path))
 
 
