@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from gateway.cli import COMMANDS, main
+from tests.config_helpers import edited_config
 
 
 def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
@@ -33,19 +34,13 @@ def test_every_command_module_exists() -> None:
 
 # --- cdpr-gateway check ---------------------------------------------------------------
 
-import yaml  # noqa: E402
 
 from gateway.core.config import DEFAULT_CONFIG_PATH  # noqa: E402
 from tests.modbus_helpers import plc_server  # noqa: E402
 
 
 def write_config(tmp_path, edit=None) -> str:
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
-    if edit is not None:
-        edit(data)
-    path = tmp_path / "gw.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
+    return str(edited_config(tmp_path, edit))
 
 
 def test_check_accepts_the_default_config(capsys) -> None:
@@ -217,11 +212,11 @@ def test_the_stopped_line_has_a_timestamp_like_every_log_line(tmp_path) -> None:
     import sys
     from pathlib import Path
 
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
-    data["bus"]["driver"] = "virtual"
-    data["metrics"]["enabled"] = False
-    path = tmp_path / "virtual.yaml"
-    path.write_text(yaml.safe_dump(data))
+    def virtual(data):
+        data["bus"]["driver"] = "virtual"
+        data["metrics"]["enabled"] = False
+
+    path = edited_config(tmp_path, virtual, "virtual.yaml")
     root = Path(__file__).resolve().parents[1]
     done = subprocess.run(
         [sys.executable, "-m", "gateway.cli", "run", "--config", str(path), "--cycles", "20"],

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from drivers.base import ChannelStatus, Lifecycle
-from gateway.core.config import DEFAULT_CONFIG_PATH
 from gateway.runtime.loop import STOP_SIGNALS
+from tests.config_helpers import edited_config
 from tests.modbus_helpers import plc_server
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -36,12 +35,13 @@ def test_every_catchable_terminating_signal_is_handled() -> None:
 @pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1])
 def test_signal_writes_the_stopped_frame(tmp_path: Path, sig: signal.Signals) -> None:
     with plc_server() as (server, img, _cfg):
-        data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
-        data["bus"]["modbus_tcp"]["port"] = server.port
-        data["loop"]["heartbeat_timeout_s"] = 60.0  # the test moves the PLC heartbeat slowly
-        data["metrics"]["enabled"] = False
-        path = tmp_path / "gw.yaml"
-        path.write_text(yaml.safe_dump(data))
+
+        def edit(data):
+            data["bus"]["modbus_tcp"]["port"] = server.port
+            data["loop"]["heartbeat_timeout_s"] = 60.0  # the test moves the heartbeat slowly
+            data["metrics"]["enabled"] = False
+
+        path = edited_config(tmp_path, edit)
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         env.pop("NOTIFY_SOCKET", None)
         proc = subprocess.Popen(

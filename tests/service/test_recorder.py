@@ -22,6 +22,7 @@ from numpy.testing import assert_allclose
 from drivers.base import Inputs, Outputs
 from gateway.recordings.reader import read_recording
 from gateway.service.recorder import RecordConfig, Recorder
+from tests.config_helpers import edited_config
 
 ROOT = Path(__file__).resolve().parents[2]
 M = 3
@@ -349,13 +350,11 @@ def test_a_killed_gateway_leaves_no_orphan_writer(tmp_path: Path) -> None:
 
 
 def _virtual_config(tmp_path: Path) -> Path:
-    from gateway.core.config import DEFAULT_CONFIG_PATH
+    def virtual(data):
+        data["bus"]["driver"] = "virtual"
+        data["metrics"]["enabled"] = False
 
-    text = DEFAULT_CONFIG_PATH.read_text().replace("driver: modbus_tcp", "driver: virtual", 1)
-    text = text.replace("\nmetrics:\n", "\nmetrics:\n  enabled: false\n", 1)
-    path = tmp_path / "virtual.yaml"
-    path.write_text(text)
-    return path
+    return edited_config(tmp_path, virtual, "virtual.yaml")
 
 
 def _rows_of(path: Path) -> tuple[list[str], np.ndarray]:

@@ -15,26 +15,24 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import yaml
 from numpy.testing import assert_allclose
 
 from drivers.base import Inputs
 from gateway.cli import main
-from gateway.core.config import DEFAULT_CONFIG_PATH
 from sim_plc.truth import SCORE_AFTER_S, CycleRing, TruthMatcher
+from tests.config_helpers import edited_config
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def write_config(tmp_path: Path, **sections) -> Path:
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
-    data["bus"]["driver"] = "virtual"
-    data["metrics"]["port"] = 0
-    for key, value in sections.items():
-        data[key] = {**data.get(key, {}), **value}
-    path = tmp_path / "gateway.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+    def edit(data):
+        data["bus"]["driver"] = "virtual"
+        data["metrics"]["port"] = 0
+        for key, value in sections.items():
+            data[key] = {**data.get(key, {}), **value}
+
+    return edited_config(tmp_path, edit, "gateway.yaml")
 
 
 def test_run_bounded_cycles_exits_zero(tmp_path, capsys):

@@ -30,9 +30,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
-from gateway.core.config import DEFAULT_CONFIG_PATH
+from tests.config_helpers import edited_config
 from tests.loop_helpers import free_port
 
 pytestmark = [pytest.mark.long, pytest.mark.loopback]
@@ -225,12 +224,13 @@ def _check(plc: HostilePlc, stops: list[tuple[float, float]]) -> int:
 def test_the_gateway_process_against_a_hostile_plc(tmp_path) -> None:
     plc = HostilePlc(seed=20)
     plc.thread.start()
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
-    data["bus"]["modbus_tcp"].update(port=plc.port, timeout_s=0.05)
-    data["loop"].update(heartbeat_timeout_s=HEARTBEAT_TIMEOUT_S, max_input_age_s=MAX_AGE_S)
-    data["metrics"]["enabled"] = False
-    path = tmp_path / "gw.yaml"
-    path.write_text(yaml.safe_dump(data))
+
+    def edit(data):
+        data["bus"]["modbus_tcp"].update(port=plc.port, timeout_s=0.05)
+        data["loop"].update(heartbeat_timeout_s=HEARTBEAT_TIMEOUT_S, max_input_age_s=MAX_AGE_S)
+        data["metrics"]["enabled"] = False
+
+    path = edited_config(tmp_path, edit)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     env.pop("NOTIFY_SOCKET", None)
     proc = subprocess.Popen(
