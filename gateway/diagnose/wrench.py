@@ -171,30 +171,34 @@ def _window(t: np.ndarray, seconds: float = INSTRUMENT_S) -> int:
 
 
 def neutral(effect: str, nom: Nominal, m: int) -> np.ndarray:
-    """Parameters (k, m) of ``effect`` at the nominal model (k parameters; (k, 1) for a
-    platform effect)."""
+    """Internal parameters (k, m) of ``effect`` at the nominal model (k parameters; (k, 1)
+    for a platform effect): :meth:`Effect.internal` of its neutral report values, the
+    coordinates the wrench fit varies (``1 / k`` for a stiffness, ``(k, k l0)`` for a
+    spring, a logarithm for a time constant: the effect's own fit coordinates)."""
     e = fx.REGISTRY[effect]
-    values = e.neutral(nom)
-    return np.array([[values[p]] * (m if e.per_cable else 1) for p in e.param_names])
+    values = e.internal(e.neutral(nom))
+    return np.array([[v] * (m if e.per_cable else 1) for v in values])
 
 
-def step(effect: str, j: int) -> float:
-    """The finite-difference step of ``effect``'s parameter ``j`` (its typical size)."""
-    return fx.REGISTRY[effect].params[j].step
+def report_columns(effect: str, theta: np.ndarray) -> dict[str, np.ndarray]:
+    """Internal parameters (k, m) of ``effect`` -> report values by name, each (m,)."""
+    e = fx.REGISTRY[effect]
+    th = np.asarray(theta, dtype=float)
+    cols = [e.report(th[:, i]) for i in range(th.shape[1])]
+    return {p: np.array([c[p] for c in cols]) for p in e.param_names}
 
 
 def values_of(theta: dict[str, np.ndarray], *stages: str) -> fx.Effects:
-    """``theta`` (effect -> (k, m)) as report values by parameter name, of ``stages``."""
-    return {
-        e.name: dict(zip(e.param_names, np.asarray(theta[e.name], dtype=float), strict=True))
-        for e in fx.ordered(theta, *stages)
-    }
+    """``theta`` (effect -> internal (k, m)) as report values by parameter name, of
+    ``stages``."""
+    return {e.name: report_columns(e.name, theta[e.name]) for e in fx.ordered(theta, *stages)}
 
 
 class WrenchModel:
     """``T_p(theta)`` and the wrench residual for a nominal chain on :class:`WrenchData`.
 
-    ``theta``: effect id -> (k, m) array (:func:`neutral` shape); missing effects neutral.
+    ``theta``: effect id -> (k, m) array of internal parameters (:func:`neutral` shape);
+    missing effects neutral.
     """
 
     def __init__(self, data: WrenchData, nom: Nominal) -> None:
@@ -203,6 +207,23 @@ class WrenchModel:
         self.series = fx.SeriesData(
             data.t, data.v, lambda: fx.displacement(data.t, data.v), data.a, self.t0
         )
+        self._specs: dict[str, fx.Spec] = {}
+
+    def spec(self, effect: str) -> fx.Spec:
+        """``effect``'s fit specification in its internal coordinates (finite-difference
+        steps, starting points) on this recording, from its first cable's series (what a
+        spec reads of a cable: the sampling, the span of the travel)."""
+        if effect not in self._specs:
+            d, n = self.data, self.data.t.size
+            cable = CableData(d.t, d.v[:, 0], d.ts[:, 0], d.ts[:, 0], self.t0)
+            self._specs[effect] = fx.REGISTRY[effect].spec(
+                cable, self.nom, np.zeros(n), np.ones(n, bool)
+            )
+        return self._specs[effect]
+
+    def step(self, effect: str, j: int) -> float:
+        """The finite-difference step of ``effect``'s internal parameter ``j``."""
+        return float(self.spec(effect).step[j])
 
     def chain_params(self, theta: dict[str, np.ndarray]) -> chain.ChainParams:
         return fx.chain_params(self.nom, values_of(theta, "chain"), self.data.cables)
@@ -251,19 +272,19 @@ class WrenchModel:
             base = fx.mass_delta(values_of(base_theta, "statics"), d.t[rows], self.t0)
             for j in range(len(SUBPARAMS[effect])):
                 pert = base_theta[effect].copy()
-                pert[j] += step(effect, j)
+                pert[j] += self.step(effect, j)
                 moved = fx.mass_delta(
                     values_of({**base_theta, effect: pert}, "statics"), d.t[rows], self.t0
                 )
-                dm = (moved - base) / step(effect, j)  # type: ignore[operator]
+                dm = (moved - base) / self.step(effect, j)  # type: ignore[operator]
                 out.append((dm[:, None] * d.dw_dm[rows])[:, :, None])
             return out
         tp0 = self.platform_tension(base_theta, d.ts_smooth)
         for j in range(len(SUBPARAMS[effect])):
             pert = base_theta[effect].copy()
-            pert[j] += step(effect, j)
+            pert[j] += self.step(effect, j)
             tp1 = self.platform_tension({**base_theta, effect: pert}, d.ts_smooth)
-            dtp = (tp1[rows] - tp0[rows]) / step(effect, j)
+            dtp = (tp1[rows] - tp0[rows]) / self.step(effect, j)
             out.append(d.a_mat[rows] * dtp[:, None, :])
         return out
 

@@ -5,16 +5,20 @@ varying structure matrix. The residual is whitened by the noise the sensors put 
 wrench (:class:`wrench.Prepared`): generalised least squares.
 
 1. **Sensitivities**: the Jacobian of the weighted residual with respect to every
-   candidate's parameters at the nominal model; per candidate and cable its variance
-   inflation decides identifiability (:func:`wrench.identifiability`): unidentifiable
-   cables are not fitted and the report says so (``identifiability``).
+   candidate's internal parameters (its own fit coordinates, :meth:`Effect.internal`) at
+   its anchor: the nominal model, or the start its module declares (``Spec.starts``) that
+   fits best, refined by Gauss-Newton steps (:class:`WrenchUnit`); per candidate and cable
+   its variance inflation decides identifiability (:func:`wrench.identifiability`):
+   unidentifiable cables are not fitted and the report says so (``identifiability``).
 2. **Selection**: :class:`WrenchUnit` (the linearised residual, linear least squares) given
    to :class:`gateway.diagnose.select.Selector`, the same selector and the same held-out
    tests as the per-cable reference; then the significance stage
    (:mod:`gateway.diagnose.significance`: BH over every candidate, parameters against
    their spread across time blocks).
 3. **Refit** of the kept effects by Gauss-Newton on the nonlinear residual (the Jacobian
-   recomputed at the estimate), on the training blocks.
+   recomputed at the estimate), on the training blocks. Where an anchor was away from the
+   nominal model, steps 1-3 once more with the kept effects linearised at their refit
+   (:data:`PASSES`).
 4. **Report**: every ``*_rmse_n`` is the RMS of the force part of the unweighted wrench
    residual (N, over the three components and the samples); moments in ``wrench``. The
    balance is one unit: a finding's ``statistic``, ``p`` and ``q`` are one joint test,
@@ -46,6 +50,7 @@ from gateway.diagnose.wrench import (
     identifiable_cables,
     neutral,
     prepare,
+    report_columns,
     wrench_data,
 )
 from gateway.model import effects as fx
@@ -53,6 +58,14 @@ from gateway.recordings.reader import Recording
 
 ROUNDS = 3
 GN_ITERATIONS = 3
+ANCHOR_STEPS = 5
+"""Linearisations after the best anchor, each at the previous one's fit alone (kept where
+the training error there is below the previous anchor's)."""
+PASSES = 2
+"""Selections: where the first kept an effect linearised away from the nominal model, a
+second with the kept effects linearised at their refit and every other candidate's anchor
+chosen on top of it (a candidate anchored on the nominal residual alone may have taken
+what a kept effect explains, a linearisation far from where it is then screened)."""
 NOT_CANDIDATES = tuple(n for n in fx.EFFECT_NAMES if n not in WRENCH_EFFECTS)
 
 Col = tuple[int, int]  # (sub-parameter index, cable)
@@ -76,14 +89,30 @@ class WrenchUnit:
     """The wrench balance as one selection unit (:class:`gateway.diagnose.select.Unit`):
     every candidate's identifiable per-cable parameters enter the linearised, whitened
     residual (elements: sample x wrench component), fitted by linear least squares on the
-    training samples (normal equations formed once)."""
+    training samples (normal equations formed once).
 
-    def __init__(self, prep: Prepared, candidates: tuple[str, ...]) -> None:
+    Each candidate is linearised at an **anchor** in its internal coordinates
+    (:meth:`Effect.internal`): the nominal model, or one of the starting points its module
+    declares (:attr:`Spec.starts`: a grid of stiffnesses, widths, time constants), the one
+    whose linear fit alone leaves the least training error, then once more at that fit
+    (:data:`ANCHOR_STEPS`). An effect that is nonlinear at its absent value (a dead zone of
+    width 0, a rigid cable, a creep whose time constant means nothing at ``c = 0``) shows
+    nothing to a linearisation there; from a start of its own size it does. Its model is
+    ``r0 + shift + design phi``: ``shift`` the residual the anchor changes (zero at the
+    nominal), ``phi`` the increments from the anchor."""
+
+    def __init__(
+        self,
+        prep: Prepared,
+        candidates: tuple[str, ...],
+        at: dict[str, np.ndarray] | None = None,
+    ) -> None:
         self.prep = prep
         self.model = prep.model
         self.rows = prep.rows
         sample_blocks = prep.blocks[self.rows]
         use = prep.warm[self.rows]
+        self.use = use
         self.blocks = np.repeat(sample_blocks, 6)
         self.n_blocks = prep.n_blocks
         self.train = np.repeat((sample_blocks % 2 == 0) & use, 6)
@@ -92,20 +121,118 @@ class WrenchUnit:
         self.cols: dict[str, list[Col]] = {}
         self.design: dict[str, np.ndarray] = {}
         self.ident: dict[str, list[dict]] = {}
+        self.anchor: dict[str, np.ndarray] = {}
+        self.shift: dict[str, np.ndarray] = {}
+        at = at or {}
+        self.base = self.r0
+        if at:
+            self.base = prep.whiten(self.model.residual(at)[self.rows]).reshape(-1)
         for e in candidates:
-            self.ident[e], self.cols[e], mats = [], [], []
-            for j, jb in enumerate(self.model.jacobian({}, e, self.rows)):
-                jw = prep.whiten(jb)
-                idn = identifiability(jw, use)
-                self.ident[e].append(idn)
-                for i in identifiable_cables(idn):
-                    mats.append(jw[:, :, i].reshape(-1))
-                    self.cols[e].append((j, i))
-            if mats:
-                self.design[e] = np.column_stack(mats)
+            if e in at:
+                self._take_anchor(e, at[e], self._linearise(e, at[e]))
+            else:
+                self._choose_anchor(e)
         self.candidates = [e for e in candidates if e in self.design]
         self._gram(self.train)
 
+    # ---- anchors ----
+    def _anchors(self, effect: str) -> list[np.ndarray]:
+        """The nominal model and the module's starting points, each (k, m)."""
+        m = self.model.data.cables
+        base = neutral(effect, self.model.nom, m)
+        out = [base]
+        for start in self.model.spec(effect).starts:
+            a = np.repeat(np.asarray(start, dtype=float)[:, None], base.shape[1], axis=1)
+            if not any(np.allclose(a, b, rtol=0.0, atol=0.0) for b in out):
+                out.append(a)
+        return out
+
+    def _linearise(self, effect: str, anchor: np.ndarray):
+        """(identifiability per sub-parameter, columns, design, shift) at ``anchor``."""
+        at_nominal = np.array_equal(anchor, neutral(effect, self.model.nom, anchor.shape[1]))
+        theta = {} if at_nominal else {effect: anchor}
+        ident, cols, mats = [], [], []
+        for j, jb in enumerate(self.model.jacobian(theta, effect, self.rows)):
+            jw = self.prep.whiten(jb)
+            idn = identifiability(jw, self.use)
+            ident.append(idn)
+            for i in identifiable_cables(idn):
+                mats.append(jw[:, :, i].reshape(-1))
+                cols.append((j, i))
+        design = np.column_stack(mats) if mats else None
+        shift = None
+        if not at_nominal:
+            shift = self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1) - self.r0
+        return ident, cols, design, shift
+
+    def _alone(self, design: np.ndarray, shift: np.ndarray | None):
+        """Training sum of squares and increments of one linearisation fitted alone on top
+        of :attr:`base` (the nominal residual, or the one at ``at``)."""
+        r = self.base if shift is None else self.base + shift
+        tr = self.train
+        if not np.all(np.isfinite(design[tr])) or not np.all(np.isfinite(r[tr])):
+            return math.inf, None
+        phi, *_ = np.linalg.lstsq(design[tr], -r[tr], rcond=None)
+        res = r[tr] + design[tr] @ phi
+        return float(res @ res), phi
+
+    def _cost(self, shift: np.ndarray | None) -> float:
+        """Training sum of squares of the residual at an anchor (no linear step), on top of
+        :attr:`base`."""
+        r = (self.base if shift is None else self.base + shift)[self.train]
+        return float(r @ r) if np.all(np.isfinite(r)) else math.inf
+
+    def _choose_anchor(self, effect: str) -> None:
+        """The anchor of ``effect`` (class docstring): the start whose linear fit alone
+        leaves the least training error, then up to :data:`ANCHOR_STEPS` Gauss-Newton
+        steps, each taken where the error at the new anchor is below the one at the old."""
+        best = None
+        for anchor in self._anchors(effect):
+            lin = self._linearise(effect, anchor)
+            if effect not in self.ident:
+                self.ident[effect] = lin[0]  # the nominal's, unless an anchor is taken
+            if lin[2] is None:
+                continue
+            sse, phi = self._alone(lin[2], lin[3])
+            if best is None or sse < best[0]:
+                best = (sse, anchor, lin, phi)
+        cost = self._cost(best[2][3]) if best is not None else math.inf
+        for _ in range(ANCHOR_STEPS if best is not None else 0):
+            assert best is not None
+            _, anchor, lin, phi = best
+            if phi is None:
+                break
+            moved = anchor.copy()
+            for (j, i), dv in zip(lin[1], phi, strict=True):
+                moved[j, i] += dv
+            moved = self.bounded(effect, moved)
+            if np.array_equal(moved, anchor):
+                break
+            moved_lin = self._linearise(effect, moved)
+            moved_cost = self._cost(moved_lin[3])
+            if moved_lin[2] is None or not moved_cost < cost:
+                break  # the step does not lower the error it predicted: keep the anchor
+            sse, moved_phi = self._alone(moved_lin[2], moved_lin[3])
+            best, cost = (sse, moved, moved_lin, moved_phi), moved_cost
+        if best is None:
+            return
+        self._take_anchor(effect, best[1], best[2])
+
+    def _take_anchor(self, effect: str, anchor: np.ndarray, lin) -> None:
+        ident, cols, design, shift = lin
+        self.anchor[effect], self.ident[effect] = anchor, ident
+        if design is None:
+            return
+        self.cols[effect], self.design[effect] = cols, design
+        if shift is not None:
+            self.shift[effect] = shift
+
+    def bounded(self, effect: str, theta: np.ndarray) -> np.ndarray:
+        """``theta`` (k, m) within the effect's fit bounds (:attr:`Spec.lower`, ``upper``)."""
+        spec = self.model.spec(effect)
+        return np.clip(theta, spec.lower[:, None], spec.upper[:, None])
+
+    # ---- the linear model ----
     def _gram(self, train: np.ndarray) -> None:
         """Normal equations of every candidate column on the samples ``train``."""
         names = list(self.design)
@@ -113,22 +240,36 @@ class WrenchUnit:
         dt = d[train] if names else d
         self._gram_m = dt.T @ dt
         self._rhs = dt.T @ self.r0[train] if names else np.zeros(0)
-        self._rr = float(self.r0[train] @ self.r0[train])
+        self._shift_rhs = {e: dt.T @ s[train] for e, s in self.shift.items()} if names else {}
+        self._mask = train
         self._dof = int(train.sum())
         edges = np.cumsum([0] + [self.design[e].shape[1] for e in names])
         self._span = {e: np.arange(edges[k], edges[k + 1]) for k, e in enumerate(names)}
 
+    def _base(self, effects) -> np.ndarray:
+        """The residual of ``effects`` at their anchors (``r0`` plus their shifts)."""
+        r = self.r0
+        for e in effects:
+            if e in self.shift:
+                r = r + self.shift[e]
+        return r
+
     def linear(self, effects: list[str]) -> tuple[dict[str, np.ndarray], dict, np.ndarray]:
-        """Increments and standard errors per effect, and the weighted residual (N*6,)."""
+        """Increments (from the anchors) and standard errors per effect, and the weighted
+        residual (N*6,)."""
         if not effects:
             return {}, {}, self.r0
         idx = np.concatenate([self._span[e] for e in effects])
         g, b = self._gram_m[np.ix_(idx, idx)], self._rhs[idx]
+        for e in effects:
+            if e in self._shift_rhs:
+                b = b + self._shift_rhs[e][idx]
         ginv = np.linalg.pinv(g)
         phi = -ginv @ b
-        resid = self.r0 + np.column_stack([self.design[e] for e in effects]) @ phi
+        resid = self._base(effects) + np.column_stack([self.design[e] for e in effects]) @ phi
         dof = max(self._dof - phi.size, 1)
-        s2 = max(self._rr + 2 * float(phi @ b) + float(phi @ g @ phi), 0.0) / dof
+        left = resid[self._mask]
+        s2 = float(left @ left) / dof
         se = np.sqrt(np.maximum(np.diag(ginv) * s2, 0.0))
         sizes = np.cumsum([self.design[e].shape[1] for e in effects])[:-1]
         return (
@@ -145,7 +286,7 @@ class WrenchUnit:
         return Model({}, {}, {}, self.r0)
 
     def evaluate(self, theta: dict[str, np.ndarray], specs: dict) -> Model:
-        resid = self.r0.copy()
+        resid = self._base(theta)
         for e, phi in theta.items():
             resid = resid + self.design[e] @ phi
         nan = {e: np.full(v.size, np.nan) for e, v in theta.items()}
@@ -159,31 +300,45 @@ class WrenchUnit:
 
     def refit_on(self, model: Model, mask: np.ndarray, nfev: int = 20) -> dict[str, np.ndarray]:
         """The kept effects' increments fitted on the elements ``mask`` only."""
-        whole = (self._gram_m, self._rhs, self._rr, self._dof, self._span)
+        whole = (self._gram_m, self._rhs, self._shift_rhs, self._mask, self._dof, self._span)
         self._gram(mask)
         phi = self.linear(list(model.kept))[0]
-        self._gram_m, self._rhs, self._rr, self._dof, self._span = whole
+        self._gram_m, self._rhs, self._shift_rhs, self._mask, self._dof, self._span = whole
         return phi
 
     def contribution(self, theta: dict[str, np.ndarray], effect: str) -> np.ndarray:
         """What ``effect`` adds to the (whitened, linearised) residual on the training
-        elements."""
-        return (self.design[effect] @ theta[effect])[self.train]
+        elements (its anchor's shift included)."""
+        c = self.design[effect] @ theta[effect]
+        if effect in self.shift:
+            c = c + self.shift[effect]
+        return c[self.train]
 
     def significance(self, model: Model, effect: str) -> float:
-        phi, se = model.kept[effect], model.stderr[effect]
+        """How far ``effect`` lies from the nominal model: per cable its module's
+        :meth:`Effect.significance` (internal parameters against their standard errors;
+        parameters not fitted have none), the largest over the cables."""
+        e = fx.REGISTRY[effect]
+        theta = self.theta_of({effect: model.kept[effect]})[effect]
+        se = np.zeros_like(theta)
+        for (j, i), s in zip(self.cols[effect], model.stderr[effect], strict=True):
+            se[j, i] = s
+        base = neutral(effect, self.model.nom, theta.shape[1])
+        cables = sorted({i for _, i in self.cols[effect]})
         with np.errstate(divide="ignore", invalid="ignore"):
-            return float(np.nanmax(np.where(se > 0, np.abs(phi) / se, 0.0)))
+            z = [e.significance(theta[:, i], se[:, i], base[:, i]) for i in cables]
+        z = [v for v in z if math.isfinite(v)] or [0.0]
+        return float(max(z))
 
     def release(self) -> None:
         """Nothing cached beyond the design (kept for the report's refit)."""
 
     # ---- nonlinear refit ----
     def theta_of(self, increments: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        m = self.model.data.cables
+        """Increments from the anchors -> internal parameters (k, m) per effect."""
         theta = {}
         for e, inc in increments.items():
-            th = neutral(e, self.model.nom, m)
+            th = self.anchor[e].copy()
             for (j, i), dv in zip(self.cols[e], inc, strict=True):
                 th[j, i] += dv
             theta[e] = th
@@ -192,7 +347,7 @@ class WrenchUnit:
     def refit(self, kept: list[str]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Gauss-Newton on the nonlinear residual; returns theta and the stderr per column."""
         phi, se, _ = self.linear(kept)
-        theta = self.theta_of(phi)
+        theta = {e: self.bounded(e, v) for e, v in self.theta_of(phi).items()}
         train = self.train
         for _ in range(GN_ITERATIONS if kept else 0):
             r = self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1)
@@ -206,6 +361,7 @@ class WrenchUnit:
             for e, inc in zip(kept, np.split(step, sizes), strict=True):
                 for (j, i), dv in zip(self.cols[e], inc, strict=True):
                     theta[e][j, i] += dv
+                theta[e] = self.bounded(e, theta[e])
             if (
                 np.max(np.abs(step) / np.maximum(np.concatenate([se[e] for e in kept]), 1e-300))
                 < 1e-3
@@ -225,10 +381,12 @@ def _per_cable(effect: str) -> bool:
 
 
 def _report_values(effect: str, theta: np.ndarray, cables: list[int]) -> dict[str, list[float]]:
-    out: dict[str, list[float]] = {}
-    for j, name in enumerate(SUBPARAMS[effect]):
-        out[name] = [float(theta[j, i if _per_cable(effect) else 0]) for i in cables]
-    return out
+    """Internal parameters (k, m) -> report values on ``cables``."""
+    values = report_columns(effect, theta)
+    return {
+        name: [float(v[i if _per_cable(effect) else 0]) for i in cables]
+        for name, v in values.items()
+    }
 
 
 def _fitted_cables(sel: WrenchUnit, effect: str) -> list[int]:
@@ -237,11 +395,21 @@ def _fitted_cables(sel: WrenchUnit, effect: str) -> list[int]:
     return sorted({i for _, i in sel.cols[effect]})
 
 
-def _stderr_values(sel: WrenchUnit, effect: str, se: np.ndarray, cables: list[int]) -> dict:
+def _stderr_values(
+    sel: WrenchUnit, effect: str, theta: np.ndarray, se: np.ndarray, cables: list[int]
+) -> dict:
+    """Standard errors of the internal columns -> of the report values
+    (:meth:`Effect.report_stderr`); -1 for a parameter not fitted on the cable."""
+    e = fx.REGISTRY[effect]
     table = {(j, i): float(s) for (j, i), s in zip(sel.cols[effect], se, strict=True)}
-    out: dict[str, list[float]] = {}
-    for j, name in enumerate(SUBPARAMS[effect]):
-        out[name] = [table.get((j, i if _per_cable(effect) else 0), -1.0) for i in cables]
+    out: dict[str, list[float]] = {name: [] for name in SUBPARAMS[effect]}
+    for i in cables:
+        col = i if _per_cable(effect) else 0
+        internal = np.array([table.get((j, col), np.nan) for j in range(len(SUBPARAMS[effect]))])
+        known = np.array([(j, col) in table for j in range(internal.size)])
+        rep = e.report_stderr(theta[:, col], np.where(known, internal, 0.0))
+        for j, name in enumerate(SUBPARAMS[effect]):
+            out[name].append(float(rep[name]) if known[j] else -1.0)
     return out
 
 
@@ -318,15 +486,21 @@ def diagnose_wrench(
         f"{rec.source}: wrench reference, {data.t.size} samples, sensitivities of "
         f"{len(WRENCH_EFFECTS)} candidate effects"
     )
-    unit = WrenchUnit(prep, WRENCH_EFFECTS)
-    selector = Selector(unit, th)  # 3. select (2. locate: with the report, on the balance)
-    outcome = selector.run()
-    say(f"wrench reference: selected {', '.join(outcome.kept) or 'nothing'}")
-    tested = Tested(selector, selector.final, outcome)  # 4. fit: significance, refit
-    decide([tested], th, lambda msg: say(f"significance: {msg}"))
-    kept = outcome.kept
-    say(f"wrench reference: kept {', '.join(kept) or 'nothing'}")
-    theta, se = unit.refit(kept)
+    at: dict[str, np.ndarray] = {}
+    for _ in range(PASSES):
+        unit = WrenchUnit(prep, WRENCH_EFFECTS, at)
+        selector = Selector(unit, th)  # 3. select (2. locate: with the report, on the balance)
+        outcome = selector.run()
+        say(f"wrench reference: selected {', '.join(outcome.kept) or 'nothing'}")
+        tested = Tested(selector, selector.final, outcome)  # 4. fit: significance, refit
+        decide([tested], th, lambda msg: say(f"significance: {msg}"))
+        kept = outcome.kept
+        say(f"wrench reference: kept {', '.join(kept) or 'nothing'}")
+        theta, se = unit.refit(kept)
+        if not (unit.shift and kept) or at:
+            break  # linearised at the nominal model only, or already at the fit
+        at = theta  # again, every candidate linearised on top of this fit
+        say(f"wrench reference: again, linearised at the fit of {', '.join(kept)}")
     sel = unit
     test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
@@ -354,9 +528,9 @@ def diagnose_wrench(
             "effect": e,
             "cables": [c + 1 for c in cables],
             "parameters": values,
-            "stderr": _stderr_values(sel, e, combined_stderr(se[e], se_blk), cables),
-            "stderr_jacobian": _stderr_values(sel, e, se[e], cables),
-            "stderr_blocks": _stderr_values(sel, e, se_blk, cables),
+            "stderr": _stderr_values(sel, e, theta[e], combined_stderr(se[e], se_blk), cables),
+            "stderr_jacobian": _stderr_values(sel, e, theta[e], se[e], cables),
+            "stderr_blocks": _stderr_values(sel, e, theta[e], se_blk, cables),
             # one joint test over every cable (the balance is one unit)
             "statistic": [float(test_e.get("z", -1.0))] * len(cables),
             "p": [float(test_e.get("p", -1.0))] * len(cables),
