@@ -51,6 +51,7 @@ class Backlash(Effect):
     physics = "the friction state driven through a dead zone of width b in the travel"
     online = Online(True, "the chain's travel through the dead zone (the setpoint's)")
     needs_motion = True
+    wrench = True
     group = "reversal"
     look = (
         "after each reversal the residual holds while the cable travels a fixed distance, "

@@ -69,6 +69,7 @@ class CableStretch(Effect):
     physics = "travel driving the friction state: setpoint travel - dF / k (stretch)"
     online = Online(True, "the chain's travel minus the friction's stretch change")
     needs_motion = True
+    wrench = True
     group = "reversal"
     look = (
         "the transition after each reversal starts softer than the model's and ends in the "

@@ -85,6 +85,7 @@ class MaxwellSlip(Effect):
     )
     online = Online(True, "the chain runs Maxwell-slip")
     needs_motion = True
+    wrench = True
     group = "reversal"
     nests = (presliding.EFFECT,)
     look = (

@@ -113,6 +113,7 @@ class SensorCreep(Effect):
     online = Online(True, "exact causal inverse of the discrete creep, per cycle")
     online_kernel = inverse_step
     online_state = 2
+    wrench = True
     group = "dynamics"
     nests = (lowpass_effect.EFFECT,)
     look = (

@@ -64,6 +64,7 @@ class Spring(Effect):
     online = Online(True, "x the setpoint length")
     online_kernel = inverse_step
     needs_motion = True
+    wrench = True
     group = "level"
     nests = (offset.EFFECT,)
     look = (
