@@ -148,12 +148,26 @@ class WrenchUnit:
                 out.append(a)
         return out
 
-    def _linearise(self, effect: str, anchor: np.ndarray):
-        """(identifiability per sub-parameter, columns, design, shift) at ``anchor``; an
-        effect not in ``at`` on top of ``at`` (its shift: what it changes there)."""
+    def _context(self, effect: str, anchor: np.ndarray) -> tuple[dict, bool]:
+        """The parameters ``effect`` is linearised at (on top of ``at`` unless it is one
+        of them) and whether its anchor is the nominal model."""
         at_nominal = np.array_equal(anchor, neutral(effect, self.model.nom, anchor.shape[1]))
         context = {} if effect in self.at else dict(self.at)
-        theta = context if at_nominal else {**context, effect: anchor}
+        return (context if at_nominal else {**context, effect: anchor}), at_nominal
+
+    def _shift(self, effect: str, anchor: np.ndarray) -> np.ndarray | None:
+        """What the anchor changes in the residual (None at the nominal model); an effect
+        not in ``at`` on top of ``at``."""
+        theta, at_nominal = self._context(effect, anchor)
+        if at_nominal:
+            return None
+        below = self.r0 if effect in self.at or not self.at else self.base
+        return self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1) - below
+
+    def _linearise(self, effect: str, anchor: np.ndarray, shift=False):
+        """(identifiability per sub-parameter, columns, design, shift) at ``anchor``
+        (``shift``: the anchor's, when already known)."""
+        theta, _ = self._context(effect, anchor)
         ident, cols, mats = [], [], []
         for j, jb in enumerate(self.model.jacobian(theta, effect, self.rows)):
             jw = self.prep.whiten(jb)
@@ -163,11 +177,20 @@ class WrenchUnit:
                 mats.append(jw[:, :, i].reshape(-1))
                 cols.append((j, i))
         design = np.column_stack(mats) if mats else None
-        shift = None
-        if not at_nominal:
-            below = self.base if context else self.r0
-            shift = self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1) - below
-        return ident, cols, design, shift
+        return ident, cols, design, self._shift(effect, anchor) if shift is False else shift
+
+    def _exact(self, effect: str, anchor: np.ndarray, cols: list[Col]) -> bool:
+        """The linearisation is the effect itself: at the nominal model, every parameter
+        linear (:attr:`Spec.linear`) and shown on every cable that shows one (a spring's
+        ``k l0`` does not show at ``k = 0``: its report form holds no length there)."""
+        spec = self.model.spec(effect)
+        k = spec.neutral.size
+        cables = {i for _, i in cols}
+        return (
+            len(spec.linear) == k
+            and np.array_equal(anchor, neutral(effect, self.model.nom, anchor.shape[1]))
+            and set(cols) == {(j, i) for j in range(k) for i in cables}
+        )
 
     def _alone(self, design: np.ndarray, shift: np.ndarray | None):
         """Training sum of squares and increments of one linearisation fitted alone on top
@@ -189,7 +212,8 @@ class WrenchUnit:
     def _choose_anchor(self, effect: str) -> None:
         """The anchor of ``effect`` (class docstring): the start whose linear fit alone
         leaves the least training error, then up to :data:`ANCHOR_STEPS` Gauss-Newton
-        steps, each taken where the error at the new anchor is below the one at the old."""
+        steps, each taken where the error at the new anchor is below the one at the old
+        (none where the linearisation is exact, :meth:`_exact`)."""
         best = None
         for anchor in self._anchors(effect):
             lin = self._linearise(effect, anchor)
@@ -201,7 +225,10 @@ class WrenchUnit:
             if best is None or sse < best[0]:
                 best = (sse, anchor, lin, phi)
         cost = self._cost(best[2][3]) if best is not None else math.inf
-        for _ in range(ANCHOR_STEPS if best is not None else 0):
+        steps = (
+            ANCHOR_STEPS if best is not None and not self._exact(effect, best[1], best[2][1]) else 0
+        )
+        for _ in range(steps):
             assert best is not None
             _, anchor, lin, phi = best
             if phi is None:
@@ -212,10 +239,13 @@ class WrenchUnit:
             moved = self.bounded(effect, moved)
             if np.array_equal(moved, anchor):
                 break
-            moved_lin = self._linearise(effect, moved)
-            moved_cost = self._cost(moved_lin[3])
-            if moved_lin[2] is None or not moved_cost < cost:
+            moved_shift = self._shift(effect, moved)
+            moved_cost = self._cost(moved_shift)
+            if not moved_cost < cost:
                 break  # the step does not lower the error it predicted: keep the anchor
+            moved_lin = self._linearise(effect, moved, moved_shift)
+            if moved_lin[2] is None:
+                break
             sse, moved_phi = self._alone(moved_lin[2], moved_lin[3])
             best, cost = (sse, moved, moved_lin, moved_phi), moved_cost
         if best is None:
@@ -535,8 +565,8 @@ def diagnose_wrench(
         decide([tested], th, lambda msg: say(f"significance: {msg}"))
         kept, theta, se = unit.confirm(selector, outcome.kept, say)
         say(f"wrench reference: kept {', '.join(kept) or 'nothing'}")
-        if not (unit.shift and kept) or at:
-            break  # linearised at the nominal model only, or already at the fit
+        if at or not any(e in unit.shift for e in kept):
+            break  # every kept effect linearised at the nominal model, or already at the fit
         at = theta  # again, every candidate linearised on top of this fit
         say(f"wrench reference: again, linearised at the fit of {', '.join(kept)}")
     sel = unit
