@@ -158,6 +158,7 @@ def _diagnose(rec_path: Path, model: Path, tmp_path: Path, tag: str, write: Path
     return json.loads(out.read_text())
 
 
+@pytest.mark.long
 def test_self_consistency_wrench_reference(tmp_path, capsys):
     """Wrench reference (pose and mass only, closed-form controller): diagnosing with the
     written model finds nothing."""
