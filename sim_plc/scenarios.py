@@ -33,8 +33,10 @@ from gateway.core.config import (
     config_from_mapping,
 )
 from gateway.core.configtypes import read_yaml
+from gateway.diagnose.prepare import nominal_from
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate
+from gateway.model.effects.base import ModelFile
 from gateway.recordings.reader import Recording
 
 NOISE_N = 0.4
@@ -267,12 +269,24 @@ def expected_cables(sc: Scenario, effect: str) -> list[int]:
     return [i + 1 for i in range(m) if present[i]]
 
 
-def parameter_errors(sc: Scenario, finding: dict) -> dict[str, float]:
-    """Per parameter, the worst error over the finding's cables as a fraction of its tolerance."""
+def parameter_errors(sc: Scenario, finding: dict, rec: Recording | None = None) -> dict[str, float]:
+    """Per parameter, the worst error over the finding's cables as a fraction of its tolerance.
+
+    Where ``rec`` has cable lengths (the plant), the truth is what a model file means (a
+    length or a phase against the cable length), the report's against the travel since
+    the first sample: the fitted values are compared as the effect writes them into a
+    model file (``Effect.from_fit``)."""
     effect = finding["effect"]
     m = 1 if sc.rig else sc.cables
+    params = finding["parameters"]
+    if rec is not None and rec.length is not None:
+        idx = np.asarray(finding["cables"], dtype=int) - 1
+        values = {k: np.asarray(v, dtype=float) for k, v in params.items()}
+        ctx = ModelFile(nominal_from(sc.nominal()), np.asarray(rec.length[0])[idx], None)
+        fx.REGISTRY[effect].from_fit(values, ctx)
+        params = {k: [float(x) for x in v] for k, v in values.items()}
     out = {}
-    for name, fitted in finding["parameters"].items():
+    for name, fitted in params.items():
         true_all = np.broadcast_to(np.asarray(sc.effects[effect].get(name, np.nan), float), (m,))
         tol_of = tolerance(effect, name)
         if tol_of is None or np.isnan(true_all).all():
@@ -352,7 +366,7 @@ def evaluate(sc: Scenario) -> dict:
     cables_ok = True
     for f in report["findings"]:
         if f["effect"] in truth:
-            errors.update(parameter_errors(sc, f))
+            errors.update(parameter_errors(sc, f, rec))
             cables_ok &= f["cables"] == expected_cables(sc, f["effect"])
     named = set(found) == truth and (not truth or found[0] in truth) and cables_ok
     param_err = max(errors.values(), default=0.0)
@@ -373,12 +387,12 @@ def evaluate(sc: Scenario) -> dict:
     ]
     swap = None
     if why:
-        swap = substitutes(truth, report["findings"], lambda a: _fits(sc, a))
+        swap = substitutes(truth, report["findings"], lambda a: _fits(sc, a, rec))
     alternative = None
     if swap is not None:
         alt_errors = dict(errors)  # the true findings' (their cables are checked above)
         for a in swap.values():
-            alt_errors.update(parameter_errors(sc, a))
+            alt_errors.update(parameter_errors(sc, a, rec))
         rest = [text for text in why if text not in ("effects", "cables", "parameters")]
         first_ok = found[0] in truth or found[0] in swap
         if not rest and first_ok and cables_ok and max(alt_errors.values(), default=0.0) <= 1.0:
@@ -400,10 +414,10 @@ def evaluate(sc: Scenario) -> dict:
     }
 
 
-def _fits(sc: Scenario, alt: dict) -> bool:
+def _fits(sc: Scenario, alt: dict, rec: Recording) -> bool:
     """An alternative of a finding matches ``sc``'s truth: its cables and parameters."""
     effect = alt["effect"]
-    errs = parameter_errors(sc, alt)
+    errs = parameter_errors(sc, alt, rec)
     return alt["cables"] == expected_cables(sc, effect) and max(errs.values(), default=0.0) <= 1.0
 
 
