@@ -53,6 +53,13 @@ LONG = {
     "drift",
     "eccentricity",
     "uneven_delay",
+    # the effects of the last round alone (10-40 s each)
+    "coulomb_directional",
+    "maxwell_slip",
+    "backlash",
+    "cable_stretch",
+    "sensor_creep",
+    "plant_spring",
 }
 
 
