@@ -30,7 +30,8 @@ ALL_EFFECTS = fx.EFFECT_NAMES
 class CableData:
     """One cable's series. ``t``, ``v``, ``tp``, ``ts`` (N,): s, m/s, N, N.
 
-    ``x`` displacement (m) and ``a`` acceleration (m/s^2) from ``v``; ``t0`` the
+    ``x`` displacement (m, ``x0`` at the first sample) and ``a`` acceleration (m/s^2) from
+    ``v``; ``t0`` the
     recording's first time (drift is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of
     platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
     ``x`` and ``a`` are given (a subset of a longer recording takes them from the whole
@@ -51,8 +52,9 @@ class CableData:
         dtp_dm: np.ndarray | Callable[[], np.ndarray] | None = None,
         x: np.ndarray | None = None,
         a: np.ndarray | None = None,
+        x0: float = 0.0,
     ) -> None:
-        self.t, self.v, self.tp, self.ts, self.t0 = t, v, tp, ts, t0
+        self.t, self.v, self.tp, self.ts, self.t0, self.x0 = t, v, tp, ts, t0, x0
         self._given = x is not None or a is not None
         self._x, self._a = x, a
         self._dm_source = dtp_dm if callable(dtp_dm) else None
@@ -68,6 +70,8 @@ class CableData:
     def x(self) -> np.ndarray:
         if self._x is None:
             self._x = fx.displacement(self.t, self.v)
+            if self.x0:
+                self._x += self.x0
         return self._x
 
     @property

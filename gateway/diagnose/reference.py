@@ -180,7 +180,9 @@ class PlatformReference:
             usable,
             cands,
             selection_subset(rec.t, blocks),
-            validation_forwards(validation, nom, rec.cables),
+            validation_forwards(
+                validation, nom, rec.cables, None if rec.length is None else rec.length[0]
+            ),
             clipped,
         )
 
