@@ -85,7 +85,7 @@ def block_refits(sel: Selector, model: Model) -> tuple[dict[str, np.ndarray], di
     if not model.kept:
         return {}, {}
     unit = sel.unit
-    masks = block_groups(unit.blocks, unit.train, GROUPS)
+    masks = block_groups(unit.blocks, unit.train, GROUPS, getattr(unit, "segments", None))
     if len(masks) < 2:
         return {e: np.full(v.size, np.nan) for e, v in model.kept.items()}, {}
     fits = [unit.refit_on(model, m) for m in masks]  # type: ignore[attr-defined]
