@@ -50,6 +50,22 @@ def _parameters(report: dict) -> dict[str, dict[str, float]]:
     }
 
 
+def _estimates(report: dict) -> dict[str, dict[str, tuple[float, float, float]]]:
+    """Per finding and parameter: (value, the Jacobian's standard error, the standard
+    error from the refits across time blocks or trials)."""
+    return {
+        f["effect"]: {
+            k: (
+                float(v[0]),
+                float(f["stderr_jacobian"][k][0]),
+                float(f["stderr_blocks"][k][0]),
+            )
+            for k, v in f["parameters"].items()
+        }
+        for f in report["findings"]
+    }
+
+
 def run_emps(root: Path) -> dict[str, Any]:
     """EMPS blind (module docstring): parameters, their errors against the published ones,
     RMSE before -> after on the fit (held-out blocks) and the validation recording."""
@@ -124,12 +140,44 @@ def run_davinci(root: Path, refits: bool = True) -> dict[str, Any]:
         "unexplained": res["report"].get("unexplained"),
         "seconds": res["seconds"],
     }
+    out["estimates"] = {"fit": _estimates(res["report"])}
     if refits:  # the same effects when fitted on either validation set instead?
-        out["refits"] = {
-            name: [f["effect"] for f in _diagnose(rec, model, None)["report"]["findings"]]
-            for name, rec in (("validation", sets.validation), ("other_series", sets.other))
-        }
+        out["refits"] = {}
+        for name, rec in (("validation", sets.validation), ("other_series", sets.other)):
+            report = _diagnose(rec, model, None)["report"]
+            out["refits"][name] = [f["effect"] for f in report["findings"]]
+            out["estimates"][name] = _estimates(report)
     return out
+
+
+def spread(estimates: dict[str, dict]) -> list[dict[str, Any]]:
+    """Each parameter of the effects every fit found: its values, the standard deviation
+    between the fits, and the root mean square of each kind of standard error (the
+    Jacobian's, the refits' across blocks or trials). An error that means something is
+    about as large as the spread between recordings of the same machine."""
+    import numpy as np
+
+    fits = list(estimates.values())
+    common = [e for e in fits[0] if all(e in f for f in fits[1:])] if fits else []
+    rows = []
+    for e in common:
+        for k in fits[0][e]:
+            got = np.array([f[e][k] for f in fits], dtype=float)  # (fits, 3)
+            bad = got[:, 1:] < 0  # -1: could not be computed (the report's JSON)
+            se = np.where(bad, np.nan, got[:, 1:])
+            rows.append(
+                {
+                    "effect": e,
+                    "parameter": k,
+                    "values": got[:, 0].tolist(),
+                    "jacobian": se[:, 0].tolist(),
+                    "blocks": se[:, 1].tolist(),
+                    "sd": float(np.std(got[:, 0], ddof=1)) if len(fits) > 1 else float("nan"),
+                    "rms_jacobian": float(np.sqrt(np.nanmean(se[:, 0] ** 2))),
+                    "rms_blocks": float(np.sqrt(np.nanmean(se[:, 1] ** 2))),
+                }
+            )
+    return rows
 
 
 def _params_text(params: dict[str, dict[str, float]]) -> str:
@@ -228,9 +276,37 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
             )
             + f" ({'the same effects' if same else '**not the same effects**'}).",
         ]
+    if len(dv.get("estimates", {})) > 1:
+        lines += ["", *_spread_table(dv["estimates"])]
     for name, res in (("EMPS", emps), ("da Vinci", dv)):
         lines += ["", f"{name}: `unexplained`: {_unexplained_text(res.get('unexplained'))}"]
     return "\n".join(lines) + "\n"
+
+
+def _spread_table(estimates: dict[str, dict]) -> list[str]:
+    """The spread of the common parameters between the three fits against their errors."""
+    rows = spread(estimates)
+    lines = [
+        "Uncertainty: each parameter of the effects all three fits found, fitted on each "
+        "set (value, the Jacobian's standard error / the standard error from refits leaving "
+        "out whole trials), against the standard deviation between the three fits and the "
+        "root mean square of each error.",
+        "",
+        "| parameter | L_4, 9 fit trials | L_4, 6 validation trials | L_2, 4 trials | "
+        "sd of the three | rms Jacobian | rms blocks | sd / rms blocks |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        cells = [
+            f"{v:.4g} ({j:.2g} / {b:.2g})"
+            for v, j, b in zip(r["values"], r["jacobian"], r["blocks"], strict=True)
+        ]
+        ratio = r["sd"] / r["rms_blocks"] if r["rms_blocks"] > 0 else float("nan")
+        lines.append(
+            f"| {r['effect']} {r['parameter']} | {' | '.join(cells)} | {r['sd']:.3g} | "
+            f"{r['rms_jacobian']:.2g} | {r['rms_blocks']:.2g} | {ratio:.1f} |"
+        )
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
