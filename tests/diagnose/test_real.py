@@ -138,3 +138,19 @@ def test_davinci_blind_is_no_worse_than_the_baseline(davinci):
     scored = davinci["scored"]
     for key, target in realdata.DAVINCI_TARGETS_N.items():
         assert scored[key]["tool"] <= min(target, scored[key]["baseline"]), key
+
+
+def test_the_spread_table_compares_the_fits_with_both_errors():
+    """``realsuite.spread``: the common effects' parameters of several fits, the standard
+    deviation between them and each error's root mean square (-1: not computed)."""
+    fits = {
+        "a": {"coulomb": {"mu": (0.20, 0.001, 0.01)}, "viscous": {"c_ns_m": (5.0, 0.1, 0.2)}},
+        "b": {"coulomb": {"mu": (0.22, 0.002, 0.02)}},
+        "c": {"coulomb": {"mu": (0.24, -1.0, 0.02)}, "offset": {"c_n": (1.0, 0.1, 0.1)}},
+    }
+    (row,) = realsuite.spread(fits)
+    assert (row["effect"], row["parameter"]) == ("coulomb", "mu")
+    assert row["values"] == [0.20, 0.22, 0.24]
+    assert row["sd"] == pytest.approx(0.02)
+    assert row["rms_jacobian"] == pytest.approx(math.sqrt((0.001**2 + 0.002**2) / 2))
+    assert row["rms_blocks"] == pytest.approx(math.sqrt((0.01**2 + 2 * 0.02**2) / 3))
