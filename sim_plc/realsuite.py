@@ -20,6 +20,7 @@ Each run writes its section "## Real recordings" of the table file (the rest is 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -306,6 +307,18 @@ def _spread_table(estimates: dict[str, dict]) -> list[str]:
             f"| {r['effect']} {r['parameter']} | {' | '.join(cells)} | {r['sd']:.3g} | "
             f"{r['rms_jacobian']:.2g} | {r['rms_blocks']:.2g} | {ratio:.1f} |"
         )
+    covered = [f"{r['effect']} {r['parameter']}" for r in rows if r["sd"] <= 2 * r["rms_blocks"]]
+    beyond = [f"{r['effect']} {r['parameter']}" for r in rows if r["sd"] > 2 * r["rms_blocks"]]
+    ratio_jac = [r["sd"] / r["rms_jacobian"] for r in rows if r["rms_jacobian"] > 0]
+    lines += [
+        "",
+        f"The spread between the fits is {min(ratio_jac, default=math.nan):.0f}-"
+        f"{max(ratio_jac, default=math.nan):.0f} times the Jacobian's errors; within twice "
+        f"the errors from refits for {', '.join(covered) or 'none'}; beyond for "
+        f"{', '.join(beyond) or 'none'} (the fits' effect sets: "
+        + "; ".join(f"{k.replace('_', ' ')} {', '.join(v)}" for k, v in estimates.items())
+        + ").",
+    ]
     return lines
 
 
