@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.diagnose.select import Model, Outcome, Rival, Selector, overlaps
-from gateway.diagnose.stats import bh_qvalues, block_groups, jackknife_se, same_evidence
+from gateway.diagnose.stats import bh_qvalues, block_groups, jackknife_se
 
 ROUNDS = 3
 GROUPS = 8
@@ -81,9 +81,7 @@ def block_refits(sel: Selector, model: Model) -> tuple[dict[str, np.ndarray], di
     ``a_g = <c_g, c> / <c, c>``; the full fit has ``a = 1``, so ``1 / se(a)`` measures the
     effect's presence however its parameters trade off among themselves (a Stribeck level
     against its speed) and is near 0 for a contribution that is nothing but noise (a
-    coefficient at the nominal value). From fewer than ``GROUPS`` groups (a recording of
-    a few trials, each left out whole) the ratio is taken at the evidence it carries with
-    ``GROUPS`` (:func:`.stats.same_evidence`): a threshold means the same for any."""
+    coefficient at the nominal value)."""
     if not model.kept:
         return {}, {}
     unit = sel.unit
@@ -101,12 +99,7 @@ def block_refits(sel: Selector, model: Model) -> tuple[dict[str, np.ndarray], di
             continue
         a = np.array([float(unit.contribution(f, e) @ c) / norm for f in fits])  # type: ignore[attr-defined]
         spread = float(jackknife_se(a[:, None])[0])
-        # fewer groups (a recording of few trials): the same ratio is weaker evidence
-        presence[e] = (
-            float(np.inf)
-            if spread == 0.0
-            else same_evidence(1.0 / spread, len(fits) - 1, GROUPS - 1)
-        )
+        presence[e] = float(np.inf) if spread == 0.0 else 1.0 / spread
     release = getattr(unit, "release", None)
     if release is not None:
         release()

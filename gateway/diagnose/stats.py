@@ -141,18 +141,6 @@ def block_groups(
     return out
 
 
-def same_evidence(z: float, df: int, df_ref: int) -> float:
-    """The ratio with ``df_ref`` degrees of freedom that has the tail probability of ``z``
-    with ``df`` (Student's t both): a jackknife from fewer groups estimates its error
-    from fewer differences, so the same ratio to it is weaker evidence; a threshold set
-    for ``df_ref`` then applies to any number of groups."""
-    if df == df_ref or not math.isfinite(z):
-        return z
-    tail = float(special.stdtr(max(df, 1), -abs(z)))
-    out = -float(special.stdtrit(max(df_ref, 1), tail))
-    return out if z >= 0 else -out
-
-
 def jackknife_se(estimates: np.ndarray) -> np.ndarray:
     """Delete-a-group jackknife standard errors from ``estimates`` (G, p): one row per
     refit with one group left out."""

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.diagnose.prepare import gap_segments, time_blocks
-from gateway.diagnose.stats import block_groups, jackknife_se, same_evidence, white_noise
+from gateway.diagnose.stats import block_groups, jackknife_se, white_noise
 
 
 @given(
@@ -92,17 +92,3 @@ def test_trials_are_left_out_whole_and_too_few_fall_back_to_blocks() -> None:
     assert len(masks) == 3
     for k, m in enumerate(masks):
         assert not np.any(m & (three == k)) and np.all(m[train & (three != k)])
-
-
-def test_a_jackknife_of_fewer_groups_is_weaker_evidence() -> None:
-    """``same_evidence``: the ratio with 7 degrees of freedom of the same tail probability;
-    fewer groups need a larger ratio for the same threshold, 8 groups are unchanged."""
-    from scipy import special
-
-    assert same_evidence(4.0, 7, 7) == 4.0
-    weaker = same_evidence(4.0, 3, 7)
-    assert 2.0 < weaker < 4.0
-    assert float(special.stdtr(7, -weaker)) == pytest.approx(float(special.stdtr(3, -4.0)))
-    assert same_evidence(-4.0, 3, 7) == pytest.approx(-weaker)
-    assert same_evidence(math.inf, 3, 7) == math.inf
-    assert same_evidence(7.4, 3, 7) == pytest.approx(4.0, abs=0.05)  # 4 trials need ~7.4
