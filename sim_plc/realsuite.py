@@ -337,10 +337,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def _unexplained_text(u: dict | None) -> str:
     """The report's ``unexplained`` entry in words: the signal, its share and q, the reading,
     and the next signals of the ranking."""
@@ -352,3 +348,7 @@ def _unexplained_text(u: dict | None) -> str:
         f"held-out blocks (q {u['q']:.1e}): {u['reading']}."
         + (f" Next: {others}." if others else "")
     )
+
+
+if __name__ == "__main__":
+    sys.exit(main())
