@@ -12,7 +12,9 @@ real`` runs it on the shared data and prints the same) diagnoses:
   fitted model then predicts those 6 and the 4 trials of ``Tool_4_Maryland_L_2`` (never
   seen), scored by :func:`sim_plc.realdata.rmse` like the baseline (:mod:`sim_plc.baseline`,
   fitted on the same 9). Whether the diagnosis names the same effects when fitted on
-  either validation set instead is reported too.
+  either validation set instead is reported too, and the parameters of the effects all
+  three fits found, with both standard errors, against the spread between the fits
+  (:func:`spread`).
 
 Each run writes its section "## Real recordings" of the table file (the rest is kept).
 """
