@@ -61,7 +61,9 @@ def test_block_errors_of_a_recording_of_trials_cover_the_spread_between_recordin
     from one recording, leaving out whole trials, is that spread (rms over recordings
     within 25 %); leaving out interleaved blocks of every trial understates it."""
     rng = np.random.default_rng(7)
-    fitted, by_trial, by_block = [], [], []
+    fitted: list[float] = []
+    by_trial: list[float] = []
+    by_block: list[float] = []
     for _ in range(150):
         t, x, y = _trials(rng, trials, 0.1)
         blocks, _ = time_blocks(t)
