@@ -218,6 +218,17 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     return out
 
 
+def gap_segments(t: np.ndarray) -> np.ndarray:
+    """(N,) index of the piece of recording each sample lies in: a new piece after every
+    gap (a step longer than ``GAP_SPACINGS`` median spacings; trials joined into one
+    recording)."""
+    if t.size < 2:
+        return np.zeros(t.size, np.int64)
+    dt = np.diff(t)
+    gaps = dt > GAP_SPACINGS * float(np.median(dt))
+    return np.concatenate(([0], np.cumsum(gaps))).astype(np.int64)
+
+
 SELECTION_BUDGET = 150_000
 """Samples per cable above which the selection runs on a subset (then refit on all)."""
 WARMUP_S = 1.0
