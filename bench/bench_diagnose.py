@@ -6,13 +6,23 @@ viscous term on every cable and an offset on two of them (``DIAGNOSE_CASES=clean
 that the figures are those of ``diagnose`` alone on a recording in memory: its wall time,
 its peak Python heap (tracemalloc) and the peak resident size of the process (interpreter,
 numpy/scipy/numba and the recording's arrays included). Goals: <= 60 s, <= 400 MB RSS.
+
+Side by side against another tree (issue #19: the diagnosis of a clean 10-min recording
+may take at most 1.5x the time it took before a change): ``DIAGNOSE_AGAINST=/path/to/tree
+DIAGNOSE_FILES=a.csv.gz,b.csv.gz [DIAGNOSE_REPEATS=3]`` runs ``cdpr-gateway diagnose`` on
+each file with this tree and that one, alternating, each under ``/usr/bin/time -v``, and
+prints the median wall time and peak RSS of each and their ratios (this tree / that).
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import re
 import resource
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
 import tracemalloc
@@ -48,6 +58,13 @@ def _generate(path: str, case: str) -> None:
 
 
 def run() -> None:
+    if os.environ.get("DIAGNOSE_AGAINST"):
+        side_by_side(
+            Path(os.environ["DIAGNOSE_AGAINST"]),
+            os.environ.get("DIAGNOSE_FILES", "").split(","),
+            int(os.environ.get("DIAGNOSE_REPEATS", "3")),
+        )
+        return
     for case in os.environ.get("DIAGNOSE_CASES", "clean,hidden").split(","):
         ctx = multiprocessing.get_context("spawn")
         proc = ctx.Process(target=_one, args=(case,))  # each case in a fresh process
@@ -81,6 +98,42 @@ def _one(case: str) -> None:
         f"(goal <= 400; {rss_before:.0f} MiB with the recording loaded, before diagnose); "
         f"found {found or 'none'}"
     )
+
+
+def _timed(tree: Path, path: str) -> tuple[float, float]:
+    """Wall seconds and peak RSS (MiB) of ``cdpr-gateway diagnose path`` run from ``tree``."""
+    env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1"}
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "gateway", "diagnose", path]
+        cmd += ["--model", "config/default.yaml", "--json", str(Path(tmp) / "r.json"), "--quiet"]
+        done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    wall = re.search(r"Elapsed \(wall clock\) time.*: (?:(\d+):)?(\d+):([\d.]+)", done.stderr)
+    rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", done.stderr)
+    if done.returncode not in (0, 1) or wall is None or rss is None:
+        raise RuntimeError(f"{tree}: diagnose {path} failed: {done.stderr[-500:]}")
+    h, m, sec = wall.groups()
+    return int(h or 0) * 3600 + int(m) * 60 + float(sec), int(rss.group(1)) / 1024
+
+
+def side_by_side(other: Path, files: list[str], repeats: int) -> None:
+    """Each file diagnosed by this tree and by ``other``, alternating (module docstring)."""
+    here = Path(__file__).resolve().parent.parent
+    for path in filter(None, files):
+        runs: dict[Path, list[tuple[float, float]]] = {here: [], other: []}
+        for _ in range(repeats):
+            for tree in (other, here):
+                runs[tree].append(_timed(tree, path))
+        med = {
+            t: (statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs))
+            for t, rs in runs.items()
+        }
+        for tree, rs in runs.items():
+            walls = ", ".join(f"{w:.0f}" for w, _ in rs)
+            print(f"{path} {tree}: median {med[tree][0]:.0f} s ({walls}), {med[tree][1]:.0f} MiB")
+        print(
+            f"{path}: time ratio {med[here][0] / med[other][0]:.2f}, "
+            f"RSS ratio {med[here][1] / med[other][1]:.2f} (this tree / {other})"
+        )
 
 
 if __name__ == "__main__":
