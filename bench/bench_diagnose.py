@@ -123,6 +123,8 @@ def side_by_side(other: Path, files: list[str], repeats: int) -> None:
         for _ in range(repeats):
             for tree in (other, here):
                 runs[tree].append(_timed(tree, path))
+                wall, rss = runs[tree][-1]
+                print(f"  {path} {tree}: {wall:.1f} s, {rss:.0f} MiB", flush=True)
         med = {
             t: (statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs))
             for t, rs in runs.items()
