@@ -11,7 +11,8 @@ Side by side against another tree (issue #19: the diagnosis of a clean 10-min re
 may take at most 1.5x the time it took before a change): ``DIAGNOSE_AGAINST=/path/to/tree
 DIAGNOSE_FILES=a.csv.gz,b.csv.gz [DIAGNOSE_REPEATS=3]`` runs ``cdpr-gateway diagnose`` on
 each file with this tree and that one, alternating, each under ``/usr/bin/time -v``, and
-prints the median wall time and peak RSS of each and their ratios (this tree / that).
+prints the median wall time, peak RSS and CPU time of each and their ratios (this tree /
+that).
 """
 
 from __future__ import annotations
@@ -100,8 +101,10 @@ def _one(case: str) -> None:
     )
 
 
-def _timed(tree: Path, path: str) -> tuple[float, float]:
-    """Wall seconds and peak RSS (MiB) of ``cdpr-gateway diagnose path`` run from ``tree``."""
+def _timed(tree: Path, path: str) -> tuple[float, float, float]:
+    """Wall seconds, peak RSS (MiB) and CPU seconds (user + system: on a loaded machine
+    the wall time measures the load as much) of ``cdpr-gateway diagnose path`` run from
+    ``tree``."""
     env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1"}
     with tempfile.TemporaryDirectory() as tmp:
         cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "gateway", "diagnose", path]
@@ -109,32 +112,35 @@ def _timed(tree: Path, path: str) -> tuple[float, float]:
         done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
     wall = re.search(r"Elapsed \(wall clock\) time.*: (?:(\d+):)?(\d+):([\d.]+)", done.stderr)
     rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", done.stderr)
-    if done.returncode not in (0, 1) or wall is None or rss is None:
+    cpu = re.findall(r"(?:User|System) time \(seconds\): ([\d.]+)", done.stderr)
+    if done.returncode not in (0, 1) or wall is None or rss is None or len(cpu) != 2:
         raise RuntimeError(f"{tree}: diagnose {path} failed: {done.stderr[-500:]}")
     h, m, sec = wall.groups()
-    return int(h or 0) * 3600 + int(m) * 60 + float(sec), int(rss.group(1)) / 1024
+    seconds = int(h or 0) * 3600 + int(m) * 60 + float(sec)
+    return seconds, int(rss.group(1)) / 1024, float(cpu[0]) + float(cpu[1])
 
 
 def side_by_side(other: Path, files: list[str], repeats: int) -> None:
     """Each file diagnosed by this tree and by ``other``, alternating (module docstring)."""
     here = Path(__file__).resolve().parent.parent
     for path in filter(None, files):
-        runs: dict[Path, list[tuple[float, float]]] = {here: [], other: []}
+        runs: dict[Path, list[tuple[float, float, float]]] = {here: [], other: []}
         for _ in range(repeats):
             for tree in (other, here):
                 runs[tree].append(_timed(tree, path))
-                wall, rss = runs[tree][-1]
-                print(f"  {path} {tree}: {wall:.1f} s, {rss:.0f} MiB", flush=True)
-        med = {
-            t: (statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs))
-            for t, rs in runs.items()
-        }
+                wall, rss, cpu = runs[tree][-1]
+                print(f"  {path} {tree}: {wall:.1f} s, {rss:.0f} MiB, CPU {cpu:.1f} s", flush=True)
+        med = {t: [statistics.median(r[k] for r in rs) for k in range(3)] for t, rs in runs.items()}
         for tree, rs in runs.items():
-            walls = ", ".join(f"{w:.0f}" for w, _ in rs)
-            print(f"{path} {tree}: median {med[tree][0]:.0f} s ({walls}), {med[tree][1]:.0f} MiB")
+            walls = ", ".join(f"{w:.0f}" for w, _, _ in rs)
+            print(
+                f"{path} {tree}: median {med[tree][0]:.0f} s ({walls}), "
+                f"{med[tree][1]:.0f} MiB, CPU {med[tree][2]:.0f} s"
+            )
+        ratio = [med[here][k] / med[other][k] for k in range(3)]
         print(
-            f"{path}: time ratio {med[here][0] / med[other][0]:.2f}, "
-            f"RSS ratio {med[here][1] / med[other][1]:.2f} (this tree / {other})"
+            f"{path}: time ratio {ratio[0]:.2f}, RSS ratio {ratio[1]:.2f}, CPU ratio "
+            f"{ratio[2]:.2f} (this tree / {other})"
         )
 
 
