@@ -6,13 +6,24 @@ viscous term on every cable and an offset on two of them (``DIAGNOSE_CASES=clean
 that the figures are those of ``diagnose`` alone on a recording in memory: its wall time,
 its peak Python heap (tracemalloc) and the peak resident size of the process (interpreter,
 numpy/scipy/numba and the recording's arrays included). Goals: <= 60 s, <= 400 MB RSS.
+
+Side by side against another tree (issue #19: the diagnosis of a clean 10-min recording
+may take at most 1.5x the time it took before a change): ``DIAGNOSE_AGAINST=/path/to/tree
+DIAGNOSE_FILES=a.csv.gz,b.csv.gz [DIAGNOSE_REPEATS=3]`` runs ``cdpr-gateway diagnose`` on
+each file with this tree and that one, alternating, each under ``/usr/bin/time -v``, and
+prints the median wall time, peak RSS and CPU time of each and their ratios (this tree /
+that).
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import re
 import resource
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
 import tracemalloc
@@ -48,6 +59,13 @@ def _generate(path: str, case: str) -> None:
 
 
 def run() -> None:
+    if os.environ.get("DIAGNOSE_AGAINST"):
+        side_by_side(
+            Path(os.environ["DIAGNOSE_AGAINST"]),
+            os.environ.get("DIAGNOSE_FILES", "").split(","),
+            int(os.environ.get("DIAGNOSE_REPEATS", "3")),
+        )
+        return
     for case in os.environ.get("DIAGNOSE_CASES", "clean,hidden").split(","):
         ctx = multiprocessing.get_context("spawn")
         proc = ctx.Process(target=_one, args=(case,))  # each case in a fresh process
@@ -81,6 +99,49 @@ def _one(case: str) -> None:
         f"(goal <= 400; {rss_before:.0f} MiB with the recording loaded, before diagnose); "
         f"found {found or 'none'}"
     )
+
+
+def _timed(tree: Path, path: str) -> tuple[float, float, float]:
+    """Wall seconds, peak RSS (MiB) and CPU seconds (user + system: on a loaded machine
+    the wall time measures the load as much) of ``cdpr-gateway diagnose path`` run from
+    ``tree``."""
+    env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1"}
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "gateway", "diagnose", path]
+        cmd += ["--model", "config/default.yaml", "--json", str(Path(tmp) / "r.json"), "--quiet"]
+        done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    wall = re.search(r"Elapsed \(wall clock\) time.*: (?:(\d+):)?(\d+):([\d.]+)", done.stderr)
+    rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", done.stderr)
+    cpu = re.findall(r"(?:User|System) time \(seconds\): ([\d.]+)", done.stderr)
+    if done.returncode not in (0, 1) or wall is None or rss is None or len(cpu) != 2:
+        raise RuntimeError(f"{tree}: diagnose {path} failed: {done.stderr[-500:]}")
+    h, m, sec = wall.groups()
+    seconds = int(h or 0) * 3600 + int(m) * 60 + float(sec)
+    return seconds, int(rss.group(1)) / 1024, float(cpu[0]) + float(cpu[1])
+
+
+def side_by_side(other: Path, files: list[str], repeats: int) -> None:
+    """Each file diagnosed by this tree and by ``other``, alternating (module docstring)."""
+    here = Path(__file__).resolve().parent.parent
+    for path in filter(None, files):
+        runs: dict[Path, list[tuple[float, float, float]]] = {here: [], other: []}
+        for _ in range(repeats):
+            for tree in (other, here):
+                runs[tree].append(_timed(tree, path))
+                wall, rss, cpu = runs[tree][-1]
+                print(f"  {path} {tree}: {wall:.1f} s, {rss:.0f} MiB, CPU {cpu:.1f} s", flush=True)
+        med = {t: [statistics.median(r[k] for r in rs) for k in range(3)] for t, rs in runs.items()}
+        for tree, rs in runs.items():
+            walls = ", ".join(f"{w:.0f}" for w, _, _ in rs)
+            print(
+                f"{path} {tree}: median {med[tree][0]:.0f} s ({walls}), "
+                f"{med[tree][1]:.0f} MiB, CPU {med[tree][2]:.0f} s"
+            )
+        ratio = [med[here][k] / med[other][k] for k in range(3)]
+        print(
+            f"{path}: time ratio {ratio[0]:.2f}, RSS ratio {ratio[1]:.2f}, CPU ratio "
+            f"{ratio[2]:.2f} (this tree / {other})"
+        )
 
 
 if __name__ == "__main__":

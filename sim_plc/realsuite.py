@@ -12,7 +12,9 @@ real`` runs it on the shared data and prints the same) diagnoses:
   fitted model then predicts those 6 and the 4 trials of ``Tool_4_Maryland_L_2`` (never
   seen), scored by :func:`sim_plc.realdata.rmse` like the baseline (:mod:`sim_plc.baseline`,
   fitted on the same 9). Whether the diagnosis names the same effects when fitted on
-  either validation set instead is reported too.
+  either validation set instead is reported too, and the parameters of the effects all
+  three fits found, with both standard errors, against the spread between the fits
+  (:func:`spread`).
 
 Each run writes its section "## Real recordings" of the table file (the rest is kept).
 """
@@ -20,6 +22,7 @@ Each run writes its section "## Real recordings" of the table file (the rest is 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -46,6 +49,22 @@ def _diagnose(fit: Recording, model: FrictionConfig, validation: Recording | Non
 def _parameters(report: dict) -> dict[str, dict[str, float]]:
     return {
         f["effect"]: {k: float(v[0]) for k, v in f["parameters"].items()}
+        for f in report["findings"]
+    }
+
+
+def _estimates(report: dict) -> dict[str, dict[str, tuple[float, float, float]]]:
+    """Per finding and parameter: (value, the Jacobian's standard error, the standard
+    error from the refits across time blocks or trials)."""
+    return {
+        f["effect"]: {
+            k: (
+                float(v[0]),
+                float(f["stderr_jacobian"][k][0]),
+                float(f["stderr_blocks"][k][0]),
+            )
+            for k, v in f["parameters"].items()
+        }
         for f in report["findings"]
     }
 
@@ -124,12 +143,44 @@ def run_davinci(root: Path, refits: bool = True) -> dict[str, Any]:
         "unexplained": res["report"].get("unexplained"),
         "seconds": res["seconds"],
     }
+    out["estimates"] = {"fit": _estimates(res["report"])}
     if refits:  # the same effects when fitted on either validation set instead?
-        out["refits"] = {
-            name: [f["effect"] for f in _diagnose(rec, model, None)["report"]["findings"]]
-            for name, rec in (("validation", sets.validation), ("other_series", sets.other))
-        }
+        out["refits"] = {}
+        for name, rec in (("validation", sets.validation), ("other_series", sets.other)):
+            report = _diagnose(rec, model, None)["report"]
+            out["refits"][name] = [f["effect"] for f in report["findings"]]
+            out["estimates"][name] = _estimates(report)
     return out
+
+
+def spread(estimates: dict[str, dict]) -> list[dict[str, Any]]:
+    """Each parameter of the effects every fit found: its values, the standard deviation
+    between the fits, and the root mean square of each kind of standard error (the
+    Jacobian's, the refits' across blocks or trials). An error that means something is
+    about as large as the spread between recordings of the same machine."""
+    import numpy as np
+
+    fits = list(estimates.values())
+    common = [e for e in fits[0] if all(e in f for f in fits[1:])] if fits else []
+    rows = []
+    for e in common:
+        for k in fits[0][e]:
+            got = np.array([f[e][k] for f in fits], dtype=float)  # (fits, 3)
+            bad = got[:, 1:] < 0  # -1: could not be computed (the report's JSON)
+            se = np.where(bad, np.nan, got[:, 1:])
+            rows.append(
+                {
+                    "effect": e,
+                    "parameter": k,
+                    "values": got[:, 0].tolist(),
+                    "jacobian": se[:, 0].tolist(),
+                    "blocks": se[:, 1].tolist(),
+                    "sd": float(np.std(got[:, 0], ddof=1)) if len(fits) > 1 else float("nan"),
+                    "rms_jacobian": float(np.sqrt(np.nanmean(se[:, 0] ** 2))),
+                    "rms_blocks": float(np.sqrt(np.nanmean(se[:, 1] ** 2))),
+                }
+            )
+    return rows
 
 
 def _params_text(params: dict[str, dict[str, float]]) -> str:
@@ -228,9 +279,49 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
             )
             + f" ({'the same effects' if same else '**not the same effects**'}).",
         ]
+    if len(dv.get("estimates", {})) > 1:
+        lines += ["", *_spread_table(dv["estimates"])]
     for name, res in (("EMPS", emps), ("da Vinci", dv)):
         lines += ["", f"{name}: `unexplained`: {_unexplained_text(res.get('unexplained'))}"]
     return "\n".join(lines) + "\n"
+
+
+def _spread_table(estimates: dict[str, dict]) -> list[str]:
+    """The spread of the common parameters between the three fits against their errors."""
+    rows = spread(estimates)
+    lines = [
+        "Uncertainty: each parameter of the effects all three fits found, fitted on each "
+        "set (value, the Jacobian's standard error / the standard error from refits leaving "
+        "out whole trials), against the standard deviation between the three fits and the "
+        "root mean square of each error.",
+        "",
+        "| parameter | L_4, 9 fit trials | L_4, 6 validation trials | L_2, 4 trials | "
+        "sd of the three | rms Jacobian | rms blocks | sd / rms blocks |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        cells = [
+            f"{v:.4g} ({j:.2g} / {b:.2g})"
+            for v, j, b in zip(r["values"], r["jacobian"], r["blocks"], strict=True)
+        ]
+        ratio = r["sd"] / r["rms_blocks"] if r["rms_blocks"] > 0 else float("nan")
+        lines.append(
+            f"| {r['effect']} {r['parameter']} | {' | '.join(cells)} | {r['sd']:.3g} | "
+            f"{r['rms_jacobian']:.2g} | {r['rms_blocks']:.2g} | {ratio:.1f} |"
+        )
+    covered = [f"{r['effect']} {r['parameter']}" for r in rows if r["sd"] <= 2 * r["rms_blocks"]]
+    beyond = [f"{r['effect']} {r['parameter']}" for r in rows if r["sd"] > 2 * r["rms_blocks"]]
+    ratio_jac = [r["sd"] / r["rms_jacobian"] for r in rows if r["rms_jacobian"] > 0]
+    lines += [
+        "",
+        f"The spread between the fits is {min(ratio_jac, default=math.nan):.0f}-"
+        f"{max(ratio_jac, default=math.nan):.0f} times the Jacobian's errors; within twice "
+        f"the errors from refits for {', '.join(covered) or 'none'}; beyond for "
+        f"{', '.join(beyond) or 'none'} (the fits' effect sets: "
+        + "; ".join(f"{k.replace('_', ' ')} {', '.join(v)}" for k, v in estimates.items())
+        + ").",
+    ]
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -248,10 +339,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def _unexplained_text(u: dict | None) -> str:
     """The report's ``unexplained`` entry in words: the signal, its share and q, the reading,
     and the next signals of the ranking."""
@@ -263,3 +350,7 @@ def _unexplained_text(u: dict | None) -> str:
         f"held-out blocks (q {u['q']:.1e}): {u['reading']}."
         + (f" Next: {others}." if others else "")
     )
+
+
+if __name__ == "__main__":
+    sys.exit(main())

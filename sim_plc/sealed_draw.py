@@ -7,8 +7,10 @@ generator setting the suite has changed: point-to-point moves (two in three), ra
 (one in five), other seeds; and its effects at other sizes: each parameter's change from
 its absent value (the registry's ``neutral``) times 0.7-1.5, or the value itself where that
 would leave it under half or over twice its tuning size (a speed scale, not a correction),
-a phase drawn anew. A twin on the soft PLC's plant keeps the plant and draws its sizes and
-seed. Code that serves every effect: no effect is named here.
+or where the absent value is infinite (a stiffness); a phase drawn anew; a position (a
+length with an absolute tolerance) moved by up to twice its tolerance either way. A twin on
+the soft PLC's plant keeps the plant and draws its sizes and seed. Code that serves every
+effect: no effect is named here.
 
 ``python -m sim_plc.scenarios --seal SEED`` writes the file; a new draw is a reseal
 (:mod:`sim_plc.sealing`): the doc records the new hash and why.
@@ -25,16 +27,23 @@ import yaml
 
 from gateway.diagnose.prepare import nominal_from
 from gateway.model import effects as fx
-from sim_plc.scenarios import SUITE_FILE, Scenario, suite
+from sim_plc.scenarios import SUITE_FILE, Scenario, suite, tolerance
 
 Draw = dict[str, Any]
 
 
-def _value(param: fx.Param, tuning: float, neutral: float, f: float, rng) -> float:
+def _value(
+    param: fx.Param, tuning: float, neutral: float, f: float, rng, tol: tuple[str, float] | None
+) -> float:
     if param.unit == "rad":
         return float(rng.uniform(0.0, 2.0 * math.pi))
     if tuning == neutral:  # absent on this cable: stays absent
         return tuning
+    if param.unit == "m" and tol is not None and tol[0] == "abs":
+        # a position (a length checked to within an absolute tolerance), not a size
+        return tuning + float(rng.uniform(-2.0, 2.0)) * tol[1]
+    if not math.isfinite(neutral):  # absent at infinity (a stiffness): the size itself
+        return tuning * f
     value = neutral + (tuning - neutral) * f
     if tuning > 0 and not 0.5 * tuning <= value <= 2.0 * tuning:
         value = tuning * f
@@ -54,14 +63,15 @@ def effects_draw(sc: Scenario, cables: int, rng: np.random.Generator) -> Draw:
                 continue
             given = params[p.name]
             f = float(rng.uniform(0.7, 1.5))
+            tol = tolerance(name, p.name)
             if isinstance(given, tuple):
                 per = [
-                    _value(p, float(given[i % len(given)]), neutral[p.name], f, rng)
+                    _value(p, float(given[i % len(given)]), neutral[p.name], f, rng, tol)
                     for i in range(cables)
                 ]
                 drawn[p.name] = [round(x, 6) for x in per]
             else:
-                drawn[p.name] = round(_value(p, float(given), neutral[p.name], f, rng), 6)
+                drawn[p.name] = round(_value(p, float(given), neutral[p.name], f, rng, tol), 6)
         out[name] = drawn
     return out
 

@@ -98,7 +98,17 @@ class Foreign:
 
 @njit(cache=True)
 def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: no cover
+    """:func:`_chain_directional` with the same coefficients in both directions."""
+    return _chain_directional(tp, v, dt, wrap, mu, mu, f0, sigma, dahl, sk, svs)
+
+
+@njit(cache=True)
+def _chain_directional(tp, v, dt, wrap, mu, mu_in, f0, sigma, dahl, sk, svs):  # pragma: no cover
     """Sensor tension (N,) from platform tension and velocity; explicit Euler on x.
+
+    ``mu`` are the pulleys' coefficients paying out (``v > 0``) and at rest, ``mu_in``
+    hauling in (``v < 0``): ``coulomb_directional`` (docs/physics.md sec. 4: the level the
+    friction, or the Dahl state, tends to depends on the direction of travel).
 
     Dahl: ``dF/dx = sigma (1 - F / F_R sgn(v))`` (beta = 1) exactly as written, without a
     clamp of ``|F|`` to ``F_R`` (a clamp is not Dahl: it snapped the state to a falling
@@ -127,7 +137,8 @@ def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: n
         for j in range(p - 1, -1, -1):
             tb = prev[j]
             fn = math.sqrt(max(tb * tb - 2.0 * tb * tj * math.cos(wrap[j]) + tj * tj, 0.0))
-            fr = (mu[j] * fn + f0) * (1.0 + sk * math.exp(-((v[k] / svs) ** 2)))
+            mu_j = mu_in[j] if s < 0 else mu[j]
+            fr = (mu_j * fn + f0) * (1.0 + sk * math.exp(-((v[k] / svs) ** 2)))
             if dahl:
                 if fr > 0:
                     # eq. 14 as it stands: no clamp |F| <= F_R (a falling level is
@@ -381,6 +392,15 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
     f0 = fo.effects.get("coulomb", {}).get("f0_n", 0.0)
     if "coulomb" in fo.effects and "mu" in fo.effects["coulomb"]:
         mu = mu * fo.effects["coulomb"]["mu"] / mu.mean()
+    mu_in = mu
+    directional = fo.effects.get("coulomb_directional", {})
+    if directional:  # absolute per direction, every pulley alike (as coulomb.mu)
+        if any(n in fo.effects for n in DRIVE_EFFECTS):
+            raise ValueError("coulomb_directional with a drive effect: not generated")
+        f0 = directional.get("f0_n", f0)
+        mu, mu_in = (
+            mu * directional.get(name, mu.mean()) / mu.mean() for name in ("mu_out", "mu_in")
+        )
     sigma = fo.effects.get("presliding", {}).get("sigma_n_m", fo.sigma_n_m)
     dahl = fo.model == "dahl" or "presliding" in fo.effects
     for i in range(1, fo.cables + 1):
@@ -392,7 +412,9 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
         if any(n in fo.effects for n in DRIVE_EFFECTS) and (dahl or "maxwell_slip" in fo.effects):
             ts = _drive_chain(fo, tn, v, wrap, mu, f0, sigma, st)
         else:
-            ts = _chain(tn, v, 1.0 / fo.fine_hz, wrap, mu, f0, sigma, dahl, st["k"], st["v_s_m_s"])
+            ts = _chain_directional(
+                tn, v, 1.0 / fo.fine_hz, wrap, mu, mu_in, f0, sigma, dahl, st["k"], st["v_s_m_s"]
+            )
         ts = _effects(fo, fine, v, x, ts)
         sens = np.interp(ts_out, fine, ts) + _noise(fo, ts_out, rng)
         if fo.noise in ("quant", "mixed"):

@@ -8,8 +8,10 @@ timing jitter, five noise kinds at 0.15-0.5 N, point-to-point or positioning mov
 cables, loads of 150-400 N; one case per effect at about the scenario suite's sizes
 (0.7-1.5x, either sign where the effect has one), four pairs, four clean recordings.
 Tolerances: the scenario suite's (``sim_plc/scenarios.yaml``), as ``(value, rel, abs)``.
-Eccentricity is checked on its amplitude and radius only: the generator's travel starts at
-its fine grid's origin, not at the recording's first row, so its phase has another zero.
+Eccentricity is checked on its amplitude and radius only, a spring on its stiffness only:
+the generator's travel starts at its fine grid's origin, not at the recording's first row,
+so a phase or a length has another zero. Maxwell-slip, backlash and cable stretch are
+drawn on the Dahl chain (they act on its presliding state).
 
 ``python -m tests.foreign_cases --seal SEED`` writes the file; a new draw is a reseal
 (:mod:`sim_plc.sealing`).
@@ -39,7 +41,16 @@ SINGLE = (
     "offset",
     "drift",
     "eccentricity",
+    "coulomb_directional",
+    "maxwell_slip",
+    "backlash",
+    "cable_stretch",
+    "sensor_creep",
+    "spring",
 )
+TRAVEL_DRIVEN = ("maxwell_slip", "backlash", "cable_stretch")
+"""Effects on the presliding state the travel drives: drawn on a Dahl chain (the nominal
+a Coulomb chain has no such state for them to act on, docs/physics.md sec. 4)."""
 PAIRS = (("viscous", "offset"), ("coulomb", "gain"), ("lowpass", "drift"), ("inertia", "viscous"))
 
 
@@ -72,8 +83,27 @@ def _effect(name: str, rng: np.random.Generator, mu_mean: float) -> dict[str, fl
             "r_m": r(0.03 * _size(rng)),
             "phi_rad": r(rng.uniform(0.0, 2 * math.pi)),
         },
+        "coulomb_directional": lambda: _directional(rng, mu_mean),
+        "maxwell_slip": lambda: {"sigma_n_m": r(3000.0 * _size(rng)), "w": r(0.5 * _size(rng))},
+        "backlash": lambda: {"width_m": r(0.002 * _size(rng))},
+        "cable_stretch": lambda: {"k_n_m": r(2000.0 * _size(rng))},
+        "sensor_creep": lambda: {
+            "c": r(0.04 * _sign(rng) * _size(rng)),
+            "tau_s": r(0.4 * _size(rng)),
+        },
+        "spring": lambda: {"k_n_m": r(4.0 * _size(rng)), "l0_m": r(rng.uniform(-0.3, 0.3))},
     }
     return draws[name]()
+
+
+def _directional(rng: np.random.Generator, mu_mean: float) -> dict[str, float]:
+    """Paying out and hauling in each off the pulleys' mean, in opposite senses (the
+    tuning case's +17 % and -10 %, each 0.7-1.5x, either way round)."""
+    s = _sign(rng)
+    return {
+        "mu_out": round(mu_mean * (1 + s * 0.17 * _size(rng)), 6),
+        "mu_in": round(mu_mean * (1 - s * 0.1 * _size(rng)), 6),
+    }
 
 
 def _machine(rng: np.random.Generator, seed: int) -> dict[str, Any]:
@@ -105,7 +135,7 @@ def _truth(effects: dict[str, dict[str, float]], mu_mean: float) -> dict[str, di
         checked = {}
         for param, value in params.items():
             kind, tol = tolerance(name, param) or ("rel", 0.2)
-            if name == "eccentricity" and param == "phi_rad":
+            if (name, param) in (("eccentricity", "phi_rad"), ("spring", "l0_m")):
                 continue  # another zero of the travel (module docstring)
             if kind == "abs":
                 checked[param] = [value, 0.0, tol]
@@ -129,9 +159,13 @@ def draw(seed: int) -> list[dict[str, Any]]:
         effects = {e: _effect(e, rng, mu_mean) for e in combo}
         if "presliding" in effects:
             fo["model"] = "coulomb"  # the nominal model knows no pre-sliding state
+        if any(e in effects for e in TRAVEL_DRIVEN):
+            fo["model"] = "dahl"
         if effects:
             fo["effects"] = effects
-        name = "sealed_" + ("+".join(combo) if combo else f"clean_{k - len(SINGLE) - 3}")
+        name = "sealed_" + (
+            "+".join(combo) if combo else f"clean_{k - len(SINGLE) - len(PAIRS) + 1}"
+        )
         cases.append({"name": name, "foreign": fo, "truth": _truth(effects, mu_mean)})
     return cases
 

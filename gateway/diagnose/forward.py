@@ -14,13 +14,14 @@ Everything is one cable: arrays (N,), parameters scalars.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from gateway.model import effects as fx
-from gateway.model.chain import ChainParams, simulate
+from gateway.model.chain import ChainParams, simulate, simulate_rows
 
 CHAIN_EFFECTS = (*fx.stage_of("statics"), *fx.stage_of("chain"))
 """Effects that change the chain simulation (the cache key of :class:`Forward`)."""
@@ -30,7 +31,8 @@ ALL_EFFECTS = fx.EFFECT_NAMES
 class CableData:
     """One cable's series. ``t``, ``v``, ``tp``, ``ts`` (N,): s, m/s, N, N.
 
-    ``x`` displacement (m) and ``a`` acceleration (m/s^2) from ``v``; ``t0`` the
+    ``x`` displacement (m, ``x0`` at the first sample) and ``a`` acceleration (m/s^2) from
+    ``v``; ``t0`` the
     recording's first time (drift is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of
     platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
     ``x`` and ``a`` are given (a subset of a longer recording takes them from the whole
@@ -51,8 +53,9 @@ class CableData:
         dtp_dm: np.ndarray | Callable[[], np.ndarray] | None = None,
         x: np.ndarray | None = None,
         a: np.ndarray | None = None,
+        x0: float = 0.0,
     ) -> None:
-        self.t, self.v, self.tp, self.ts, self.t0 = t, v, tp, ts, t0
+        self.t, self.v, self.tp, self.ts, self.t0, self.x0 = t, v, tp, ts, t0, x0
         self._given = x is not None or a is not None
         self._x, self._a = x, a
         self._dm_source = dtp_dm if callable(dtp_dm) else None
@@ -68,6 +71,8 @@ class CableData:
     def x(self) -> np.ndarray:
         if self._x is None:
             self._x = fx.displacement(self.t, self.v)
+            if self.x0:
+                self._x += self.x0
         return self._x
 
     @property
@@ -137,6 +142,10 @@ def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
     return fx.chain_params(nom, report_values(eff, "chain"), 1)
 
 
+PRUNE_MARGIN = 1e-6
+"""Relative margin of :meth:`Forward.predict_bounded`'s stop (the partial sums and the
+caller's sum over every sample round differently)."""
+
 CACHE_BYTES = 10 << 20
 """Memory for one :class:`Forward`'s cached chain simulations (speed only, never results)."""
 
@@ -156,28 +165,87 @@ class Forward:
         fit = CACHE_BYTES // max(8 * data.t.size, 1)
         self._cache_size = max(min(cache_size, fit), min(cache_size, 2))
         self.simulations = 0
+        self.starts: dict[bytes, np.ndarray] = {}
+        """:func:`gateway.diagnose.fit.best_start`'s results by a digest of everything
+        they depend on (a few numbers each: the selection screens the same candidate on the
+        same model more than once, e.g. again in the next round when nothing changed)."""
+        self.start_hint: dict[str, int] = {}
+        """The index of the start that won each effect's last :func:`best_start`."""
 
     def clear_cache(self) -> None:
-        """Free the cached chain simulations and the data's computed ``x`` and ``a``."""
+        """Free the cached chain simulations, the remembered starts and the data's computed
+        ``x`` and ``a``."""
         self._cache.clear()
+        self.starts.clear()
+        self.start_hint.clear()
         self.data.release()
+
+    @staticmethod
+    def _key(eff: dict[str, np.ndarray]) -> tuple:
+        return tuple((k, tuple(np.round(eff[k], 14))) for k in CHAIN_EFFECTS if k in eff)
+
+    def keep(self, eff: dict[str, np.ndarray], out: np.ndarray) -> None:
+        """Put ``out``, the chain output of ``eff`` (from :meth:`chain`), back into the
+        cache as its newest entry (the next :meth:`chain` of ``eff`` then needs no
+        simulation)."""
+        key = self._key(eff)
+        self._cache.pop(key, None)
+        if len(self._cache) >= self._cache_size:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[key] = out
 
     def chain(self, eff: dict[str, np.ndarray]) -> np.ndarray:
         """Sensor-side tension (N,) from the friction chain (and mass change) alone."""
-        key = tuple((k, tuple(np.round(eff[k], 14))) for k in CHAIN_EFFECTS if k in eff)
+        key = self._key(eff)
         hit = self._cache.get(key)
         if hit is not None:
             return hit
+        params, tp = self._chain_input(eff)
+        d = self.data
+        out = simulate(params, tp[:, None], d.v[:, None], d.t)[:, 0]
+        self._store(key, out)
+        return out
+
+    def _chain_input(self, eff: dict[str, np.ndarray]) -> tuple[ChainParams, np.ndarray]:
         d = self.data
         tp = d.tp
         delta = fx.mass_delta(report_values(eff, "statics"), d.t, d.t0)
         if delta is not None and d.dtp_dm is not None:
             tp = tp + delta * d.dtp_dm
-        out = simulate(chain_params(self.nom, eff), tp[:, None], d.v[:, None], d.t)[:, 0]
+        return chain_params(self.nom, eff), tp
+
+    def _store(self, key: tuple, out: np.ndarray) -> None:
         self.simulations += 1
         if len(self._cache) >= self._cache_size:
             self._cache.pop(next(iter(self._cache)))
         self._cache[key] = out
+
+    def predict_bounded(
+        self, eff: dict[str, np.ndarray], mask: np.ndarray, bound: float
+    ) -> np.ndarray | None:
+        """:meth:`predict`, or None once its squared error on the samples ``mask`` is
+        certain to exceed ``bound``: the chain simulated batch by batch
+        (:func:`gateway.model.chain.simulate_rows`) and stopped when the error of the rows
+        done already does (by a margin far above rounding). Only without path and sensor
+        effects (the reading is then the chain's output, row by row); else, or with the
+        simulation cached, :meth:`predict`. A prediction returned is :meth:`predict`'s,
+        bit for bit."""
+        key = self._key(eff)
+        if not math.isfinite(bound) or key in self._cache or fx.ordered(eff, "path", "sensor"):
+            return self.predict(eff)
+        params, tp = self._chain_input(eff)
+        d = self.data
+        out2 = np.empty((d.t.size, 1))
+        limit = bound * (1.0 + PRUNE_MARGIN)
+        done, sse = 0, 0.0
+        for rows in simulate_rows(params, tp[:, None], d.v[:, None], d.t, out2):
+            r = (d.ts[done:rows] - out2[done:rows, 0])[mask[done:rows]]
+            sse += float(r @ r)
+            done = rows
+            if sse > limit and rows < d.t.size:
+                return None
+        out = out2[:, 0]
+        self._store(key, out)
         return out
 
     def predict(self, eff: dict[str, np.ndarray]) -> np.ndarray:

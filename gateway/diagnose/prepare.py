@@ -75,8 +75,15 @@ Sensitivity = np.ndarray | MassSensitivity | None
 """``dT_p/dm``: (N, m) N/kg, or its knots (interpolated per cable when read), or None."""
 
 
-def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity) -> list[CableData]:
+def cable_data(
+    rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity, origin: np.ndarray | None = None
+) -> list[CableData]:
     """One :class:`CableData` per cable; ``tp`` (N, m); velocity through :func:`deadband`.
+
+    ``x`` is the travel since the first sample; with ``origin`` (the diagnosed recording's
+    first cable lengths) and lengths in ``rec`` (a validation recording), the travel since
+    the diagnosed recording's first sample instead: a length or a phase fitted against the
+    diagnosed recording's travel (``spring``, ``eccentricity``) means the same on both.
 
     Memory: the tensions and a clean velocity are views of the recording's columns (not
     copies); displacement and acceleration (16 bytes per sample) and ``dtp_dm`` given as
@@ -84,6 +91,9 @@ def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity) -> list[Cabl
     :meth:`Forward.clear_cache` (float32 would halve them but moves the finite-difference
     fits of eccentricity and inertia)."""
     t0 = float(rec.t[0])
+    x0 = np.zeros(rec.cables)
+    if origin is not None and rec.length is not None:
+        x0 = np.asarray(rec.length[0], dtype=float) - np.asarray(origin, dtype=float)
     out = []
     for i in range(rec.cables):
         v = deadband(rec.velocity[:, i])
@@ -92,7 +102,7 @@ def cable_data(rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity) -> list[Cabl
             dm = partial(dtp_dm.column, rec.t, i)
         elif dtp_dm is not None:
             dm = dtp_dm[:, i]
-        out.append(CableData(rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm))
+        out.append(CableData(rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm, x0=float(x0[i])))
     return out
 
 
@@ -208,6 +218,17 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     return out
 
 
+def gap_segments(t: np.ndarray) -> np.ndarray:
+    """(N,) index of the piece of recording each sample lies in: a new piece after every
+    gap (a step longer than ``GAP_SPACINGS`` median spacings; trials joined into one
+    recording)."""
+    if t.size < 2:
+        return np.zeros(t.size, np.int64)
+    dt = np.diff(t)
+    gaps = dt > GAP_SPACINGS * float(np.median(dt))
+    return np.concatenate(([0], np.cumsum(gaps))).astype(np.int64)
+
+
 SELECTION_BUDGET = 150_000
 """Samples per cable above which the selection runs on a subset (then refit on all)."""
 WARMUP_S = 1.0
@@ -259,8 +280,9 @@ def cable_candidates(cands: list[str], d: CableData, nom: Nominal) -> list[str]:
     ]
 
 
-def validation_forwards(validation, nom: Nominal, cables: int):
-    """The validation recording's forwards and its valid (unclipped) samples, or None."""
+def validation_forwards(validation, nom: Nominal, cables: int, origin: np.ndarray | None = None):
+    """The validation recording's forwards and its valid (unclipped) samples, or None;
+    ``origin``: the diagnosed recording's first cable lengths (:func:`cable_data`)."""
     if validation is None:
         return None
     vrec, vtp, vdm = finite_rows(*validation)
@@ -268,5 +290,5 @@ def validation_forwards(validation, nom: Nominal, cables: int):
         raise RecordingError(
             f"{vrec.source}: has {vrec.cables} cables, the diagnosed recording {cables}"
         )
-    fws = [Forward(d, nom) for d in cable_data(vrec, vtp, vdm)]
+    fws = [Forward(d, nom) for d in cable_data(vrec, vtp, vdm, origin)]
     return fws, np.column_stack([~clipped_mask(fw.data.ts)[0] for fw in fws])

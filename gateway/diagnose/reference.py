@@ -26,6 +26,7 @@ from gateway.diagnose.prepare import (
     candidates_for,
     clipped_mask,
     finite_rows,
+    gap_segments,
     nominal_from,
     selection_subset,
     time_blocks,
@@ -52,10 +53,14 @@ class CableUnit:
         candidates: list[str],
         usable: np.ndarray | None = None,
         stride: int = 1,
+        segments: np.ndarray | None = None,
     ) -> None:
         """``usable`` (N,) bool: samples that may be fitted and scored (None: all; False:
-        warm-up and clipped readings)."""
+        warm-up and clipped readings); ``segments`` (N,): the piece of the recording (a
+        trial between gaps) of each sample, for the refits across trials
+        (:func:`.stats.block_groups`)."""
         self.fw, self.blocks, self.n_blocks = fw, blocks, n_blocks
+        self.segments = segments
         use = np.ones(blocks.shape, bool) if usable is None else usable
         self.train = (blocks % 2 == 0) & use
         self.test = (blocks % 2 == 1) & use
@@ -134,6 +139,8 @@ class PlatformPrepared:
     subset: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     validation: tuple[list[Forward], np.ndarray] | None
     clipped: dict
+    segments: np.ndarray | None = None
+    """(N,) the piece of the recording (trial) of each sample (:func:`.prepare.gap_segments`)."""
 
 
 class PlatformReference:
@@ -180,8 +187,11 @@ class PlatformReference:
             usable,
             cands,
             selection_subset(rec.t, blocks),
-            validation_forwards(validation, nom, rec.cables),
+            validation_forwards(
+                validation, nom, rec.cables, None if rec.length is None else rec.length[0]
+            ),
             clipped,
+            gap_segments(rec.t),
         )
 
     def units(self, prep: PlatformPrepared, say) -> Iterator[tuple[int, CableUnit]]:
@@ -206,13 +216,26 @@ class PlatformReference:
         d, cands = prep.datas[i], prep.candidates[i]
         if prep.subset is None:
             return CableUnit(
-                Forward(d, prep.nom), prep.blocks, prep.n_blocks, cands, prep.usable[:, i]
+                Forward(d, prep.nom),
+                prep.blocks,
+                prep.n_blocks,
+                cands,
+                prep.usable[:, i],
+                segments=prep.segments,
             )
         idx, sub_blocks, use = prep.subset
         sub = d.subset(idx)
         d.release()
         use = use & prep.usable[idx, i] & warmup_mask(sub, prep.nom)
-        return CableUnit(Forward(sub, prep.nom), sub_blocks, int(sub_blocks.max()) + 1, cands, use)
+        segs = None if prep.segments is None else prep.segments[idx]
+        return CableUnit(
+            Forward(sub, prep.nom),
+            sub_blocks,
+            int(sub_blocks.max()) + 1,
+            cands,
+            use,
+            segments=segs,
+        )
 
     def full_unit(self, prep: PlatformPrepared, i: int) -> CableUnit:
         """Cable ``i`` on every sample (thinned scoring in the fit of a long recording)."""
@@ -220,7 +243,13 @@ class PlatformReference:
         train = (prep.blocks % 2 == 0) & prep.usable[:, i]
         stride = max(1, int(train.sum()) // SELECTION_BUDGET)
         return CableUnit(
-            fw, prep.blocks, prep.n_blocks, prep.candidates[i], prep.usable[:, i], stride
+            fw,
+            prep.blocks,
+            prep.n_blocks,
+            prep.candidates[i],
+            prep.usable[:, i],
+            stride,
+            segments=prep.segments,
         )
 
     def locate(self, prep: PlatformPrepared) -> Located:

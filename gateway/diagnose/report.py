@@ -14,7 +14,8 @@ closest physical reading.
 Each finding carries, per cable in ``cables``: ``statistic`` (the held-out z of the model
 with it against the model without it), ``p`` and ``q`` (Benjamini-Hochberg over every
 candidate x cable tried, :mod:`.significance`), ``stderr`` (the larger of the Jacobian's
-and the spread of refits across time blocks), ``stderr_jacobian`` and ``stderr_blocks``;
+and the spread of refits across time blocks, whole trials left out where the recording
+joins several), ``stderr_jacobian`` and ``stderr_blocks``;
 ``alternatives`` lists the effects of its group the held-out data cannot tell from it (each
 with its parameters and held-out RMSE) and ``separate_by`` the motion that would. ``rmse_*``
 are over every cable and sample, ``holdout_*`` over the held-out blocks, ``validation_*``

@@ -25,7 +25,9 @@ kept only with ``q <= alpha``.
 and a correct model; refitting with one group of training blocks left out at a time
 (delete-a-group jackknife, :func:`jackknife_se`) gives errors that also carry what varies
 between stretches of the recording (a model-form error, a drifting machine), the spread a
-second recording of the same machine would show.
+second recording of the same machine would show. A recording of several trials leaves out
+whole trials (:func:`block_groups`): what a trial's conditions make of a model-form error
+is shared by all its blocks.
 """
 
 from __future__ import annotations
@@ -107,10 +109,29 @@ def bh_qvalues(p: Sequence[float]) -> np.ndarray:
     return out
 
 
-def block_groups(blocks: np.ndarray, train: np.ndarray, groups: int) -> list[np.ndarray]:
-    """Masks leaving one group of training blocks out each: the training blocks split into
-    ``groups`` interleaved groups (every ``groups``-th block), so each refit still sees
-    every part of the recording."""
+MIN_SEGMENT_GROUPS = 3
+"""Fewest segments (trials) whose leave-one-out refits give the errors (fewer: blocks)."""
+
+
+def block_groups(
+    blocks: np.ndarray, train: np.ndarray, groups: int, segments: np.ndarray | None = None
+) -> list[np.ndarray]:
+    """Masks leaving one group of training samples out each.
+
+    A recording joined from ``MIN_SEGMENT_GROUPS`` or more segments (trials, pieces
+    between gaps: ``segments`` (N,), their index per sample) leaves out whole segments:
+    the segments split into ``groups`` runs of consecutive ones (each segment its own
+    group where there are fewer). Blocks of one trial share what that trial's conditions
+    make of a model-form error (a speed, a load level), so refits that leave out
+    interleaved blocks and keep the rest of every trial see the same error each time
+    and understate the spread between trials, the spread a second recording shows.
+    Otherwise the training blocks split into ``groups`` interleaved groups (every
+    ``groups``-th block), so each refit still sees every part of the recording."""
+    if segments is not None:
+        ids = np.unique(segments[train])
+        if ids.size >= MIN_SEGMENT_GROUPS:
+            parts = np.array_split(ids, min(groups, ids.size))
+            return [train & ~np.isin(segments, part) for part in parts]
     ids = np.unique(blocks[train])
     g = min(groups, ids.size)
     out = []

@@ -56,6 +56,7 @@ step and read their parameters from one :class:`KernelParams` and their state fr
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from typing import Literal, NamedTuple
 
@@ -750,6 +751,25 @@ def _run_batch(
     tol_n: float,
     max_iter: int,
 ) -> np.ndarray:
+    out = np.empty(np.shape(tension))
+    for _ in _batches(params, forward, tension, velocity, t, state, tol_n, max_iter, out):
+        pass
+    return out
+
+
+def _batches(
+    params: ChainParams,
+    forward: bool,
+    tension: np.ndarray,
+    velocity: np.ndarray,
+    t: np.ndarray | float,
+    state: ChainState | None,
+    tol_n: float,
+    max_iter: int,
+    out: np.ndarray,
+) -> Iterator[int]:
+    """The batch forms' work into ``out`` (N, m), one kernel call per :data:`BATCH_ROWS`
+    rows; yields the rows done after each call (``out[:b]`` is final)."""
     t_in = np.ascontiguousarray(tension, dtype=float)
     vel = np.ascontiguousarray(velocity, dtype=float)
     if t_in.ndim != 2 or t_in.shape[1] != params.cables or vel.shape != t_in.shape:
@@ -758,12 +778,11 @@ def _run_batch(
             f"got {t_in.shape} and {vel.shape}"
         )
     f_state = new_state(params) if state is None else state
-    out = np.empty_like(t_in)
     kernel = compensate_kernel if forward else simulate_kernel
     p = kernel_params(params, tol_n, max_iter)
     n = t_in.shape[0]
     if n == 0:
-        return out
+        return
     dt = _time_steps(t, n)
     # the travel in row blocks (the friction state and the previous velocity carried
     # across): a 10-min, 8-cable run would otherwise hold a 38 MB travel array
@@ -773,7 +792,23 @@ def _run_batch(
         b = min(a + BATCH_ROWS, n)
         travel_into(vel[a:b], dt[a:b], v_prev, dx[: b - a])
         kernel(p, t_in[a:b], vel[a:b], dx[: b - a], f_state, out[a:b])
-    return out
+        yield b
+
+
+def simulate_rows(
+    params: ChainParams,
+    tension_platform: np.ndarray,
+    velocity: np.ndarray,
+    t: np.ndarray | float,
+    out: np.ndarray,
+    tol_n: float = 1e-10,
+    max_iter: int = 20,
+) -> Iterator[int]:
+    """:func:`simulate` (from the relaxed state) into ``out`` (N, m), yielding the rows done
+    so far after each batch of :data:`BATCH_ROWS` (the values bit for bit those of
+    :func:`simulate`): a caller may stop early, e.g. once the error of the rows done
+    already rules a trial out."""
+    return _batches(params, False, tension_platform, velocity, t, None, tol_n, max_iter, out)
 
 
 def simulate(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim_plc.scenarios import Scenario, evaluate, expected_cables, suite
+from sim_plc.scenarios import Scenario, evaluate, expected_cables, substitutes, suite
 from tests.diagnose_helpers import check_report
 
 FAST = {
@@ -53,6 +53,13 @@ LONG = {
     "drift",
     "eccentricity",
     "uneven_delay",
+    # the effects of the last round alone (10-40 s each)
+    "coulomb_directional",
+    "maxwell_slip",
+    "backlash",
+    "cable_stretch",
+    "sensor_creep",
+    "plant_spring",
 }
 
 
@@ -73,10 +80,15 @@ def test_scenario(sc):
     if not sc.effects:
         assert found == [], f"false finding(s) on a clean recording: {found}"
         return
-    assert set(found) == set(sc.effects), found
-    assert found[0] in sc.effects
+    # strictly named, or named as an alternative where the test cannot separate it
+    # (:func:`sim_plc.scenarios.substitutes`: the exact set, cables and tolerances still hold)
+    assert res["passed"] or res["alternative"], (found, res["why"])
+    swap = res["alternative"] or {}
+    named = [swap.get(e, e) for e in found]
+    assert set(named) == set(sc.effects), found
+    assert named[0] in sc.effects
     for f in report["findings"]:
-        assert f["cables"] == expected_cables(sc, f["effect"])
+        assert f["cables"] == expected_cables(sc, swap.get(f["effect"], f["effect"]))
         assert f["holdout_rmse_after_n"] < f["holdout_rmse_before_n"]
         # cumulative with jointly fitted parameters: a finding alone may not help the other
         # recording by itself (e.g. stribeck before the inertia it was fitted with), so a
@@ -98,3 +110,32 @@ def test_delay_without_fast_edges_is_reported_as_unseparable_from_lowpass():
     found = [f["effect"] for f in report["findings"]]
     assert len(found) == 1 and found[0] in ("delay", "lowpass")
     assert "cannot tell it from" in report["findings"][0]["evidence"]
+
+
+def _finding(effect, cables, alts=()):
+    out = {"effect": effect, "cables": cables, "parameters": {}}
+    if alts:
+        out["alternatives"] = [{"effect": a, "cables": cables, "parameters": {}} for a in alts]
+    return out
+
+
+def test_a_true_effect_counts_as_an_alternative_only_where_everything_else_holds():
+    """The outcome "named as an alternative": the finding lists the true effect among the
+    rivals the test could not separate from it, on the same cables; the exact set holds."""
+    fits = lambda a: True  # noqa: E731
+    found = [_finding("presliding", [1, 2], ["backlash"])]
+    assert substitutes({"backlash"}, found, fits) == {"presliding": found[0]["alternatives"][0]}
+    # not listed as an alternative, or not fitting (cables, parameters): no
+    assert substitutes({"backlash"}, [_finding("presliding", [1, 2])], fits) is None
+    assert substitutes({"backlash"}, found, lambda a: False) is None
+    # the alternative on other cables than the finding: no
+    other = _finding("presliding", [1, 2], ["backlash"])
+    other["alternatives"][0]["cables"] = [1]
+    assert substitutes({"backlash"}, [other], fits) is None
+    # an extra finding, a true effect missing, a true effect twice: no
+    assert substitutes({"backlash"}, [*found, _finding("offset", [1, 2])], fits) is None
+    assert substitutes({"backlash", "offset"}, found, fits) is None
+    twice = [_finding("backlash", [1, 2]), *found]
+    assert substitutes({"backlash"}, twice, fits) is None
+    # a strict result is no substitution
+    assert substitutes({"backlash"}, [_finding("backlash", [1, 2])], fits) is None

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from gateway.errors import GatewayError
+from gateway.model import effects as fx
 from sim_plc import sealing
 from sim_plc.scenarios import SEALED_FILE, Scenario, sealed, suite
 from sim_plc.suitedoc import replace_section, section
@@ -107,3 +108,13 @@ def test_replacing_a_section_keeps_the_others(tmp_path):
     replace_section(doc, "# Top\n\ntuning v2\n")
     text = doc.read_text()
     assert text == "# Top\n\ntuning v2\n\n## Sealed\n\nsealed v2\n\n## Real\n\nreal v1\n"
+
+
+def test_every_effect_is_hidden_in_the_tuning_and_in_both_sealed_suites():
+    """Issue #19's done-when: every effect of the catalogue on recordings that hide it, in
+    suites one cannot tune to (the foreign generator has no platform: no statics effect)."""
+    every = set(fx.EFFECT_NAMES)
+    assert every <= {e for sc in suite() for e in sc.effects}
+    assert every <= {e for sc in sealed() for e in sc.effects}
+    foreign = {e for case in sealed_cases() for e in case.truth}
+    assert every - set(fx.stage_of("statics")) <= foreign

@@ -11,11 +11,13 @@ from numpy.testing import assert_allclose
 
 from gateway.core.config import load_config
 from gateway.model.chain import (
+    BATCH_ROWS,
     ChainParams,
     ChainStepper,
     compensate,
     coulomb_coefficients,
     simulate,
+    simulate_rows,
     travel,
 )
 from gateway.model.effects import displacement
@@ -411,3 +413,16 @@ def test_maxwell_slip_force_is_linear_in_the_fractions(w, s1, s2) -> None:
         return tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
 
     assert_allclose(force(w), w * force(1.0) + (1 - w) * force(0.0), rtol=0, atol=1e-9)
+
+
+def test_simulate_rows_is_simulate_batch_by_batch() -> None:
+    """The batches :func:`simulate_rows` yields hold :func:`simulate`'s values bit for bit."""
+    n = 2 * BATCH_ROWS + 123
+    t = np.arange(n) * 1e-3
+    v = 0.2 * np.sin(2 * np.pi * 0.5 * t)[:, None] * np.ones((1, 2))
+    tp = 300.0 + 20.0 * np.cos(2 * np.pi * 0.2 * t)[:, None] * np.ones((1, 2))
+    p = params("dahl", sigma_n_m=2000.0)
+    out = np.empty_like(tp)
+    done = list(simulate_rows(p, tp, v, t, out))
+    assert done == [BATCH_ROWS, 2 * BATCH_ROWS, n]
+    np.testing.assert_array_equal(out, simulate(p, tp, v, t))

@@ -114,9 +114,14 @@ class Spring(Effect):
         return (float(np.ptp(d.x)) if d.x.size else 0.0) >= MIN_SPAN_M
 
     def spec(self, d: FitData, nom: NominalChain, resid: np.ndarray, mask: np.ndarray) -> Spec:
-        """``(k, k l0)`` both linear; scales 1 N/m and 1 N."""
+        """``(k, k l0)`` both linear; scales 1 N/m and 1 N. Started at ``k`` = 1 N/m, not at
+        0: at ``k = 0`` the report form ``k (x - l0)`` holds no ``k l0`` (``l0 = k l0 / k``
+        is taken as 0 there), so a linear step from 0 solved ``k`` alone, a spring through
+        the first sample's length (measured: a spring whose ``k (L_0 - l0)`` was 0.5 N
+        screened worse than an offset and, nesting it, was never tried after it)."""
         spec = self.linear_spec(nom)
-        return Spec(spec.neutral, spec.lower, spec.upper, (0, 1), np.array([1.0, 1.0]), spec.starts)
+        start = spec.neutral + np.array([1.0, 0.0])
+        return Spec(spec.neutral, spec.lower, spec.upper, (0, 1), np.array([1.0, 1.0]), (start,))
 
     def compose(self, old: Values, new: Values, ctx: Compose) -> Values:
         """Two springs are one: ``k = k_old + k_new`` and ``k l0`` adds the same way."""
