@@ -216,6 +216,7 @@ def test_old_statics_route_goes_wrong_and_the_wrench_route_holds():
 # ---- the wrench route on its own ----
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("case", ["viscous", "offset", "gain", "mass_change", "inertia", "coulomb"])
 def test_wrench_names_exactly_the_hidden_effect(case):
     rep = wrench_report(case)
@@ -273,6 +274,7 @@ def test_wrench_identifies_the_cable_transmission_effects(name):
     assert f["holdout_rmse_before_n"] > 1.1 * f["holdout_rmse_after_n"]
 
 
+@pytest.mark.long
 def test_wrench_route_holds_under_a_qp_controller_with_another_target():
     """The controller's eq. 18/19 with limits 0..400 N aiming at 120 N (the gateway's
     statics aims at 255 N): the wrench route does not care how tensions are shared."""
@@ -297,6 +299,7 @@ def test_wrench_clean_recording_gives_no_finding():
     assert ident["mass_change"]["identifiable"] is True
 
 
+@pytest.mark.long
 def test_wrench_validation_recording_is_scored_not_fitted():
     rec, _, cfg = recording("viscous")
     vrec, _, _ = recording("viscous", seed=4)
@@ -384,6 +387,7 @@ def test_cli_wrench_mode_writes_report_and_pictures(tmp_path):
     assert "wrench balance" in (tmp_path / "rep" / "summary.md").read_text()
 
 
+@pytest.mark.long
 def test_long_recordings_are_fitted_on_thinned_samples(monkeypatch):
     """Above FIT_BUDGET samples the selection and fit use evenly thinned samples (bounded
     memory); the chain and the scores still run over every sample."""
