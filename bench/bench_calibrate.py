@@ -10,7 +10,7 @@ nominal model), after / floor (goal <= 1.15) and the gateway's cycles in each ru
 in 30 s on an idle machine: fewer means the machine was loaded, and the RMSE of a run then
 varies by tens of per cent).
 
-``python -m bench calibrate`` (30 s per run, three runs per example: ~30 min for the 13
+``python -m bench calibrate`` (30 s per run, three runs per example: ~45 min for the 18
 examples); ``CALIBRATE_SECONDS`` and ``CALIBRATE_ONLY=viscous,gain`` change that. Results stay in
 ``$CALIBRATE_OUT`` (default: a temporary directory, removed afterwards).
 """
