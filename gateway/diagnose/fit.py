@@ -61,7 +61,7 @@ def _linear_step(
     sol, *_ = np.linalg.lstsq(jac, r, rcond=None)
     out = theta.copy()
     out[list(spec.linear)] += sol
-    return np.clip(out, spec.lower, spec.upper)
+    return spec.clip(out)
 
 
 def linear_refit(
@@ -86,7 +86,7 @@ def linear_refit(
     out = {e: v.astype(float).copy() for e, v in theta.items()}
     for (e, j), step in zip(where, sol, strict=True):
         out[e][j] += step
-    return {e: np.clip(v, specs[e].lower, specs[e].upper) for e, v in out.items()}
+    return {e: specs[e].clip(v) for e, v in out.items()}
 
 
 def best_start(

@@ -190,9 +190,7 @@ class Forward:
         simulation)."""
         key = self._key(eff)
         self._cache.pop(key, None)
-        if len(self._cache) >= self._cache_size:
-            self._cache.pop(next(iter(self._cache)))
-        self._cache[key] = out
+        self._put(key, out)
 
     def chain(self, eff: dict[str, np.ndarray]) -> np.ndarray:
         """Sensor-side tension (N,) from the friction chain (and mass change) alone."""
@@ -215,7 +213,12 @@ class Forward:
         return chain_params(self.nom, eff), tp
 
     def _store(self, key: tuple, out: np.ndarray) -> None:
+        """A new simulation into the cache (counted)."""
         self.simulations += 1
+        self._put(key, out)
+
+    def _put(self, key: tuple, out: np.ndarray) -> None:
+        """``out`` as the cache's newest entry, the oldest evicted when it is full."""
         if len(self._cache) >= self._cache_size:
             self._cache.pop(next(iter(self._cache)))
         self._cache[key] = out

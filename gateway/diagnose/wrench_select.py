@@ -253,8 +253,7 @@ class WrenchUnit:
 
     def bounded(self, effect: str, theta: np.ndarray) -> np.ndarray:
         """``theta`` (k, m) within the effect's fit bounds (:attr:`Spec.lower`, ``upper``)."""
-        spec = self.model.spec(effect)
-        return np.clip(theta, spec.lower[:, None], spec.upper[:, None])
+        return self.model.spec(effect).clip(theta)
 
     # ---- the linear model ----
     def _gram(self, train: np.ndarray) -> None:

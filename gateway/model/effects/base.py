@@ -227,6 +227,11 @@ class Spec:
     step: np.ndarray
     starts: tuple[np.ndarray, ...]
 
+    def clip(self, theta: np.ndarray) -> np.ndarray:
+        """``theta`` within the bounds: one cable's (k,) or every cable's (k, m)."""
+        shape = (-1,) + (1,) * (np.ndim(theta) - 1)
+        return np.clip(theta, self.lower.reshape(shape), self.upper.reshape(shape))
+
 
 def speeds(d: FitData) -> tuple[float, float]:
     """95th percentile of |v| (m/s) and the median sample period (s) of a cable."""
