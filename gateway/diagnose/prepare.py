@@ -200,8 +200,7 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     lam_pos, lam_neg = coulomb_coefficients(chain_params(nom, {}))  # the model's lambda
     lam = float(np.max(0.5 * (lam_pos + lam_neg)))  # mean of the two directions
     f_r = lam * float(np.percentile(np.abs(d.tp), 99))
-    dt = np.diff(d.t)
-    after_gaps = np.nonzero(dt > GAP_SPACINGS * float(np.median(dt)))[0] + 1
+    after_gaps = gap_starts(d.t)
     steps = np.abs(np.diff(d.x))
     steps[after_gaps - 1] = 0.0  # what x jumps across a gap is no travel the chain stepped
     travel = np.concatenate(([0.0], np.cumsum(steps)))
@@ -218,15 +217,21 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
     return out
 
 
+def gap_starts(t: np.ndarray) -> np.ndarray:
+    """Indices of the samples that follow a gap (a step longer than ``GAP_SPACINGS``
+    median spacings), ascending."""
+    if t.size < 2:
+        return np.zeros(0, np.int64)
+    dt = np.diff(t)
+    return np.nonzero(dt > GAP_SPACINGS * float(np.median(dt)))[0] + 1
+
+
 def gap_segments(t: np.ndarray) -> np.ndarray:
     """(N,) index of the piece of recording each sample lies in: a new piece after every
-    gap (a step longer than ``GAP_SPACINGS`` median spacings; trials joined into one
-    recording)."""
-    if t.size < 2:
-        return np.zeros(t.size, np.int64)
-    dt = np.diff(t)
-    gaps = dt > GAP_SPACINGS * float(np.median(dt))
-    return np.concatenate(([0], np.cumsum(gaps))).astype(np.int64)
+    gap (:func:`gap_starts`; trials joined into one recording)."""
+    seg = np.zeros(t.size, np.int64)
+    seg[gap_starts(t)] = 1
+    return np.cumsum(seg)
 
 
 SELECTION_BUDGET = 150_000
