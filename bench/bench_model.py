@@ -15,8 +15,9 @@ from dataclasses import replace
 import numpy as np
 
 from drivers.base import Inputs, Outputs
-from gateway.core.config import Config, load_config
+from gateway.core.config import Config, EffectParams, load_config
 from gateway.model.chain import ChainParams, ChainStepper, compensate, simulate
+from gateway.model.effects.registry import ONLINE_EFFECTS
 from gateway.runtime.compensator import Compensator
 
 
@@ -67,16 +68,24 @@ def _batch_figures(params: ChainParams) -> None:
         )
 
 
-ALL_ONLINE = {
+ALL_ONLINE: dict[str, EffectParams] = {
     "coulomb": {"f0_n": 0.5, "mu": 0.02},
     "presliding": {"sigma_n_m": 400.0},
     "viscous": {"c_ns_m": 3.0},
     "stribeck": {"k": 0.3, "v_s_m_s": 0.005},
     "inertia": {"m_eff_kg": 1.5},
     "gain": {"g": 0.004},
-    "offset": {"c_n": [-0.7, 0.1, 0.2, 0.3, 0.0, 0.0, 0.1, 0.2]},
+    "offset": {"c_n": (-0.7, 0.1, 0.2, 0.3, 0.0, 0.0, 0.1, 0.2)},
     "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7},
+    "coulomb_directional": {"mu_out": 0.018, "mu_in": 0.022, "f0_n": 0.5},
+    "maxwell_slip": {"sigma_n_m": 4000.0, "w": 0.7},
+    "cable_stretch": {"k_n_m": 3000.0},
+    "backlash": {"width_m": 0.002},
+    "sensor_creep": {"c": 0.03, "tau_s": 0.5},
+    "spring": {"k_n_m": 5.0, "l0_m": 0.0},
 }
+"""Every effect the gateway compensates online (``registry.ONLINE_EFFECTS``, checked in
+:func:`_compensator_figures`), at a size the suites hide."""
 
 
 def _compensator_median(cfg: Config, cycles: int, trace: bool) -> tuple[float, float, int]:
@@ -112,6 +121,9 @@ def _compensator_median(cfg: Config, cycles: int, trace: bool) -> tuple[float, f
 
 def _compensator_figures(cfg: Config) -> None:
     cycles = 20000
+    missing = set(ONLINE_EFFECTS) ^ set(ALL_ONLINE)
+    if missing:
+        raise SystemExit(f"bench_model: ALL_ONLINE and ONLINE_EFFECTS differ in {sorted(missing)}")
     fitted = replace(cfg, friction=replace(cfg.friction, effects=ALL_ONLINE))
     rows = [("nominal", cfg), ("all online effects", fitted)]
     res = []
