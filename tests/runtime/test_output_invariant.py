@@ -82,27 +82,38 @@ FAULT_EVENT = st.builds(
 )
 EVENTS = st.lists(st.one_of(OK_EVENT, OK_EVENT, OK_EVENT, FAULT_EVENT), min_size=20, max_size=160)
 
-EFFECTS = st.fixed_dictionaries(
-    {},
-    optional={
-        "coulomb": st.fixed_dictionaries({"mu": st.floats(0.0, 0.05), "f0_n": st.floats(0, 3)}),
-        "presliding": st.fixed_dictionaries({"sigma_n_m": st.floats(50.0, 5000.0)}),
-        "viscous": st.fixed_dictionaries({"c_ns_m": st.floats(-20.0, 60.0)}),
-        "stribeck": st.fixed_dictionaries(
-            {"k": st.floats(0.0, 1.0), "v_s_m_s": st.floats(0.001, 0.1)}
-        ),
-        "inertia": st.fixed_dictionaries({"m_eff_kg": st.floats(-30.0, 30.0)}),
-        "eccentricity": st.fixed_dictionaries(
-            {
-                "a_n": st.floats(-5.0, 5.0),
-                "r_m": st.floats(0.01, 0.2),
-                "phi_rad": st.floats(-3.2, 3.2),
-            }
-        ),
-        "gain": st.fixed_dictionaries({"g": st.floats(-0.05, 0.05)}),
-        "offset": st.fixed_dictionaries({"c_n": st.floats(-5.0, 5.0)}),
-    },
-)
+EFFECT_DRAWS: dict[str, st.SearchStrategy[dict[str, float]]] = {
+    "coulomb": st.fixed_dictionaries({"mu": st.floats(0.0, 0.05), "f0_n": st.floats(0, 3)}),
+    "presliding": st.fixed_dictionaries({"sigma_n_m": st.floats(50.0, 5000.0)}),
+    "viscous": st.fixed_dictionaries({"c_ns_m": st.floats(-20.0, 60.0)}),
+    "stribeck": st.fixed_dictionaries({"k": st.floats(0.0, 1.0), "v_s_m_s": st.floats(0.001, 0.1)}),
+    "inertia": st.fixed_dictionaries({"m_eff_kg": st.floats(-30.0, 30.0)}),
+    "eccentricity": st.fixed_dictionaries(
+        {
+            "a_n": st.floats(-5.0, 5.0),
+            "r_m": st.floats(0.01, 0.2),
+            "phi_rad": st.floats(-3.2, 3.2),
+        }
+    ),
+    "gain": st.fixed_dictionaries({"g": st.floats(-0.05, 0.05)}),
+    "offset": st.fixed_dictionaries({"c_n": st.floats(-5.0, 5.0)}),
+    "coulomb_directional": st.fixed_dictionaries(
+        {"mu_out": st.floats(0.0, 0.5), "mu_in": st.floats(0.0, 0.5), "f0_n": st.floats(0, 3)}
+    ),
+    "maxwell_slip": st.fixed_dictionaries(
+        {"sigma_n_m": st.floats(1.0, 1e6), "w": st.floats(0.0, 1.0)}
+    ),
+    "cable_stretch": st.fixed_dictionaries({"k_n_m": st.floats(1.0, 1e7)}),
+    "backlash": st.fixed_dictionaries({"width_m": st.floats(0.0, 0.05)}),
+    "sensor_creep": st.fixed_dictionaries(
+        {"c": st.floats(-0.5, 0.5), "tau_s": st.floats(1e-4, 100.0)}
+    ),
+    "spring": st.fixed_dictionaries(
+        {"k_n_m": st.floats(-100.0, 100.0), "l0_m": st.floats(-1.0, 1.0)}
+    ),
+}
+"""Each effect the gateway compensates online, parameters drawn over its valid range."""
+EFFECTS = st.fixed_dictionaries({}, optional=EFFECT_DRAWS)
 
 WARM_UP = [
     Event(
@@ -299,6 +310,13 @@ def test_no_frame_breaks_the_output_contract(effects, events, pipelined, float_h
 @given(EFFECTS, EVENTS, st.booleans(), st.booleans(), st.booleans())
 def test_no_frame_breaks_the_output_contract_long(effects, events, pipelined, float_hb, stall):
     _property(effects, events, pipelined, float_hb, stall)
+
+
+def test_the_effects_drawn_are_every_effect_the_gateway_compensates():
+    """A new online effect is fuzzed from the day it is registered, or this fails."""
+    from gateway.model.effects.registry import ONLINE_EFFECTS
+
+    assert set(EFFECT_DRAWS) == set(ONLINE_EFFECTS)
 
 
 def test_the_check_catches_a_gate_that_lets_a_stalled_frame_through(monkeypatch):
