@@ -257,17 +257,31 @@ class WrenchUnit:
 
     # ---- the linear model ----
     def _gram(self, train: np.ndarray) -> None:
-        """Normal equations of every candidate column on the samples ``train``."""
+        """Normal equations of every candidate column on the samples ``train``, block by
+        block of two candidates: the candidates' designs are never stacked (stacked, and
+        then cut to the training rows, they were 2.5x the designs: on a 10-min recording
+        the wrench diagnosis peaked there, 150 MiB of designs taking 375)."""
         names = list(self.design)
-        d = np.column_stack([self.design[e] for e in names]) if names else np.zeros((0, 0))
-        dt = d[train] if names else d
-        self._gram_m = dt.T @ dt
-        self._rhs = dt.T @ self.r0[train] if names else np.zeros(0)
-        self._shift_rhs = {e: dt.T @ s[train] for e, s in self.shift.items()} if names else {}
+        edges = np.cumsum([0] + [self.design[e].shape[1] for e in names])
+        k = int(edges[-1])
+        spans = [slice(int(edges[a]), int(edges[a + 1])) for a in range(len(names))]
+        gram, rhs = np.zeros((k, k)), np.zeros(k)
+        shift_rhs = {e: np.zeros(k) for e in self.shift} if names else {}
+        r0, shifts = self.r0[train], {e: s[train] for e, s in self.shift.items()}
+        for a, ea in enumerate(names):
+            da = self.design[ea][train]
+            rhs[spans[a]] = da.T @ r0
+            for e, s in shifts.items():
+                shift_rhs[e][spans[a]] = da.T @ s
+            gram[spans[a], spans[a]] = da.T @ da
+            for b in range(a + 1, len(names)):
+                block = da.T @ self.design[names[b]][train]
+                gram[spans[a], spans[b]] = block
+                gram[spans[b], spans[a]] = block.T
+        self._gram_m, self._rhs, self._shift_rhs = gram, rhs, shift_rhs
         self._mask = train
         self._dof = int(train.sum())
-        edges = np.cumsum([0] + [self.design[e].shape[1] for e in names])
-        self._span = {e: np.arange(edges[k], edges[k + 1]) for k, e in enumerate(names)}
+        self._span = {e: np.arange(edges[a], edges[a + 1]) for a, e in enumerate(names)}
 
     def _base(self, effects) -> np.ndarray:
         """The residual of ``effects`` at their anchors (``r0`` plus their shifts)."""
@@ -289,14 +303,17 @@ class WrenchUnit:
                 b = b + self._shift_rhs[e][idx]
         ginv = np.linalg.pinv(g)
         phi = -ginv @ b
-        resid = self._base(effects) + np.column_stack([self.design[e] for e in effects]) @ phi
+        sizes = np.cumsum([self.design[e].shape[1] for e in effects])[:-1]
+        parts = np.split(phi, sizes)
+        resid = self._base(effects)
+        for e, part in zip(effects, parts, strict=True):  # no stacked copy of the designs
+            resid = resid + self.design[e] @ part
         dof = max(self._dof - phi.size, 1)
         left = resid[self._mask]
         s2 = float(left @ left) / dof
         se = np.sqrt(np.maximum(np.diag(ginv) * s2, 0.0))
-        sizes = np.cumsum([self.design[e].shape[1] for e in effects])[:-1]
         return (
-            dict(zip(effects, np.split(phi, sizes), strict=True)),
+            dict(zip(effects, parts, strict=True)),
             dict(zip(effects, np.split(se, sizes), strict=True)),
             resid,
         )
@@ -545,7 +562,7 @@ def diagnose_wrench(
         f"{len(WRENCH_EFFECTS)} candidate effects"
     )
     at: dict[str, np.ndarray] = {}
-    for _ in range(PASSES):
+    for k in range(PASSES):
         unit = WrenchUnit(prep, WRENCH_EFFECTS, at)
         selector = Selector(unit, th)  # 3. select (2. locate: with the report, on the balance)
         outcome = selector.run()
@@ -558,6 +575,8 @@ def diagnose_wrench(
             break  # every kept effect linearised at the nominal model, or already at the fit
         at = theta  # again, every candidate linearised on top of this fit
         say(f"wrench reference: again, linearised at the fit of {', '.join(kept)}")
+        if k + 1 < PASSES:  # this pass's designs go before the next's are made (peak memory)
+            del unit, selector, tested, outcome
     sel = unit
     test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
