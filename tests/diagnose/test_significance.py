@@ -146,23 +146,31 @@ def _dahl_with_load_level(t, v, tp, c0: float, k: float, sigma: float) -> np.nda
 
 
 @pytest.mark.long
-@pytest.mark.parametrize("seed", [1, 3])
-def test_unexplained_names_a_friction_growing_with_the_square_of_the_tension(seed: int) -> None:
+@pytest.mark.parametrize(
+    ("seed", "c0", "k", "seconds", "share"),
+    [(1, 0.0, 2e-5, 30.0, 0.3), (3, 0.0, 2e-5, 30.0, 0.3), (1, 0.3, 3e-5, 120.0, 0.1)],
+)
+def test_unexplained_names_a_friction_growing_with_the_square_of_the_tension(
+    seed: int, c0: float, k: float, seconds: float, share: float
+) -> None:
     """The issue's example beyond the catalogue: a pulley friction whose level grows with
     T^2 (0.15-1.5 N over this motion's 85-275 N). The catalogue's Coulomb level is linear
     in T, so what it leaves is named: ``sgn(v)*T^2`` first, read as a coefficient rising
-    with the load. (With a load-independent part beside it, 0.3 N + 3e-5 T^2, seed 1 names
-    ``v`` first: a published miss, not a case here.)"""
-    sc = Scenario("t2", {}, seed=seed, seconds=30.0)
+    with the load. With a load-independent part beside it (0.3 N + 3e-5 T^2) the catalogue
+    takes a Coulomb and a presliding stiffness first and leaves less (13-18 %); 30 s of
+    seed 1 then name ``v`` first (59 % against 50 %; after ``v``, ``sgn(v)*T^2`` explains
+    9 % more at q 0.65: 30 s cannot tell them apart), 120 s name ``sgn(v)*T^2`` (seeds 1
+    and 3 by hand: 13 % and 18 %; seed 1 here)."""
+    sc = Scenario("t2", {}, seed=seed, seconds=seconds)
     t, v, tp = motion(sc)
-    ts = simulate(_truth_chain(sc, 2), tp, v, t) - _dahl_with_load_level(t, v, tp, 0.0, 2e-5, 2e3)
+    ts = simulate(_truth_chain(sc, 2), tp, v, t) - _dahl_with_load_level(t, v, tp, c0, k, 2e3)
     ts = ts + np.random.default_rng(seed + 100).normal(0.0, 0.4, ts.shape)
     rec = Recording(t=t, velocity=v, tension_sensor=ts, tension_platform=tp, metadata={})
     rep = diagnose(rec, sc.nominal()).report
     check_report(rep)
     un = rep["unexplained"]
     assert un["signal"] == "sgn(v)*T^2", un["ranking"]
-    assert un["q"] <= rep["significance"]["fdr"] and un["share"] > 0.3
+    assert un["q"] <= rep["significance"]["fdr"] and un["share"] > share
     assert "rises with the load" in un["reading"]
 
 
