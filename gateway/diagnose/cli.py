@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from gateway.core.cliopts import output_dir
+from gateway.core.heap import trim_heap
 from gateway.core.config import (
     Config,
     FrictionConfig,
@@ -116,6 +117,7 @@ class _Run:
 def _diagnose_file(
     recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
 ) -> _Run:
+    trim_heap()  # LLVM's pages touched by its static initialisers (imported with numba)
     model_friction, cfg = load_model(model)
     rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``

@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from gateway.core.config import FrictionConfig
-from gateway.core.heap import return_large_frees
+from gateway.core.heap import return_large_frees, trim_heap
 from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-exported
     Sensitivity,
     cable_candidates,
@@ -66,6 +66,7 @@ def diagnose(
     ref = PlatformReference(tp, dtp_dm)
     prepared = ref.prepare(rec, friction, validation, say)
     located = ref.locate(prepared)
+    trim_heap()  # LLVM's pages that loading the first kernels touched
     selected = select_units(ref, prepared, th, say)
     fitted = fit_units(ref, prepared, selected, th, say)
     return build_report(prepared, located, fitted, th)

@@ -349,6 +349,7 @@ def fit_units(
                 full = unit.fit(o.theta, o.specs, nfev=20)
                 o.theta, o.stderr = full.kept, full.stderr
                 unit.release()
+                trim_heap()
     for i, u in enumerate(tested):
         say(f"cable {i + 1}/{len(tested)}: kept {', '.join(u.outcome.kept) or 'nothing'}")
     return tested
