@@ -14,7 +14,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 from gateway.core.cliopts import output_dir
-from gateway.core.heap import trim_heap
 from gateway.core.config import (
     Config,
     FrictionConfig,
@@ -24,7 +23,7 @@ from gateway.core.config import (
 )
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose import heldout, platform, warmup
-from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
+from gateway.diagnose.engine import Diagnosis, diagnose, load_kernels, reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
 from gateway.recordings.reader import Recording, read_recording
@@ -117,8 +116,8 @@ class _Run:
 def _diagnose_file(
     recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
 ) -> _Run:
-    trim_heap()  # LLVM's pages touched by its static initialisers (imported with numba)
     model_friction, cfg = load_model(model)
+    load_kernels(model_friction)  # and LLVM's pages touched meanwhile given back
     rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
