@@ -117,7 +117,7 @@ def _diagnose_file(
     recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
 ) -> _Run:
     model_friction, cfg = load_model(model)
-    load_kernels(model_friction)  # and LLVM's pages touched meanwhile given back
+    load_kernels(model_friction)  # type: ignore[arg-type]  # LLVM's pages given back after
     rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(

@@ -25,7 +25,6 @@ import numpy as np
 from gateway.core.config import FrictionConfig
 from gateway.core.heap import return_large_frees, trim_heap
 from gateway.diagnose.forward import CableData, Forward
-from gateway.model.effects.forms import lowpass
 from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-exported
     Sensitivity,
     cable_candidates,
@@ -43,6 +42,7 @@ from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-e
 from gateway.diagnose.reference import PlatformReference, fit_units, select_units
 from gateway.diagnose.report import Diagnosis, build_report
 from gateway.diagnose.select import Thresholds
+from gateway.model.effects.forms import lowpass
 from gateway.recordings.reader import Recording
 
 Progress = Callable[[str], None]

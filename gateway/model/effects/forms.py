@@ -12,7 +12,6 @@ import math
 import numpy as np
 from numba import njit
 
-
 CHUNK = 1 << 16
 """Rows per piece of :func:`displacement` and :func:`acceleration`: their temporaries are
 a few of these, not a few copies of the whole series (a 10-min 1 kHz column: 4.8 MB each)."""
