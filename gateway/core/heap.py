@@ -79,7 +79,7 @@ def drop_clean_pages(libraries: tuple[str, ...] = LOADER_LIBRARIES) -> int:
     madvise.restype = ctypes.c_int
     dropped = 0
     for start, stop, perms, rss, anon in _mappings(text, libraries):
-        if "w" in perms or anon or not rss:
+        if "w" in perms or anon is None or anon or not rss:  # None: no Anonymous line
             continue
         if madvise(start, stop - start, MADV_DONTNEED) == 0:
             dropped += rss
@@ -87,8 +87,8 @@ def drop_clean_pages(libraries: tuple[str, ...] = LOADER_LIBRARIES) -> int:
 
 
 def _mappings(text: str, libraries: tuple[str, ...]):
-    """(start, stop, perms, Rss bytes, Anonymous bytes) of the smaps entries of files whose
-    name starts with one of ``libraries``."""
+    """(start, stop, perms, Rss bytes, Anonymous bytes or None if not listed) of the smaps
+    entries of files whose name starts with one of ``libraries``."""
     entry: list | None = None
     for line in text.splitlines():
         head = line.split(None, 5)
@@ -99,8 +99,8 @@ def _mappings(text: str, libraries: tuple[str, ...]):
             path = head[5] if len(head) > 5 else ""
             if path.rsplit("/", 1)[-1].startswith(libraries):
                 lo, hi = (int(x, 16) for x in head[0].split("-"))
-                entry = [lo, hi, head[1], 0, 0]
-        elif entry is not None and head[0] in ("Rss:", "Anonymous:"):
+                entry = [lo, hi, head[1], 0, None]
+        elif entry is not None and head and head[0] in ("Rss:", "Anonymous:"):
             entry[3 if head[0] == "Rss:" else 4] = int(head[1]) * 1024
     if entry is not None:
         yield tuple(entry)
