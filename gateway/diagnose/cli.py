@@ -23,7 +23,7 @@ from gateway.core.config import (
 )
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose import heldout, platform, warmup
-from gateway.diagnose.engine import Diagnosis, diagnose, reference_mode
+from gateway.diagnose.engine import Diagnosis, diagnose, load_kernels, reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
 from gateway.recordings.reader import Recording, read_recording
@@ -117,6 +117,7 @@ def _diagnose_file(
     recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
 ) -> _Run:
     model_friction, cfg = load_model(model)
+    load_kernels(model_friction)  # type: ignore[arg-type]  # LLVM's pages given back after
     rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(

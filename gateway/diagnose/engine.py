@@ -20,8 +20,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
+
 from gateway.core.config import FrictionConfig
-from gateway.core.heap import return_large_frees
+from gateway.core.heap import return_large_frees, trim_heap
+from gateway.diagnose.forward import CableData, Forward
 from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-exported
     Sensitivity,
     cable_candidates,
@@ -39,6 +42,7 @@ from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-e
 from gateway.diagnose.reference import PlatformReference, fit_units, select_units
 from gateway.diagnose.report import Diagnosis, build_report
 from gateway.diagnose.select import Thresholds
+from gateway.model.effects.forms import lowpass
 from gateway.recordings.reader import Recording
 
 Progress = Callable[[str], None]
@@ -66,9 +70,25 @@ def diagnose(
     ref = PlatformReference(tp, dtp_dm)
     prepared = ref.prepare(rec, friction, validation, say)
     located = ref.locate(prepared)
+    trim_heap()  # LLVM's pages that loading the first kernels touched
     selected = select_units(ref, prepared, th, say)
     fitted = fit_units(ref, prepared, selected, th, say)
     return build_report(prepared, located, fitted, th)
+
+
+def load_kernels(friction: FrictionConfig) -> None:
+    """Load the chain simulation's and the filter's compiled kernels (numba's cache) on
+    three samples, then
+    give back the LLVM pages that loading touched (:func:`trim_heap`). Called before a
+    recording is read: LLVM's one-off work (numba's runtime module is compiled in the
+    process, ~45 MiB of LLVM code touched) then happens while the process is small, not on
+    top of the recording and the first cable. Results are unchanged (the kernels keep no
+    state)."""
+    t = np.arange(3) * 1e-3
+    data = CableData(t, np.array([0.0, 0.1, 0.0]), np.full(3, 100.0), np.full(3, 100.0), 0.0)
+    Forward(data, nominal_from(friction)).predict({})
+    lowpass(t, data.ts, 0.01)  # the filter of sensor_creep, lowpass, maxwell_slip
+    trim_heap()
 
 
 def reference_mode(rec: Recording) -> str:

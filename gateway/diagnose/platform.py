@@ -16,6 +16,7 @@ import numpy as np
 from gateway.core.config import Config
 from gateway.errors import ConfigError, InfeasiblePoseError, RecordingError
 from gateway.model import kinematics, statics
+from gateway.model.effects.forms import acceleration
 from gateway.recordings.reader import Recording
 
 SENSITIVITY_POINTS = 2000
@@ -23,7 +24,8 @@ SENSITIVITY_POINTS = 2000
 
 
 def _wrenches(cfg: Config, rec: Recording, idx: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    acc = np.gradient(np.gradient(rec.pose[:, :3], rec.t, axis=0), rec.t, axis=0)[idx]  # type: ignore[index]
+    pos = rec.pose[:, :3]  # type: ignore[index]
+    acc = acceleration(rec.t, acceleration(rec.t, pos))[idx]  # np.gradient's, piece by piece
     return statics.external_wrench_batch(mass, rec.pose[idx], acc, cfg.geometry)  # type: ignore[index]
 
 

@@ -293,6 +293,8 @@ def locate_residual(prep: PlatformPrepared, thetas: list[dict[str, np.ndarray]])
             if j == 0:
                 per_cable.append(float(np.sqrt(np.mean(rr**2))) if rr.size else 0.0)
         emap.add(i + 1, r, regime[:, i])
+        del r
+        trim_heap()  # and LLVM's pages that loading the first kernel touched
     rms, hold = (float(np.sqrt(s / c)) if c else 0.0 for s, c in zip(sse, count, strict=True))
     regions = emap.regions()
     baseline = {"rmse_n": rms, "per_cable_rmse_n": per_cable, "holdout_rmse_n": hold}
@@ -349,6 +351,7 @@ def fit_units(
                 full = unit.fit(o.theta, o.specs, nfev=20)
                 o.theta, o.stderr = full.kept, full.stderr
                 unit.release()
+                trim_heap()
     for i, u in enumerate(tested):
         say(f"cable {i + 1}/{len(tested)}: kept {', '.join(u.outcome.kept) or 'nothing'}")
     return tested

@@ -23,6 +23,31 @@ def test_displacement_and_acceleration() -> None:
     assert_allclose(acceleration(t, v)[1:-1], 0.1 * np.cos(t)[1:-1], atol=1e-6)
 
 
+def _whole_displacement(t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The one-cumsum form :func:`displacement` computes piece by piece."""
+    steps = 0.5 * (v[1:] + v[:-1]) * np.diff(t).reshape((-1,) + (1,) * (v.ndim - 1))
+    return np.concatenate([np.zeros_like(v[:1]), np.cumsum(steps, axis=0)])
+
+
+def test_piecewise_displacement_and_acceleration_equal_the_whole_bit_for_bit() -> None:
+    """Computed CHUNK rows at a time (memory), the values are the whole-array formulas'
+    (numpy's gradient, one cumsum), on even, uneven and gapped time bases."""
+    from gateway.model.effects.forms import CHUNK
+
+    rng = np.random.default_rng(3)
+    for n in (2, 3, 5, CHUNK, CHUNK + 1, CHUNK + 2, 2 * CHUNK + 7):
+        bases = {
+            "even": np.arange(n) * 1e-3,
+            "linspace": np.linspace(0.0, 1.0, n),
+            "uneven": np.cumsum(rng.uniform(0.5e-3, 1.5e-3, n)),
+            "gap": np.arange(n) * 1e-3 + np.where(np.arange(n) >= n // 2, 1.0, 0.0),
+        }
+        for t in bases.values():
+            for v in (rng.normal(size=n), rng.normal(size=(n, 3))):
+                np.testing.assert_array_equal(acceleration(t, v), np.gradient(v, t, axis=0))
+                np.testing.assert_array_equal(displacement(t, v), _whole_displacement(t, v))
+
+
 def test_delay_of_a_ramp_on_uneven_samples() -> None:
     t = np.sort(np.random.default_rng(1).uniform(0, 1, 500))
     y = 3.0 * t
