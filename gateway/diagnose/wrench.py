@@ -49,6 +49,8 @@ from gateway.recordings.reader import Recording
 WRENCH_EFFECTS = tuple(n for n, e in fx.REGISTRY.items() if e.wrench)
 PER_CABLE = tuple(n for n in WRENCH_EFFECTS if fx.REGISTRY[n].per_cable)
 SUBPARAMS: dict[str, tuple[str, ...]] = {n: fx.REGISTRY[n].param_names for n in WRENCH_EFFECTS}
+STRUCTURE_ROWS = 32_768
+"""Rows of ``A`` made at a time for a residual over every sample (12 MiB for 8 cables)."""
 FIT_BUDGET = 25_000
 """Samples the selection and the fit use at most (memory: ~48 columns x 6 rows each)."""
 INSTRUMENT_S = 0.05
@@ -70,7 +72,10 @@ class WrenchData:
     """A recording ready for the wrench balance. ``N`` samples, ``m`` cables.
 
     ``t`` (N,); ``v``, ``ts``, ``a`` (N, m) setpoint velocity (dead band as the engine),
-    sensor reading, cable acceleration; ``a_mat`` (N, 6, m); ``w0`` (N, 6) external wrench
+    sensor reading, cable acceleration; ``pose`` (N, 6) and ``anchors`` (frame, platform)
+    from which :meth:`structure` makes the structure matrices ``A`` (N, 6, m) where they
+    are needed (held for every sample they were the largest array of a long recording:
+    220 MiB for 10 min x 1 kHz x 8 cables); ``w0`` (N, 6) external wrench
     with the recorded mass; ``dw_dm`` (N, 6) wrench per kg; ``speed`` (N,) platform speed;
     ``ts_smooth`` (N, m) the reading's moving average over :data:`INSTRUMENT_S` (the
     instrument the Jacobian is computed on, see :meth:`WrenchModel.jacobian`).
@@ -80,7 +85,8 @@ class WrenchData:
     v: np.ndarray
     ts: np.ndarray
     a: np.ndarray
-    a_mat: np.ndarray
+    pose: np.ndarray
+    anchors: tuple[np.ndarray, np.ndarray]
     w0: np.ndarray
     dw_dm: np.ndarray
     speed: np.ndarray
@@ -90,6 +96,20 @@ class WrenchData:
     @property
     def cables(self) -> int:
         return int(self.ts.shape[1])
+
+    def structure(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """``A`` (n, 6, m) at the samples ``rows`` (default all)."""
+        pose = self.pose if rows is None else self.pose[rows]
+        return kinematics.structure_matrix_batch(self.anchors[0], self.anchors[1], pose)
+
+    def balance(self, tp: np.ndarray) -> np.ndarray:
+        """``A T_p`` (N, 6) over every sample, :data:`STRUCTURE_ROWS` rows of ``A`` at a
+        time (the same values as from all of ``A`` at once)."""
+        out = np.empty((tp.shape[0], 6))
+        for lo in range(0, tp.shape[0], STRUCTURE_ROWS):
+            hi = min(lo + STRUCTURE_ROWS, tp.shape[0])
+            out[lo:hi] = np.einsum("nim,nm->ni", self.structure(np.arange(lo, hi)), tp[lo:hi])
+        return out
 
 
 def usable(rec: Recording, cfg: Config | None) -> bool:
@@ -111,9 +131,6 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
         raise RecordingError(f"{rec.source}: fewer than 10 samples have every value")
     t, pose, mass = rec.t[ok], rec.pose[ok], rec.mass[ok]
     geo = cfg.geometry
-    a_mat = kinematics.structure_matrix_batch(
-        np.asarray(geo.frame_anchors_m), np.asarray(geo.platform_anchors_m), pose
-    )
     vel, acc = _smooth_derivatives(t, pose[:, :3])
     com = geo.center_of_mass_m
     w0 = statics.gravity_wrench_batch(mass, geo.gravity_m_s2, pose, com)
@@ -126,7 +143,8 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
         v=v,
         ts=rec.tension_sensor[ok].astype(float),
         a=_smooth_derivatives(t, v)[0],  # = fx.acceleration on evenly spaced rows
-        a_mat=a_mat,
+        pose=pose,
+        anchors=(np.asarray(geo.frame_anchors_m), np.asarray(geo.platform_anchors_m)),
         w0=w0,
         dw_dm=dw,
         speed=np.linalg.norm(vel, axis=1),
@@ -208,6 +226,7 @@ class WrenchModel:
             data.t, data.v, lambda: fx.displacement(data.t, data.v), data.a, self.t0
         )
         self._specs: dict[str, fx.Spec] = {}
+        self._structure: tuple[np.ndarray, np.ndarray] | None = None
 
     def spec(self, effect: str) -> fx.Spec:
         """``effect``'s fit specification in its internal coordinates (finite-difference
@@ -238,14 +257,31 @@ class WrenchModel:
         y = fx.inverse(self.series, y, values_of(theta, "path", "sensor"))
         return chain.compensate(self.chain_params(theta), y, d.v, d.t)
 
-    def residual(self, theta: dict[str, np.ndarray], tp: np.ndarray | None = None) -> np.ndarray:
-        """Wrench residual (N, 6): ``A T_p + w`` (force N, moment N m)."""
+    def structure_at(self, rows: np.ndarray) -> np.ndarray:
+        """``A`` (n, 6, m) at ``rows``, kept for the last ``rows`` asked for (the
+        selection's samples: asked for again and again)."""
+        if self._structure is None or not np.array_equal(self._structure[0], rows):
+            self._structure = (rows, self.data.structure(rows))
+        return self._structure[1]
+
+    def residual(
+        self,
+        theta: dict[str, np.ndarray],
+        tp: np.ndarray | None = None,
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Wrench residual ``A T_p + w`` (force N, moment N m) at ``rows`` (n, 6), default
+        every sample (N, 6); the chain runs over every sample either way."""
         d = self.data
         tp = self.platform_tension(theta) if tp is None else tp
-        r = np.einsum("nim,nm->ni", d.a_mat, tp) + d.w0
+        if rows is None:
+            r = d.balance(tp) + d.w0
+        else:
+            r = np.einsum("nim,nm->ni", self.structure_at(rows), tp[rows]) + d.w0[rows]
         delta = fx.mass_delta(values_of(theta, "statics"), d.t, self.t0)
         if delta is not None:
-            r = r + delta[:, None] * d.dw_dm
+            dw = d.dw_dm if rows is None else d.dw_dm[rows]
+            r = r + (delta if rows is None else delta[rows])[:, None] * dw
         return r
 
     def jacobian(
@@ -285,7 +321,7 @@ class WrenchModel:
             pert[j] += self.step(effect, j)
             tp1 = self.platform_tension({**base_theta, effect: pert}, d.ts_smooth)
             dtp = (tp1[rows] - tp0[rows]) / self.step(effect, j)
-            out.append(d.a_mat[rows] * dtp[:, None, :])
+            out.append(self.structure_at(rows) * dtp[:, None, :])
         return out
 
 
@@ -368,9 +404,9 @@ def prepare(rec: Recording, cfg: Config | None, friction: FrictionConfig) -> Pre
     nom = nominal_from(friction)
     model = WrenchModel(data, nom)
     rows = np.arange(0, data.t.size, max(1, math.ceil(data.t.size / FIT_BUDGET)))
-    a_rows = data.a_mat[rows]
+    a_rows = model.structure_at(rows)
     chol = np.linalg.cholesky(np.einsum("nim,njm->nij", a_rows, a_rows))
-    unit = np.linalg.solve(chol, model.residual({})[rows][:, :, None])[:, :, 0]
+    unit = np.linalg.solve(chol, model.residual({}, rows=rows)[:, :, None])[:, :, 0]
     sigma = float(math.sqrt(np.mean(noise_scale(unit) ** 2)))
     blocks, nb = time_blocks(data.t)
     warm = np.ones(data.t.size, bool)

@@ -120,7 +120,7 @@ class WrenchUnit:
         self.n_blocks = prep.n_blocks
         self.train = np.repeat((sample_blocks % 2 == 0) & use, 6)
         self.test = np.repeat((sample_blocks % 2 == 1) & use, 6)
-        self.r0 = prep.whiten(self.model.residual({})[self.rows]).reshape(-1)
+        self.r0 = prep.whiten(self.model.residual({}, rows=self.rows)).reshape(-1)
         self.cols: dict[str, list[Col]] = {}
         self.design: dict[str, np.ndarray] = {}
         self.ident: dict[str, list[dict]] = {}
@@ -130,7 +130,7 @@ class WrenchUnit:
         self.at = at
         self.base = self.r0
         if at:
-            self.base = prep.whiten(self.model.residual(at)[self.rows]).reshape(-1)
+            self.base = prep.whiten(self.model.residual(at, rows=self.rows)).reshape(-1)
         for e in candidates:
             if e in at:
                 self._take_anchor(e, at[e], self._linearise(e, at[e]))
@@ -165,7 +165,7 @@ class WrenchUnit:
         if at_nominal:
             return None
         below = self.r0 if effect in self.at or not self.at else self.base
-        return self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1) - below
+        return self.prep.whiten(self.model.residual(theta, rows=self.rows)).reshape(-1) - below
 
     def _linearise(self, effect: str, anchor: np.ndarray, shift=False):
         """(identifiability per sub-parameter, columns, design, shift) at ``anchor``
@@ -390,7 +390,7 @@ class WrenchUnit:
         theta = {e: self.bounded(e, v) for e, v in self.theta_of(phi).items()}
         train = self.train
         for _ in range(GN_ITERATIONS if kept else 0):
-            r = self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1)
+            r = self.prep.whiten(self.model.residual(theta, rows=self.rows)).reshape(-1)
             cols = []
             for e in kept:
                 blocks = [self.prep.whiten(b) for b in self.model.jacobian(theta, e, self.rows)]
@@ -412,7 +412,7 @@ class WrenchUnit:
     def nonlinear(self, theta: dict[str, np.ndarray]) -> Model:
         """The model at ``theta`` (internal parameters) with its nonlinear residual,
         whitened like the linear one (what the selector's held-out tests compare)."""
-        resid = self.prep.whiten(self.model.residual(theta)[self.rows]).reshape(-1)
+        resid = self.prep.whiten(self.model.residual(theta, rows=self.rows)).reshape(-1)
         return Model({}, {}, {}, resid)
 
     def confirm(

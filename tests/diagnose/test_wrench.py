@@ -171,7 +171,7 @@ def test_distribution_config_errors_name_the_key(dist, key):
 def test_closed_form_plant_balances_the_wrench_and_differs_from_the_gateway_statics():
     rec, full, cfg = recording("clean")
     data = wrench_data(rec, cfg)
-    resid = np.einsum("nim,nm->ni", data.a_mat, full.tension_platform) + data.w0
+    resid = np.einsum("nim,nm->ni", data.structure(), full.tension_platform) + data.w0
     # the plant balances the analytic acceleration; ours is from the sampled pose
     assert np.sqrt(np.mean(resid[:, :3] ** 2)) < 0.05
     statics_tp = platform.platform_tensions(rec, cfg)
