@@ -129,7 +129,9 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
     ok &= np.isfinite(rec.pose).all(1) & np.isfinite(rec.mass)
     if ok.sum() < 10:
         raise RecordingError(f"{rec.source}: fewer than 10 samples have every value")
-    t, pose, mass = rec.t[ok], rec.pose[ok], rec.mass[ok]
+    keep = slice(None) if ok.all() else ok  # views of the recording when nothing is dropped
+    t, pose, mass = rec.t[keep], rec.pose[keep], rec.mass[keep]
+    ts = np.asarray(rec.tension_sensor[keep], dtype=float)
     geo = cfg.geometry
     vel, acc = _smooth_derivatives(t, pose[:, :3])
     com = geo.center_of_mass_m
@@ -137,20 +139,18 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
     w0 = w0 + statics.inertial_wrench(mass, acc)
     dw = statics.gravity_wrench_batch(np.ones_like(mass), geo.gravity_m_s2, pose, com)
     dw = dw + statics.inertial_wrench(np.ones_like(mass), acc)
-    v = np.column_stack([deadband(rec.velocity[ok, i]) for i in range(rec.cables)])
+    v = np.column_stack([deadband(rec.velocity[keep, i]) for i in range(rec.cables)])
     return WrenchData(
         t=t,
         v=v,
-        ts=rec.tension_sensor[ok].astype(float),
+        ts=ts,
         a=_smooth_derivatives(t, v)[0],  # = fx.acceleration on evenly spaced rows
         pose=pose,
         anchors=(np.asarray(geo.frame_anchors_m), np.asarray(geo.platform_anchors_m)),
         w0=w0,
         dw_dm=dw,
         speed=np.linalg.norm(vel, axis=1),
-        ts_smooth=uniform_filter1d(
-            rec.tension_sensor[ok].astype(float), _window(t), axis=0, mode="nearest"
-        ),
+        ts_smooth=uniform_filter1d(ts, _window(t), axis=0, mode="nearest"),
         source=rec.source,
     )
 
