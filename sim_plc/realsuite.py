@@ -289,6 +289,12 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
 def _spread_table(estimates: dict[str, dict]) -> list[str]:
     """The spread of the common parameters between the three fits against their errors."""
     rows = spread(estimates)
+    sets = "; ".join(f"{k.replace('_', ' ')} {', '.join(v)}" for k, v in estimates.items())
+    if not rows:
+        return [
+            "Uncertainty: no effect is common to all three fits, so no parameter is compared "
+            f"between them (the fits' effect sets: {sets})."
+        ]
     lines = [
         "Uncertainty: each parameter of the effects all three fits found, fitted on each "
         "set (value, the Jacobian's standard error / the standard error from refits leaving "
@@ -317,9 +323,7 @@ def _spread_table(estimates: dict[str, dict]) -> list[str]:
         f"The spread between the fits is {min(ratio_jac, default=math.nan):.0f}-"
         f"{max(ratio_jac, default=math.nan):.0f} times the Jacobian's errors; within twice "
         f"the errors from refits for {', '.join(covered) or 'none'}; beyond for "
-        f"{', '.join(beyond) or 'none'} (the fits' effect sets: "
-        + "; ".join(f"{k.replace('_', ' ')} {', '.join(v)}" for k, v in estimates.items())
-        + ").",
+        f"{', '.join(beyond) or 'none'} (the fits' effect sets: {sets}).",
     ]
     return lines
 

@@ -32,9 +32,12 @@ class CableData:
     """One cable's series. ``t``, ``v``, ``tp``, ``ts`` (N,): s, m/s, N, N.
 
     ``x`` displacement (m, ``x0`` at the first sample) and ``a`` acceleration (m/s^2) from
-    ``v``; ``t0`` the
-    recording's first time (drift is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of
-    platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
+    ``v``, except that ``x`` is ``length - length[0] + x0`` where the recording's cable
+    lengths ``length`` (m) are given: an integrated velocity drifts away from a measured
+    length (a filtered derivative's bias, the jumps across a gap between joined trials:
+    up to 3 mm on the da Vinci's 5 mm stroke); ``t0`` the recording's first time (drift
+    is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of platform tension per kg of
+    platform mass (None: no pose/mass, no ``mass_change``).
     ``x`` and ``a`` are given (a subset of a longer recording takes them from the whole
     recording) or computed from ``t`` and ``v`` when first read and dropped again by
     :meth:`release` (memory: 16 bytes per sample that only the cable being worked on holds;
@@ -54,8 +57,10 @@ class CableData:
         x: np.ndarray | None = None,
         a: np.ndarray | None = None,
         x0: float = 0.0,
+        length: np.ndarray | None = None,
     ) -> None:
         self.t, self.v, self.tp, self.ts, self.t0, self.x0 = t, v, tp, ts, t0, x0
+        self.length = length
         self._given = x is not None or a is not None
         self._x, self._a = x, a
         self._dm_source = dtp_dm if callable(dtp_dm) else None
@@ -70,7 +75,10 @@ class CableData:
     @property
     def x(self) -> np.ndarray:
         if self._x is None:
-            self._x = fx.displacement(self.t, self.v)
+            if self.length is not None:
+                self._x = np.asarray(self.length, dtype=float) - float(self.length[0])
+            else:
+                self._x = fx.displacement(self.t, self.v)
             if self.x0:
                 self._x += self.x0
         return self._x

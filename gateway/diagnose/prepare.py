@@ -80,8 +80,10 @@ def cable_data(
 ) -> list[CableData]:
     """One :class:`CableData` per cable; ``tp`` (N, m); velocity through :func:`deadband`.
 
-    ``x`` is the travel since the first sample; with ``origin`` (the diagnosed recording's
-    first cable lengths) and lengths in ``rec`` (a validation recording), the travel since
+    ``x`` is the travel since the first sample (from the recording's lengths where it has
+    them, else the integrated velocity: :class:`CableData`); with ``origin`` (the diagnosed
+    recording's first cable lengths) and lengths in ``rec`` (a validation recording), the
+    travel since
     the diagnosed recording's first sample instead: a length or a phase fitted against the
     diagnosed recording's travel (``spring``, ``eccentricity``) means the same on both.
 
@@ -102,7 +104,12 @@ def cable_data(
             dm = partial(dtp_dm.column, rec.t, i)
         elif dtp_dm is not None:
             dm = dtp_dm[:, i]
-        out.append(CableData(rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm, x0=float(x0[i])))
+        length = None if rec.length is None else rec.length[:, i]
+        out.append(
+            CableData(
+                rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm, x0=float(x0[i]), length=length
+            )
+        )
     return out
 
 

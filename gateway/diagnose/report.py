@@ -230,7 +230,8 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
         emap.add(i + 1, r, located.regime[:, i])
         use = prep.usable[idx, i]
         d = fw.data  # thinned: its x and a from the thinned series (not the whole's)
-        thin = CableData(d.t[idx], d.v[idx], d.tp[idx], d.ts[idx], d.t0)
+        length = None if d.length is None else d.length[idx]
+        thin = CableData(d.t[idx], d.v[idx], d.tp[idx], d.ts[idx], d.t0, x0=d.x0, length=length)
         explainer.add(thin, r[idx], (blk % 2 == 0) & use, (blk % 2 == 1) & use)
         del thin, r
         d.release()

@@ -149,15 +149,27 @@ def test_davinci_block_errors_cover_the_spread_between_the_two_l4_sets(davinci):
 
 @needs_data
 @pytest.mark.long
-@pytest.mark.xfail(
-    strict=True,
-    reason="open: the blind diagnosis reaches 1.54 and 1.46 N (the issue's targets 1.64 "
-    "and 1.44 N), the least-squares baseline 1.48 and 1.19 N (docs/diagnose-suite.md)",
-)
-def test_davinci_blind_is_no_worse_than_the_baseline(davinci):
+def test_davinci_blind_meets_the_issues_baseline(davinci):
+    """The issue's target (its engineer's least-squares baseline: 1.64 N on the 6 L_4
+    validation trials, 1.44 N on L_2), and on the L_4 validation trials no worse than this
+    project's own baseline either (measured: 1.33 N against 1.48 N; L_2 1.24 N against
+    1.44 N; docs/diagnose-suite.md)."""
     scored = davinci["scored"]
     for key, target in realdata.DAVINCI_TARGETS_N.items():
-        assert scored[key]["tool"] <= min(target, scored[key]["baseline"]), key
+        assert scored[key]["tool"] <= target, key
+    assert scored["validation"]["tool"] <= scored["validation"]["baseline"]
+
+
+@needs_data
+@pytest.mark.long
+@pytest.mark.xfail(
+    strict=True,
+    reason="open: on L_2 the blind diagnosis reaches 1.24 N, this project's least-squares "
+    "baseline (fitted on the same 9 trials) 1.19 N (docs/diagnose-suite.md)",
+)
+def test_davinci_blind_is_no_worse_than_our_baseline_on_the_other_series(davinci):
+    scored = davinci["scored"]
+    assert scored["other_series"]["tool"] <= scored["other_series"]["baseline"]
 
 
 def test_the_spread_table_compares_the_fits_with_both_errors():

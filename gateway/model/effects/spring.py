@@ -32,8 +32,12 @@ from gateway.model.effects.base import (
     Values,
 )
 
-MIN_SPAN_M = 0.01
-"""Travel a cable must cover for a force linear in its length to show (else an offset)."""
+MIN_SPAN_M = 0.001
+"""Travel a cable must cover for a force linear in its length to show (else an offset).
+A millimetre, not a centimetre: a short transmission carries springs too (a surgical
+instrument's capstan strokes 5 mm and its residual falls with -700 N/m of spindle
+position); what tells a spring from an offset is the nesting test on held-out blocks, the
+span only rules out a cable that barely moves."""
 
 
 @njit(cache=True)
