@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.core.config import Config, FrictionConfig
+from gateway.core.heap import trim_heap
 from gateway.diagnose import locate
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
@@ -556,6 +557,7 @@ def diagnose_wrench(
     say = progress or (lambda _msg: None)
     th = thresholds or Thresholds()
     prep = prepare(rec, cfg, friction)  # 1. prepare
+    trim_heap()  # the preparation's temporaries and LLVM's pages leave the process
     data, model = prep.model.data, prep.model
     say(
         f"{rec.source}: wrench reference, {data.t.size} samples, sensitivities of "
@@ -577,6 +579,7 @@ def diagnose_wrench(
         say(f"wrench reference: again, linearised at the fit of {', '.join(kept)}")
         if k + 1 < PASSES:  # this pass's designs go before the next's are made (peak memory)
             del unit, selector, tested, outcome
+            trim_heap()
     sel = unit
     test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
