@@ -69,8 +69,7 @@ def diagnose(
     return_large_frees()  # many (N,) temporaries: freed ones must not stay resident
     ref = PlatformReference(tp, dtp_dm)
     prepared = ref.prepare(rec, friction, validation, say)
-    located = ref.locate(prepared)
-    trim_heap()  # LLVM's pages that loading the first kernels touched
+    located = ref.locate(prepared)  # gives back LLVM's pages and the heap after each cable
     selected = select_units(ref, prepared, th, say)
     fitted = fit_units(ref, prepared, selected, th, say)
     return build_report(prepared, located, fitted, th)
@@ -78,8 +77,8 @@ def diagnose(
 
 def load_kernels(friction: FrictionConfig) -> None:
     """Load the chain simulation's and the filter's compiled kernels (numba's cache) on
-    three samples, then
-    give back the LLVM pages that loading touched (:func:`trim_heap`). Called before a
+    three samples, then give back the LLVM pages that loading touched (:func:`trim_heap`).
+    Called before a
     recording is read: LLVM's one-off work (numba's runtime module is compiled in the
     process, ~45 MiB of LLVM code touched) then happens while the process is small, not on
     top of the recording and the first cable. Results are unchanged (the kernels keep no

@@ -83,9 +83,9 @@ def cable_data(
     ``x`` is the travel since the first sample (from the recording's lengths where it has
     them, else the integrated velocity: :class:`CableData`); with ``origin`` (the diagnosed
     recording's first cable lengths) and lengths in ``rec`` (a validation recording), the
-    travel since
-    the diagnosed recording's first sample instead: a length or a phase fitted against the
-    diagnosed recording's travel (``spring``, ``eccentricity``) means the same on both.
+    travel since the diagnosed recording's first sample instead: a length or a phase fitted
+    against the diagnosed recording's travel (``spring``, ``eccentricity``) means the same on
+    both.
 
     Memory: the tensions and a clean velocity are views of the recording's columns (not
     copies); displacement and acceleration (16 bytes per sample) and ``dtp_dm`` given as

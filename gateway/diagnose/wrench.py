@@ -97,7 +97,7 @@ class WrenchData:
     def cables(self) -> int:
         return int(self.ts.shape[1])
 
-    def structure(self, rows: np.ndarray | None = None) -> np.ndarray:
+    def structure(self, rows: np.ndarray | slice | None = None) -> np.ndarray:
         """``A`` (n, 6, m) at the samples ``rows`` (default all)."""
         pose = self.pose if rows is None else self.pose[rows]
         return kinematics.structure_matrix_batch(self.anchors[0], self.anchors[1], pose)
@@ -108,7 +108,7 @@ class WrenchData:
         out = np.empty((tp.shape[0], 6))
         for lo in range(0, tp.shape[0], STRUCTURE_ROWS):
             hi = min(lo + STRUCTURE_ROWS, tp.shape[0])
-            out[lo:hi] = np.einsum("nim,nm->ni", self.structure(np.arange(lo, hi)), tp[lo:hi])
+            out[lo:hi] = np.einsum("nim,nm->ni", self.structure(slice(lo, hi)), tp[lo:hi])
         return out
 
 
@@ -275,12 +275,12 @@ class WrenchModel:
         d = self.data
         tp = self.platform_tension(theta) if tp is None else tp
         if rows is None:
-            r = d.balance(tp) + d.w0
+            r, dw = d.balance(tp) + d.w0, d.dw_dm
         else:
             r = np.einsum("nim,nm->ni", self.structure_at(rows), tp[rows]) + d.w0[rows]
+            dw = d.dw_dm[rows]
         delta = fx.mass_delta(values_of(theta, "statics"), d.t, self.t0)
         if delta is not None:
-            dw = d.dw_dm if rows is None else d.dw_dm[rows]
             r = r + (delta if rows is None else delta[rows])[:, None] * dw
         return r
 
