@@ -103,8 +103,8 @@ class WrenchData:
 
     @property
     def a(self) -> np.ndarray:
-        """Cable acceleration (N, m) (= fx.acceleration on evenly spaced rows)."""
-        return _smooth_derivatives(self.t, self.v)[0]
+        """Cable acceleration (N, m): the first of :func:`_smooth_derivatives` of ``v``."""
+        return _smooth_derivative(self.t, self.v)
 
     @property
     def ts_smooth(self) -> np.ndarray:
@@ -204,9 +204,8 @@ def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.nd
     stamps each row with its read time (jitter of a cycle): plain differences of such rows
     turn that jitter into accelerations of tens of m/s^2. On a setpoint trajectory (< a
     few Hz) the average changes nothing else."""
-    steps = np.diff(t)
     n = _window(t, DERIVATIVE_S) | 1
-    if steps.size < 2 or np.std(steps) <= 1e-6 * np.median(steps) or t.size <= n + 2:
+    if _plain_steps(t, n):
         vel = np.gradient(x, t, axis=0)
         return vel, np.gradient(vel, t, axis=0)
     ts = _box(t, n)
@@ -214,6 +213,23 @@ def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.nd
         ts = t
     vel = np.gradient(_box(x, n), ts, axis=0)
     return vel, np.gradient(_box(vel, n), ts, axis=0)
+
+
+def _plain_steps(t: np.ndarray, n: int) -> bool:
+    """True when :func:`_smooth_derivatives` takes plain differences (evenly spaced rows,
+    or too few for a window of ``n``)."""
+    steps = np.diff(t)
+    return steps.size < 2 or np.std(steps) <= 1e-6 * np.median(steps) or t.size <= n + 2
+
+
+def _smooth_derivative(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The first derivative of :func:`_smooth_derivatives`, the same values: on evenly
+    spaced rows :func:`gateway.model.effects.acceleration` (numpy's gradient bit for bit,
+    in pieces: ``np.gradient`` of a 10-min 8-cable series made ~5 copies of it, 190 MiB
+    at once, and the second derivative is not needed)."""
+    if _plain_steps(t, _window(t, DERIVATIVE_S) | 1):
+        return fx.acceleration(t, x)
+    return _smooth_derivatives(t, x)[0]
 
 
 def _box(x: np.ndarray, n: int) -> np.ndarray:
@@ -314,14 +330,21 @@ class WrenchModel:
         return fx.chain_params(self.nom, values_of(theta, "chain"), self.data.cables)
 
     def platform_tension(
-        self, theta: dict[str, np.ndarray], ts: np.ndarray | None = None
+        self,
+        theta: dict[str, np.ndarray],
+        ts: np.ndarray | None = None,
+        rows: np.ndarray | None = None,
     ) -> np.ndarray:
-        """(N, m): the readings (``ts``, default the recorded ones) with the sensor and path
-        effects undone, compensated through the chain."""
+        """(N, m), or (n, m) at the samples ``rows`` (the chain runs over every sample
+        either way, :func:`chain.compensate_rows`): the readings (``ts``, default the
+        recorded ones) with the sensor and path effects undone, compensated through the
+        chain."""
         d = self.data
         y = d.ts if ts is None else ts
         y = fx.inverse(self.series, y, values_of(theta, "path", "sensor"))
-        return chain.compensate(self.chain_params(theta), y, d.v, d.t)
+        if rows is None:
+            return chain.compensate(self.chain_params(theta), y, d.v, d.t)
+        return chain.compensate_rows(self.chain_params(theta), y, d.v, d.t, rows)
 
     def structure_at(self, rows: np.ndarray) -> np.ndarray:
         """``A`` (n, 6, m) at ``rows``, kept for the last ``rows`` asked for (the
@@ -339,12 +362,12 @@ class WrenchModel:
         """Wrench residual ``A T_p + w`` (force N, moment N m) at ``rows`` (n, 6), default
         every sample (N, 6); the chain runs over every sample either way."""
         d = self.data
-        tp = self.platform_tension(theta) if tp is None else tp
         delta = fx.mass_delta(values_of(theta, "statics"), d.t, self.t0)
         if rows is None:
-            return d.balance(tp, delta)
+            return d.balance(self.platform_tension(theta) if tp is None else tp, delta)
+        tp = self.platform_tension(theta, rows=rows) if tp is None else tp[rows]
         w0, dw = d.external(rows)
-        r = np.einsum("nim,nm->ni", self.structure_at(rows), tp[rows]) + w0
+        r = np.einsum("nim,nm->ni", self.structure_at(rows), tp) + w0
         if delta is not None:
             r = r + delta[rows][:, None] * dw
         return r
@@ -390,11 +413,11 @@ class WrenchModel:
                 out.append((moved - base) / self.step(effect, j))  # type: ignore[operator]
             return out
         smooth = d.ts_smooth
-        tp0 = self.platform_tension(base_theta, smooth)[rows]  # only the rows are kept
+        tp0 = self.platform_tension(base_theta, smooth, rows)
         for j in range(len(SUBPARAMS[effect])):
             pert = base_theta[effect].copy()
             pert[j] += self.step(effect, j)
-            tp1 = self.platform_tension({**base_theta, effect: pert}, smooth)[rows]
+            tp1 = self.platform_tension({**base_theta, effect: pert}, smooth, rows)
             out.append((tp1 - tp0) / self.step(effect, j))
         return out
 

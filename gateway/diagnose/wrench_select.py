@@ -423,7 +423,8 @@ class WrenchUnit:
         return float(max(z))
 
     def release(self) -> None:
-        """Nothing cached beyond the design (kept for the report's refit)."""
+        """The designs :meth:`matrix` keeps made go (made again if asked for)."""
+        self._matrices.clear()
 
     # ---- nonlinear refit ----
     def theta_of(self, increments: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -632,20 +633,24 @@ def diagnose_wrench(
             del unit, selector, tested, outcome
             trim_heap()
     sel = unit
+    sel.release()  # its designs made again are not needed for the report
     test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
     vmodel = None
     if validation is not None:
         vmodel = WrenchModel(wrench_data(validation, cfg), model.nom)
 
-    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray]:
+    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray, float]:
+        """RMS of the force residual (all, held out, validation), the force residual
+        (N, 3) and the moment's RMS: the residual (N, 6) itself is not kept."""
         th = {e: theta[e] for e in effects}
         r = model.residual(th)
         v = None if vmodel is None else force_rms(vmodel.residual(th))
-        return force_rms(r), force_rms(r, test), v, r
+        moment = float(math.sqrt(np.mean(r[:, 3:] ** 2)))
+        return force_rms(r), force_rms(r, test), v, np.ascontiguousarray(r[:, :3]), moment
 
     before = scores([])
-    r_nominal = before[3]
+    r_nominal = before
     findings = []
     for k, e in enumerate(order):
         after = scores(order[: k + 1])
@@ -674,28 +679,30 @@ def diagnose_wrench(
     step = max(1, data.t.size * 3 // SIGNATURE_POINTS)
     for e in order:
         without = model.residual({k: v for k, v in theta.items() if k != e})[:, :3]
-        contrib = (without - before[3][:, :3]).reshape(-1)[::step]
+        contrib = (without - before[3]).reshape(-1)[::step]
         diag.signatures[e] = (contrib, without.reshape(-1)[::step])
     return diag
 
 
-def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchDiagnosis:
+def _build(rec, prep, sel, findings, order, nominal, final, vmodel) -> WrenchDiagnosis:
+    """The diagnosis from the nominal and the final :func:`diagnose_wrench` scores (each
+    with the force residual (N, 3) and the moment's RMS)."""
     data = prep.model.data
-    r_final = final[3]
-    fs = white_noise_columns(r_final[:, :3])
+    r_nominal, r_final = nominal[3], final[3]
+    fs = white_noise_columns(r_final)
     noise = float(math.sqrt(np.mean(fs**2)))
     fin = {
         "rmse_n": final[0],
         "holdout_rmse_n": final[1],
         "noise_n": noise,
         "unexplained_n": math.sqrt(max(final[1] ** 2 - noise**2, 0.0)),
-        "moment_rmse_nm": float(math.sqrt(np.mean(r_final[:, 3:] ** 2))),
+        "moment_rmse_nm": final[4],
     }
     if vmodel is not None:
         fin["validation_rmse_before_n"] = force_rms(vmodel.residual({}))
         fin["validation_rmse_after_n"] = float(final[2] or 0.0)
-    norm0 = np.linalg.norm(r_nominal[:, :3], axis=1)[:, None]
-    norm1 = np.linalg.norm(r_final[:, :3], axis=1)[:, None]
+    norm0 = np.linalg.norm(r_nominal, axis=1)[:, None]
+    norm1 = np.linalg.norm(r_final, axis=1)[:, None]
     regime = locate.regimes(data.speed, np.gradient(data.speed, data.t))[:, None]
 
     def located(norm: np.ndarray) -> list[locate.Region]:
@@ -711,7 +718,7 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
         "samples": int(data.t.size),
         "skipped_rows": rec.skipped_rows + (rec.samples - int(data.t.size)),
         "baseline": {
-            "rmse_n": force_rms(r_nominal),
+            "rmse_n": nominal[0],
             "per_cable_rmse_n": [],
             **locate.report_fields(regions, norm0, regime),
         },
@@ -723,22 +730,20 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
             "candidates": list(WRENCH_EFFECTS),
             "not_candidates": list(NOT_CANDIDATES),
             "variance_inflation_max": VIF_MAX,
-            "baseline_moment_rmse_nm": float(math.sqrt(np.mean(r_nominal[:, 3:] ** 2))),
+            "baseline_moment_rmse_nm": nominal[4],
             "per_cable_effects": list(PER_CABLE),
         },
     }
-    zeros = np.zeros((data.t.size, 3))
-    regimes = np.repeat(regime, 3, axis=1)
     return WrenchDiagnosis(
         report,
         data.t,
-        zeros,
-        regimes,
+        np.broadcast_to(0.0, (data.t.size, 3)),  # views, read only: 14 MiB each for 10 min
+        np.broadcast_to(regime, (data.t.size, 3)),
         regions_final,
         [],
         order,
         [],
         regions_nominal=regions,
-        nominal_pred=-r_nominal[:, :3],
-        final_pred=-r_final[:, :3],
+        nominal_pred=-r_nominal,
+        final_pred=-r_final,
     )
