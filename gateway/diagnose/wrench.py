@@ -31,6 +31,7 @@ ones compensated; a statics effect changes the mass in the balance
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -137,17 +138,33 @@ class WrenchData:
         pose = self.pose if rows is None else self.pose[rows]
         return kinematics.structure_matrix_batch(self.anchors[0], self.anchors[1], pose)
 
-    def balance(self, tp: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
+    def balance(
+        self,
+        tp: np.ndarray | Iterable[tuple[int, int, np.ndarray]],
+        delta: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The wrench residual ``A T_p + w0 (+ delta dw_dm)`` (N, 6) over every sample,
         :data:`STRUCTURE_ROWS` rows of ``A``, ``w0`` and ``dw_dm`` at a time (the same
-        values as from whole arrays); ``delta`` (N,) a change of the mass (kg)."""
-        out = np.empty((tp.shape[0], 6))
-        for lo in range(0, tp.shape[0], STRUCTURE_ROWS):
-            part = slice(lo, min(lo + STRUCTURE_ROWS, tp.shape[0]))
+        values as from whole arrays); ``delta`` (N,) a change of the mass (kg). ``tp``
+        (N, m), or its pieces ``(a, b, T_p[a:b])`` in order
+        (:func:`gateway.model.chain.compensate_pieces`: no (N, m) array at all)."""
+        pieces = _row_pieces(tp) if isinstance(tp, np.ndarray) else tp
+        out = np.empty((self.t.size, 6))
+        for a, b, piece in pieces:
+            part = slice(a, b)
             w0, dw = self.external(part)
-            r = np.einsum("nim,nm->ni", self.structure(part), tp[part]) + w0
+            r = np.einsum("nim,nm->ni", self.structure(part), piece) + w0
             out[part] = r if delta is None else r + delta[part][:, None] * dw
         return out
+
+
+def _row_pieces(x: np.ndarray) -> Iterable[tuple[int, int, np.ndarray]]:
+    """``(a, b, x[a:b])`` of :data:`STRUCTURE_ROWS` rows each."""
+    n = x.shape[0]
+    return (
+        (a, min(a + STRUCTURE_ROWS, n), x[a : a + STRUCTURE_ROWS])
+        for a in range(0, n, STRUCTURE_ROWS)
+    )
 
 
 def usable(rec: Recording, cfg: Config | None) -> bool:
@@ -340,11 +357,15 @@ class WrenchModel:
         recorded ones) with the sensor and path effects undone, compensated through the
         chain."""
         d = self.data
-        y = d.ts if ts is None else ts
-        y = fx.inverse(self.series, y, values_of(theta, "path", "sensor"))
+        y = self._chain_input(theta, ts)
         if rows is None:
             return chain.compensate(self.chain_params(theta), y, d.v, d.t)
         return chain.compensate_rows(self.chain_params(theta), y, d.v, d.t, rows)
+
+    def _chain_input(self, theta: dict[str, np.ndarray], ts: np.ndarray | None) -> np.ndarray:
+        """The readings (``ts``, default the recorded ones), sensor and path effects undone."""
+        y = self.data.ts if ts is None else ts
+        return fx.inverse(self.series, y, values_of(theta, "path", "sensor"))
 
     def structure_at(self, rows: np.ndarray) -> np.ndarray:
         """``A`` (n, 6, m) at ``rows``, kept for the last ``rows`` asked for (the
@@ -363,8 +384,11 @@ class WrenchModel:
         every sample (N, 6); the chain runs over every sample either way."""
         d = self.data
         delta = fx.mass_delta(values_of(theta, "statics"), d.t, self.t0)
-        if rows is None:
-            return d.balance(self.platform_tension(theta) if tp is None else tp, delta)
+        if rows is None:  # the chain's output a batch at a time, each taken by the balance
+            if tp is not None:
+                return d.balance(tp, delta)
+            y = self._chain_input(theta, None)
+            return d.balance(chain.compensate_pieces(self.chain_params(theta), y, d.v, d.t), delta)
         tp = self.platform_tension(theta, rows=rows) if tp is None else tp[rows]
         w0, dw = d.external(rows)
         r = np.einsum("nim,nm->ni", self.structure_at(rows), tp) + w0

@@ -426,6 +426,13 @@ class WrenchUnit:
         """The designs :meth:`matrix` keeps made go (made again if asked for)."""
         self._matrices.clear()
 
+    def drop_designs(self) -> None:
+        """After the selection and the refit: the designs and what they are made of go
+        (the report reads :attr:`cols`, :attr:`ident` and the anchors only; ~37 MiB of
+        sensitivities at :data:`wrench.FIT_BUDGET` rows of 8 cables)."""
+        self._matrices.clear()
+        self.sens.clear()
+
     # ---- nonlinear refit ----
     def theta_of(self, increments: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Increments from the anchors -> internal parameters (k, m) per effect."""
@@ -633,7 +640,7 @@ def diagnose_wrench(
             del unit, selector, tested, outcome
             trim_heap()
     sel = unit
-    sel.release()  # its designs made again are not needed for the report
+    sel.drop_designs()  # the report reads the columns and the identifiability only
     test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
     vmodel = None

@@ -861,15 +861,30 @@ def compensate_rows(
     rows = np.asarray(rows, dtype=np.intp)
     if rows.size > 1 and np.any(np.diff(rows) <= 0):
         raise ValueError("rows must be increasing")
-    n = np.shape(tension_sensor)[0]
     out = np.empty((rows.size, params.cables))
+    for a, b, part in compensate_pieces(params, tension_sensor, velocity, t, tol_n, max_iter):
+        lo, hi = np.searchsorted(rows, (a, b))
+        out[lo:hi] = part[rows[lo:hi] - a]
+    return out
+
+
+def compensate_pieces(
+    params: ChainParams,
+    tension_sensor: np.ndarray,
+    velocity: np.ndarray,
+    t: np.ndarray | float,
+    tol_n: float = 1e-10,
+    max_iter: int = 20,
+) -> Iterator[tuple[int, int, np.ndarray]]:
+    """:func:`compensate` (from the relaxed state) one batch of :data:`BATCH_ROWS` at a
+    time: yields ``(a, b, T_p[a:b])``, bit for bit ``compensate(...)[a:b]``, in one
+    buffer that the next batch overwrites (read it before asking for the next)."""
+    n = np.shape(tension_sensor)[0]
     buf = np.empty((max(1, min(n, BATCH_ROWS)), params.cables))
     a = 0
     for b in _batches(params, True, tension_sensor, velocity, t, None, tol_n, max_iter, buf, True):
-        lo, hi = np.searchsorted(rows, (a, b))
-        out[lo:hi] = buf[rows[lo:hi] - a]
+        yield a, b, buf[: b - a]
         a = b
-    return out
 
 
 class ChainStepper:

@@ -15,6 +15,7 @@ from gateway.model.chain import (
     ChainParams,
     ChainStepper,
     compensate,
+    compensate_pieces,
     compensate_rows,
     coulomb_coefficients,
     simulate,
@@ -434,6 +435,13 @@ def test_compensate_rows_is_compensate_at_the_rows(model: str) -> None:
         np.testing.assert_array_equal(compensate_rows(p, ts, v, t, rows), whole[rows])
     with pytest.raises(ValueError, match="increasing"):
         compensate_rows(p, ts, v, t, np.array([5, 3]))
+    pieces = [(a, b, part.copy()) for a, b, part in compensate_pieces(p, ts, v, t)]
+    assert [(a, b) for a, b, _ in pieces] == [
+        (0, BATCH_ROWS),
+        (BATCH_ROWS, 2 * BATCH_ROWS),
+        (2 * BATCH_ROWS, n),
+    ]
+    np.testing.assert_array_equal(np.concatenate([part for *_, part in pieces]), whole)
 
 
 def test_simulate_rows_is_simulate_batch_by_batch() -> None:
