@@ -31,6 +31,7 @@ ones compensated; a statics effect changes the mass in the balance
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,45 +72,99 @@ no wrench shows; a robot that stands still leaves every offset unidentifiable.""
 class WrenchData:
     """A recording ready for the wrench balance. ``N`` samples, ``m`` cables.
 
-    ``t`` (N,); ``v``, ``ts``, ``a`` (N, m) setpoint velocity (dead band as the engine),
-    sensor reading, cable acceleration; ``pose`` (N, 6) and ``anchors`` (frame, platform)
-    from which :meth:`structure` makes the structure matrices ``A`` (N, 6, m) where they
-    are needed (held for every sample they were the largest array of a long recording:
-    220 MiB for 10 min x 1 kHz x 8 cables); ``w0`` (N, 6) external wrench
-    with the recorded mass; ``dw_dm`` (N, 6) wrench per kg; ``speed`` (N,) platform speed;
-    ``ts_smooth`` (N, m) the reading's moving average over :data:`INSTRUMENT_S` (the
-    instrument the Jacobian is computed on, see :meth:`WrenchModel.jacobian`).
+    Held per sample: ``t`` (N,); ``v``, ``ts`` (N, m) setpoint velocity (dead band as the
+    engine; the recording's own array when the dead band changes nothing) and sensor
+    reading; ``pose`` (N, 6), ``mass`` (N,) and ``acc`` (N, 3) the platform's
+    acceleration; ``speed`` (N,) platform speed; ``anchors`` (frame, platform).
+    Made from them where they are needed, never held for every sample (on a 10-min
+    1 kHz 8-cable recording each (N, m) array is 37 MiB, each (N, 6) one 27 MiB, and
+    the diagnosis' peak memory was their sum): the structure matrices ``A`` (N, 6, m)
+    (:meth:`structure`), the external wrench ``w0`` with the recorded mass and the
+    wrench per kg ``dw_dm`` (N, 6) (:meth:`external`), the cable acceleration ``a``
+    and ``ts_smooth`` (N, m), the reading's moving average over :data:`INSTRUMENT_S`
+    (the instrument the Jacobian is computed on, see :meth:`WrenchModel.jacobian`).
+    Each is computed row by row, so a part of it holds the same values as the whole.
     """
 
     t: np.ndarray
     v: np.ndarray
     ts: np.ndarray
-    a: np.ndarray
     pose: np.ndarray
     anchors: tuple[np.ndarray, np.ndarray]
-    w0: np.ndarray
-    dw_dm: np.ndarray
+    mass: np.ndarray
+    acc: np.ndarray
+    gravity: float
+    com: np.ndarray
     speed: np.ndarray
-    ts_smooth: np.ndarray
     source: str = ""
 
     @property
     def cables(self) -> int:
         return int(self.ts.shape[1])
 
+    @property
+    def a(self) -> np.ndarray:
+        """Cable acceleration (N, m): the first of :func:`_smooth_derivatives` of ``v``."""
+        return _smooth_derivative(self.t, self.v)
+
+    @property
+    def ts_smooth(self) -> np.ndarray:
+        """The reading's moving average over :data:`INSTRUMENT_S` (N, m)."""
+        return uniform_filter1d(self.ts, _window(self.t), axis=0, mode="nearest")
+
+    @property
+    def w0(self) -> np.ndarray:
+        """External wrench (N, 6) with the recorded mass: gravity (moment of an
+        off-centre centre of mass included) + d'Alembert."""
+        return self.external()[0]
+
+    @property
+    def dw_dm(self) -> np.ndarray:
+        """External wrench per kg (N, 6)."""
+        return self.external()[1]
+
+    def external(self, rows: np.ndarray | slice | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``w0`` and ``dw_dm`` (n, 6) at the samples ``rows`` (default all)."""
+        sel = slice(None) if rows is None else rows
+        mass, pose, acc = self.mass[sel], self.pose[sel], self.acc[sel]
+        ones = np.ones_like(mass)
+        w0 = statics.gravity_wrench_batch(mass, self.gravity, pose, self.com)
+        w0 = w0 + statics.inertial_wrench(mass, acc)
+        dw = statics.gravity_wrench_batch(ones, self.gravity, pose, self.com)
+        return w0, dw + statics.inertial_wrench(ones, acc)
+
     def structure(self, rows: np.ndarray | slice | None = None) -> np.ndarray:
         """``A`` (n, 6, m) at the samples ``rows`` (default all)."""
         pose = self.pose if rows is None else self.pose[rows]
         return kinematics.structure_matrix_batch(self.anchors[0], self.anchors[1], pose)
 
-    def balance(self, tp: np.ndarray) -> np.ndarray:
-        """``A T_p`` (N, 6) over every sample, :data:`STRUCTURE_ROWS` rows of ``A`` at a
-        time (the same values as from all of ``A`` at once)."""
-        out = np.empty((tp.shape[0], 6))
-        for lo in range(0, tp.shape[0], STRUCTURE_ROWS):
-            hi = min(lo + STRUCTURE_ROWS, tp.shape[0])
-            out[lo:hi] = np.einsum("nim,nm->ni", self.structure(slice(lo, hi)), tp[lo:hi])
+    def balance(
+        self,
+        tp: np.ndarray | Iterable[tuple[int, int, np.ndarray]],
+        delta: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The wrench residual ``A T_p + w0 (+ delta dw_dm)`` (N, 6) over every sample,
+        :data:`STRUCTURE_ROWS` rows of ``A``, ``w0`` and ``dw_dm`` at a time (the same
+        values as from whole arrays); ``delta`` (N,) a change of the mass (kg). ``tp``
+        (N, m), or its pieces ``(a, b, T_p[a:b])`` in order
+        (:func:`gateway.model.chain.compensate_pieces`: no (N, m) array at all)."""
+        pieces = _row_pieces(tp) if isinstance(tp, np.ndarray) else tp
+        out = np.empty((self.t.size, 6))
+        for a, b, piece in pieces:
+            part = slice(a, b)
+            w0, dw = self.external(part)
+            r = np.einsum("nim,nm->ni", self.structure(part), piece) + w0
+            out[part] = r if delta is None else r + delta[part][:, None] * dw
         return out
+
+
+def _row_pieces(x: np.ndarray) -> Iterable[tuple[int, int, np.ndarray]]:
+    """``(a, b, x[a:b])`` of :data:`STRUCTURE_ROWS` rows each."""
+    n = x.shape[0]
+    return (
+        (a, min(a + STRUCTURE_ROWS, n), x[a : a + STRUCTURE_ROWS])
+        for a in range(0, n, STRUCTURE_ROWS)
+    )
 
 
 def usable(rec: Recording, cfg: Config | None) -> bool:
@@ -134,23 +189,27 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
     ts = np.asarray(rec.tension_sensor[keep], dtype=float)
     geo = cfg.geometry
     vel, acc = _smooth_derivatives(t, pose[:, :3])
-    com = geo.center_of_mass_m
-    w0 = statics.gravity_wrench_batch(mass, geo.gravity_m_s2, pose, com)
-    w0 = w0 + statics.inertial_wrench(mass, acc)
-    dw = statics.gravity_wrench_batch(np.ones_like(mass), geo.gravity_m_s2, pose, com)
-    dw = dw + statics.inertial_wrench(np.ones_like(mass), acc)
-    v = np.column_stack([deadband(rec.velocity[keep, i]) for i in range(rec.cables)])
+    speed = np.linalg.norm(vel, axis=1)
+    del vel
+    velocity = rec.velocity[keep]
+    raw = [velocity[:, i] for i in range(rec.cables)]
+    columns = [deadband(c) for c in raw]
+    if all(c is r for c, r in zip(columns, raw, strict=True)):
+        v = velocity  # a clean setpoint, the dead band returned it: no copy of 37 MiB
+    else:
+        v = np.column_stack(columns)
+    del raw, columns
     return WrenchData(
         t=t,
         v=v,
         ts=ts,
-        a=_smooth_derivatives(t, v)[0],  # = fx.acceleration on evenly spaced rows
         pose=pose,
         anchors=(np.asarray(geo.frame_anchors_m), np.asarray(geo.platform_anchors_m)),
-        w0=w0,
-        dw_dm=dw,
-        speed=np.linalg.norm(vel, axis=1),
-        ts_smooth=uniform_filter1d(ts, _window(t), axis=0, mode="nearest"),
+        mass=mass,
+        acc=acc,
+        gravity=geo.gravity_m_s2,
+        com=np.asarray(geo.center_of_mass_m, dtype=float),
+        speed=speed,
         source=rec.source,
     )
 
@@ -162,9 +221,8 @@ def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.nd
     stamps each row with its read time (jitter of a cycle): plain differences of such rows
     turn that jitter into accelerations of tens of m/s^2. On a setpoint trajectory (< a
     few Hz) the average changes nothing else."""
-    steps = np.diff(t)
     n = _window(t, DERIVATIVE_S) | 1
-    if steps.size < 2 or np.std(steps) <= 1e-6 * np.median(steps) or t.size <= n + 2:
+    if _plain_steps(t, n):
         vel = np.gradient(x, t, axis=0)
         return vel, np.gradient(vel, t, axis=0)
     ts = _box(t, n)
@@ -172,6 +230,23 @@ def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.nd
         ts = t
     vel = np.gradient(_box(x, n), ts, axis=0)
     return vel, np.gradient(_box(vel, n), ts, axis=0)
+
+
+def _plain_steps(t: np.ndarray, n: int) -> bool:
+    """True when :func:`_smooth_derivatives` takes plain differences (evenly spaced rows,
+    or too few for a window of ``n``)."""
+    steps = np.diff(t)
+    return steps.size < 2 or np.std(steps) <= 1e-6 * np.median(steps) or t.size <= n + 2
+
+
+def _smooth_derivative(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The first derivative of :func:`_smooth_derivatives`, the same values: on evenly
+    spaced rows :func:`gateway.model.effects.acceleration` (numpy's gradient bit for bit,
+    in pieces: ``np.gradient`` of a 10-min 8-cable series made ~5 copies of it, 190 MiB
+    at once, and the second derivative is not needed)."""
+    if _plain_steps(t, _window(t, DERIVATIVE_S) | 1):
+        return fx.acceleration(t, x)
+    return _smooth_derivatives(t, x)[0]
 
 
 def _box(x: np.ndarray, n: int) -> np.ndarray:
@@ -212,6 +287,32 @@ def values_of(theta: dict[str, np.ndarray], *stages: str) -> fx.Effects:
     return {e.name: report_columns(e.name, theta[e.name]) for e in fx.ordered(theta, *stages)}
 
 
+class _Series:
+    """What the path and sensor effects read (:class:`gateway.model.effects.Series`) of
+    :class:`WrenchData`: the cable travel ``x`` and acceleration ``a`` (N, m) are made
+    each time an effect reads them, never kept (a spring's and an inertia's candidates
+    read them; kept, they were 37 MiB each on a 10-min 8-cable recording)."""
+
+    def __init__(self, data: WrenchData, t0: float) -> None:
+        self.data, self.t0 = data, t0
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.data.t
+
+    @property
+    def v(self) -> np.ndarray:
+        return self.data.v
+
+    @property
+    def x(self) -> np.ndarray:
+        return fx.displacement(self.data.t, self.data.v)
+
+    @property
+    def a(self) -> np.ndarray:
+        return self.data.a
+
+
 class WrenchModel:
     """``T_p(theta)`` and the wrench residual for a nominal chain on :class:`WrenchData`.
 
@@ -222,9 +323,7 @@ class WrenchModel:
     def __init__(self, data: WrenchData, nom: Nominal) -> None:
         self.data, self.nom = data, nom
         self.t0 = float(data.t[0])
-        self.series = fx.SeriesData(
-            data.t, data.v, lambda: fx.displacement(data.t, data.v), data.a, self.t0
-        )
+        self.series = _Series(data, self.t0)
         self._specs: dict[str, fx.Spec] = {}
         self._structure: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -248,14 +347,25 @@ class WrenchModel:
         return fx.chain_params(self.nom, values_of(theta, "chain"), self.data.cables)
 
     def platform_tension(
-        self, theta: dict[str, np.ndarray], ts: np.ndarray | None = None
+        self,
+        theta: dict[str, np.ndarray],
+        ts: np.ndarray | None = None,
+        rows: np.ndarray | None = None,
     ) -> np.ndarray:
-        """(N, m): the readings (``ts``, default the recorded ones) with the sensor and path
-        effects undone, compensated through the chain."""
+        """(N, m), or (n, m) at the samples ``rows`` (the chain runs over every sample
+        either way, :func:`chain.compensate_rows`): the readings (``ts``, default the
+        recorded ones) with the sensor and path effects undone, compensated through the
+        chain."""
         d = self.data
-        y = d.ts if ts is None else ts
-        y = fx.inverse(self.series, y, values_of(theta, "path", "sensor"))
-        return chain.compensate(self.chain_params(theta), y, d.v, d.t)
+        y = self._chain_input(theta, ts)
+        if rows is None:
+            return chain.compensate(self.chain_params(theta), y, d.v, d.t)
+        return chain.compensate_rows(self.chain_params(theta), y, d.v, d.t, rows)
+
+    def _chain_input(self, theta: dict[str, np.ndarray], ts: np.ndarray | None) -> np.ndarray:
+        """The readings (``ts``, default the recorded ones), sensor and path effects undone."""
+        y = self.data.ts if ts is None else ts
+        return fx.inverse(self.series, y, values_of(theta, "path", "sensor"))
 
     def structure_at(self, rows: np.ndarray) -> np.ndarray:
         """``A`` (n, 6, m) at ``rows``, kept for the last ``rows`` asked for (the
@@ -273,15 +383,17 @@ class WrenchModel:
         """Wrench residual ``A T_p + w`` (force N, moment N m) at ``rows`` (n, 6), default
         every sample (N, 6); the chain runs over every sample either way."""
         d = self.data
-        tp = self.platform_tension(theta) if tp is None else tp
-        if rows is None:
-            r, dw = d.balance(tp) + d.w0, d.dw_dm
-        else:
-            r = np.einsum("nim,nm->ni", self.structure_at(rows), tp[rows]) + d.w0[rows]
-            dw = d.dw_dm[rows]
         delta = fx.mass_delta(values_of(theta, "statics"), d.t, self.t0)
+        if rows is None:  # the chain's output a batch at a time, each taken by the balance
+            if tp is not None:
+                return d.balance(tp, delta)
+            y = self._chain_input(theta, None)
+            return d.balance(chain.compensate_pieces(self.chain_params(theta), y, d.v, d.t), delta)
+        tp = self.platform_tension(theta, rows=rows) if tp is None else tp[rows]
+        w0, dw = d.external(rows)
+        r = np.einsum("nim,nm->ni", self.structure_at(rows), tp) + w0
         if delta is not None:
-            r = r + (delta if rows is None else delta[rows])[:, None] * dw
+            r = r + delta[rows][:, None] * dw
         return r
 
     def jacobian(
@@ -289,7 +401,18 @@ class WrenchModel:
     ) -> list[np.ndarray]:
         """Per sub-parameter of ``effect``, d residual / d parameter at the samples ``rows``
         (default all): (n, 6, m) (one column per cable; (n, 6, 1) for a platform effect), by
-        forward differences (the chain itself runs over every sample).
+        forward differences (the chain itself runs over every sample):
+        :meth:`expand` of :meth:`sensitivities`."""
+        rows = np.arange(self.data.t.size) if rows is None else rows
+        return [self.expand(effect, s, rows) for s in self.sensitivities(theta, effect, rows)]
+
+    def sensitivities(
+        self, theta: dict[str, np.ndarray], effect: str, rows: np.ndarray
+    ) -> list[np.ndarray]:
+        """Per sub-parameter of ``effect`` what its Jacobian is made of at ``rows``
+        (:meth:`expand`): d T_p / d parameter (n, m), or, for a statics effect, d mass /
+        d parameter (n,); 1/6 of the Jacobian's size for 8 cables, what a linearisation
+        keeps (:class:`gateway.diagnose.wrench_select.WrenchUnit`).
 
         The chains of the cables are independent, so one perturbed run of all cables at
         once gives every cable's column. It is computed on the smoothed readings
@@ -300,7 +423,6 @@ class WrenchModel:
         smoothed sensitivities are instruments uncorrelated with the noise.
         """
         d = self.data
-        rows = np.arange(d.t.size) if rows is None else rows
         base_theta = {**theta}
         base_theta.setdefault(effect, neutral(effect, self.nom, d.cables))
         out = []
@@ -312,17 +434,23 @@ class WrenchModel:
                 moved = fx.mass_delta(
                     values_of({**base_theta, effect: pert}, "statics"), d.t[rows], self.t0
                 )
-                dm = (moved - base) / self.step(effect, j)  # type: ignore[operator]
-                out.append((dm[:, None] * d.dw_dm[rows])[:, :, None])
+                out.append((moved - base) / self.step(effect, j))  # type: ignore[operator]
             return out
-        tp0 = self.platform_tension(base_theta, d.ts_smooth)
+        smooth = d.ts_smooth
+        tp0 = self.platform_tension(base_theta, smooth, rows)
         for j in range(len(SUBPARAMS[effect])):
             pert = base_theta[effect].copy()
             pert[j] += self.step(effect, j)
-            tp1 = self.platform_tension({**base_theta, effect: pert}, d.ts_smooth)
-            dtp = (tp1[rows] - tp0[rows]) / self.step(effect, j)
-            out.append(self.structure_at(rows) * dtp[:, None, :])
+            tp1 = self.platform_tension({**base_theta, effect: pert}, smooth, rows)
+            out.append((tp1 - tp0) / self.step(effect, j))
         return out
+
+    def expand(self, effect: str, sens: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """One sub-parameter's Jacobian (n, 6, m) ((n, 6, 1) for a statics effect) at
+        ``rows`` from its :meth:`sensitivities` (the same values each time)."""
+        if fx.REGISTRY[effect].stage == "statics":
+            return (sens[:, None] * self.data.external(rows)[1])[:, :, None]
+        return self.structure_at(rows) * sens[:, None, :]
 
 
 def noise_scale(resid: np.ndarray) -> np.ndarray:

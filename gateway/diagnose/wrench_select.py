@@ -28,6 +28,7 @@ wrench (:class:`wrench.Prepared`): generalised least squares.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -74,6 +75,8 @@ NOT_CANDIDATES = tuple(n for n in fx.EFFECT_NAMES if n not in WRENCH_EFFECTS)
 
 Col = tuple[int, int]  # (sub-parameter index, cable)
 SIGNATURE_POINTS = 20000
+MATRICES_KEPT = 3
+"""Designs :meth:`WrenchUnit.matrix` keeps made (each ~9 MiB per 8 columns)."""
 
 
 @dataclass
@@ -103,7 +106,15 @@ class WrenchUnit:
     width 0, a rigid cable, a creep whose time constant means nothing at ``c = 0``) shows
     nothing to a linearisation there; from a start of its own size it does. Its model is
     ``r0 + shift + design phi``: ``shift`` the residual the anchor changes (zero at the
-    nominal), ``phi`` the increments from the anchor."""
+    nominal), ``phi`` the increments from the anchor.
+
+    A candidate's design (elements x its columns, the whitened Jacobian) is not kept:
+    what it is made of is, its :meth:`WrenchModel.sensitivities` at the rows (n, m) per
+    sub-parameter, 1/6 of its size for 8 cables, and :meth:`matrix` makes it again by the
+    same arithmetic (the same values) when it is used, the last :data:`MATRICES_KEPT`
+    kept (the selector screens each candidate on top of the same few kept ones). Kept,
+    the designs of the 13 candidates were ~170 MiB at :data:`wrench.FIT_BUDGET` rows,
+    the largest part of the diagnosis' peak memory on any recording."""
 
     def __init__(
         self,
@@ -123,7 +134,8 @@ class WrenchUnit:
         self.test = np.repeat((sample_blocks % 2 == 1) & use, 6)
         self.r0 = prep.whiten(self.model.residual({}, rows=self.rows)).reshape(-1)
         self.cols: dict[str, list[Col]] = {}
-        self.design: dict[str, np.ndarray] = {}
+        self.sens: dict[str, dict[int, np.ndarray]] = {}
+        self._matrices: OrderedDict[str, np.ndarray] = OrderedDict()
         self.ident: dict[str, list[dict]] = {}
         self.anchor: dict[str, np.ndarray] = {}
         self.shift: dict[str, np.ndarray] = {}
@@ -134,10 +146,10 @@ class WrenchUnit:
             self.base = prep.whiten(self.model.residual(at, rows=self.rows)).reshape(-1)
         for e in candidates:
             if e in at:
-                self._take_anchor(e, at[e], self._linearise(e, at[e]))
+                self._take_anchor(e, at[e], self._linearise(e, at[e], design=False))
             else:
                 self._choose_anchor(e)
-        self.candidates = [e for e in candidates if e in self.design]
+        self.candidates = [e for e in candidates if e in self.cols]
         self._gram(self.train)
 
     # ---- anchors ----
@@ -168,20 +180,51 @@ class WrenchUnit:
         below = self.r0 if effect in self.at or not self.at else self.base
         return self.prep.whiten(self.model.residual(theta, rows=self.rows)).reshape(-1) - below
 
-    def _linearise(self, effect: str, anchor: np.ndarray, shift=False):
-        """(identifiability per sub-parameter, columns, design, shift) at ``anchor``
-        (``shift``: the anchor's, when already known)."""
+    def _linearise(self, effect: str, anchor: np.ndarray, shift=False, design=True):
+        """(identifiability per sub-parameter, columns, design, shift, sensitivities) at
+        ``anchor`` (``shift``: the anchor's, when already known; ``design``: False, None
+        in its place)."""
         theta, _ = self._context(effect, anchor)
         ident, cols, mats = [], [], []
-        for j, jb in enumerate(self.model.jacobian(theta, effect, self.rows)):
-            jw = self.prep.whiten(jb)
+        sens = self.model.sensitivities(theta, effect, self.rows)
+        for j, sj in enumerate(sens):
+            jw = self._whitened(effect, sj)
             idn = identifiability(jw, self.use)
             ident.append(idn)
             for i in identifiable_cables(idn):
-                mats.append(jw[:, :, i].reshape(-1))
+                if design:
+                    mats.append(jw[:, :, i].reshape(-1))
                 cols.append((j, i))
         design = np.column_stack(mats) if mats else None
-        return ident, cols, design, self._shift(effect, anchor) if shift is False else shift
+        shift = self._shift(effect, anchor) if shift is False else shift
+        return ident, cols, design, shift, sens
+
+    def _whitened(self, effect: str, sens: np.ndarray) -> np.ndarray:
+        """One sub-parameter's whitened Jacobian (n, 6, m) at the rows."""
+        return self.prep.whiten(self.model.expand(effect, sens, self.rows))
+
+    def matrix(self, effect: str) -> np.ndarray:
+        """The design of ``effect`` (elements x its columns), made from its sensitivities
+        as :meth:`_linearise` made it; the last :data:`MATRICES_KEPT` asked for are kept."""
+        if effect in self._matrices:
+            self._matrices.move_to_end(effect)
+            return self._matrices[effect]
+        design = self._make(effect)
+        self._matrices[effect] = design
+        while len(self._matrices) > MATRICES_KEPT:
+            self._matrices.popitem(last=False)
+        return design
+
+    def _make(self, effect: str) -> np.ndarray:
+        mats = []
+        for j, sens in self.sens[effect].items():
+            jw = self._whitened(effect, sens)
+            mats += [jw[:, :, i].reshape(-1) for jj, i in self.cols[effect] if jj == j]
+            del jw
+        return np.column_stack(mats)
+
+    def _columns(self, effect: str) -> int:
+        return len(self.cols[effect])
 
     def _alone(self, design: np.ndarray, shift: np.ndarray | None):
         """Training sum of squares and increments of one linearisation fitted alone on top
@@ -215,6 +258,7 @@ class WrenchUnit:
             if lin[2] is None:
                 continue
             sse, phi = self._alone(lin[2], lin[3])
+            lin = (*lin[:2], None, *lin[3:])  # made again when used (class docstring)
             if best is None or sse < best[0]:
                 best = (sse, anchor, lin, phi)
         cost = self._cost(best[2][3]) if best is not None else math.inf
@@ -238,17 +282,19 @@ class WrenchUnit:
             if moved_lin[2] is None:
                 break
             sse, moved_phi = self._alone(moved_lin[2], moved_lin[3])
+            moved_lin = (*moved_lin[:2], None, *moved_lin[3:])
             best, cost = (sse, moved, moved_lin, moved_phi), moved_cost
         if best is None:
             return
         self._take_anchor(effect, best[1], best[2])
 
     def _take_anchor(self, effect: str, anchor: np.ndarray, lin) -> None:
-        ident, cols, design, shift = lin
+        ident, cols, _, shift, sens = lin
         self.anchor[effect], self.ident[effect] = anchor, ident
-        if design is None:
+        if not cols:
             return
-        self.cols[effect], self.design[effect] = cols, design
+        self.cols[effect] = cols
+        self.sens[effect] = {j: sens[j] for j in sorted({j for j, _ in cols})}
         if shift is not None:
             self.shift[effect] = shift
 
@@ -257,26 +303,31 @@ class WrenchUnit:
         return self.model.spec(effect).clip(theta)
 
     # ---- the linear model ----
-    def _gram(self, train: np.ndarray) -> None:
-        """Normal equations of every candidate column on the samples ``train``, block by
-        block of two candidates: the candidates' designs are never stacked (stacked, and
-        then cut to the training rows, they were 2.5x the designs: on a 10-min recording
-        the wrench diagnosis peaked there, 150 MiB of designs taking 375)."""
-        names = list(self.design)
-        edges = np.cumsum([0] + [self.design[e].shape[1] for e in names])
+    def _gram(self, train: np.ndarray, only: list[str] | None = None) -> None:
+        """Normal equations of every candidate column (of the candidates ``only``) on the
+        samples ``train``, block by block of two candidates: the candidates' designs are
+        never stacked (stacked, and then cut to the training rows, they were 2.5x the
+        designs: on a 10-min recording the wrench diagnosis peaked there, 150 MiB of
+        designs taking 375). Each block's values do not depend on which others are
+        formed."""
+        names = [e for e in self.cols if only is None or e in only]
+        edges = np.cumsum([0] + [self._columns(e) for e in names])
         k = int(edges[-1])
         spans = [slice(int(edges[a]), int(edges[a + 1])) for a in range(len(names))]
         gram, rhs = np.zeros((k, k)), np.zeros(k)
         shift_rhs = {e: np.zeros(k) for e in self.shift} if names else {}
         r0, shifts = self.r0[train], {e: s[train] for e, s in self.shift.items()}
+        # every candidate's: each design made again for each block, none kept (n^2 / 2
+        # makes, ~5 s a unit); the kept effects' (a held-out refit): the kept few
+        make = self._make if only is None else self.matrix
         for a, ea in enumerate(names):
-            da = self.design[ea][train]
+            da = make(ea)[train]
             rhs[spans[a]] = da.T @ r0
             for e, s in shifts.items():
                 shift_rhs[e][spans[a]] = da.T @ s
             gram[spans[a], spans[a]] = da.T @ da
             for b in range(a + 1, len(names)):
-                block = da.T @ self.design[names[b]][train]
+                block = da.T @ make(names[b])[train]
                 gram[spans[a], spans[b]] = block
                 gram[spans[b], spans[a]] = block.T
         self._gram_m, self._rhs, self._shift_rhs = gram, rhs, shift_rhs
@@ -304,11 +355,11 @@ class WrenchUnit:
                 b = b + self._shift_rhs[e][idx]
         ginv = np.linalg.pinv(g)
         phi = -ginv @ b
-        sizes = np.cumsum([self.design[e].shape[1] for e in effects])[:-1]
+        sizes = np.cumsum([self._columns(e) for e in effects])[:-1]
         parts = np.split(phi, sizes)
         resid = self._base(effects)
         for e, part in zip(effects, parts, strict=True):  # no stacked copy of the designs
-            resid = resid + self.design[e] @ part
+            resid = resid + self.matrix(e) @ part
         dof = max(self._dof - phi.size, 1)
         left = resid[self._mask]
         s2 = float(left @ left) / dof
@@ -329,7 +380,7 @@ class WrenchUnit:
     def evaluate(self, theta: dict[str, np.ndarray], specs: dict) -> Model:
         resid = self._base(theta)
         for e, phi in theta.items():
-            resid = resid + self.design[e] @ phi
+            resid = resid + self.matrix(e) @ phi
         nan = {e: np.full(v.size, np.nan) for e, v in theta.items()}
         return Model(dict(theta), dict(specs), nan, resid)
 
@@ -342,7 +393,7 @@ class WrenchUnit:
     def refit_on(self, model: Model, mask: np.ndarray, nfev: int = 20) -> dict[str, np.ndarray]:
         """The kept effects' increments fitted on the elements ``mask`` only."""
         whole = (self._gram_m, self._rhs, self._shift_rhs, self._mask, self._dof, self._span)
-        self._gram(mask)
+        self._gram(mask, list(model.kept))  # the kept effects' blocks only
         phi = self.linear(list(model.kept))[0]
         self._gram_m, self._rhs, self._shift_rhs, self._mask, self._dof, self._span = whole
         return phi
@@ -350,7 +401,7 @@ class WrenchUnit:
     def contribution(self, theta: dict[str, np.ndarray], effect: str) -> np.ndarray:
         """What ``effect`` adds to the (whitened, linearised) residual on the training
         elements (its anchor's shift included)."""
-        c = self.design[effect] @ theta[effect]
+        c = self.matrix(effect) @ theta[effect]
         if effect in self.shift:
             c = c + self.shift[effect]
         return c[self.train]
@@ -372,7 +423,15 @@ class WrenchUnit:
         return float(max(z))
 
     def release(self) -> None:
-        """Nothing cached beyond the design (kept for the report's refit)."""
+        """The designs :meth:`matrix` keeps made go (made again if asked for)."""
+        self._matrices.clear()
+
+    def drop_designs(self) -> None:
+        """After the selection and the refit: the designs and what they are made of go
+        (the report reads :attr:`cols`, :attr:`ident` and the anchors only; ~37 MiB of
+        sensitivities at :data:`wrench.FIT_BUDGET` rows of 8 cables)."""
+        self._matrices.clear()
+        self.sens.clear()
 
     # ---- nonlinear refit ----
     def theta_of(self, increments: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -581,20 +640,24 @@ def diagnose_wrench(
             del unit, selector, tested, outcome
             trim_heap()
     sel = unit
+    sel.drop_designs()  # the report reads the columns and the identifiability only
     test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
     order = _order(model, theta, test) if theta else []
     vmodel = None
     if validation is not None:
         vmodel = WrenchModel(wrench_data(validation, cfg), model.nom)
 
-    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray]:
+    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray, float]:
+        """RMS of the force residual (all, held out, validation), the force residual
+        (N, 3) and the moment's RMS: the residual (N, 6) itself is not kept."""
         th = {e: theta[e] for e in effects}
         r = model.residual(th)
         v = None if vmodel is None else force_rms(vmodel.residual(th))
-        return force_rms(r), force_rms(r, test), v, r
+        moment = float(math.sqrt(np.mean(r[:, 3:] ** 2)))
+        return force_rms(r), force_rms(r, test), v, np.ascontiguousarray(r[:, :3]), moment
 
     before = scores([])
-    r_nominal = before[3]
+    r_nominal = before
     findings = []
     for k, e in enumerate(order):
         after = scores(order[: k + 1])
@@ -623,28 +686,30 @@ def diagnose_wrench(
     step = max(1, data.t.size * 3 // SIGNATURE_POINTS)
     for e in order:
         without = model.residual({k: v for k, v in theta.items() if k != e})[:, :3]
-        contrib = (without - before[3][:, :3]).reshape(-1)[::step]
+        contrib = (without - before[3]).reshape(-1)[::step]
         diag.signatures[e] = (contrib, without.reshape(-1)[::step])
     return diag
 
 
-def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchDiagnosis:
+def _build(rec, prep, sel, findings, order, nominal, final, vmodel) -> WrenchDiagnosis:
+    """The diagnosis from the nominal and the final :func:`diagnose_wrench` scores (each
+    with the force residual (N, 3) and the moment's RMS)."""
     data = prep.model.data
-    r_final = final[3]
-    fs = white_noise_columns(r_final[:, :3])
+    r_nominal, r_final = nominal[3], final[3]
+    fs = white_noise_columns(r_final)
     noise = float(math.sqrt(np.mean(fs**2)))
     fin = {
         "rmse_n": final[0],
         "holdout_rmse_n": final[1],
         "noise_n": noise,
         "unexplained_n": math.sqrt(max(final[1] ** 2 - noise**2, 0.0)),
-        "moment_rmse_nm": float(math.sqrt(np.mean(r_final[:, 3:] ** 2))),
+        "moment_rmse_nm": final[4],
     }
     if vmodel is not None:
         fin["validation_rmse_before_n"] = force_rms(vmodel.residual({}))
         fin["validation_rmse_after_n"] = float(final[2] or 0.0)
-    norm0 = np.linalg.norm(r_nominal[:, :3], axis=1)[:, None]
-    norm1 = np.linalg.norm(r_final[:, :3], axis=1)[:, None]
+    norm0 = np.linalg.norm(r_nominal, axis=1)[:, None]
+    norm1 = np.linalg.norm(r_final, axis=1)[:, None]
     regime = locate.regimes(data.speed, np.gradient(data.speed, data.t))[:, None]
 
     def located(norm: np.ndarray) -> list[locate.Region]:
@@ -660,7 +725,7 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
         "samples": int(data.t.size),
         "skipped_rows": rec.skipped_rows + (rec.samples - int(data.t.size)),
         "baseline": {
-            "rmse_n": force_rms(r_nominal),
+            "rmse_n": nominal[0],
             "per_cable_rmse_n": [],
             **locate.report_fields(regions, norm0, regime),
         },
@@ -672,22 +737,20 @@ def _build(rec, prep, sel, findings, order, r_nominal, final, vmodel) -> WrenchD
             "candidates": list(WRENCH_EFFECTS),
             "not_candidates": list(NOT_CANDIDATES),
             "variance_inflation_max": VIF_MAX,
-            "baseline_moment_rmse_nm": float(math.sqrt(np.mean(r_nominal[:, 3:] ** 2))),
+            "baseline_moment_rmse_nm": nominal[4],
             "per_cable_effects": list(PER_CABLE),
         },
     }
-    zeros = np.zeros((data.t.size, 3))
-    regimes = np.repeat(regime, 3, axis=1)
     return WrenchDiagnosis(
         report,
         data.t,
-        zeros,
-        regimes,
+        np.broadcast_to(0.0, (data.t.size, 3)),  # views, read only: 14 MiB each for 10 min
+        np.broadcast_to(regime, (data.t.size, 3)),
         regions_final,
         [],
         order,
         [],
         regions_nominal=regions,
-        nominal_pred=-r_nominal[:, :3],
-        final_pred=-r_final[:, :3],
+        nominal_pred=-r_nominal,
+        final_pred=-r_final,
     )

@@ -15,6 +15,8 @@ from gateway.model.chain import (
     ChainParams,
     ChainStepper,
     compensate,
+    compensate_pieces,
+    compensate_rows,
     coulomb_coefficients,
     simulate,
     simulate_rows,
@@ -413,6 +415,33 @@ def test_maxwell_slip_force_is_linear_in_the_fractions(w, s1, s2) -> None:
         return tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
 
     assert_allclose(force(w), w * force(1.0) + (1 - w) * force(0.0), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("model", ["dahl", "coulomb"])
+def test_compensate_rows_is_compensate_at_the_rows(model: str) -> None:
+    """:func:`compensate_rows` holds :func:`compensate`'s values at the rows bit for bit,
+    rows in every batch, at batch edges and at both ends."""
+    n = 2 * BATCH_ROWS + 123
+    t = np.arange(n) * 1e-3
+    v = 0.2 * np.sin(2 * np.pi * 0.5 * t)[:, None] * np.ones((1, 2))
+    ts = 300.0 + 20.0 * np.cos(2 * np.pi * 0.2 * t)[:, None] * np.ones((1, 2))
+    p = params(model, sigma_n_m=2000.0) if model == "dahl" else params(model)
+    whole = compensate(p, ts, v, t)
+    for rows in (
+        np.arange(0, n, 7),
+        np.array([0, BATCH_ROWS - 1, BATCH_ROWS, 2 * BATCH_ROWS, n - 1]),
+        np.array([], dtype=int),
+    ):
+        np.testing.assert_array_equal(compensate_rows(p, ts, v, t, rows), whole[rows])
+    with pytest.raises(ValueError, match="increasing"):
+        compensate_rows(p, ts, v, t, np.array([5, 3]))
+    pieces = [(a, b, part.copy()) for a, b, part in compensate_pieces(p, ts, v, t)]
+    assert [(a, b) for a, b, _ in pieces] == [
+        (0, BATCH_ROWS),
+        (BATCH_ROWS, 2 * BATCH_ROWS),
+        (2 * BATCH_ROWS, n),
+    ]
+    np.testing.assert_array_equal(np.concatenate([part for *_, part in pieces]), whole)
 
 
 def test_simulate_rows_is_simulate_batch_by_batch() -> None:

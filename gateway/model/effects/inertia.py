@@ -84,7 +84,11 @@ class Inertia(Effect):
         return y - p["m_eff_kg"] * s.a
 
     def inverse(self, s: Series, y: np.ndarray, p: Values) -> np.ndarray:
-        return y + p["m_eff_kg"] * s.a
+        out = p["m_eff_kg"] * s.a
+        if out.shape != np.shape(y):
+            return y + out
+        out += y  # y + m a in place: the same values, one (N, m) temporary fewer
+        return out
 
     def stepper(self, p: Values, cables: int, period_s: float) -> _Stepper:
         return _Stepper(np.broadcast_to(p["m_eff_kg"], (cables,)).copy())
