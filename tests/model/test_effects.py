@@ -4,11 +4,13 @@ per-cycle inverse against the batch forms, the plant's per-sample forms."""
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from gateway.model.effects import SeriesData, acceleration, displacement, effect_values
 from gateway.model.effects import forward as apply_forward
-from gateway.model.effects.forms import delay, lowpass
+from gateway.model.effects.forms import LowpassStepper, delay, lowpass
 
 
 def series(t: np.ndarray, v: np.ndarray, x: np.ndarray | None = None) -> SeriesData:
@@ -63,6 +65,31 @@ def test_lowpass_step_and_ramp_responses_are_exact() -> None:
     assert_allclose(ramp, 10.0 * (t - tau * (1 - np.exp(-t / tau))), atol=1e-12)
     const = lowpass(t, np.full_like(t, 4.0), tau)
     assert_allclose(const, 4.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    steps=st.lists(
+        st.sampled_from([0.0, 1e-3, 1e-3 + 2e-19, 0.9e-3, 2.5e-3]), min_size=1, max_size=300
+    ),
+    fresh=st.integers(0, 80),
+    tau=st.lists(st.sampled_from([0.0, 1e-3, 0.02, 0.3]), min_size=1, max_size=3),
+    seed=st.integers(0, 2**16),
+)
+def test_lowpass_batch_is_the_per_sample_step_bit_for_bit(steps, fresh, tau, seed) -> None:
+    """The batch filter remembers the factors of recent steps (forms.LOWPASS_MEMO): the
+    same bits as the per-sample form on time bases with repeated, zero and more distinct
+    steps than it remembers."""
+    rng = np.random.default_rng(seed)
+    dts = np.concatenate([steps, rng.uniform(1e-4, 3e-3, fresh)])
+    rng.shuffle(dts)
+    t = np.concatenate([[0.0], np.cumsum(dts)])
+    y = rng.normal(100.0, 5.0, (t.size, len(tau)))
+    taus = np.array(tau)
+    batch = lowpass(t, y, taus)
+    stepper = LowpassStepper(taus)
+    per = np.array([stepper.step(k, t[k], y[k]).copy() for k in range(t.size)])
+    np.testing.assert_array_equal(batch, per)
 
 
 def test_sensor_and_path_effect_signs() -> None:
