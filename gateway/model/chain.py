@@ -554,7 +554,8 @@ def _step_cable(p, st, i, forward, t_known, v, strib, dx_set):
     f_old = _chain_force(p, st.f, i)
     lo, hi = -math.inf, math.inf
     d = dx_set
-    for _ in range(4 * p.max_iter + 20):
+    passes = 4 * p.max_iter + 20
+    for it in range(passes):
         force, slope = _trial(p, st, i, forward, t_known, v, strib, d)
         g = d - dx_set + c * (force - f_old)
         if g == 0.0:
@@ -570,7 +571,7 @@ def _step_cable(p, st, i, forward, t_known, v, strib, dx_set):
         if abs(nxt - d) <= 1e-18 + 1e-9 * abs(nxt):
             d = nxt  # Newton's error after a step of 1e-9 d: about (1e-9)^2 d
             break
-        if _ == 4 * p.max_iter + 19:
+        if it == passes - 1:
             break  # out of passes: commit the last d evaluated
         d = nxt
     out, _, _, worst = _commit(p, st, i, forward, t_known, v, strib, d)
