@@ -78,11 +78,10 @@ def diagnose(
 def load_kernels(friction: FrictionConfig) -> None:
     """Load the chain simulation's and the filter's compiled kernels (numba's cache) on
     three samples, then give back the LLVM pages that loading touched (:func:`trim_heap`).
-    Called before a
-    recording is read: LLVM's one-off work (numba's runtime module is compiled in the
-    process, ~45 MiB of LLVM code touched) then happens while the process is small, not on
-    top of the recording and the first cable. Results are unchanged (the kernels keep no
-    state)."""
+    Called before a recording is read: LLVM's one-off work (numba's runtime module is
+    compiled in the process, ~45 MiB of LLVM code touched) then happens while the process
+    is small, not on top of the recording and the first cable. Results are unchanged (the
+    kernels keep no state)."""
     t = np.arange(3) * 1e-3
     data = CableData(t, np.array([0.0, 0.1, 0.0]), np.full(3, 100.0), np.full(3, 100.0), 0.0)
     Forward(data, nominal_from(friction)).predict({})

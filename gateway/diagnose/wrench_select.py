@@ -657,7 +657,7 @@ def diagnose_wrench(
         return force_rms(r), force_rms(r, test), v, np.ascontiguousarray(r[:, :3]), moment
 
     before = scores([])
-    r_nominal = before
+    nominal = before  # the nominal model's scores (before moves on with each finding)
     findings = []
     for k, e in enumerate(order):
         after = scores(order[: k + 1])
@@ -682,7 +682,7 @@ def diagnose_wrench(
         }
         findings.append(f)
         before = after
-    diag = _build(rec, prep, sel, findings, order, r_nominal, before, vmodel)
+    diag = _build(rec, prep, sel, findings, order, nominal, before, vmodel)
     step = max(1, data.t.size * 3 // SIGNATURE_POINTS)
     for e in order:
         without = model.residual({k: v for k, v in theta.items() if k != e})[:, :3]
