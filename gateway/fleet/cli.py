@@ -113,7 +113,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
                 flush=True,
             )
 
-    results, where = run_tasks(recordings, str(model), args.scheduler, args.workers, progress)
+    results, where = run_tasks(
+        recordings, str(model), args.scheduler, args.workers, progress, args.out / "dask.log"
+    )
     wall = time.perf_counter() - t0
     return _write_outputs(args.out, results, where, wall, str(args.model))
 

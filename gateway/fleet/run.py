@@ -10,12 +10,24 @@ cables peaks at 373 MB from CSV.gz, 422 MB from Parquet with pyarrow loaded,
 docs/recording-format.md "Memory") + :data:`WORKER_BASE_BYTES` (a worker with the
 libraries loaded; a worker over 95 % of its limit is restarted by Dask and that
 recording is listed as failed).
+
+Dask's own log lines in this process (the scheduler, the nannies and the client of a
+LocalCluster: ~30 INFO lines per run, and at shutdown a scheduler-to-worker stream closing
+under a pending write logs a ``CommClosedError`` traceback) go to ``dask.log`` in the
+output directory, never to the terminal, where a line per recording is the interface;
+WARNING and above are echoed to stderr, prefixed ``dask:``, while the tasks run (a worker
+restarted over its memory limit is news then), and not while the cluster closes, when
+nothing a user can act on is left. The workers' own processes log ERROR and above
+(``silence_logs``).
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +66,7 @@ def _client(distributed: Any, scheduler: str | None, workers: int) -> tuple[Any,
         processes=True,
         host="127.0.0.1",
         dashboard_address=None,
+        scheduler_kwargs={"dashboard": False},  # no HTTP server: two fleets never clash on 8787
         memory_limit=WORKER_MEMORY_BYTES,
         silence_logs=40,
     )
@@ -68,10 +81,71 @@ def run_tasks(
     scheduler: str | None,
     workers: int,
     progress: Callable[[int, TaskResult], None],
+    log: Path | None = None,
 ) -> tuple[list[TaskResult], str]:
-    """Every recording's result in the order of ``recordings``, and where they ran."""
+    """Every recording's result in the order of ``recordings``, and where they ran; Dask's
+    log lines of this process in ``log`` (none kept without it)."""
     distributed = import_distributed()
+    with DaskLog(log).installed() as dask_log:
+        return _run(distributed, recordings, model, scheduler, workers, progress, dask_log)
+
+
+class DaskLog:
+    """The ``distributed`` logger of this process writing to a file (or nowhere) and,
+    WARNING and above, to stderr while the tasks run.
+
+    ``LocalCluster(silence_logs=...)`` sets every StreamHandler of that logger to its level
+    for the cluster's life (a file handler is one), so :meth:`running` sets the levels
+    again once the cluster is up; :meth:`closing` takes stderr off before it closes.
+    """
+
+    def __init__(self, path: Path | None) -> None:
+        self.file: logging.Handler = (
+            logging.FileHandler(path, mode="w", encoding="utf-8")
+            if path is not None
+            else logging.NullHandler()
+        )
+        self.file.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        self.terminal = logging.StreamHandler(sys.stderr)
+        self.terminal.setFormatter(logging.Formatter("dask: %(levelname)s %(name)s: %(message)s"))
+        self.logger = logging.getLogger("distributed")
+
+    def running(self) -> None:
+        self.file.setLevel(logging.INFO)
+        self.terminal.setLevel(logging.WARNING)
+
+    def closing(self) -> None:
+        self.logger.removeHandler(self.terminal)
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[DaskLog]:
+        """Installed for the block; the logger's handlers, level and propagation restored
+        after, and the file closed."""
+        saved = (self.logger.handlers[:], self.logger.level, self.logger.propagate)
+        self.running()
+        self.logger.handlers = [self.file, self.terminal]
+        self.logger.setLevel(logging.INFO)
+        self.logger.propagate = False
+        try:
+            yield self
+        finally:
+            self.logger.handlers = saved[0]
+            self.logger.setLevel(saved[1])
+            self.logger.propagate = saved[2]
+            self.file.close()
+
+
+def _run(
+    distributed: Any,
+    recordings: list[str],
+    model: str,
+    scheduler: str | None,
+    workers: int,
+    progress: Callable[[int, TaskResult], None],
+    dask_log: DaskLog,
+) -> tuple[list[TaskResult], str]:
     client, cluster, where = _client(distributed, scheduler, workers)
+    dask_log.running()
     try:
         futures = {
             client.submit(diagnose_task, rec, model, key=f"diagnose-{i}-{rec}", pure=False): i
@@ -84,6 +158,7 @@ def run_tasks(
             results[i] = _result(future, recordings[i])
             progress(done, results[i])  # type: ignore[arg-type]
     finally:
+        dask_log.closing()
         client.close()
         if cluster is not None:
             cluster.close()

@@ -6,6 +6,7 @@ and never ends the job -- on a LocalCluster and against a real ``dask scheduler`
 from __future__ import annotations
 
 import json
+import logging
 import math
 import subprocess
 import sys
@@ -128,6 +129,7 @@ def test_fleet_on_a_local_cluster_matches_diagnose_alone(
     assert code == 0, captured.err
     assert captured.err.count("/4] ") == 4  # a line per finished recording
     assert "LocalCluster of 2 workers" in captured.out and "1 failed" in captured.out
+    assert "distributed.scheduler: Remove client" in (out / "dask.log").read_text()
     check_fleet_output(out, recordings, singles)
 
 
@@ -159,6 +161,9 @@ def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
         )
         assert run.returncode == 0, run.stderr
         assert f"scheduler {address} with 2 workers" in run.stdout
+        lines = run.stderr.splitlines()  # a line per recording; Dask's own in dask.log
+        assert len(lines) == 4 and all(line.startswith("[") for line in lines), run.stderr
+        assert (out / "dask.log").is_file()
     check_fleet_output(out, recordings, single_reports(recordings, tmp_path))
 
 
@@ -231,3 +236,32 @@ def test_the_table_has_a_row_per_finding_and_cable_and_keeps_the_rest() -> None:
     assert rows[1]["c_n"] == -2.0 and rows[1]["c_n_stderr"] == 0.2
     assert rows[2]["q_kg_s"] == 0.02 and math.isnan(rows[2].get("c_n", math.nan))
     assert rows[4]["status"] == "failed" and rows[4]["error"] == "c: broken"
+
+
+def test_dask_log_lines_go_to_the_file_and_only_warnings_to_the_terminal_while_running(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gateway.fleet.run import DaskLog
+
+    logger = logging.getLogger("distributed")
+    before = (logger.handlers[:], logger.level, logger.propagate)
+    log = tmp_path / "dask.log"
+    with DaskLog(log).installed() as dask_log:
+        for h in logger.handlers:  # what LocalCluster(silence_logs=40) does to them
+            h.setLevel(logging.ERROR)
+        dask_log.running()
+        logging.getLogger("distributed.scheduler").info("Register worker")
+        logging.getLogger("distributed.nanny").warning("Worker exceeded 95% memory budget")
+        dask_log.closing()
+        try:
+            raise ConnectionError("stream closed")
+        except ConnectionError:
+            logging.getLogger("distributed.batched").info("Batched Comm Closed", exc_info=True)
+            logging.getLogger("distributed.batched").exception("Error in batched write")
+    err = capsys.readouterr().err
+    assert err == "dask: WARNING distributed.nanny: Worker exceeded 95% memory budget\n"
+    text = log.read_text()
+    for line in ("Register worker", "95% memory", "Batched Comm Closed", "Error in batched"):
+        assert line in text
+    assert text.count("Traceback") == 2
+    assert (logger.handlers, logger.level, logger.propagate) == before
