@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
@@ -201,39 +200,45 @@ def test_a_full_disk_keeps_every_finished_row_group(tmp_path: Path) -> None:
 
 KILLED = textwrap.dedent(
     """
-    import sys, time
-    import numpy as np
+    import sys
     from gateway.recordings.parquet import ParquetRecordingWriter
     from tests.recordings.test_parquet import COLUMNS, table
 
     w = ParquetRecordingWriter(sys.argv[1], COLUMNS, {"robot": "k"}, row_group_rows=50)
-    k = 0
-    while True:
+    for k in range(33):  # 6 row groups of 50 rows written, 30 rows buffered
         w.write_rows(table(10, k, 10 * k))
-        if k == 40:
-            print("running", flush=True)
-        k += 1
+    print(w.rows_on_disk, w.rows, flush=True)
+    sys.stdin.readline()  # killed here, between two writes, close() never called
     """
 )
 
 
 def test_a_killed_writer_leaves_a_readable_file(tmp_path: Path) -> None:
+    """SIGKILL after the last row group's write: the file holds every finished row group
+    and nothing else. The kill lands between writes on purpose: the module promises
+    nothing for a kill inside the one ``write`` of a row group (docs/recording-format.md),
+    and a test killing at a random moment failed there under load ("Couldn't deserialize
+    thrift")."""
     path = tmp_path / "killed.parquet"
     proc = subprocess.Popen(
-        [sys.executable, "-c", KILLED, str(path)], cwd=ROOT, stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", KILLED, str(path)],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
-        assert proc.stdout is not None and proc.stdout.readline() == "running\n"
-        time.sleep(0.3)
+        assert proc.stdout is not None and proc.stdout.readline() == "300 330\n"
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
         proc.stdout.close()  # type: ignore[union-attr]
+        proc.stdin.close()  # type: ignore[union-attr]
     back = read_recording(path)  # the rows of every finished row group, nothing else
-    assert back.samples >= 250 and back.samples % 50 == 0
-    expected = np.concatenate([table(10, k, 10 * k) for k in range(back.samples // 10)])
-    assert_array_equal(back.t, expected[: back.samples, 0])
-    assert_array_equal(back.tension_sensor[:, 0], expected[: back.samples, 2])
+    assert back.samples == 300
+    expected = np.concatenate([table(10, k, 10 * k) for k in range(30)])
+    assert_array_equal(back.t, expected[:, 0])
+    assert_array_equal(back.tension_sensor[:, 0], expected[:, 2])
     assert back.metadata == {"robot": "k"}
 
 
