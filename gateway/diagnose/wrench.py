@@ -291,7 +291,10 @@ class _Series:
     """What the path and sensor effects read (:class:`gateway.model.effects.Series`) of
     :class:`WrenchData`: the cable travel ``x`` and acceleration ``a`` (N, m) are made
     each time an effect reads them, never kept (a spring's and an inertia's candidates
-    read them; kept, they were 37 MiB each on a 10-min 8-cable recording)."""
+    read them; kept, they were 37 MiB each on a 10-min 8-cable recording); ``fresh``:
+    an effect may write into them (:func:`gateway.model.effects.base.fresh`)."""
+
+    fresh = True
 
     def __init__(self, data: WrenchData, t0: float) -> None:
         self.data, self.t0 = data, t0

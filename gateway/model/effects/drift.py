@@ -51,7 +51,10 @@ class Drift(Effect):
         return y + p["k_n_s"] * _elapsed(s, y)
 
     def inverse(self, s: Series, y: np.ndarray, p: Values) -> np.ndarray:
-        return y - p["k_n_s"] * _elapsed(s, y)
+        out = p["k_n_s"] * _elapsed(s, y)
+        if out.shape != np.shape(y):
+            return y - out
+        return np.subtract(y, out, out=out)  # in place: the same values, one temporary fewer
 
     def stepper(self, p: Values, cables: int, period_s: float) -> _Stepper:
         return _Stepper(np.broadcast_to(np.asarray(p["k_n_s"], dtype=float), (cables,)).copy())

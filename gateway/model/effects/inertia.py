@@ -22,6 +22,7 @@ from gateway.model.effects.base import (
     Series,
     Spec,
     Values,
+    fresh,
 )
 
 
@@ -84,7 +85,9 @@ class Inertia(Effect):
         return y - p["m_eff_kg"] * s.a
 
     def inverse(self, s: Series, y: np.ndarray, p: Values) -> np.ndarray:
-        out = p["m_eff_kg"] * s.a
+        a = s.a
+        out = np.multiply(p["m_eff_kg"], a, out=fresh(s, a, p["m_eff_kg"]))
+        del a
         if out.shape != np.shape(y):
             return y + out
         out += y  # y + m a in place: the same values, one (N, m) temporary fewer

@@ -30,6 +30,7 @@ from gateway.model.effects.base import (
     Series,
     Spec,
     Values,
+    fresh,
 )
 
 MIN_SPAN_M = 0.001
@@ -86,7 +87,9 @@ class Spring(Effect):
         return y + p["k_n_m"] * (s.x - p["l0_m"])
 
     def inverse(self, s: Series, y: np.ndarray, p: Values) -> np.ndarray:
-        out = s.x - p["l0_m"]
+        x = s.x
+        out = np.subtract(x, p["l0_m"], out=fresh(s, x, p["l0_m"]))
+        del x
         out *= p["k_n_m"]
         if out.shape != np.shape(y):
             return y - out
