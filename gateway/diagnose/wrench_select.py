@@ -130,7 +130,8 @@ class WrenchUnit:
         self.use = use
         self.blocks = np.repeat(sample_blocks, 6)
         self.n_blocks = prep.n_blocks
-        self.train = np.repeat((sample_blocks % 2 == 0) & use, 6)
+        self.train_samples = (sample_blocks % 2 == 0) & use
+        self.train = np.repeat(self.train_samples, 6)
         self.test = np.repeat((sample_blocks % 2 == 1) & use, 6)
         self.r0 = prep.whiten(self.model.residual({}, rows=self.rows)).reshape(-1)
         self.cols: dict[str, list[Col]] = {}
@@ -183,7 +184,8 @@ class WrenchUnit:
     def _linearise(self, effect: str, anchor: np.ndarray, shift=False, design=True):
         """(identifiability per sub-parameter, columns, design, shift, sensitivities) at
         ``anchor`` (``shift``: the anchor's, when already known; ``design``: False, None
-        in its place)."""
+        in its place). The design at the training elements only (:meth:`_alone` reads
+        no other; the same values as ``design[train]``)."""
         theta, _ = self._context(effect, anchor)
         ident, cols, mats = [], [], []
         sens = self.model.sensitivities(theta, effect, self.rows)
@@ -193,9 +195,11 @@ class WrenchUnit:
             ident.append(idn)
             for i in identifiable_cables(idn):
                 if design:
-                    mats.append(jw[:, :, i].reshape(-1))
+                    mats.append(jw[self.train_samples, :, i].reshape(-1))
                 cols.append((j, i))
+            del jw
         design = np.column_stack(mats) if mats else None
+        del mats
         shift = self._shift(effect, anchor) if shift is False else shift
         return ident, cols, design, shift, sens
 
@@ -216,25 +220,31 @@ class WrenchUnit:
         return design
 
     def _make(self, effect: str) -> np.ndarray:
-        mats = []
+        """The design, each column copied into it where made (no list of columns and
+        then their stacked copy: that was two designs at once, 29 MiB for 24 columns)."""
+        cols = self.cols[effect]
+        design = np.empty((self.rows.size * 6, len(cols)))
         for j, sens in self.sens[effect].items():
             jw = self._whitened(effect, sens)
-            mats += [jw[:, :, i].reshape(-1) for jj, i in self.cols[effect] if jj == j]
+            for c, (jj, i) in enumerate(cols):
+                if jj == j:
+                    design[:, c] = jw[:, :, i].reshape(-1)
             del jw
-        return np.column_stack(mats)
+        return design
 
     def _columns(self, effect: str) -> int:
         return len(self.cols[effect])
 
     def _alone(self, design: np.ndarray, shift: np.ndarray | None):
         """Training sum of squares and increments of one linearisation fitted alone on top
-        of :attr:`base` (the nominal residual, or the one at ``at``)."""
+        of :attr:`base` (the nominal residual, or the one at ``at``); ``design`` at the
+        training elements (:meth:`_linearise`)."""
         r = self.base if shift is None else self.base + shift
         tr = self.train
-        if not np.all(np.isfinite(design[tr])) or not np.all(np.isfinite(r[tr])):
+        if not np.all(np.isfinite(design)) or not np.all(np.isfinite(r[tr])):
             return math.inf, None
-        phi, *_ = np.linalg.lstsq(design[tr], -r[tr], rcond=None)
-        res = r[tr] + design[tr] @ phi
+        phi, *_ = np.linalg.lstsq(design, -r[tr], rcond=None)
+        res = r[tr] + design @ phi
         return float(res @ res), phi
 
     def _cost(self, shift: np.ndarray | None) -> float:
