@@ -692,18 +692,25 @@ def diagnose_wrench(
         }
         findings.append(f)
         before = after
-    diag = _build(rec, prep, sel, findings, order, nominal, before, vmodel)
+    # the signatures before the diagnosis, which takes the force residuals over (negated
+    # in place); thinned copies, not views of two (N, 3) series each (27 MiB for 10 min)
     step = max(1, data.t.size * 3 // SIGNATURE_POINTS)
+    signatures = {}
     for e in order:
         without = model.residual({k: v for k, v in theta.items() if k != e})[:, :3]
-        contrib = (without - before[3]).reshape(-1)[::step]
-        diag.signatures[e] = (contrib, without.reshape(-1)[::step])
+        contrib = (without - before[3]).reshape(-1)[::step].copy()
+        signatures[e] = (contrib, without.reshape(-1)[::step].copy())
+        del without, contrib
+    diag = _build(rec, prep, sel, findings, order, nominal, before, vmodel)
+    diag.signatures.update(signatures)
     return diag
 
 
 def _build(rec, prep, sel, findings, order, nominal, final, vmodel) -> WrenchDiagnosis:
     """The diagnosis from the nominal and the final :func:`diagnose_wrench` scores (each
-    with the force residual (N, 3) and the moment's RMS)."""
+    with the force residual (N, 3) and the moment's RMS). The force residuals are taken
+    over: negated in place into ``nominal_pred`` and ``final_pred`` (not copied: 14 MiB
+    each for 10 min), the scores' caller reads them no more."""
     data = prep.model.data
     r_nominal, r_final = nominal[3], final[3]
     fs = white_noise_columns(r_final)
@@ -761,6 +768,6 @@ def _build(rec, prep, sel, findings, order, nominal, final, vmodel) -> WrenchDia
         order,
         [],
         regions_nominal=regions,
-        nominal_pred=-r_nominal,
-        final_pred=-r_final,
+        nominal_pred=np.negative(r_nominal, out=r_nominal),
+        final_pred=r_nominal if r_final is r_nominal else np.negative(r_final, out=r_final),
     )
