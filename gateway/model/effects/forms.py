@@ -82,6 +82,15 @@ def delay(t: np.ndarray, y: np.ndarray, d_s: float | np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def _hold_step(y_prev, y, out_prev, dt, tau, keep):
+    """One column's step of ``1 / (tau s + 1)`` for a first-order-hold input, ``keep`` =
+    ``exp(-dt / tau)``; ``tau > 0`` and ``dt > 0``. The one formula of both low-pass
+    forms (:func:`lowpass_step_into`, :func:`_lowpass_kernel`)."""
+    slope = (y - y_prev) / dt
+    return y - tau * slope + (out_prev - y_prev + tau * slope) * keep
+
+
+@njit(cache=True)
 def lowpass_step_into(y_prev, y, out_prev, dt, tau, out):
     """One step of ``1 / (tau s + 1)`` for every column: exact for an input that moves
     linearly from ``y_prev`` to ``y`` over ``dt`` (first-order hold). ``tau <= 0`` or
@@ -89,8 +98,7 @@ def lowpass_step_into(y_prev, y, out_prev, dt, tau, out):
     for i in range(y.size):
         if tau[i] > 0.0 and dt > 0.0:
             keep = math.exp(-dt / tau[i])
-            slope = (y[i] - y_prev[i]) / dt
-            out[i] = y[i] - tau[i] * slope + (out_prev[i] - y_prev[i] + tau[i] * slope) * keep
+            out[i] = _hold_step(y_prev[i], y[i], out_prev[i], dt, tau[i], keep)
         else:
             out[i] = y[i]
 
@@ -130,11 +138,8 @@ def _lowpass_kernel(t, y, tau, out):
         slot = found
         for i in range(m):
             if tau[i] > 0.0 and dt > 0.0:
-                slope = (y[k, i] - y[k - 1, i]) / dt
-                out[k, i] = (
-                    y[k, i]
-                    - tau[i] * slope
-                    + (out[k - 1, i] - y[k - 1, i] + tau[i] * slope) * keeps[found, i]
+                out[k, i] = _hold_step(
+                    y[k - 1, i], y[k, i], out[k - 1, i], dt, tau[i], keeps[found, i]
                 )
             else:
                 out[k, i] = y[k, i]
