@@ -116,7 +116,8 @@ def test_replicate_exits_1_naming_a_missed_goal(monkeypatch, capsys, tmp_path):
 def test_building_the_package_warns_about_nothing(tmp_path):
     """A wheel built from setup.py's package map: no 'Package ... is absent' (the 40-line
     warning every fresh install printed for gateway.data.calibrate), and every shipped
-    config lands under gateway/data/, the calibrate examples included."""
+    config lands under gateway/data/, the calibrate examples included, and so do the
+    service files (gateway/data/deploy/) and the documents (gateway/data/docs/)."""
     import zipfile
 
     res = subprocess.run(
@@ -137,6 +138,15 @@ def test_building_the_package_warns_about_nothing(tmp_path):
         if p.is_file()
     }
     assert shipped <= built, shipped - built
+    # `examples deploy` writes the service files and points the unit at the documents:
+    # both come from the wheel
+    for folder in ("deploy", "docs"):
+        files = {
+            f"{folder}/{p.relative_to(ROOT / folder).as_posix()}"
+            for p in (ROOT / folder).rglob("*")
+            if p.is_file() and p.suffix in (".yml", ".json", ".service", ".md")
+        }
+        assert files and files <= built, files - built
 
 
 def test_every_runtime_dependency_is_imported_by_the_shipped_code():

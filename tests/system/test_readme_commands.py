@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -82,3 +83,18 @@ def test_readme_commands_run_from_a_wheel_in_an_empty_directory(tmp_path: Path) 
         if command.startswith("cdpr-gateway diagnose"):
             assert run.stdout.startswith("verdict: viscous"), run.stdout
     assert (empty / "cal" / "calibration.json").is_file()
+    # the README's service command wrote the unit for the wheel's venv, as docs/service.md
+    # installs it: systemd accepts it as written (the binary it runs exists)
+    unit = empty / "service" / "cdpr-gateway.service"
+    exec_start = next(
+        line for line in unit.read_text().splitlines() if line.startswith("ExecStart=")
+    )
+    assert exec_start.startswith(f"ExecStart={install / 'venv' / 'bin' / 'cdpr-gateway'} run")
+    assert (empty / "service" / "gateway.yaml").is_file()
+    analyze = shutil.which("systemd-analyze")
+    if analyze is not None or os.environ.get("CDPR_REQUIRE_EXTERNAL") == "1":
+        assert analyze is not None, "systemd-analyze not installed but CDPR_REQUIRE_EXTERNAL=1"
+        res = subprocess.run(
+            [analyze, "verify", str(unit)], capture_output=True, text=True, timeout=60
+        )
+        assert res.returncode == 0 and "ignoring" not in res.stderr, res.stderr
