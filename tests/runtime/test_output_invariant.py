@@ -228,7 +228,7 @@ class ScriptedPlc(Driver):
 def _check_frames(drv: ScriptedPlc, cfg: Any) -> int:
     """Assert the contract on every frame; return the number of usable values seen."""
     lp = cfg.loop
-    max_age = lp.max_input_age_s if lp.max_input_age_s is not None else 2 * lp.period_s
+    max_age = lp.input_age_limit_s
     requested = np.array([r for r, _ in drv.reads])
     read_seq = np.array([s for _, s in drv.reads])
     changed_at = np.array([c for c, _ in drv.changes])

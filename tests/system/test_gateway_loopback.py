@@ -207,7 +207,13 @@ def test_mbpoll_sees_what_the_gateway_reports():
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
         service, worker = start_gateway(live)
         try:
-            time.sleep(1.0)
+            # the state it asserts, waited for (start-up under load may take longer than 1 s),
+            # then read once: a loaded machine's late cycle no longer gates a frame (the age
+            # limit is stale_after_s, 10 ms, not 2 periods: drivers/base.py)
+            deadline = time.monotonic() + 20.0
+            while time.monotonic() < deadline and service.state is not Lifecycle.ACTIVE:
+                time.sleep(0.05)
+            time.sleep(0.2)
             corrected = mbpoll_values(plc.port, 100, 8, "4:float")
             reported = service.comp.corrected_n.copy()
             status = mbpoll_values(plc.port, 116, 8, "4")
