@@ -280,6 +280,7 @@ class LoopConfig:
         0.16 %: a robot stopped for nothing. A stall of 20 ms is still stopped by age."""
         return self.stale_after_s if self.max_input_age_s is None else self.max_input_age_s
 
+
 class TlsConfig:
     """Modbus/TCP Security (TLS); paths to PEM files."""
 
