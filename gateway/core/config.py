@@ -281,6 +281,7 @@ class LoopConfig:
         return self.stale_after_s if self.max_input_age_s is None else self.max_input_age_s
 
 
+@dataclass(frozen=True)
 class TlsConfig:
     """Modbus/TCP Security (TLS); paths to PEM files."""
 
