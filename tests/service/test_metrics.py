@@ -1,4 +1,4 @@
-"""The collector yields exactly the README's metric names, types and labels."""
+"""The collector yields exactly the metric names, types and labels of docs/metrics.md."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from gateway.service.metrics import MetricsServer, make_registry
 from tests.loop_helpers import FakeClock, config, live_image
 from tests.tls_helpers import self_signed
 
-# the README's metrics table: name -> (type, labels)
+# docs/metrics.md's table: name -> (type, labels)
 DESIGN_TABLE = {
     "cdpr_gateway_cycle_seconds": ("histogram", set()),
     "cdpr_gateway_jitter_seconds": ("histogram", set()),
