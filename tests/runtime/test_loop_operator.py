@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import re
 import socket
 from pathlib import Path
 
@@ -152,3 +153,47 @@ def test_unreachable_notify_socket_never_raises(tmp_path: Path):
     notifier = Notifier(str(tmp_path / "nobody-listens"))
     assert notifier.notify("WATCHDOG=1") is False and notifier.failed == 1
     notifier.close()
+
+
+def test_a_flapping_bus_is_one_outage_said_twice(caplog):
+    """A read timing out every 20th cycle for 1 s (a CANopen bus missing SYNCs on a loaded
+    machine said 205 'recovered' WARNINGs and 153 summaries in 5 s): one WARNING when it
+    starts, one INFO line when the loop has stayed active SETTLED_S, counting them."""
+    from gateway.errors import DriverTimeoutError
+    from gateway.runtime.loop import SETTLED_S
+
+    def flap(n: int) -> None:
+        if 100 <= n < 1100 and n % 20 == 0:
+            raise DriverTimeoutError(f"no SYNC within 2.5 ms (read {n})")
+
+    cfg = config(busy_wait_s=0.0)
+    clock = FakeClock()
+    drv = VirtualDriver(cfg, image=live_image(cfg), on_read=flap)
+    svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=4096)
+    with caplog.at_level(logging.DEBUG, logger="cdpr_gateway.loop"):
+        svc.run(cycles=2000)
+    records = [r for r in caplog.records if r.name == "cdpr_gateway.loop"]
+    said = [r for r in records if r.levelno >= logging.INFO]
+    lost = [r for r in said if r.getMessage().startswith("disconnected from the PLC")]
+    back = [r for r in said if r.getMessage().startswith("recovered:")]
+    assert len(lost) == 1 and lost[0].levelno == logging.WARNING, [r.getMessage() for r in said]
+    assert len(back) == 1 and back[0].levelno == logging.INFO, [r.getMessage() for r in said]
+    assert "no SYNC within 2.5 ms (read 100)" in lost[0].getMessage()
+    n = int(re.search(r"\((\d+) interruptions, the longest", back[0].getMessage()).group(1))
+    assert n == 50, back[0].getMessage()  # reads 100, 120, ..., 1080
+    assert said.index(lost[0]) < said.index(back[0])
+    summaries = [r for r in said if r.getMessage().startswith("gateway: ")]
+    assert len(summaries) <= 3, [r.getMessage() for r in summaries]
+    # each interruption is still in the log at DEBUG, for whoever asks
+    assert sum(r.getMessage().startswith("disconnected") for r in records) == 50
+    assert SETTLED_S < 1.0
+
+
+def test_a_heartbeat_fault_recovers_without_claiming_a_connection(caplog):
+    faults = VirtualFaults(freeze_heartbeat_from=10, freeze_heartbeat_until=200)
+    svc, _, _ = make(faults, heartbeat_timeout_s=0.05)
+    with caplog.at_level(logging.INFO, logger="cdpr_gateway.loop"):
+        svc.run(cycles=1000)
+    (back,) = [r for r in caplog.records if r.getMessage().startswith("recovered:")]
+    assert back.levelno == logging.INFO
+    assert "heartbeat changes again" in back.getMessage() and "connected" not in back.getMessage()
