@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml setup.py
 	touch $(STAMP)
 
 demo: $(STAMP)
+	$(BIN)/cdpr-gateway warmup
 	$(BIN)/cdpr-gateway demo --seconds $(SECONDS)
 
 # `make test` runs every test but the few marked `long` (kept under ~4 min on 2 cores);

@@ -1,5 +1,5 @@
 """``cdpr-gateway`` command line: ``run | check | demo | sim-plc | record | replicate | diagnose
-| calibrate | examples | export | fleet``.
+| calibrate | examples | warmup | export | fleet``.
 
 Each command lives in its own module, imported only when that command is chosen. A command
 module provides ``configure_parser(command, parser)`` and ``run_command(command, args)``
@@ -41,6 +41,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "diagnose": ("gateway.diagnose.cli", "find and model the physics a recording shows"),
     "calibrate": ("sim_plc.calibrate", "soft PLC loop: record, diagnose, write the model, rerun"),
     "examples": ("gateway.service.examples", "list the bundled configs, or copy them into DIR"),
+    "warmup": ("sim_plc.warmup", "compile the numba kernels ahead (the first run does otherwise)"),
     "export": ("gateway.recordings.export", "write a recording as MCAP (Foxglove, PlotJuggler)"),
     "fleet": ("gateway.fleet.cli", "diagnose many recordings on dask.distributed, one table"),
 }

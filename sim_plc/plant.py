@@ -31,6 +31,7 @@ PLC runs that stepping in a worker process and only replays its samples
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,6 +41,7 @@ import numpy as np
 
 from drivers.s7 import s7_codec
 from gateway.core.config import Config
+from gateway.core.firstrun import compiling
 from gateway.errors import InfeasiblePoseError
 from gateway.model import chain, effects, kinematics, statics
 from gateway.recordings.reader import Recording
@@ -47,6 +49,8 @@ from sim_plc.config import SimPlcConfig, load_sim_config, per_cable
 from sim_plc.distribution import Distributor
 from sim_plc.image import ProcessImage
 from sim_plc.trajectories import Trajectory, make_trajectory
+
+log = logging.getLogger("cdpr_gateway.sim_plc")
 
 Progress = Callable[[float], None]
 
@@ -285,8 +289,9 @@ def make_recording(
     model = PlantModel(cfg, sim)
     n = max(round(seconds / model.sim.period_s), 2)
     t = np.arange(n) * model.sim.period_s
-    sp = _recording_setpoints(model, t, progress)
-    reading = reading_batch(model, sp, np.random.default_rng(model.sim.seed))
+    with compiling("the soft PLC's plant", [chain.simulate_kernel, statics.wrench_into], log.info):
+        sp = _recording_setpoints(model, t, progress)
+        reading = reading_batch(model, sp, np.random.default_rng(model.sim.seed))
     return Recording(
         t=t,
         velocity=sp.velocity,

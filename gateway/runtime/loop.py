@@ -59,6 +59,7 @@ from typing import Any
 
 from drivers.base import Driver, Inputs, Lifecycle, Outputs
 from gateway.core.config import Config
+from gateway.core.firstrun import compiling
 from gateway.errors import DriverError, DriverTimeoutError
 from gateway.runtime.compensator import Compensator, warm_up
 from gateway.runtime.pacing import Pacing, make_pacing
@@ -83,6 +84,15 @@ STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
 )
 
 Observer = Callable[[Inputs, Compensator, float], None]
+
+
+def cycle_kernels() -> list[Any]:
+    """A kernel of each source file the cycle compiles (:func:`gateway.core.firstrun.compiling`)."""
+    from drivers import gate
+    from gateway.model import chain
+    from gateway.runtime import compensator, plausibility
+
+    return [compensator._finish, plausibility._check, chain.compensate_kernel, gate._gate]
 
 
 def describe_bus(cfg: Config) -> str:
@@ -124,14 +134,15 @@ class CyclicService:
         self.period_s = cfg.loop.period_s
         self.inputs = Inputs.allocate(cfg.cables)
         self.outputs = Outputs.allocate(cfg.cables)
-        warm_up(cfg)
-        warm_up_plausibility(cfg)
+        with compiling("gateway", cycle_kernels(), log.info):  # said, on a first run
+            warm_up(cfg)
+            warm_up_plausibility(cfg)
+            driver.output_gate  # noqa: B018 - built (compiled) now, not in the first cycle
         self.comp = Compensator(cfg)
         self.plausibility = Plausibility(cfg)
         self.stats = LoopStats(history)
         self.pacing: Pacing = make_pacing(driver, cfg.loop, clock, sleep, wall_clock, self.stats)
         driver.clock = clock  # the output gate and the data's time on the loop's clock
-        driver.output_gate  # noqa: B018 - built (compiled) now, not in the first cycle
         self.comp.heartbeat_modulus = driver.plc_heartbeat_modulus
         self.notifier = notifier
         self.state = Lifecycle.STOPPED

@@ -100,15 +100,16 @@ def console_script() -> Path:
 
 
 def unit_text(template: str, script: Path, docs: Path) -> str:
-    """The shipped unit with ``ExecStart`` running ``script`` and ``Documentation=``
+    """The shipped unit with ``ExecStart`` (and the warmup's ``ExecStartPre``) running
+    ``script`` and ``Documentation=``
     pointing at the installed documents (file URIs: systemd opens them with
     ``systemctl help``)."""
     out, n = re.subn(
-        r"(?m)^ExecStart=\S+/cdpr-gateway ",
-        lambda _m: f"ExecStart={script} ",
+        r"(?m)^(ExecStart(?:Pre)?=)\S+/cdpr-gateway ",
+        lambda m: f"{m.group(1)}{script} ",
         template,
     )
-    if n != 1:
+    if not re.search(rf"(?m)^ExecStart={re.escape(str(script))} ", out):
         raise ConfigError(f"{UNIT}: no 'ExecStart=.../cdpr-gateway ...' line to point at {script}")
     docs_line = "Documentation=" + " ".join(
         (docs / name).as_uri() for name in ("service.md", "security.md")

@@ -51,6 +51,8 @@ def test_deploy_writes_the_unit_for_this_installation(tmp_path, capsys):
     assert script == examples.console_script() and os.access(script, os.X_OK), exec_start
     assert "/opt/" not in exec_start[0] or script.is_file()
     assert exec_start[1:] == ["run", "--config", "/etc/cdpr-gateway/gateway.yaml"]
+    pre = _unit(out / "cdpr-gateway.service")["ExecStartPre"].split()
+    assert pre == [str(script), "warmup", "--config", "/etc/cdpr-gateway/gateway.yaml"], pre
     docs = _documentation(out / "cdpr-gateway.service")
     assert docs and all(urlparse(u).scheme == "file" for u in docs), docs
     assert all(Path(unquote(urlparse(u).path)).is_file() for u in docs), docs
