@@ -40,11 +40,15 @@ DEFAULT_CONFIG_PATH = data_file("default.yaml")  # config/ in a checkout, packag
 class GeometryConfig:
     """Frame anchors ``a_i`` (world frame, m) and platform anchors ``b_i`` (platform frame)."""
 
+    # a_i: where each cable leaves the frame (world frame, one per cable)
     frame_anchors_m: tuple[Vec3, ...]
+    # b_i: where each cable meets the platform (platform frame)
     platform_anchors_m: tuple[Vec3, ...]
+    # the platform with its load (the PLC may send it: registers.platform_mass)
     platform_mass_kg: float = 40.0
-    gravity_m_s2: float = 9.81
-    center_of_mass_m: Vec3 = (0.0, 0.0, 0.0)
+    gravity_m_s2: float = 9.81  # along -z of the world frame
+    center_of_mass_m: Vec3 = (0.0, 0.0, 0.0)  # the platform's centre of mass in the platform frame
+    # x, y, z (m), rx, ry, rz (rad): where the soft PLC and the checks start
     home_pose: tuple[float, float, float, float, float, float] = (0.0, 0.0, 1.5, 0.0, 0.0, 0.0)
     RANGES: ClassVar[Ranges] = {
         "frame_anchors_m": (-1e3, 1e3),
@@ -73,8 +77,8 @@ class GeometryConfig:
 class TensionConfig:
     """Admissible cable tensions for the tension distribution (paper: 0 < T < 1000 N)."""
 
-    min_n: float = 20.0
-    max_n: float = 490.0
+    min_n: float = 20.0  # lowest cable tension the distribution may choose
+    max_n: float = 490.0  # highest cable tension the distribution may choose
     RANGES: ClassVar[Ranges] = {"min_n": (0.0, 1e6), "max_n": (0.0, 1e6)}
 
     def __post_init__(self) -> None:
@@ -85,8 +89,8 @@ class TensionConfig:
 class SensorConfig:
     """The force sensors: range and the S7 analog format (0..adc_full_scale = 0..range)."""
 
-    range_n: float = 500.0
-    adc_full_scale: int = 27648
+    range_n: float = 500.0  # the force sensors' full range
+    adc_full_scale: int = 27648  # the raw count at full range (S7 analog: 27648)
     RANGES: ClassVar[Ranges] = {"range_n": (1e-3, 1e6), "adc_full_scale": (1, 32767)}
 
     def __post_init__(self) -> None:
@@ -122,16 +126,18 @@ class FrictionConfig:
     count where the geometry is known (:class:`Config`, :meth:`effect_values`).
     """
 
+    # per pulley: no friction, Coulomb bearing friction, or the Dahl pre-sliding state
     model: Literal["none", "coulomb", "dahl"] = "dahl"
     pulleys: tuple[PulleyConfig, ...] = (
         PulleyConfig(90.0, 0.015),
         PulleyConfig(60.0, 0.015),
         PulleyConfig(30.0, 0.015),
     )
-    sigma_n_m: float = 500.0
-    beta: float = 1.0
-    viscous_ns_m: float = 0.0
-    pulley_radius_m: float = 0.05
+    sigma_n_m: float = 500.0  # Dahl stiffness: how fast the pre-sliding force builds up with travel
+    beta: float = 1.0  # Dahl shape exponent (1: the classic exponential)
+    viscous_ns_m: float = 0.0  # viscous friction per pulley, force per cable speed
+    pulley_radius_m: float = 0.05  # pulley radius (effects with a rotation angle use it)
+    # fitted effects by registry name (diagnose --write-model writes them; docs/physics.md sec. 4)
     effects: dict[str, EffectParams] = field(default_factory=dict)
     # the effects' parameters are checked by the effects registry (effect_values)
     RANGES: ClassVar[Ranges] = {
@@ -200,7 +206,7 @@ class RealtimeConfig:
     never fatal. On by default (a 1 kHz service); ``enabled: false`` leaves the process
     as it was started."""
 
-    enabled: bool = True
+    enabled: bool = True  # try the real-time settings below at start (what is refused is logged)
     policy: Literal["fifo", "rr", "other"] = "fifo"  # SCHED_FIFO, SCHED_RR, SCHED_OTHER
     priority: int = 50  # 1..99 for fifo and rr
     cpus: tuple[int, ...] = ()  # CPU affinity of the cycle's thread; () leaves it as is
@@ -231,7 +237,7 @@ class RealtimeConfig:
 class LoopConfig:
     """The cyclic service: period, channel validation and the PLC watchdog."""
 
-    period_s: float = 0.001
+    period_s: float = 0.001  # the cycle: one read, compensation and write every period
     substitute_max_s: float = 0.05  # last-good substitution lasts at most this, then invalid
     stuck_after_s: float = 0.5  # a channel that does not change for this long is stuck
     stale_after_s: float = 0.01  # no fresh read for this long: channels are stale
@@ -239,8 +245,9 @@ class LoopConfig:
     # a value goes out good only if computed from PLC data this young when sent (the
     # output gate, drivers/gate.py); None: stale_after_s (input_age_limit_s)
     max_input_age_s: float | None = None
-    fixed_point_tol_n: float = 1e-9
-    fixed_point_max_iter: int = 8
+    fixed_point_tol_n: float = 1e-9  # the chain's implicit tension solve stops at this change
+    fixed_point_max_iter: int = 8  # ... or after this many iterations
+    # changed counters are summed up in the log at most this often
     overrun_warning_interval_s: float = 10.0
     busy_wait_s: float = 0.0002  # spin this long before each deadline instead of sleeping
     realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
@@ -285,22 +292,24 @@ class LoopConfig:
 class TlsConfig:
     """Modbus/TCP Security (TLS); paths to PEM files."""
 
-    certfile: str
-    keyfile: str
-    cafile: str | None = None
-    verify_peer: bool = True
+    certfile: str  # this client's certificate (PEM)
+    keyfile: str  # its private key (PEM)
+    cafile: str | None = None  # the CA that signed the PLC's certificate; null: the system's
+    verify_peer: bool = True  # refuse a PLC whose certificate does not verify
 
 
 @dataclass(frozen=True)
 class ModbusTcpConfig:
-    host: str = "127.0.0.1"
-    port: int = 5020
-    unit_id: int = 1
-    timeout_s: float = 0.05
-    connect_timeout_s: float = 1.0
+    host: str = "127.0.0.1"  # the PLC's address
+    port: int = 5020  # the PLC's Modbus TCP port (502 on most PLCs)
+    unit_id: int = 1  # the Modbus unit (slave) id the PLC answers to
+    timeout_s: float = 0.05  # a transaction not answered within this is a timeout
+    connect_timeout_s: float = 1.0  # a connection attempt gives up after this
+    # read and write in one transaction (function 23); false: functions 3 and 16
     use_fc23: bool = True
+    # first wait before reconnecting; it doubles after each failure ...
     reconnect_min_s: float = 0.05
-    reconnect_max_s: float = 2.0
+    reconnect_max_s: float = 2.0  # ... up to this
     tls: TlsConfig | None = None
     registers: RegisterMap = field(default_factory=RegisterMap)
     RANGES: ClassVar[Ranges] = {
@@ -329,17 +338,18 @@ class ModbusTcpConfig:
 
 @dataclass(frozen=True)
 class CanopenConfig:
-    interface: str = "virtual"
-    channel: str = "cdpr"
-    bitrate: int = 1_000_000
-    gateway_node_id: int = 0x20
-    analog_node_id: int = 0x10
-    plc_node_id: int = 0x01
-    sync_period_s: float = 0.001
+    interface: str = "virtual"  # python-can interface: socketcan, virtual, udp_multicast, ...
+    channel: str = "cdpr"  # its channel, e.g. can0
+    bitrate: int = 1_000_000  # the bus bitrate (bit/s)
+    gateway_node_id: int = 0x20  # this gateway's CANopen node id
+    analog_node_id: int = 0x10  # the analog input module's node id (CiA 401)
+    plc_node_id: int = 0x01  # the PLC's node id (NMT master, setpoints)
+    sync_period_s: float = 0.001  # the master's SYNC period: one cycle per SYNC
     timeout_s: float | None = None  # read timeout; default 2.5 SYNC periods
     gateway_eds: str = "gateway.eds"  # relative: beside the config file (left out: shipped)
+    # EDS of the analog module (relative: beside the config file)
     analog_eds: str = "analog_in_401.eds"
-    plc_eds: str = "plc_master.eds"
+    plc_eds: str = "plc_master.eds"  # EDS of the PLC master (relative: beside the config file)
     RANGES: ClassVar[Ranges] = {
         "bitrate": (10_000, 1_000_000),
         "gateway_node_id": (1, 127),
@@ -366,6 +376,7 @@ class CanopenConfig:
 
 @dataclass(frozen=True)
 class BusConfig:
+    # modbus_tcp, canopen or virtual (in process, for tests and demo --offline)
     driver: str = "modbus_tcp"
     modbus_tcp: ModbusTcpConfig = field(default_factory=ModbusTcpConfig)
     canopen: CanopenConfig = field(default_factory=CanopenConfig)
@@ -373,12 +384,14 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class MetricsConfig:
-    enabled: bool = True
+    enabled: bool = True  # serve /metrics for Prometheus
+    # the address it listens on (loopback unless a scraper elsewhere needs it)
     host: str = "127.0.0.1"
     port: int = 9109  # 0: any free port
-    certfile: str | None = None
-    keyfile: str | None = None
-    basic_auth_user: str | None = None
+    certfile: str | None = None  # serve HTTPS with this certificate (PEM) ...
+    keyfile: str | None = None  # ... and this key
+    basic_auth_user: str | None = None  # require HTTP basic auth with this user ...
+    # ... and the password whose SHA-256 (hex) this is
     basic_auth_password_sha256: str | None = None
     RANGES: ClassVar[Ranges] = {"port": (0, 65535)}
 
@@ -394,8 +407,9 @@ class LimitsConfig:
     rotations up to ``max_rotation_rad``; cable speeds up to ``max_cable_speed_m_s``.
     """
 
-    max_cable_speed_m_s: float = 10.0
-    max_rotation_rad: float = math.pi
+    max_cable_speed_m_s: float = 10.0  # a setpoint cable speed above this flags that channel
+    max_rotation_rad: float = math.pi  # a pose rotated further flags every channel
+    # a pose outside the frame's box widened by this flags every channel
     workspace_margin_m: float = 0.5
     RANGES: ClassVar[Ranges] = {
         "max_cable_speed_m_s": (1e-6, 100.0),
@@ -424,10 +438,11 @@ RECORD_KINDS = (
 class RecordConfig:
     """The ``record:`` config section; ``path`` None: no recording unless ``--record``."""
 
+    # record what the gateway sees to this file (.csv, .csv.gz, .parquet) or folder
     path: str | None = None
     rotate_bytes: int | None = None  # a new file after this many bytes of CSV text
     rotate_s: float | None = None  # a new file after this many seconds
-    columns: tuple[str, ...] = RECORD_KINDS
+    columns: tuple[str, ...] = RECORD_KINDS  # which kinds of columns to record
     buffer_rows: int = 65536  # ring size: 65 s at 1 kHz of disk stall before drops
     batch_s: float = 0.1  # the writer drains the ring this often
     layout: str = "files"  # or "hive": path is a folder of robot=R/date=D/part-N.parquet
@@ -467,6 +482,7 @@ class Config:
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
+    # the soft PLC's plant: trajectory, noise, hidden effects (sim_plc/config.py)
     sim_plc: dict[str, Any] = field(default_factory=dict)
     source: str = field(default="", metadata={"file": False})  # the file's path, not a key
 

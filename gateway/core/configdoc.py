@@ -161,7 +161,8 @@ def _first_paragraph(cls: type) -> str:
     doc = inspect.getdoc(cls) or ""
     if doc.startswith(cls.__name__ + "("):  # dataclass' generated signature: no docstring
         return ""
-    return " ".join(doc.split("\n\n", 1)[0].split())
+    text = " ".join(doc.split("\n\n", 1)[0].split())
+    return re.sub(r":\w+:`~?([^`]+)`", r"`\1`", text).replace("``", "`")  # reST -> Markdown
 
 
 @dataclasses.dataclass
@@ -189,7 +190,7 @@ def sections(root: type | None = None, prefix: str = "") -> list[Section]:
         root = Config
     hints = typing.get_type_hints(root)
     notes = field_comments(root)
-    here = Section(prefix or "(top level)", _first_paragraph(root), [])
+    here = Section(prefix or "top level", "" if not prefix else _first_paragraph(root), [])
     below: list[Section] = []
     for f in dataclasses.fields(root):
         if f.metadata.get("file") is False:
@@ -223,6 +224,8 @@ def sections(root: type | None = None, prefix: str = "") -> list[Section]:
                 meaning=meaning,
             )
         )
+    if not prefix:  # the top level's own keys (sim_plc) after the sections
+        return below + ([here] if here.rows else [])
     return ([here] if here.rows else []) + below
 
 
@@ -266,12 +269,11 @@ def render() -> str:
         out.append(f"\n## `{sec.key}`\n")
         if sec.intro:
             out.append(f"\n{sec.intro}\n")
-        out.append("\n| key | type | default | unit | range | meaning |\n|---|---|---|---|---|---|\n")
+        out.append("\n| key | type | default | unit | range | meaning |\n")
+        out.append("|---|---|---|---|---|---|\n")
         for r in sec.rows:
             meaning = r.meaning.replace("|", "\\|")
-            out.append(
-                f"| {r.key} | {r.type} | {r.default} | {r.unit} | {r.range} | {meaning} |\n"
-            )
+            out.append(f"| {r.key} | {r.type} | {r.default} | {r.unit} | {r.range} | {meaning} |\n")
     return "".join(out)
 
 

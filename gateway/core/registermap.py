@@ -24,13 +24,15 @@ class RegisterField:
     maximum if unsigned); float32 writes NaN.
     """
 
-    address: int
-    count: int = 1
-    type: RegisterType = "uint16"
+    address: int  # the block's first holding register (0-based)
+    count: int = 1  # how many values
+    type: RegisterType = "uint16"  # each value's register type
+    # 32-bit types: which 16-bit word comes first
     word_order: Literal["high_first", "low_first"] = "high_first"
-    scale: float = 1.0
+    scale: float = 1.0  # value = raw x scale (format plain)
+    # s7_analog: 0..adc_full_scale is 0..sensor range
     format: Literal["plain", "s7_analog"] = "plain"
-    invalid: int | None = None
+    invalid: int | None = None  # integer outputs: the raw value written for no value
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "address": (0, 65535),
         "count": (1, 125),
@@ -62,15 +64,24 @@ class RegisterField:
 class RegisterMap:
     """Holding-register map (0-based). Inputs are read from the PLC, outputs written."""
 
+    # read: the force channels
     raw_tensions: RegisterField = RegisterField(0, 8, "int16", format="s7_analog")
+    # read: setpoint cable speeds (m/s)
     setpoint_velocities: RegisterField = RegisterField(8, 8, "float32")
+    # read: setpoint cable lengths (m)
     setpoint_lengths: RegisterField = RegisterField(24, 8, "float32")
-    pose: RegisterField = RegisterField(40, 6, "float32")
+    pose: RegisterField = RegisterField(40, 6, "float32")  # read: the pose setpoint (m, rad)
+    # read: the PLC's heartbeat (loop.heartbeat says its kind)
     plc_heartbeat: RegisterField = RegisterField(52, 1, "uint16")
+    # written: the compensated platform tensions (N)
     corrected_tensions: RegisterField = RegisterField(100, 8, "float32")
+    # written: 0 good, 1 substituted, 2 invalid, per cable
     channel_status: RegisterField = RegisterField(116, 8, "uint16")
+    # written: +1 every written cycle (the PLC's watchdog)
     gateway_heartbeat: RegisterField = RegisterField(124, 1, "uint16")
+    # written: 0 stopped, 1 connected, 2 active, 3 fault
     gateway_state: RegisterField = RegisterField(125, 1, "uint16")
+    # written: the estimated platform wrench (N, N m)
     wrench: RegisterField = RegisterField(126, 6, "float32")
     platform_mass: RegisterField | None = None  # optional: the platform mass (kg), count 1
 
