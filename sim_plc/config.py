@@ -7,7 +7,7 @@ limits of the plant's tension distribution (``sim_plc.tension`` over ``tension:`
 initial platform mass (``geometry.platform_mass_kg``). ``sim_plc.distribution`` chooses the
 controller's tension distribution (:mod:`sim_plc.distribution`; default: the statics).
 
-Effects (physics.md sec. 5) are switched on by naming them under ``sim_plc.effects``;
+Effects (physics.md sec. 4) are switched on by naming them under ``sim_plc.effects``;
 ``enabled: false`` switches a named one off again. Their parameter names are those of the
 diagnosis report (docs/recording-format.md) and the effects registry
 (:mod:`gateway.model.effects`). Each parameter is a scalar for every cable or a
@@ -129,7 +129,7 @@ class EffectsConfig:
     values: Effects = field(default_factory=dict)
 
     def active(self) -> dict[str, dict[str, Any]]:
-        """Effects that are on, by id (physics.md sec. 5), as written."""
+        """Effects that are on, by id (physics.md sec. 4), as written."""
         return {name: self.declared[name] for name in self.values}
 
 

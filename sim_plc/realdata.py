@@ -8,7 +8,7 @@ none of them):
   ``emps/DATA_EMPS.mat`` (fit) and ``emps/DATA_EMPS_PULSES.mat`` (validation), 1 kHz. One
   "cable" without pulleys: the motor force ``gtau * vir`` drives the cart, nothing loads
   it, so ``tension_platform`` is 0 and ``tension_sensor`` is minus the motor force (the
-  sensor reads ``T_p - m a - c v - f0 sgn(v) + offset``, docs/physics.md sec. 5, while
+  sensor reads ``T_p - m a - c v - f0 sgn(v) + offset``, docs/physics.md sec. 4, while
   the motor supplies ``m a + c v + f0 sgn(v) + offset_motor``); the velocity is the
   central difference of the motor position ``qm`` (its encoder resolves 0.05 um).
 * **da Vinci** (a surgical instrument's cable-and-pulley transmission on a bench, O'Neill

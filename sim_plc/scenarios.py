@@ -1,7 +1,7 @@
 """Scenario suite for the diagnosis: recordings with concealed effects, and clean ones.
 
 Each :class:`Scenario` names the effects the "real" machine has beyond the nominal model
-(parameter names and units of recording.md), their sizes chosen to be concealed: at or
+(parameter names and units of docs/recording-format.md), their sizes chosen to be concealed: at or
 below the sensor noise in the raw residual and smaller than the friction the nominal
 model already holds, or confined to a narrow regime (reversals, low speed). The
 recording is made by :func:`make_recording` (one function, so that the generator can be
@@ -211,7 +211,7 @@ def make_recording(sc: Scenario) -> Recording:
 
 SUITE_FILE = Path(__file__).with_name("scenarios.yaml")
 SEALED_FILE = Path(__file__).with_name("scenarios_sealed.yaml")
-"""The sealed scenarios: drawn once (:mod:`sim_plc.sealed`) with another seed and other
+"""The sealed scenarios: drawn once (:mod:`sim_plc.sealed_draw`) with another seed and other
 generator settings, checked in, scored with the tuning set's tolerances and never tuned
 on (their hash is recorded in docs/diagnose-suite.md, tests/diagnose/test_sealed.py)."""
 

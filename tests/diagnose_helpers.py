@@ -7,7 +7,7 @@ one cable's pulley chain (Coulomb or Dahl, any number of pulleys, wrap angles an
 force by the law of cosines from the previous step's tensions) integrated by explicit
 Euler on a fine time grid, path and sensor effects applied on that grid, then resampled at
 the recording's (possibly uneven) times, with non-white noise (coloured, spikes, 50 Hz hum,
-0.1 N quantisation), and written as CSV with the quirks recording.md allows.
+0.1 N quantisation), and written as CSV with the quirks docs/recording-format.md allows.
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def write_scenario(tmp: Path, sc: Scenario, name: str = "rec.csv") -> tuple[Path
 
 @dataclass(frozen=True)
 class Foreign:
-    """A foreign machine and recording. Effects: ids and parameters of recording.md."""
+    """A foreign machine and recording. Effects: ids and parameters of docs/recording-format.md."""
 
     seconds: float = 30.0
     rate_hz: float = 250.0
@@ -515,7 +515,7 @@ SCHEMA = r"""
 {
  "$schema": "https://json-schema.org/draft/2020-12/schema",
  "title": "cdpr-gateway diagnose report",
- "description": "The JSON written by `cdpr-gateway diagnose --json`; see recording.md.",
+ "description": "The JSON written by `cdpr-gateway diagnose --json`; see docs/recording-format.md.",
  "type": "object",
  "required": [
   "cables",

@@ -116,7 +116,7 @@ EffectParams = dict[str, float | tuple[float, ...]]
 
 @dataclass(frozen=True)
 class FrictionConfig:
-    """The pulley friction model (recording.md, 'The nominal model file').
+    """The pulley friction model (docs/recording-format.md, 'The nominal model file').
 
     ``effects``: optional fitted effects (what ``diagnose --write-model`` writes), by the
     ids and parameter names of the effects registry (:mod:`gateway.model.effects`), each

@@ -1,7 +1,7 @@
 """The diagnosis, one way through: prepare -> locate -> select -> fit -> report.
 
 :func:`diagnose` is the whole pipeline for the platform-tension reference (one unit of
-selection per cable); :func:`gateway.diagnose.wrench_reference.diagnose_wrench` is the same
+selection per cable); :func:`gateway.diagnose.wrench_select.diagnose_wrench` is the same
 pipeline with the wrench balance as the reference (one unit: every cable at once). Each
 stage takes the previous stage's output:
 

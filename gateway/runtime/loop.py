@@ -1,6 +1,6 @@
 """The cyclic service: read -> compensate -> write against absolute deadlines.
 
-ros2_control style (style.md): the hardware (a :class:`drivers.base.Driver`), the update
+ros2_control style (the house style): the hardware (a :class:`drivers.base.Driver`), the update
 (:class:`gateway.runtime.compensator.Compensator`) and the loop are separate. There is one
 loop body (:meth:`CyclicService._loop`); when a cycle starts and how its timing is booked is
 a pacing strategy (:mod:`gateway.runtime.pacing`): :class:`~.pacing.PeriodicPacing` waits for

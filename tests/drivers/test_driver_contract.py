@@ -1,4 +1,4 @@
-"""One contract every fieldbus driver keeps (style.md: python-can's back2back tests).
+"""One contract every fieldbus driver keeps (the house style: python-can's back2back tests).
 
 :class:`DriverContract` holds the tests; each driver joins with one subclass naming its
 harness factory from ``tests/driver_contract_helpers.HARNESSES``.

@@ -1,4 +1,4 @@
-"""Each effect of physics.md sec. 5 switches on and changes the reading as it says.
+"""Each effect of physics.md sec. 4 switches on and changes the reading as it says.
 
 Noise off, Coulomb truth (so sliding friction is instantaneous), cyclic motion at 0.5 Hz
 in which every cable pays out and reels in. Comparisons use the analog sensor output

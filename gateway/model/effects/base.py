@@ -1,4 +1,4 @@
-"""What an effect of the catalogue is (docs/physics.md sec. 5): one object per effect,
+"""What an effect of the catalogue is (docs/physics.md sec. 4): one object per effect,
 defined in a module of its own, carrying every behaviour the project needs of it.
 
 An :class:`Effect` has
@@ -258,7 +258,7 @@ def speeds(d: FitData) -> tuple[float, float]:
 @dataclass
 class ChainDraft:
     """The friction chain of ``m`` cables while the chain-side effects edit it (then
-    :meth:`gateway.model.chain.ChainParams.from_draft`).
+    :func:`gateway.model.effects.registry.chain_params` builds the parameters from it).
 
     ``law``: a key of :data:`gateway.model.chain.LAWS`; ``mu_out`` / ``mu_in`` (m, n): the
     bearing coefficient of each pulley paying out (v > 0) and hauling in (v < 0);

@@ -1,5 +1,5 @@
 """``coulomb``: the pulleys' bearing coefficient and a load-independent level (docs/physics.md
-sec. 5).
+sec. 4).
 
 ``mu``: the bearing coefficient of *every* pulley of the cable, absolute: it replaces the
 nominal per-pulley ``mu`` in both directions (NaN or absent: keep the nominal).

@@ -1,5 +1,5 @@
 """``coulomb_directional``: Coulomb/Dahl friction whose bearing coefficient differs by
-direction (docs/physics.md sec. 5).
+direction (docs/physics.md sec. 4).
 
 Real winches are fitted separately paying out and hauling in: ``mu_out`` is the bearing
 coefficient of every pulley of the cable while it pays out (v > 0), ``mu_in`` while it is

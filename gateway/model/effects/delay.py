@@ -1,4 +1,4 @@
-"""``delay``: the sensor's reading arrives late by ``d`` (docs/physics.md sec. 5): it reads
+"""``delay``: the sensor's reading arrives late by ``d`` (docs/physics.md sec. 4): it reads
 ``T_s(t - d)`` (linear interpolation; before the first sample the first value holds).
 
 Not compensated online: the gateway cannot advance a reading causally, and shifting the

@@ -1,4 +1,4 @@
-"""``drift``: the sensor's zero moving linearly in time (docs/physics.md sec. 5): it reads
+"""``drift``: the sensor's zero moving linearly in time (docs/physics.md sec. 4): it reads
 ``+ k (t - t_0)``, ``t_0`` the recording's first time.
 
 Not compensated online: ``t_0`` is the recording's time origin, which the running gateway

@@ -1,5 +1,5 @@
 """``eccentricity``: a pulley off its axis adds a force periodic in cable travel
-(docs/physics.md sec. 5).
+(docs/physics.md sec. 4).
 
 The sensor reads ``+ a sin(x / r + phi)`` with ``x`` the cable length where it is known
 (the soft PLC and the gateway: the setpoint length, so the phase is a property of the

@@ -1,4 +1,4 @@
-"""``gain``: the sensor's scale off by ``g`` (docs/physics.md sec. 5): it reads ``(1 + g) T``.
+"""``gain``: the sensor's scale off by ``g`` (docs/physics.md sec. 4): it reads ``(1 + g) T``.
 
 A reading keeps its sign: ``1 + g > 0``. A gain found on top of a model multiplies the
 model's (``(1 + g)(1 + g') - 1``), and scales every additive sensor correction found inside

@@ -1,4 +1,4 @@
-"""``inertia``: the pulleys' rotating mass between sensor and platform (docs/physics.md sec. 5).
+"""``inertia``: the pulleys' rotating mass between sensor and platform (docs/physics.md sec. 4).
 
 The sensor reads ``T - m_eff a``. The truth (plant, diagnosis) takes ``a`` by second-order
 differences with one sample of look-ahead; the gateway, which cannot look ahead, by the

@@ -1,4 +1,4 @@
-"""``lowpass``: the sensor rounds off fast changes (docs/physics.md sec. 5): it reads through
+"""``lowpass``: the sensor rounds off fast changes (docs/physics.md sec. 4): it reads through
 ``1 / (tau s + 1)``, exact for an input linear between samples (uneven sampling handled).
 
 Not compensated online: inverting the filter is a differentiator that amplifies the

@@ -1,5 +1,5 @@
 """``mass_change``: the platform's mass changes at a rate the controller does not know
-(docs/physics.md sec. 5): the statics hold ``m(t) = m_rec + q (t - t_0)``.
+(docs/physics.md sec. 4): the statics hold ``m(t) = m_rec + q (t - t_0)``.
 
 One platform value (not per cable). The diagnosis needs pose, mass and a geometry for it
 (the platform tension changes by ``q (t - t_0) dT_p/dm``). Not compensated online: it changes

@@ -1,4 +1,4 @@
-"""``offset``: the sensor's zero off by ``c`` (docs/physics.md sec. 5): it reads ``+ c``."""
+"""``offset``: the sensor's zero off by ``c`` (docs/physics.md sec. 4): it reads ``+ c``."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``stribeck``: a Coulomb level raised at low speed (docs/physics.md sec. 5).
+"""``stribeck``: a Coulomb level raised at low speed (docs/physics.md sec. 4).
 
 ``F_R`` times ``1 + k exp(-(v / v_s)^2)``: ``k`` the excess at standstill, ``v_s_m_s`` the
 speed over which it fades. The fit varies ``log10 v_s``, bounded to at most 1/8 of the

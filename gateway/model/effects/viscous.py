@@ -1,4 +1,4 @@
-"""``viscous``: friction proportional to the cable speed (docs/physics.md sec. 5).
+"""``viscous``: friction proportional to the cable speed (docs/physics.md sec. 4).
 
 ``c_ns_m``: added to the nominal ``viscous_ns_m`` (summed over the pulleys): the platform
 side carries ``c v`` more than the chain's Coulomb/Dahl part. A correction may be
