@@ -1,4 +1,5 @@
-"""Fieldbus driver base (the house style: python-can's ``BusABC``, ros2_control's hardware interface).
+"""Fieldbus driver base (the house style: python-can's ``BusABC``, ros2_control's hardware
+interface).
 
 A driver moves one cycle's data between the PLC and two preallocated buffers:
 

@@ -1,4 +1,5 @@
-"""The project's exception tree (python-can's, the house style): only the loop catches driver errors."""
+"""The project's exception tree (python-can's, the house style): only the loop catches driver
+errors."""
 
 from __future__ import annotations
 

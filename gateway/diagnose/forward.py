@@ -130,7 +130,8 @@ class Nominal:
 
 
 def to_report(effect: str, theta: np.ndarray) -> dict[str, float]:
-    """Internal parameter vector -> reported parameters (names and units of docs/recording-format.md)."""
+    """Internal parameter vector -> reported parameters (names and units of
+    docs/recording-format.md)."""
     return fx.REGISTRY[effect].report(np.asarray(theta, dtype=float))
 
 
