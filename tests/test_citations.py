@@ -34,7 +34,7 @@ WRITTEN = {"summary.md", "fleet.md", "suite.md", "d.md"}
 
 def _files() -> list[Path]:
     out = [p for pkg in SOURCES if (ROOT / pkg).is_dir() for p in (ROOT / pkg).rglob("*.py")]
-    out += sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
+    out += [*sorted((ROOT / "docs").glob("*.md")), ROOT / "README.md"]
     out += sorted((ROOT / "deploy").rglob("*.yml")) + sorted((ROOT / "config").rglob("*.yaml"))
     return [p for p in out if "__pycache__" not in p.parts]
 
