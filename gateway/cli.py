@@ -18,7 +18,9 @@ import argparse
 import contextlib
 import importlib
 import os
+import signal
 import sys
+import threading
 from collections.abc import Iterator, Sequence
 from typing import NoReturn
 
@@ -78,8 +80,63 @@ def _quiet(quiet: bool) -> Iterator[None]:
         yield
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM outside the daemon's loop (which handles its own): raised where the
+    program is, so that ``finally`` blocks and context managers close files; ends the
+    program with one line and 128 + the signal's number."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _interrupt(signum: int, _frame: object) -> None:
+    raise Interrupted(signum)
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    command = argv[0] if argv and argv[0] in COMMANDS else "cdpr-gateway"
+    previous = {}
+    if threading.current_thread() is threading.main_thread():  # before any heavy import
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job
+                previous[sig] = signal.signal(sig, _interrupt)
+    try:
+        status = _main(argv)
+        sys.stdout.flush()  # here, where a closed pipe is caught, not at the interpreter's exit
+        return status
+    except Interrupted as exc:
+        # the daemon stops in order from its loop (exit 0); interrupted before or after it,
+        # `run` has written nothing yet or has already stopped: an orderly stop as well
+        code = 0 if command == "run" else 128 + exc.signum
+        what = "stopped" if command == "run" else "interrupted"
+        print(f"cdpr-gateway {command}: {what} ({_signal_name(exc.signum)})", file=sys.stderr)
+        return code
+    except KeyboardInterrupt:  # raised by a handler of the command's own
+        print(f"cdpr-gateway {command}: interrupted (SIGINT)", file=sys.stderr)
+        return 0 if command == "run" else 130
+    except BrokenPipeError:
+        # the reader of our output went away (`examples | head -1`): end quietly, as a
+        # process that SIGPIPE ended; stdout is pointed at /dev/null so that the
+        # interpreter's final flush does not fail again
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _main(argv: list[str]) -> int:
     if not argv or argv[0] not in COMMANDS:
         parser = _top_parser()
         parser.parse_args(argv)  # prints help / version / an error for unknown commands
@@ -102,8 +159,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except GatewayError as exc:
         print(f"cdpr-gateway {command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

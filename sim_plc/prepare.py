@@ -35,8 +35,11 @@ import multiprocessing as mp
 import os
 import pickle
 import select
+import signal
 import struct
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
@@ -59,6 +62,22 @@ def _background() -> None:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
+
+
+@contextlib.contextmanager
+def _no_sigint() -> Iterator[None]:
+    """SIGINT ignored while a worker process starts (from the main thread): an ignored
+    signal stays ignored across exec, and Python then installs no KeyboardInterrupt handler
+    in the child, so a Ctrl-C at the terminal (sent to the whole process group) no longer
+    printed 'Process sim-plc-chunks: Traceback ... KeyboardInterrupt'; the parent stops it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 # what a step of the serving process writes into its image, per sample
@@ -207,7 +226,8 @@ class ChunkWorker:
             name="sim-plc-chunks",
             daemon=True,
         )
-        proc.start()
+        with _no_sigint():  # the worker inherits SIGINT ignored: a Ctrl-C is the parent's
+            proc.start()
         theirs.close()
         self._conn, self._proc, self._fd = mine, proc, mine.fileno()
         os.set_blocking(self._fd, False)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import resource
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,7 @@ from gateway.core.config import (
     exposure_warning,
     load_config,
 )
-from gateway.errors import DriverError, GatewayError
+from gateway.errors import DriverError, DriverTimeoutError, GatewayError
 from gateway.runtime.loop import describe_bus
 from gateway.runtime.plausibility import Plausibility
 from gateway.service.daemon import add_config_option, build_driver, setup_logging
@@ -119,12 +120,25 @@ def pose_problems(cfg: Config, bounds: Plausibility) -> list[str]:
     return []
 
 
+READ_ATTEMPTS_S = 2.0  # `check --connect` retries a read that timed out for this long
+
+
 def read_once(driver: Driver, cfg: Config) -> list[str]:
-    """Open, read one cycle's inputs, close; the lines that describe what was read."""
+    """Open, read one cycle's inputs (a read that times out is tried again for up to
+    READ_ATTEMPTS_S: a one-off check is not the 1 kHz loop, and one late reply of a busy
+    PLC, or of the soft PLC on a loaded machine, is no answer to 'can you read it'),
+    close; the lines that describe what was read."""
     inputs = Inputs.allocate(cfg.cables)
     try:
         driver.open()
-        driver.read_into(inputs)
+        deadline = time.monotonic() + READ_ATTEMPTS_S
+        while True:
+            try:
+                driver.read_into(inputs)
+                break
+            except DriverTimeoutError:
+                if time.monotonic() >= deadline:
+                    raise
     finally:
         driver.close()
 

@@ -1,0 +1,113 @@
+"""SIGINT and SIGTERM end every long-running command with one line and its documented
+exit status, never a traceback, at any moment, import included (gateway/cli.py): the
+daemon's orderly stop is 0, interrupted offline work 128 + the signal (130 for SIGINT);
+a closed pipe ends quietly (141, as a process SIGPIPE ended)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+DEFAULT = ROOT / "config" / "default.yaml"
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = f"{ROOT}{os.pathsep}{env.get('PYTHONPATH', '')}"
+    env.pop("NOTIFY_SOCKET", None)
+    return env
+
+
+def interrupt(args: list[str], after_s: float, sig: int, cwd: Path) -> tuple[int, str]:
+    """Start ``cdpr-gateway ARGS``, send ``sig`` after ``after_s``; (status, stderr)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway", *args],
+        cwd=cwd,
+        env=_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(after_s)
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+        pytest.fail(f"{args}: still running 60 s after {signal.Signals(sig).name}: {err}")
+    return proc.returncode, err
+
+
+def _unreachable_config(tmp_path: Path) -> Path:
+    text = DEFAULT.read_text().replace("port: 5020", "port: 9")  # discard: nobody listens
+    text = text.replace("port: 9109", "port: 0")
+    path = tmp_path / "unreachable.yaml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_offline_work_interrupted_during_import_says_one_line(tmp_path, sig):
+    # 0.4 s: the command's module (numpy, numba, the model) is still being imported
+    status, err = interrupt(["replicate", "--out", str(tmp_path / "r")], 0.4, sig, tmp_path)
+    assert "Traceback" not in err, err
+    assert status == 128 + sig, (status, err)
+    name = signal.Signals(sig).name
+    assert err.strip().splitlines()[-1] == f"cdpr-gateway replicate: interrupted ({name})", err
+
+
+@pytest.mark.parametrize(
+    ("sig", "after_s"),
+    [
+        (signal.SIGINT, 0.4),  # importing
+        (signal.SIGTERM, 0.4),
+        pytest.param(signal.SIGINT, 6.0, marks=pytest.mark.long),  # retrying in its loop
+        pytest.param(signal.SIGTERM, 6.0, marks=pytest.mark.long),
+    ],
+)
+def test_the_daemon_stopped_at_any_moment_exits_0(tmp_path, sig, after_s):
+    cfg = _unreachable_config(tmp_path)
+    status, err = interrupt(["run", "--config", str(cfg)], after_s, sig, tmp_path)
+    assert "Traceback" not in err, err
+    assert status == 0, (status, err)
+
+
+@pytest.mark.long
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_long_offline_commands_interrupted_while_working(tmp_path, sig):
+    for args in (
+        ["replicate", "--out", str(tmp_path / "r"), "--seconds", "60"],
+        ["sim-plc", "--config", str(DEFAULT), "--port", "0"],
+    ):
+        status, err = interrupt(args, 8.0, sig, tmp_path)
+        assert "Traceback" not in err, (args, err)
+        expected = 0 if args[0] == "sim-plc" else 128 + sig  # sim-plc serves until stopped
+        assert status == expected, (args, status, err)
+
+
+def test_a_closed_pipe_ends_quietly(tmp_path):
+    # `examples | head -1`, made certain: the reader is gone before the first write
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        res = subprocess.run(
+            [sys.executable, "-m", "gateway", "examples"],
+            cwd=tmp_path,
+            env=_env(),
+            stdout=write_end,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        os.close(write_end)
+    assert res.stderr == "", res.stderr
+    assert res.returncode == 128 + signal.SIGPIPE, res.returncode
