@@ -38,7 +38,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "demo": ("sim_plc.demo", "soft PLC and gateway on loopback, then a table of results"),
     "sim-plc": ("sim_plc.cli", "serve the soft PLC (Modbus TCP / CANopen) until stopped"),
-    "record": ("sim_plc.cli", "run the soft PLC's plant and write a recording (CSV)"),
+    "record": (
+        "sim_plc.cli",
+        "run the soft PLC's plant (no gateway) and write a recording (CSV, CSV.gz, Parquet)",
+    ),
     "replicate": ("sim_plc.replicate", "reproduce the paper's experiment (JSON, markdown, PNG)"),
     "diagnose": ("gateway.diagnose.cli", "find and model the physics a recording shows"),
     "calibrate": ("sim_plc.calibrate", "soft PLC loop: record, diagnose, write the model, rerun"),
@@ -47,6 +50,83 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("gateway.recordings.export", "write a recording as MCAP (Foxglove, PlotJuggler)"),
     "fleet": ("gateway.fleet.cli", "diagnose many recordings on dask.distributed, one table"),
 }
+
+
+# One example per command, shown under its --help (the README's tour uses the same).
+EXAMPLES: dict[str, str] = {
+    "run": "cdpr-gateway run --config /etc/cdpr-gateway/gateway.yaml",
+    "check": "cdpr-gateway check --config yours.yaml --connect",
+    "demo": "cdpr-gateway demo --seconds 60 --bus canopen",
+    "sim-plc": "cdpr-gateway sim-plc --config config/default.yaml --port 5020",
+    "record": "cdpr-gateway record --config config/calibrate/viscous.yaml --seconds 40 "
+    "--out rec.csv.gz",
+    "replicate": "cdpr-gateway replicate --out replication/",
+    "diagnose": "cdpr-gateway diagnose rec.csv.gz --model config/default.yaml --json rep.json "
+    "--report rep/",
+    "calibrate": "cdpr-gateway calibrate --config config/calibrate/viscous.yaml --seconds 30 "
+    "--out cal/",
+    "examples": "cdpr-gateway examples deploy service/",
+    "warmup": "cdpr-gateway warmup --config /etc/cdpr-gateway/gateway.yaml",
+    "export": "cdpr-gateway export rec.csv.gz --to mcap rec.mcap",
+    "fleet": "cdpr-gateway fleet 'recordings/*.parquet' --model config/default.yaml --out fleet/",
+}
+
+# One vocabulary of placeholders, by option (dest), for every command's --help.
+PLACEHOLDERS: dict[str, str] = {
+    "config": "FILE",
+    "model": "FILE",
+    "json": "FILE",
+    "validate": "FILE",
+    "write_model": "FILE",
+    "record": "FILE",
+    "report": "DIR",
+    "tls_cert": "FILE",
+    "tls_key": "FILE",
+    "tls_ca": "FILE",
+    "seconds": "SECONDS",
+    "cycles": "N",
+    "workers": "N",
+    "seed": "N",
+    "host": "HOST",
+    "port": "PORT",
+    "scheduler": "ADDRESS",
+    "robot": "NAME",
+}
+OUT_IS_DIR = ("replicate", "calibrate", "fleet")  # --out: a directory; elsewhere a file
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Examples as written; each option's default shown when it has one and its help does
+    not say it already."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        shown = action.default not in (None, False, argparse.SUPPRESS, [])
+        if shown and "default" not in text and action.option_strings:
+            text += " (default: %(default)s)"
+        return text
+
+
+def _teach(command: str, parser: argparse.ArgumentParser) -> None:
+    """The placeholders of :data:`PLACEHOLDERS` and the command's example."""
+    for action in parser._actions:
+        if (
+            action.nargs == 0
+            or action.choices
+            or action.metavar is not None
+            and (not action.option_strings)
+        ):
+            continue
+        word = PLACEHOLDERS.get(action.dest)
+        if action.dest == "out":
+            word = "DIR" if command in OUT_IS_DIR else "FILE"
+        if not action.option_strings:  # positionals: their name, in capitals
+            word = "RECORDING" if action.dest == "recordings" else action.dest.upper()
+        if word is not None:
+            action.metavar = word
+    example = f"example:\n  {EXAMPLES[command]}"
+    parser.epilog = parser.epilog or example
+    parser.formatter_class = _HelpFormatter
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -148,6 +228,7 @@ def _main(argv: list[str]) -> int:
     parser = _OneLineParser(prog=f"cdpr-gateway {command}", description=help_text)
     module.configure_parser(command, parser)
     add_common_options(parser)  # --log-level, --quiet: the same on every command
+    _teach(command, parser)
     args = parser.parse_args(argv[1:])
     setup_logging(resolve_log_level(args))
     try:

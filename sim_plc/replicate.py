@@ -366,12 +366,9 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     add_config_option(parser, DEFAULT_REPLICATE_CONFIG)
     parser.add_argument(
         "--seconds",
-        "--seconds-limit",
-        dest="seconds",
         type=float,
         default=None,
-        metavar="N",
-        help="cap each run's simulated time (s; --seconds-limit is the old name)",
+        help="cap each run's simulated time, in seconds (default: the config's runs in full)",
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 

@@ -122,4 +122,4 @@ def test_diagnose_needs_no_json_when_a_report_is_wanted(recording, tmp_path):
 
 def test_replicate_takes_seconds_like_every_other_command(capsys) -> None:
     text = help_text("replicate", capsys)
-    assert "--seconds N" in text and "--seconds-limit" not in text.split("--seconds N")[0]
+    assert "--seconds SECONDS" in text and "--seconds-limit" not in text

@@ -21,7 +21,7 @@ def result(tmp_path_factory) -> tuple[dict, object]:
         str(out),
         "--config",
         str(REPLICATE_YAML),
-        "--seconds-limit",
+        "--seconds",
         "15",
     ]
     assert cli.main(argv) == 0
