@@ -113,8 +113,7 @@ def _teach(command: str, parser: argparse.ArgumentParser) -> None:
         if (
             action.nargs == 0
             or action.choices
-            or action.metavar is not None
-            and (not action.option_strings)
+            or (action.metavar is not None and (not action.option_strings))
         ):
             continue
         word = PLACEHOLDERS.get(action.dest)
