@@ -123,7 +123,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
 def _write_outputs(
     out: Path, results: list[TaskResult], where: str, wall: float, model: str
 ) -> int:
-    from gateway.fleet.plots import write_plots, write_summary
+    from gateway.fleet.plots import plural, write_plots, write_summary
     from gateway.fleet.table import table_rows, write_table
 
     named = [(res, _name(i, res.recording)) for i, res in enumerate(results)]
@@ -152,7 +152,7 @@ def _write_outputs(
     write_summary(out / "fleet.md", summary, plots, info)
     failed = sum(1 for r in results if r.error)
     print(
-        f"fleet: {len(results)} recordings, {failed} failed, {wall:.1f} s on {where}; "
+        f"fleet: {plural(len(results), 'recording')}, {failed} failed, {wall:.1f} s on {where}; "
         f"table, fleet.md and plots in {out}"
     )
     for res in results:

@@ -73,7 +73,10 @@ def write_plots(rows: list[dict[str, Any]], out: Path) -> list[Path]:
         for ax, (effect, name) in zip(axes[:, 0], params, strict=True):
             _panel(ax, rs, recordings, effect, name)
         axes[-1, 0].set_xlabel("recording start (UTC)")
-        fig.suptitle(f"robot {robot}: fitted parameters over time ({len(recordings)} recordings)")
+        axes[-1, 0].set_xlim(*time_span([w for w, _ in recordings.values()]))
+        fig.suptitle(
+            f"robot {robot}: fitted parameters over time ({plural(len(recordings), 'recording')})"
+        )
         fig.autofmt_xdate()
         fig.tight_layout()
         path = out / f"robot-{_safe(robot)}.png"
@@ -81,6 +84,27 @@ def write_plots(rows: list[dict[str, Any]], out: Path) -> list[Path]:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def plural(n: int, word: str) -> str:
+    """``1 recording``, ``2 recordings``."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def time_span(times: list[datetime.datetime]) -> tuple[datetime.datetime, datetime.datetime]:
+    """The x axis: the recordings' starts with 5 % to spare, at least an hour either side of
+    one start (matplotlib's own limits for one date spanned 2025-2029)."""
+    lo, hi = min(times), max(times)
+    pad = max((hi - lo) * 0.05, datetime.timedelta(hours=1))
+    return lo - pad, hi + pad
+
+
+def axis_label(effect: str, name: str) -> str:
+    """``offset`` / ``c_n (N)``: the report parameter's unit, from its suffix."""
+    from gateway.core.configdoc import unit_of
+
+    unit = unit_of(name)
+    return f"{effect}\n{name} ({unit})" if unit else f"{effect}\n{name}"
 
 
 def _panel(ax, rs, recordings, effect: str, name: str) -> None:
@@ -118,7 +142,7 @@ def _panel(ax, rs, recordings, effect: str, name: str) -> None:
             color="grey",
             ms=10,
             transform=trans,
-            label=f"no {effect if name else 'finding'} ({len(without)})",
+            label=f"no {effect if name else 'finding'} ({plural(len(without), 'recording')})",
         )
     if failed:
         ax.plot(
@@ -127,9 +151,9 @@ def _panel(ax, rs, recordings, effect: str, name: str) -> None:
             "x",
             color="red",
             transform=trans,
-            label=f"failed ({len(failed)})",
+            label=f"failed ({plural(len(failed), 'recording')})",
         )
-    ax.set_ylabel(f"{effect}\n{name}" if name else "no finding")
+    ax.set_ylabel(axis_label(effect, name) if name else "no finding")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6, ncol=5, loc="upper left")
 
@@ -143,7 +167,7 @@ def write_summary(
     lines = [
         "# Fleet diagnosis",
         "",
-        f"{len(results)} recordings, {len(ok)} diagnosed, {len(failed)} failed; "
+        f"{plural(len(results), 'recording')}, {len(ok)} diagnosed, {len(failed)} failed; "
         f"{info.get('cluster', '')}; wall time {info.get('wall', '')}.",
         "",
         f"Model: `{info.get('model', '')}`. Table: `fleet.parquet`, `fleet.csv` (one row per "
