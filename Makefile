@@ -58,7 +58,7 @@ format: $(STAMP)
 # Tuning and sealed sets of both suites; a sealed file whose hash the doc does not record is
 # refused (--reseal REASON records a new draw). The real recordings: `python -m bench real`.
 suite-table: $(STAMP)
-	$(BIN)/python -m sim_plc.scenarios --table docs/diagnose-suite.md
+	$(BIN)/python -m evaluation.scenarios_table --table docs/diagnose-suite.md
 	$(BIN)/python -m tests.foreign_cases --table docs/diagnose-suite.md
 
 clean:

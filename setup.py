@@ -26,7 +26,6 @@ setup(
     package_dir=DATA,
     package_data={
         "gateway": ["py.typed"],
-        "sim_plc": ["scenarios.yaml", "scenarios_sealed.yaml"],
         "gateway.data": ["*.yaml", "*.eds"],
         "gateway.data.calibrate": ["*.yaml"],
         "gateway.data.deploy": ["*.yml", "*.json", "*.service"],

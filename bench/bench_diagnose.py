@@ -35,7 +35,7 @@ SCENARIO_ARGS = dict(cables=8, seconds=600.0)
 
 
 def _scenario(case: str = "hidden"):
-    from sim_plc.scenarios import Scenario
+    from evaluation.scenarios import Scenario
 
     if case == "clean":
         return Scenario("bench-clean", {}, **SCENARIO_ARGS)
@@ -46,7 +46,7 @@ def _scenario(case: str = "hidden"):
 
 
 def _generate(path: str, case: str) -> None:
-    from sim_plc.scenarios import make_recording
+    from evaluation.scenarios import make_recording
 
     rec = make_recording(_scenario(case))
     np.savez(

@@ -1,5 +1,5 @@
 """The diagnosis on real recordings, blind, and the least-squares baseline
-(:mod:`sim_plc.realsuite`): EMPS against the published identification, the da Vinci
+(:mod:`evaluation.realsuite`): EMPS against the published identification, the da Vinci
 transmission against the baseline on two validation sets.
 
 ``python -m bench real`` (~6 min) reads the datasets from ``$REAL_DATA`` (default: the
@@ -13,8 +13,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from sim_plc import realsuite
-from sim_plc.suitedoc import replace_section
+from evaluation import realsuite
+from evaluation.suitedoc import replace_section
 
 DEFAULT_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 

@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 
 from drivers.modbus_tcp import ModbusTcpDriver
+from evaluation.faultproxy import FaultProxy
 from gateway.core.config import load_config
 from gateway.runtime.loop import CyclicService
 from gateway.service.metrics import make_registry
-from sim_plc.faultproxy import FaultProxy
 from tests.reliability_helpers import (
     PlcHeartbeat,
     WriteOracle,

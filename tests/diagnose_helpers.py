@@ -2,7 +2,7 @@
 independent generator of "foreign" recordings (:class:`Foreign`, :func:`generate`,
 :func:`write_csv`, :func:`model_yaml`).
 
-The foreign generator is written without :mod:`sim_plc.scenarios` or :mod:`gateway.model`:
+The foreign generator is written without :mod:`evaluation.scenarios` or :mod:`gateway.model`:
 one cable's pulley chain (Coulomb or Dahl, any number of pulleys, wrap angles and mu, normal
 force by the law of cosines from the previous step's tensions) integrated by explicit
 Euler on a fine time grid, path and sensor effects applied on that grid, then resampled at
@@ -22,8 +22,8 @@ import jsonschema
 import numpy as np
 from numba import njit
 
+from evaluation.scenarios import Scenario, make_recording
 from gateway.recordings.reader import write_recording
-from sim_plc.scenarios import Scenario, make_recording
 
 MODEL_YAML = """friction:
   model: {model}

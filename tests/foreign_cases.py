@@ -18,9 +18,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sim_plc import sealing
-from sim_plc.scenarios import substitutes
-from sim_plc.suitedoc import replace_section
+from evaluation import sealing
+from evaluation.scenarios import substitutes
+from evaluation.suitedoc import replace_section
 from tests import foreign_sealed
 from tests.diagnose_helpers import Foreign, run_foreign
 
@@ -172,7 +172,7 @@ class Score:
     seconds: float
     alternative: dict[str, str] | None = None
     """The true effects named as alternatives of these findings (finding -> true effect,
-    :func:`sim_plc.scenarios.substitutes`), every other strict rule holding; None: not so."""
+    :func:`evaluation.scenarios.substitutes`), every other strict rule holding; None: not so."""
 
     @property
     def why(self) -> list[str]:

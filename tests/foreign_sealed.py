@@ -7,14 +7,14 @@ The draw varies what the independent generator (:mod:`tests.diagnose_helpers`) o
 timing jitter, five noise kinds at 0.15-0.5 N, point-to-point or positioning moves, 1-3
 cables, loads of 150-400 N; one case per effect at about the scenario suite's sizes
 (0.7-1.5x, either sign where the effect has one), four pairs, four clean recordings.
-Tolerances: the scenario suite's (``sim_plc/scenarios.yaml``), as ``(value, rel, abs)``.
+Tolerances: the scenario suite's (``evaluation/scenarios.yaml``), as ``(value, rel, abs)``.
 Eccentricity is checked on its amplitude and radius only, a spring on its stiffness only:
 the generator's travel starts at its fine grid's origin, not at the recording's first row,
 so a phase or a length has another zero. Maxwell-slip, backlash and cable stretch are
 drawn on the Dahl chain (they act on its presliding state).
 
 ``python -m tests.foreign_cases --seal SEED`` writes the file; a new draw is a reseal
-(:mod:`sim_plc.sealing`).
+(:mod:`evaluation.sealing`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sim_plc.scenarios import tolerance
+from evaluation.scenarios import tolerance
 
 SEALED_FILE = Path(__file__).with_name("foreign_sealed.yaml")
 SINGLE = (

@@ -347,9 +347,9 @@ class GatewayRig:
 
     def start(self) -> GatewayRig:
         from drivers.modbus_tcp import ModbusTcpDriver
+        from evaluation.faultproxy import FaultProxy
         from gateway.runtime.loop import CyclicService
         from gateway.service.metrics import make_registry
-        from sim_plc.faultproxy import FaultProxy
 
         plc_cfg = load_config()
         self.server, self.image, _ = self._stack.enter_context(

@@ -19,7 +19,7 @@ ALLOWED_PROJECT_IMPORTS = (
     "gateway.core.files",
     "gateway.core.ring",
 )
-PROJECT_PACKAGES = ("drivers", "gateway", "sim_plc", "tests", "bench")
+PROJECT_PACKAGES = ("drivers", "gateway", "sim_plc", "evaluation", "tests", "bench")
 DRIVER_FILES = sorted(Path(drivers.__file__).parent.glob("*.py"))
 
 

@@ -138,6 +138,10 @@ def test_building_the_package_warns_about_nothing(tmp_path):
         if p.is_file()
     }
     assert shipped <= built, shipped - built
+    # the evaluation (suites, sealed draws, real-data converters, baseline, fault proxy) is
+    # the tests' and benchmarks', not the product's
+    names = zipfile.ZipFile(wheel).namelist()
+    assert not [n for n in names if n.startswith(("evaluation/", "tests/", "bench/"))]
     # `examples deploy` writes the service files and points the unit at the documents:
     # both come from the wheel
     for folder in ("deploy", "docs"):

@@ -7,8 +7,8 @@ from dataclasses import replace
 
 import pytest
 
+from evaluation.scenarios import Scenario
 from gateway.cli import main
-from sim_plc.scenarios import Scenario
 from tests.diagnose_helpers import check_report, write_scenario
 
 SHORT = Scenario("cli", {"viscous": {"c_ns_m": 8.0}}, cables=1, seconds=20.0)
@@ -112,9 +112,9 @@ def test_cli_requires_model(tmp_path):
 def test_cli_uses_wrench_balance_from_pose_with_full_config(tmp_path):
     """No tension_platform columns: the wrench balance from pose and mass with the config's
     geometry (no tension distribution assumed)."""
+    from evaluation.scenarios import make_recording
     from gateway.core.config import DEFAULT_CONFIG_PATH
     from gateway.recordings.reader import write_recording
-    from sim_plc.scenarios import make_recording
 
     sc = Scenario("pose", {}, plant=True, cables=8, seconds=2.0)
     rec = make_recording(sc)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim_plc.scenarios import tolerance
+from evaluation.scenarios import tolerance
 from tests.diagnose_helpers import Foreign, run_foreign
 
 CASES = {

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from evaluation import baseline, realdata, realsuite
 from gateway.recordings.reader import Recording
-from sim_plc import baseline, realdata, realsuite
 
 DATA = Path(
     os.environ.get("REAL_DATA", Path(__file__).resolve().parents[3] / "shared" / "data" / "real")

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from evaluation.scenarios import tolerance
 from gateway.cli import main
 from gateway.core.config import DEFAULT_CONFIG_PATH, Config, config_from_mapping, load_config
 from gateway.core.configtypes import read_yaml
 from gateway.model import effects as fx
 from gateway.recordings.reader import write_recording
 from sim_plc.plant import make_recording
-from sim_plc.scenarios import tolerance
 
 NOISE = 0.4
 SECONDS = 20.0

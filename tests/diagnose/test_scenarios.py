@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim_plc.scenarios import Scenario, evaluate, expected_cables, substitutes, suite
+from evaluation.scenarios import Scenario, evaluate, expected_cables, substitutes, suite
 from tests.diagnose_helpers import check_report
 
 FAST = {
@@ -81,7 +81,7 @@ def test_scenario(sc):
         assert found == [], f"false finding(s) on a clean recording: {found}"
         return
     # strictly named, or named as an alternative where the test cannot separate it
-    # (:func:`sim_plc.scenarios.substitutes`: the exact set, cables and tolerances still hold)
+    # (:func:`evaluation.scenarios.substitutes`: the exact set, cables and tolerances still hold)
     assert res["passed"] or res["alternative"], (found, res["why"])
     swap = res["alternative"] or {}
     named = [swap.get(e, e) for e in found]

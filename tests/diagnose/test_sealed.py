@@ -8,11 +8,11 @@ from pathlib import Path
 
 import pytest
 
+from evaluation import sealing
+from evaluation.scenarios import SEALED_FILE, Scenario, sealed, suite
+from evaluation.suitedoc import replace_section, section
 from gateway.errors import GatewayError
 from gateway.model import effects as fx
-from sim_plc import sealing
-from sim_plc.scenarios import SEALED_FILE, Scenario, sealed, suite
-from sim_plc.suitedoc import replace_section, section
 from tests import foreign_sealed
 from tests.foreign_cases import CASES, sealed_cases
 

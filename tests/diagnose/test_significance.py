@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from evaluation.scenarios import Scenario, _truth_chain, make_recording, motion
 from gateway.diagnose.engine import diagnose
 from gateway.diagnose.stats import bh_qvalues, jackknife_se, p_value, sign_test_p
 from gateway.model.chain import simulate
 from gateway.recordings.reader import Recording
-from sim_plc.scenarios import Scenario, _truth_chain, make_recording, motion
 from tests.diagnose_helpers import check_report
 
 

@@ -161,8 +161,8 @@ def test_selection_subset_uses_training_blocks_only():
 
 
 def test_rows_with_missing_values_are_dropped_and_counted():
+    from evaluation.scenarios import Scenario, make_recording
     from gateway.diagnose.engine import diagnose
-    from sim_plc.scenarios import Scenario, make_recording
 
     sc = Scenario("nan", {}, cables=1, seconds=10.0)
     rec = make_recording(sc)
@@ -196,9 +196,9 @@ def test_standstill_recording_finds_offset_not_eccentricity():
 def test_recomputed_predictions_give_the_reported_rmse():
     """The plots' predictions are recomputed per cable (not held): they give the report's
     baseline and final RMSE."""
+    from evaluation.scenarios import Scenario, make_recording
     from gateway.diagnose.engine import diagnose
     from gateway.diagnose.plots import overlay_series, residual_series, thin
-    from sim_plc.scenarios import Scenario, make_recording
 
     sc = Scenario("offset", {"offset": {"c_n": [2.0, 0.0]}}, cables=2, seconds=20.0)
     rec = make_recording(sc)

@@ -108,8 +108,8 @@ def test_return_large_frees_is_idempotent() -> None:
     ],
 )
 def test_reading_batch_equals_the_whole_run_formula(effects: dict) -> None:
+    from evaluation.scenarios import Scenario, plant_config
     from sim_plc import plant
-    from sim_plc.scenarios import Scenario, plant_config
 
     sc = Scenario("x", effects, cables=8, seconds=2.0, plant=True, seed=3)
     model = plant.PlantModel(plant_config(sc), None)

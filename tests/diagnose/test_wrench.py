@@ -18,6 +18,7 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.optimize import minimize
 
+from evaluation.scenarios import tolerance
 from gateway.core.config import DEFAULT_CONFIG_PATH, Config, config_from_mapping
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose import platform
@@ -30,7 +31,6 @@ from gateway.recordings.reader import Recording
 from sim_plc.config import load_sim_config
 from sim_plc.distribution import closed_form, qp
 from sim_plc.plant import make_recording
-from sim_plc.scenarios import tolerance
 from tests.diagnose_helpers import check_report
 
 NOISE = 0.4
@@ -46,7 +46,7 @@ CASES: dict[str, dict] = {
     "inertia": {"inertia": {"m_eff_kg": 10.0}},  # x 0.072 m/s^2 RMS: ~2x noise
     "coulomb": {"coulomb": {"f0_n": 1.0}},  # load-independent Coulomb: 2.5x noise
 }
-# relative tolerances (sim_plc.scenarios.TOLERANCE); f0 and mu absolute
+# relative tolerances (evaluation.scenarios.TOLERANCE); f0 and mu absolute
 TOL_REL = {"c_ns_m": 0.15, "c_n": 0.2, "g": 0.2, "q_kg_s": 0.2, "m_eff_kg": 0.25}
 TOL_ABS = {"f0_n": 0.15, "mu": 0.001}
 NOMINAL_MU = 0.015  # config/default.yaml: the truth mu when only f0 is hidden

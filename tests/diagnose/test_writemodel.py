@@ -17,6 +17,7 @@ import pytest
 import yaml
 from numpy.testing import assert_allclose
 
+from evaluation.scenarios import Scenario
 from gateway.cli import main
 from gateway.core.config import (
     DEFAULT_CONFIG_PATH,
@@ -31,7 +32,6 @@ from gateway.model import chain
 from gateway.model import effects as fx
 from gateway.recordings.reader import write_recording
 from sim_plc.plant import make_recording
-from sim_plc.scenarios import Scenario
 from tests.diagnose_helpers import write_scenario
 
 M = 8

@@ -112,7 +112,7 @@ def test_the_report_schema_names_every_registered_effect() -> None:
 
 
 def test_the_scenario_suite_has_a_tolerance_for_every_parameter() -> None:
-    from sim_plc.scenarios import tolerance
+    from evaluation.scenarios import tolerance
 
     for name, e in fx.REGISTRY.items():
         for p in e.param_names:

@@ -207,7 +207,7 @@ UNEVEN = FrictionConfig(
 def test_coulomb_mu_is_absolute_per_pulley_for_every_user() -> None:
     """Plant, scenarios, diagnosis and gateway read coulomb mu the same way: the
     coefficient of every pulley of the cable, not a scale of the nominal mean."""
-    from sim_plc import scenarios
+    from evaluation import scenarios
     from sim_plc.config import load_sim_config
     from sim_plc.plant import chain_params as plant_chain
 

@@ -13,7 +13,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from sim_plc.faultproxy import FaultProxy
+from evaluation.faultproxy import FaultProxy
 from tests.reliability_helpers import (
     EchoModbusServer,
     connect,

@@ -1,16 +1,16 @@
 """The diagnosis on real recordings, blind, and the least-squares baseline beside it.
 
-``python -m sim_plc.realsuite DATA [--table docs/diagnose-suite.md]`` (``DATA``: the
-directory holding ``emps/`` and ``davinci/``, :mod:`sim_plc.realdata`; ``python -m bench
+``python -m evaluation.realsuite DATA [--table docs/diagnose-suite.md]`` (``DATA``: the
+directory holding ``emps/`` and ``davinci/``, :mod:`evaluation.realdata`; ``python -m bench
 real`` runs it on the shared data and prints the same) diagnoses:
 
 * **EMPS** against a blank model (no friction law, no pulleys), ``--validate`` with the
   pulses recording; the fitted inertia, viscous and Coulomb level against the published
-  identification (targets 5/10/10 %, :data:`sim_plc.realdata.EMPS_TARGETS`).
-* **da Vinci** against a blank model (:data:`sim_plc.realdata.DAVINCI_MODEL`): fitted on
+  identification (targets 5/10/10 %, :data:`evaluation.realdata.EMPS_TARGETS`).
+* **da Vinci** against a blank model (:data:`evaluation.realdata.DAVINCI_MODEL`): fitted on
   the first 9 trials of ``Tool_4_Maryland_L_4``, ``--validate`` with its other 6; the
   fitted model then predicts those 6 and the 4 trials of ``Tool_4_Maryland_L_2`` (never
-  seen), scored by :func:`sim_plc.realdata.rmse` like the baseline (:mod:`sim_plc.baseline`,
+  seen), scored by :func:`evaluation.realdata.rmse` like the baseline (:mod:`evaluation.baseline`,
   fitted on the same 9). Whether the diagnosis names the same effects when fitted on
   either validation set instead is reported too, and the parameters of the effects all
   three fits found, with both standard errors, against the spread between the fits
@@ -28,12 +28,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+from evaluation import baseline, realdata
+from evaluation.suitedoc import replace_section
 from gateway.core.config import FrictionConfig
 from gateway.diagnose.engine import diagnose
 from gateway.diagnose.writemodel import fitted_friction
 from gateway.recordings.reader import Recording
-from sim_plc import baseline, realdata
-from sim_plc.suitedoc import replace_section
 
 HEADING = "## Real recordings (blind)"
 
@@ -199,9 +199,9 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
     lines = [
         HEADING,
         "",
-        "Written by `python -m bench real` (`sim_plc/realsuite.py`; the data are read where "
-        "they lie and never copied into the project). Converters: `sim_plc/realdata.py`; "
-        "baseline: `sim_plc/baseline.py`. RMSE in N.",
+        "Written by `python -m bench real` (`evaluation/realsuite.py`; the data are read where "
+        "they lie and never copied into the project). Converters: `evaluation/realdata.py`; "
+        "baseline: `evaluation/baseline.py`. RMSE in N.",
         "",
         '**EMPS** (prismatic axis, one "cable" without pulleys; blank model; fit '
         "`DATA_EMPS.mat`, `--validate` with `DATA_EMPS_PULSES.mat`): found "
@@ -262,7 +262,7 @@ def table(emps: dict[str, Any], dv: dict[str, Any]) -> str:
     lines += [
         "",
         "Scored on every sample after the first 0.5 s of each trial, each trial simulated "
-        "from a relaxed state (`sim_plc.realdata.rmse`), for both models. Baseline "
+        "from a relaxed state (`evaluation.realdata.rmse`), for both models. Baseline "
         "(Dahl with level `mu |T_p| + f0`, gain, viscous, spring in the spindle position, "
         f"constant; `scipy.optimize.least_squares`, {dv['baseline_seconds']:.0f} s): "
         + ", ".join(f"{k} {v:.4g}" for k, v in b.items())
@@ -329,7 +329,7 @@ def _spread_table(estimates: dict[str, dict]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sim_plc.realsuite", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m evaluation.realsuite", description=__doc__)
     ap.add_argument("data", type=Path, help="directory with emps/ and davinci/")
     ap.add_argument("--table", type=Path, help="write the section into this file")
     ap.add_argument("--no-refits", action="store_true", help="skip the two refits (~2 min)")

@@ -24,7 +24,7 @@ none of them):
 :func:`predict` gives a model's sensor reading for a recording (the plant's forms run
 with its fitted effects, each trial from a relaxed chain), :func:`rmse` scores it after a
 warm-up per trial: the one metric for the diagnosis' fitted model and the baseline
-(:mod:`sim_plc.baseline`).
+(:mod:`evaluation.baseline`).
 """
 
 from __future__ import annotations

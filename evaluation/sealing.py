@@ -14,8 +14,8 @@ import hashlib
 import re
 from pathlib import Path
 
+from evaluation.suitedoc import replace_section, section
 from gateway.errors import GatewayError
-from sim_plc.suitedoc import replace_section, section
 
 HEADING = "## Seals"
 ROOT = Path(__file__).resolve().parent.parent

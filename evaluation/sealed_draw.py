@@ -1,4 +1,4 @@
-"""Drawing the sealed scenarios (``sim_plc/scenarios_sealed.yaml``) once, from a seed.
+"""Drawing the sealed scenarios (``evaluation/scenarios_sealed.yaml``) once, from a seed.
 
 The tuning suite (``scenarios.yaml``) fixes one motion (the oscillation), 1 kHz, 0.4 N of
 noise and mostly two cables. The sealed draw gives each tuning scenario a twin with every
@@ -12,8 +12,8 @@ length with an absolute tolerance) moved by up to twice its tolerance either way
 the soft PLC's plant keeps the plant and draws its sizes and seed. Code that serves every
 effect: no effect is named here.
 
-``python -m sim_plc.scenarios --seal SEED`` writes the file; a new draw is a reseal
-(:mod:`sim_plc.sealing`): the doc records the new hash and why.
+``python -m evaluation.scenarios_table --seal SEED`` writes the file; a new draw is a reseal
+(:mod:`evaluation.sealing`): the doc records the new hash and why.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import yaml
 
+from evaluation.scenarios import SUITE_FILE, Scenario, suite, tolerance
 from gateway.diagnose.prepare import nominal_from
 from gateway.model import effects as fx
-from sim_plc.scenarios import SUITE_FILE, Scenario, suite, tolerance
 
 Draw = dict[str, Any]
 
@@ -124,7 +124,8 @@ def write(path: Path, seed: int) -> None:
     """Write the sealed file of ``seed`` (one flow-style line per case)."""
     header = (
         f"# The sealed diagnosis scenarios: drawn once from {SUITE_FILE.name} by `python -m "
-        f"sim_plc.scenarios --seal {seed}`\n# (sim_plc/sealed_draw.py); scored like the "
+        f"evaluation.scenarios_table --seal {seed}`\n# (evaluation/sealed_draw.py); scored like "
+        "the "
         "tuning suite (its tolerances), never tuned on.\n# Not to be edited or redrawn "
         "quietly: docs/diagnose-suite.md records this file's SHA-256 (## Seals).\n"
         "scenarios:\n"

@@ -11,7 +11,7 @@ trapezoid of the velocities) whose level grows with the load, a gain ``g``, visc
 a spring ``k`` linear in the position ``x`` (the recording's ``length``, e.g. the spindle
 angle times the capstan radius) and a constant ``b`` (the spring's reference force and any
 offset together). Seven parameters, fitted by plain :func:`scipy.optimize.least_squares`
-(trust region, finite differences) on the scored samples (:func:`sim_plc.realdata.scored`),
+(trust region, finite differences) on the scored samples (:func:`evaluation.realdata.scored`),
 each trial from a relaxed ``F``; started from the linear least squares without ``F``.
 """
 
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from evaluation.realdata import scored, segments
 from gateway.recordings.reader import Recording
-from sim_plc.realdata import scored, segments
 
 NAMES = ("g", "mu", "f0_n", "log10_sigma_n_m", "c_ns_m", "k_n_m", "b_n")
 
