@@ -96,6 +96,13 @@ class Recording:
 
 
 # --- reading ------------------------------------------------------------------------------
+
+
+def _why(exc: BaseException) -> str:
+    """An error's own words: ``Is a directory``, not ``[Errno 21] Is a directory: 'x'``."""
+    return (exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)) or repr(exc)
+
+
 def _open_text(path: Path) -> IO[str]:
     if path.suffix == ".gz":
         return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8-sig")
@@ -399,7 +406,7 @@ def read_recording(
             if body:
                 reader.add(body, line_of)
     except (OSError, EOFError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{path}: cannot read: {exc}") from exc
+        raise RecordingError(f"{path}: cannot read: {_why(exc)}") from exc
     return _finish(path, meta, sink, reader, min_samples)
 
 
@@ -550,7 +557,7 @@ def read_metadata(path: str | Path) -> dict[str, str]:
         with _open_text(path) as fh:
             return _split_header(path, _lines(path, fh))[0]
     except (OSError, EOFError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{path}: cannot read: {exc}") from exc
+        raise RecordingError(f"{path}: cannot read: {_why(exc)}") from exc
 
 
 # --- writing ------------------------------------------------------------------------------
