@@ -118,7 +118,29 @@ def time_offset_ns(rec: Recording) -> int:
     except ValueError:
         return 0
     when = when if when.tzinfo else when.replace(tzinfo=datetime.UTC)
-    return int(when.timestamp()) * 1_000_000_000
+    try:
+        return int(when.timestamp()) * 1_000_000_000  # before 1970: negative, refused later
+    except (OverflowError, OSError, ValueError):  # year 1 or 9999 on some platforms
+        return -1 if when.year < 1970 else MAX_NS + 1
+
+
+MAX_NS = 2**64 - 1  # MCAP's log and publish times: unsigned 64-bit ns since 1970 (to 2554)
+
+
+def mcap_stamps(recording: Path, t: np.ndarray, offset_ns: int, started: str = "") -> list[int]:
+    """Each row's time in ns, exactly (Python integers: ``t`` of 1e10 s overflowed int64
+    silently), or one line when one lies outside what MCAP can hold."""
+    if t.size and not (np.isfinite(t[0]) and np.isfinite(t[-1])):
+        raise GatewayError(f"{recording}: t is not finite; MCAP needs a time for every row")
+    stamps = [round(x * 1e9) + offset_ns for x in t.tolist()]
+    bad = next((k for k, s in enumerate(stamps) if not 0 <= s <= MAX_NS), None)
+    if bad is not None:
+        when = f"t = {t[bad]:g} s" + (f" after the start {started}" if started else "")
+        raise GatewayError(
+            f"{recording}: row {bad + 1}: {when} is outside what MCAP can hold "
+            "(0 to 2^64 ns after 1970-01-01, up to the year 2554)"
+        )
+    return stamps
 
 
 def export_mcap(recording: Path, out: Path, progress: Callable[[float], None] | None = None):
@@ -128,9 +150,13 @@ def export_mcap(recording: Path, out: Path, progress: Callable[[float], None] | 
 
     from gateway import __version__
 
+    if out.exists() and not out.is_file():  # /dev/stdout, a pipe: the writer seeks back
+        raise GatewayError(f"{out}: not a regular file; MCAP is written to a file (it seeks)")
     rec = read_recording(recording, min_samples=1)
     offset = time_offset_ns(rec)
-    stamps = (np.round(rec.t * 1e9).astype(np.int64) + offset).tolist()
+    stamps = mcap_stamps(
+        recording, rec.t, offset, rec.metadata.get("started", "") if offset else ""
+    )
     channels = channel_arrays(rec)
     count = 0
     try:

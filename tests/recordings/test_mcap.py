@@ -3,11 +3,13 @@ each message valid against its channel's JSON Schema."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import jsonschema
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 
 from gateway.cli import main
@@ -108,3 +110,45 @@ def test_a_bad_recording_is_one_line_and_status_2(tmp_path: Path, capsys) -> Non
     code = main(["export", str(tmp_path / "bad.csv"), "--to", "mcap", str(tmp_path / "o.mcap")])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "bad.csv:1: no cable columns" in err
+
+
+@pytest.mark.parametrize(
+    ("t0", "started", "says"),
+    [
+        (2e10, "", "row 1: t = 2e+10 s is outside what MCAP can hold"),
+        (-1.0, "", "row 1: t = -0.99"),
+        (0.0, "1960-01-01T00:00:00+00:00", "after the start 1960-01-01"),
+        (0.0, "0001-01-01T00:00:00+00:00", "after the start 0001-01-01"),
+        (0.0, "9999-12-31T00:00:00+00:00", "after the start 9999-12-31"),
+    ],
+)
+def test_times_mcap_cannot_hold_are_refused_in_one_line(tmp_path, capsys, t0, started, says):
+    """Each gave a struct.error or OverflowError traceback (issue 30 item 4)."""
+    rec = gateway_like(20, 2)
+    rec = dataclasses.replace(rec, t=rec.t + t0, metadata={**rec.metadata, "started": started})
+    write_recording(tmp_path / "r.parquet", rec)
+    out = tmp_path / "r.mcap"
+    assert main(["export", str(tmp_path / "r.parquet"), "--to", "mcap", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0], err
+    assert not out.exists() or out.stat().st_size == 0
+
+
+def test_an_output_that_cannot_seek_is_refused_up_front(tmp_path, capsys):
+    write_recording(tmp_path / "r.csv", gateway_like(20, 2))
+    assert main(["export", str(tmp_path / "r.csv"), "--to", "mcap", "/dev/null"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "/dev/null: not a regular file" in err and "\n" not in err, err
+
+
+def test_times_int64_cannot_hold_but_mcap_can_are_exported(tmp_path, capsys):
+    """t = 1e10 s (the year 2286) overflowed int64 ns and gave a traceback; MCAP's u64
+    holds it."""
+    rec = gateway_like(20, 2)
+    rec = dataclasses.replace(rec, t=rec.t + 1e10, metadata={**rec.metadata, "started": ""})
+    write_recording(tmp_path / "r.parquet", rec)
+    out = tmp_path / "r.mcap"
+    assert main(["export", str(tmp_path / "r.parquet"), "--to", "mcap", str(out)]) == 0
+    with out.open("rb") as fh:
+        times = [m.log_time for _, _, m in make_reader(fh).iter_messages()]
+    assert min(times) == round(rec.t[0] * 1e9) and min(times) > 2**63
