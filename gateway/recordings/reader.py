@@ -24,13 +24,14 @@ formatted and written ``CHUNK_ROWS`` at a time, never the whole file as one stri
 
 from __future__ import annotations
 
-import gzip
 import io
+import logging
 import re
+import zlib
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import numpy as np
 
@@ -41,6 +42,8 @@ from gateway.recordings.writer import (  # noqa: F401 - re-exported
     format_rows,
     open_writer,
 )
+
+log = logging.getLogger("cdpr_gateway.recordings")
 
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
 CABLE_KINDS = ("velocity", "tension_sensor", "tension_platform", "length")
@@ -103,9 +106,89 @@ def _why(exc: BaseException) -> str:
     return (exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)) or repr(exc)
 
 
+HELD_MEMBER_BYTES = 64 << 20  # a gzip member's text held back until its end is seen
+
+
+class GzipMembers(io.RawIOBase):
+    """The text of a ``.gz`` file's complete gzip members, streamed.
+
+    The recorder writes a gzip member at least every second (:class:`RecordingWriter`), so
+    a writer killed mid-way leaves complete members and one cut short. Each member's text
+    is held back until its end (its CRC and length checked) has been read; at the end of
+    the file a member without its end is dropped, ``cut_bytes`` says how much of the file
+    that was. Damage before the end (a bad CRC, bad deflate data, bytes that are no gzip
+    member) is an error: the file is refused, never half-read. A member larger than
+    ``HELD_MEMBER_BYTES`` of text (one written by another tool) streams as it comes; cut
+    short, it cannot be dropped and is refused."""
+
+    def __init__(self, path: Path) -> None:
+        self._f = open(path, "rb")  # noqa: SIM115 - closed by close()
+        self._ready = bytearray()  # text of complete members, not read yet
+        self._held = bytearray()  # text of the current member
+        self._d: Any = None  # the current member's decompressor
+        self._member_in = 0  # compressed bytes of the current member so far
+        self._streamed = False  # the current member's text went out before its end
+        self._eof = False
+        self._members = 0  # complete members read
+        self.cut_bytes = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def close(self) -> None:
+        self._f.close()
+        super().close()
+
+    def readinto(self, b: Any) -> int:
+        while not self._ready and not self._eof:
+            self._fill()
+        n = min(len(b), len(self._ready))
+        b[:n] = self._ready[:n]
+        del self._ready[:n]
+        return n
+
+    def _fill(self) -> None:
+        data = self._f.read(1 << 16)
+        if not data:
+            self._eof = True
+            if self._d is not None and (self._member_in or self._held):
+                if self._streamed:
+                    raise EOFError("cut inside a gzip member too large to drop")
+                if not self._members:
+                    raise EOFError("cut short before its first complete gzip block")
+                self.cut_bytes = self._member_in
+                self._held.clear()
+            return
+        while data:
+            if self._d is None:
+                self._d = zlib.decompressobj(wbits=31)  # one gzip member
+                self._member_in, self._streamed = 0, False
+            out = self._d.decompress(data, HELD_MEMBER_BYTES)
+            used = len(data) - len(self._d.unused_data) - len(self._d.unconsumed_tail)
+            self._member_in += used
+            self._held += out
+            if self._d.eof:  # the member's end: CRC and length checked by zlib
+                self._members += 1
+                self._ready += self._held
+                self._held.clear()
+                data = self._d.unused_data
+                self._d = None
+            else:
+                data = self._d.unconsumed_tail
+            if len(self._held) > HELD_MEMBER_BYTES:
+                self._ready += self._held
+                self._held.clear()
+                self._streamed = True
+            if self._ready and len(self._ready) >= HELD_MEMBER_BYTES:
+                return
+
+
 def _open_text(path: Path) -> IO[str]:
     if path.suffix == ".gz":
-        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8-sig")
+        members = GzipMembers(path)
+        text = io.TextIOWrapper(io.BufferedReader(members), encoding="utf-8-sig")
+        text.members = members  # type: ignore[attr-defined]  # cut_bytes, read after
+        return text
     return open(path, encoding="utf-8-sig")  # utf-8-sig: spreadsheets write a BOM
 
 
@@ -405,9 +488,20 @@ def read_recording(
                         body, line_of = [], []
             if body:
                 reader.add(body, line_of)
-    except (OSError, EOFError, UnicodeDecodeError) as exc:
+            cut = getattr(getattr(fh, "members", None), "cut_bytes", 0)
+    except (OSError, EOFError, UnicodeDecodeError, zlib.error) as exc:
         raise RecordingError(f"{path}: cannot read: {_why(exc)}") from exc
-    return _finish(path, meta, sink, reader, min_samples)
+    rec = _finish(path, meta, sink, reader, min_samples)
+    if cut:
+        log.warning(
+            "%s: ends after an unclean stop: %d rows to t = %.3f s, the last partial block "
+            "(%d bytes) dropped",
+            path,
+            rec.t.size,
+            rec.t[-1],
+            cut,
+        )
+    return rec
 
 
 def _finish(path: Path, meta: dict[str, str], sink: _Columns, reader: _Reader, min_samples: int):

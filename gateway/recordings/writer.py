@@ -10,6 +10,8 @@ from :mod:`gateway.recordings.reader`.
 from __future__ import annotations
 
 import gzip
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
@@ -43,13 +45,23 @@ class RowWriter(Protocol):
     def close(self) -> None: ...
 
 
+MEMBER_S = 1.0  # a .gz recording is a series of gzip members: one closed at least this often
+MEMBER_BYTES = 4 << 20  # ... or when this much text is waiting
+
+
 class RecordingWriter:
     """A recording file written in whole rows: metadata and header, then row batches.
 
-    Every :meth:`write_rows` call writes complete lines in one ``write``; :meth:`close`
-    ends the file (the gzip trailer for ``.gz``). ``fileobj`` replaces the file opened
-    from ``path`` (tests: a slow or full disk). ``compresslevel`` 1 is 5x faster than 6
-    for 17 % more bytes (the gateway's recorder uses 1).
+    Plain CSV: every :meth:`write_rows` call writes complete lines in one ``write``. ``.gz``:
+    a series of complete gzip members (concatenated members are plain gzip: ``zcat``, any
+    reader), one closed at least every ``MEMBER_S`` of writing (or ``MEMBER_BYTES`` of
+    text) and at :meth:`close`, each holding whole rows; a writer killed at any moment
+    leaves every member before the one it was writing, so the reader
+    (:class:`gateway.recordings.reader.GzipMembers`) loses at most the last second. One
+    gzip stream closed only at the end, before, lost the whole file to a kill.
+    ``fileobj`` replaces the file opened from ``path`` (tests: a slow or full disk).
+    ``compresslevel`` 1 is 5x faster than 6 for 17 % more bytes (the gateway's recorder
+    uses 1).
     """
 
     def __init__(
@@ -59,6 +71,7 @@ class RecordingWriter:
         metadata: dict[str, str] | None = None,
         fileobj: IO[bytes] | None = None,
         compresslevel: int = 6,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.path = Path(path)
         self.columns = list(columns)
@@ -66,36 +79,55 @@ class RecordingWriter:
         self.bytes = 0
         raw: IO[bytes] = fileobj if fileobj is not None else open(self.path, "wb")  # noqa: SIM115
         self._raw = raw
-        self._fh: IO[bytes] | gzip.GzipFile = raw
-        if self.path.suffix == ".gz":
-            self._fh = gzip.GzipFile(
-                filename=self.path.name, mode="wb", fileobj=raw, compresslevel=compresslevel
-            )
+        self._gz = self.path.suffix == ".gz"
+        self._level = compresslevel
+        self._clock = clock
+        self._held: list[bytes] = []  # text of the member being gathered
+        self._held_bytes = 0
+        self._held_rows = 0
+        self._member_at = clock()
         head = "".join(f"# {k}: {v}\n" for k, v in (metadata or {}).items())
         self._write(head + ",".join(self.columns) + "\n")
 
     def _write(self, text: str) -> None:
         data = text.encode("utf-8")
-        self._fh.write(data)
         self.bytes += len(data)
+        if not self._gz:
+            self._raw.write(data)
+            return
+        self._held.append(data)
+        self._held_bytes += len(data)
+
+    def _member(self) -> None:
+        """Close the member being gathered: compressed whole, written in one ``write``."""
+        if self._held:
+            self._raw.write(gzip.compress(b"".join(self._held), self._level, mtime=0))
+            self._raw.flush()
+        self._held, self._held_bytes, self._held_rows = [], 0, 0
+        self._member_at = self._clock()
 
     @property
     def rows_on_disk(self) -> int:
-        """Rows written to the file (all of them: a row is never held back)."""
-        return self.rows
+        """Rows written to the file (``.gz``: in closed members)."""
+        return self.rows - self._held_rows
 
     def write_rows(self, table: np.ndarray) -> None:
         """Write ``table`` (rows, len(columns)) as whole rows."""
         if table.shape[0]:
             self._write(format_rows(table))
             self.rows += table.shape[0]
-            if self._fh is self._raw:  # plain CSV: the rows are on disk or the write failed
-                self._fh.flush()
+            if not self._gz:  # plain CSV: the rows are on disk or the write failed
+                self._raw.flush()
+                return
+            self._held_rows += table.shape[0]
+            due = self._clock() - self._member_at >= MEMBER_S
+            if due or self._held_bytes >= MEMBER_BYTES:
+                self._member()
 
     def close(self) -> None:
         try:
-            if self._fh is not self._raw:
-                self._fh.close()
+            if self._gz:
+                self._member()
         finally:
             self._raw.close()
 
