@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from gateway.errors import GatewayError
+from gateway.fleet.sizing import refusal
 from gateway.fleet.task import TaskResult, diagnose_task, recording_identity
 
 TASK_MEMORY_BYTES = 400 << 20  # one diagnosis of 10 min x 1 kHz x 8 cables
@@ -60,6 +61,11 @@ def _client(distributed: Any, scheduler: str | None, workers: int) -> tuple[Any,
             raise GatewayError(f"--scheduler {scheduler}: cannot connect: {exc}") from exc
         n = len(client.scheduler_info().get("workers", {}))
         return client, None, f"scheduler {scheduler} with {n} workers"
+    # a task whose worker died (over its memory limit) is not sent to the next worker: it
+    # killed four in turn, with the finished results they held
+    import dask
+
+    dask.config.set({"distributed.scheduler.allowed-failures": 0})
     cluster = distributed.LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
@@ -147,15 +153,27 @@ def _run(
     client, cluster, where = _client(distributed, scheduler, workers)
     dask_log.running()
     try:
-        futures = {
-            client.submit(diagnose_task, rec, model, key=f"diagnose-{i}-{rec}", pure=False): i
-            for i, rec in enumerate(recordings)
-        }
+        budget = _task_budget(client)
         results: list[TaskResult | None] = [None] * len(recordings)
-        finished = distributed.as_completed(futures, loop=client.loop)
-        for done, future in enumerate(finished, start=1):
+        done = 0
+        futures = {}
+        for i, rec in enumerate(recordings):
+            why = refusal(Path(rec), budget)
+            if why is not None:  # refused before it is loaded: no worker is lost to it
+                results[i] = _failed(rec, why)
+                done += 1
+                progress(done, results[i])  # type: ignore[arg-type]
+                continue
+            futures[
+                client.submit(diagnose_task, rec, model, key=f"diagnose-{i}-{rec}", pure=False)
+            ] = i
+        # with_results: each result is fetched as its task ends, never left on a worker
+        # that a later task may take down with it
+        finished = distributed.as_completed(futures, with_results=True, raise_errors=False)
+        for future, value in finished:
             i = futures[future]
-            results[i] = _result(future, recordings[i])
+            results[i] = value if isinstance(value, TaskResult) else _result(future, recordings[i])
+            done += 1
             progress(done, results[i])  # type: ignore[arg-type]
     finally:
         dask_log.closing()
@@ -163,6 +181,20 @@ def _run(
         if cluster is not None:
             cluster.close()
     return [r for r in results if r is not None], where
+
+
+def _task_budget(client: Any) -> int:
+    """Memory for one task: the smallest worker's limit less a worker's own."""
+    limits = [
+        w.get("memory_limit") or 0 for w in client.scheduler_info().get("workers", {}).values()
+    ]
+    limits = [x for x in limits if x > 0]
+    return (min(limits) if limits else WORKER_MEMORY_BYTES) - WORKER_BASE_BYTES
+
+
+def _failed(recording: str, error: str) -> TaskResult:
+    robot, start = recording_identity(Path(recording), {})
+    return TaskResult(recording, robot, start, None, error, 0.0, "", 0.0)
 
 
 def _result(future: Any, recording: str) -> TaskResult:
