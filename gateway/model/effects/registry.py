@@ -56,7 +56,7 @@ from gateway.model.effects.base import (
     Values,
 )
 from gateway.model.effects.forms import causal_acceleration
-from gateway.model.fastcall import entry_point
+from gateway.fastcall import entry_point
 
 MODULES = (
     coulomb,
