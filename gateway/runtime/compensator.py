@@ -54,9 +54,9 @@ from numba import njit
 
 from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.core.config import Config
+from gateway.fastcall import entry_point
 from gateway.model import effects as fx
 from gateway.model.chain import ChainStepper
-from gateway.fastcall import entry_point
 from gateway.model.statics import wrench_into
 
 FLAG_NAN = 1
