@@ -33,7 +33,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from gateway.model.fastcall import entry_point
+from gateway.fastcall import entry_point
 
 REASONS = ("heartbeat", "age", "non_finite", "range")
 _HEARTBEAT, _AGE, _NON_FINITE, _RANGE = range(4)
@@ -105,7 +105,7 @@ def _gate(lim, stamp, tension, status, wrench, counts):
 
 class Gate:
     """The gate of one driver: its limits, counts and a compiled entry (no per-call type
-    dispatch, :mod:`gateway.model.fastcall`; ~1 us a frame)."""
+    dispatch, :mod:`gateway.fastcall`; ~1 us a frame)."""
 
     def __init__(self, lim: GateLimits, cables: int) -> None:
         self.limits = lim

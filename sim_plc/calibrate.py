@@ -41,7 +41,6 @@ from typing import Any
 import numpy as np
 import yaml
 
-from gateway.core.cliopts import add_config_option
 from gateway.core.config import Config, load_config, load_friction
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose import heldout, warmup
@@ -69,16 +68,6 @@ class RunScore:
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
-
-
-def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    add_config_option(
-        parser,
-        why="SIM.yaml, a config whose sim_plc: section hides an "
-        "effect: 'cdpr-gateway examples' copies one per effect (calibrate/)",
-    )
-    parser.add_argument("--seconds", type=float, default=30.0, help="length of each gateway run")
-    parser.add_argument("--out", type=Path, required=True, help="directory for the results")
 
 
 def _check(cfg: Config, path: str) -> None:

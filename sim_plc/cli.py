@@ -34,7 +34,6 @@ from gateway.core.config import (
 )
 from gateway.errors import ConfigError
 from gateway.recordings.reader import write_recording
-from sim_plc.config import load_sim_config
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
@@ -104,6 +103,7 @@ class _ProgressBar:
 
 
 def _record(cfg: Config, args: argparse.Namespace) -> int:
+    from sim_plc.config import load_sim_config  # the effects registry: numba, when run
     from sim_plc.plant import make_recording
 
     if not args.seconds > 0:
@@ -165,6 +165,7 @@ def _tls_from_args(args: argparse.Namespace) -> TlsConfig | None:
 
 def _plant(cfg: Config, in_process: bool) -> tuple[Any, Any, Any]:
     """(plant, chunk worker or None, image holding a valid first sample)."""
+    from sim_plc.config import load_sim_config
     from sim_plc.image import ProcessImage
     from sim_plc.plant import Plant
     from sim_plc.prepare import ChunkWorker

@@ -52,8 +52,7 @@ from typing import IO, Any, TextIO
 import numpy as np
 
 from drivers.s7 import S7Analog
-from gateway.core.cliopts import add_config_option
-from gateway.core.config import DEFAULT_CONFIG_PATH, Config, RealtimeConfig, load_config
+from gateway.core.config import Config, RealtimeConfig, load_config
 from gateway.errors import GatewayError
 from gateway.model.chain import ChainParams, ChainStepper
 from gateway.runtime import realtime
@@ -94,29 +93,6 @@ __all__ = [
 
 NO_REALTIME = "real-time: off (--no-realtime): loop.realtime not applied"
 STARTUP_TIMEOUT_S = 60.0  # the soft PLC imports numba and compiles on first start
-
-
-def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seconds", type=float, default=10.0, help="how long to run")
-    add_config_option(parser, DEFAULT_CONFIG_PATH)
-    parser.add_argument(
-        "--bus",
-        choices=("modbus_tcp", "canopen"),
-        default=None,
-        help="fieldbus (default: bus.driver of the config)",
-    )
-    parser.add_argument(
-        "--offline", action="store_true", help="plant in process, virtual driver, no sockets"
-    )
-    parser.add_argument(
-        "--stand-in", action="store_true", help="with --offline: sinusoidal stand-in, not the plant"
-    )
-    parser.add_argument(
-        "--no-realtime",
-        action="store_true",
-        help="do not apply loop.realtime (SCHED_FIFO, mlockall, GC off) to "
-        "the gateway's thread and the soft PLC",
-    )
 
 
 class StandInPlant:

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.core.cliopts import add_config_option, output_dir
+from gateway.core.cliopts import output_dir
 from gateway.core.config import Config, load_config
 from gateway.core.resources import data_file
 from gateway.errors import ConfigError
@@ -359,18 +359,6 @@ def markdown(res: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines)
-
-
-def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, help="directory for JSON, markdown and PNGs")
-    add_config_option(parser, DEFAULT_REPLICATE_CONFIG)
-    parser.add_argument(
-        "--seconds",
-        type=float,
-        default=None,
-        help="cap each run's simulated time, in seconds (default: the config's runs in full)",
-    )
-    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:

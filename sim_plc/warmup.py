@@ -34,7 +34,6 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     from gateway.core.config import DEFAULT_CONFIG_PATH, load_config
     from gateway.core.firstrun import compiling
     from gateway.diagnose.engine import load_kernels
-    from gateway.model import chain, statics
     from gateway.model.effects import forms
     from gateway.runtime.loop import CyclicService
     from sim_plc.plant import Plant, make_recording
@@ -45,11 +44,10 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     start = time.monotonic()
     cfg = load_config(args.config or DEFAULT_CONFIG_PATH)
     CyclicService(cfg, VirtualDriver(cfg), history=16)  # its log says when it compiles
-    with compiling("the soft PLC's plant", [chain.simulate_kernel, statics.wrench_into], say):
-        make_recording(cfg, None, 0.01)  # record, calibrate: the batch plant
-        plant = Plant(cfg, chunk=4)  # demo, sim-plc: the per-cycle plant
-        for _ in range(10):
-            plant.step()
+    make_recording(cfg, None, 0.01)  # record, calibrate: the batch plant (it says so)
+    plant = Plant(cfg, chunk=4)  # demo, sim-plc: the per-cycle plant
+    for _ in range(10):
+        plant.step()
     with compiling("the diagnosis", [forms._lowpass_kernel], say):
         load_kernels(cfg.friction)
     say(f"every kernel is in numba's cache ({time.monotonic() - start:.1f} s)")

@@ -9,6 +9,7 @@ from typing import Any
 import yaml
 
 from gateway.core.config import DEFAULT_CONFIG_PATH
+from gateway.core.configtypes import read_yaml
 
 
 def edited_config(
@@ -16,7 +17,7 @@ def edited_config(
 ) -> Path:
     """``config/default.yaml`` as data, changed in place by ``edit``, written to
     ``directory/name``; returns the path."""
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data = read_yaml(DEFAULT_CONFIG_PATH)
     if edit is not None:
         edit(data)
     path = Path(directory) / name

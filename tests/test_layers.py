@@ -1,5 +1,6 @@
-"""The drivers layer depends only on the bottom layer (gateway.model, gateway.errors,
-gateway.core.config) and on itself: never on the soft PLC, the loop or the tools."""
+"""The drivers layer depends only on the bottom layer (gateway.fastcall, gateway.errors,
+gateway.core's config, files, resources, ring) and on itself: never on the physics, the
+soft PLC, the loop or the tools."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import drivers
 
 ALLOWED_PROJECT_IMPORTS = (
     "drivers",
-    "gateway.model",
+    "gateway.fastcall",
     "gateway.errors",
     "gateway.core.config",
     "gateway.core.resources",

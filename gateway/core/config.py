@@ -16,7 +16,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from gateway.core.configtypes import convert, read_yaml, require
 from gateway.core.registermap import (  # noqa: F401 - re-exported: gateway.core.config is their old home
@@ -26,8 +26,9 @@ from gateway.core.registermap import (  # noqa: F401 - re-exported: gateway.core
 )
 from gateway.core.resources import data_file, resolve_beside
 from gateway.errors import ConfigError
-from gateway.model.effects.registry import Effects, effect_values
-from gateway.model.effects.registry import to_mapping as effects_to_mapping
+
+if TYPE_CHECKING:
+    from gateway.model.effects.registry import Effects
 
 Vec3 = tuple[float, float, float]
 Ranges = dict[str, tuple[float, float]]  # per numeric field: (low, high), inclusive
@@ -114,6 +115,20 @@ class PulleyConfig:
 EffectParams = dict[str, float | tuple[float, ...]]
 
 
+def _effect_values(
+    raw: dict[str, EffectParams], cables: int, pulley_radius_m: float, where: str
+) -> Effects:
+    """``raw`` (the plain mapping the config holds) as the effects registry's per-cable
+    arrays, checked by the registry (ValueError naming the key). The model layer is
+    imported here, when a config has effects to check or a caller asks for their values:
+    the config itself stands on nothing that loads numba or the compiled kernels."""
+    if not raw:
+        return {}
+    from gateway.model.effects.registry import effect_values
+
+    return effect_values(raw, cables, pulley_radius_m, where)
+
+
 @dataclass(frozen=True)
 class FrictionConfig:
     """The pulley friction model (docs/recording-format.md, 'The nominal model file').
@@ -156,7 +171,9 @@ class FrictionConfig:
             sizes = {len(v) for v in params.values() if isinstance(v, tuple | list)}
             if len(sizes) > 1:
                 raise ValueError(f"effects.{name}: per-cable lists of different lengths")
-            effect_values({name: params}, sizes.pop() if sizes else 1, self.pulley_radius_m)
+            _effect_values(
+                {name: params}, sizes.pop() if sizes else 1, self.pulley_radius_m, "effects"
+            )
 
     @property
     def wrap_rad(self) -> tuple[float, ...]:
@@ -169,7 +186,7 @@ class FrictionConfig:
     def effect_values(self, cables: int) -> Effects:
         """The fitted effects as per-cable arrays (ValueError naming the key if a list
         does not have ``cables`` values)."""
-        return effect_values(self.effects, cables, self.pulley_radius_m, "friction.effects")
+        return _effect_values(self.effects, cables, self.pulley_radius_m, "friction.effects")
 
     def to_mapping(self) -> dict[str, Any]:
         """The ``friction:`` mapping as YAML would hold it (``load_friction`` reads it back)."""
@@ -193,6 +210,8 @@ class FrictionConfig:
     @staticmethod
     def effects_mapping(values: Effects) -> dict[str, EffectParams]:
         """Per-cable arrays -> the ``effects`` field's form (scalar where cables agree)."""
+        from gateway.model.effects.registry import to_mapping as effects_to_mapping
+
         return {
             name: {k: (tuple(v) if isinstance(v, list) else v) for k, v in params.items()}
             for name, params in effects_to_mapping(values).items()
@@ -489,7 +508,7 @@ class Config:
     def __post_init__(self) -> None:
         fr = self.friction
         try:
-            effect_values(fr.effects, self.cables, fr.pulley_radius_m, "effects")
+            _effect_values(fr.effects, self.cables, fr.pulley_radius_m, "effects")
         except ValueError as exc:
             raise ValueError(f"friction: {exc}") from None
 

@@ -13,7 +13,11 @@ and :func:`convert` refuses a value outside it naming the file and the key (a te
 the whole config and checks that no numeric field lacks one).
 
 Files are read by :func:`read_yaml` through :func:`gateway.core.files.read_regular`:
-regular files under a size limit only (a device or a FIFO is refused at once).
+regular files under a size limit only (a device or a FIFO is refused at once). It is the
+one YAML loader of the project (config, model files, scenario and calibrate files): a
+mapping key given twice, at any depth (``loop:`` twice, ``port:`` twice), is refused with
+the file, the line and the dotted key, never "the last one wins"; so is a number no key
+can hold (an integer beyond 64 bits, a float literal beyond the float range).
 """
 
 from __future__ import annotations
@@ -38,6 +42,11 @@ Range = tuple[float, float]
 MAX_YAML_DEPTH = 100  # nesting levels of a YAML document
 MAX_YAML_NODES = 1_000_000  # nodes of a document with every alias expanded
 MAX_ITEMS = 10_000  # items of one list (anchors, pulleys, columns)
+MAX_INT_BITS = 64  # an integer of a file: a register, a port, a seed; never wider
+MAX_NUMBER_CHARS = 100  # the text of one number (a 64-bit integer in binary: 66)
+_INT_TAG = "tag:yaml.org,2002:int"
+_FLOAT_TAG = "tag:yaml.org,2002:float"
+_MERGE_TAG = "tag:yaml.org,2002:merge"
 _REPR = reprlib.Repr()
 _REPR.maxlevel, _REPR.maxstring, _REPR.maxother = 2, 60, 60
 _REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 4
@@ -87,6 +96,73 @@ class _BoundedLoader(yaml.SafeLoader):
             )
         self._sizes[id(node)] = size
         return node
+
+
+class _DocumentError(Exception):
+    """A document the loader refuses after composing it: line (1-based) and message."""
+
+    def __init__(self, line: int, message: str) -> None:
+        super().__init__(message)
+        self.line = line
+
+
+def _key_text(node: yaml.Node) -> str | None:
+    return str(node.value) if isinstance(node, yaml.ScalarNode) else None
+
+
+def _check_number(node: yaml.ScalarNode, key: str, loader: _BoundedLoader) -> None:
+    """Refuse a number no key can hold, before PyYAML turns it into an ``int`` (whose
+    digit limit raises ``ValueError``) or a float (``inf`` from 400 digits)."""
+    line = node.start_mark.line + 1
+    shown = key or "<top>"
+    if len(node.value) > MAX_NUMBER_CHARS:
+        raise _DocumentError(
+            line, f"'{shown}': a number of {len(node.value)} characters is too large"
+        )
+    value = loader.construct_object(node)
+    if node.tag == _INT_TAG and abs(value) >= 1 << MAX_INT_BITS:
+        raise _DocumentError(line, f"'{shown}': integer {value} is too large (beyond 64 bits)")
+    if node.tag == _FLOAT_TAG and math.isinf(value) and "inf" not in node.value.lower():
+        raise _DocumentError(line, f"'{shown}': number {node.value} is too large for a float")
+
+
+def _check_document(root: yaml.Node, loader: _BoundedLoader) -> None:
+    """Walk the composed document once: every mapping's keys unique, every number holdable.
+
+    A node reached again through an alias is walked once (the size limit bounds the rest).
+    """
+    seen: set[int] = set()
+    stack: list[tuple[yaml.Node, str]] = [(root, "")]
+    while stack:
+        node, key = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.ScalarNode):
+            if node.tag in (_INT_TAG, _FLOAT_TAG):
+                _check_number(node, key, loader)
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend((child, _join(key, i)) for i, child in enumerate(node.value))
+        elif isinstance(node, yaml.MappingNode):
+            first: dict[tuple[str, str], int] = {}
+            children = []
+            for k, v in node.value:
+                text = _key_text(k)
+                if k.tag == _MERGE_TAG or text is None:
+                    children.append((k, key))
+                    children.append((v, key))
+                    continue
+                dotted = _join(key, text)
+                line = k.start_mark.line + 1
+                if (k.tag, text) in first:
+                    raise _DocumentError(
+                        line,
+                        f"duplicate key '{dotted}' (first at line {first[k.tag, text]})",
+                    )
+                first[k.tag, text] = line
+                children.append((k, dotted))
+                children.append((v, dotted))
+            stack.extend(reversed(children))
 
 
 def _fail(source: str, key: str, message: str) -> ConfigError:
@@ -215,17 +291,33 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    return load_yaml_text(text, str(path))
+
+
+def load_yaml_text(text: str, source: str) -> dict[str, Any]:
+    """The mapping a YAML text holds, with :func:`read_yaml`'s checks; errors name
+    ``source`` (a file name) and the line."""
+    loader = _BoundedLoader(text)
     try:
-        data = yaml.load(text, Loader=_BoundedLoader)  # a SafeLoader with limits
+        root = loader.get_single_node()  # composed, bounded in depth and expanded size
+        if root is not None:
+            _check_document(root, loader)
+            data = loader.construct_document(root)
+        else:
+            data = None
+    except _DocumentError as exc:
+        raise ConfigError(f"{source}:{exc.line}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}:" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"{path}:{where} not valid YAML: {problem}") from exc
+        raise ConfigError(f"{source}:{where} not valid YAML: {problem}") from None
+    finally:
+        loader.dispose()
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: top level must be a mapping")
+        raise ConfigError(f"{source}: top level must be a mapping")
     return data
 
 

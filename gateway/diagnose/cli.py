@@ -12,6 +12,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from gateway.core.cliopts import output_dir
 from gateway.core.config import (
@@ -22,11 +23,14 @@ from gateway.core.config import (
     output_path,
 )
 from gateway.core.configtypes import read_yaml
-from gateway.diagnose import heldout, platform, warmup
-from gateway.diagnose.engine import Diagnosis, diagnose, load_kernels, reference_mode
-from gateway.diagnose.writemodel import relative_to_model, write_model
+from gateway.diagnose import heldout
 from gateway.errors import GatewayError
 from gateway.recordings.reader import Recording, read_recording
+
+# The diagnosis proper (engine, statics, warm-up, model writer) loads numba and the compiled
+# kernels: imported where a file is diagnosed, never for --help (tests/test_cli_lazy.py).
+if TYPE_CHECKING:
+    from gateway.diagnose.engine import Diagnosis
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
@@ -61,6 +65,8 @@ def load_model(path: Path) -> tuple[object, Config | None]:
 
 def _tensions(rec: Recording, cfg: Config | None, say):
     """Platform tensions (N, m) and dT_p/dm (N, m) or None."""
+    from gateway.diagnose import platform
+
     if rec.tension_platform is not None:
         tp = rec.tension_platform
     else:
@@ -76,6 +82,8 @@ def _read(
     nominal friction (:func:`relative_to_model`). Without effects, only the first row of
     the cable lengths is read: the diagnosis reads none of them, the model writer the
     first (the eccentricity's phase); undoing effects needs all of them."""
+    from gateway.diagnose.writemodel import relative_to_model
+
     first_only = () if friction.effects else ("length",)
     return relative_to_model(read_recording(path, first_row_only=first_only), friction, cfg)
 
@@ -116,6 +124,9 @@ class _Run:
 def _diagnose_file(
     recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
 ) -> _Run:
+    from gateway.diagnose import warmup
+    from gateway.diagnose.engine import diagnose, load_kernels, reference_mode
+
     model_friction, cfg = load_model(model)
     load_kernels(model_friction)  # type: ignore[arg-type]  # LLVM's pages given back after
     rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
@@ -167,6 +178,8 @@ def _silent(msg: str) -> None:
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
+    from gateway.diagnose.writemodel import write_model
+
     start = time.perf_counter()
 
     def say(msg: str) -> None:

@@ -63,7 +63,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numba import njit
 
-from gateway.model.fastcall import entry_point
+from gateway.fastcall import entry_point
 from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step, dahl_step_slope
 
 LAWS = {"none": 0, "coulomb": 1, "dahl": 2, "maxwell_slip": 3}

@@ -41,7 +41,7 @@ whole correction); the platform wrench is ``w = -A(pose) T_p``
 
 The kernels take structured state (:class:`Limits`, :class:`ChannelState`, the online
 effects' parameter rows, ``KernelParams``) and are called through their compiled entry points
-(:mod:`gateway.model.fastcall`) on the compensator's own buffers.
+(:mod:`gateway.fastcall`) on the compensator's own buffers.
 """
 
 from __future__ import annotations
@@ -54,9 +54,9 @@ from numba import njit
 
 from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.core.config import Config
+from gateway.fastcall import entry_point
 from gateway.model import effects as fx
 from gateway.model.chain import ChainStepper
-from gateway.model.fastcall import entry_point
 from gateway.model.statics import wrench_into
 
 FLAG_NAN = 1

@@ -23,10 +23,10 @@ import resource
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from drivers.base import Driver, Inputs
 from gateway.core.config import (
     Config,
     config_warnings,
@@ -34,10 +34,13 @@ from gateway.core.config import (
     load_config,
 )
 from gateway.errors import DriverError, DriverTimeoutError, GatewayError
-from gateway.runtime.loop import describe_bus
-from gateway.runtime.plausibility import Plausibility
 from gateway.service.daemon import add_config_option, build_driver, setup_logging
 from gateway.service.exporter import FD_RESERVE, MAX_CONNECTIONS, NOFILE_NEEDED, PROCESS_FDS
+
+# the drivers and the loop load numba: imported where they are used, never for --help
+if TYPE_CHECKING:
+    from drivers.base import Driver
+    from gateway.runtime.plausibility import Plausibility
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
@@ -112,6 +115,8 @@ def descriptor_warning() -> list[str]:
 
 
 def pose_problems(cfg: Config, bounds: Plausibility) -> list[str]:
+    from drivers.base import Inputs
+
     inputs = Inputs.allocate(cfg.cables)
     inputs.pose[:] = cfg.geometry.home_pose
     if bounds.check(inputs):
@@ -128,6 +133,10 @@ def read_once(driver: Driver, cfg: Config) -> list[str]:
     READ_ATTEMPTS_S: a one-off check is not the 1 kHz loop, and one late reply of a busy
     PLC, or of the soft PLC on a loaded machine, is no answer to 'can you read it'),
     close; the lines that describe what was read."""
+    from drivers.base import Inputs
+    from gateway.runtime.loop import describe_bus
+    from gateway.runtime.plausibility import Plausibility
+
     inputs = Inputs.allocate(cfg.cables)
     try:
         driver.open()
@@ -161,6 +170,9 @@ def read_once(driver: Driver, cfg: Config) -> list[str]:
 
 
 def run_command(command: str, args: argparse.Namespace) -> int:
+    from gateway.runtime.loop import describe_bus
+    from gateway.runtime.plausibility import Plausibility
+
     setup_logging(args.log_level)
     cfg = load_config(args.config)
     problems: list[str] = []

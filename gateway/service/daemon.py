@@ -30,9 +30,8 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from drivers.base import Driver, Lifecycle, make_driver
 from gateway import __version__
 from gateway.core.cliopts import (  # noqa: F401 - re-exported: their old home
     FOREIGN_LOGGERS,
@@ -49,11 +48,15 @@ from gateway.core.config import (
     load_config,
 )
 from gateway.errors import ConfigError, DriverInitError
-from gateway.runtime import realtime
-from gateway.runtime.loop import CyclicService, describe_bus
-from gateway.runtime.sdnotify import Notifier
-from gateway.service.metrics import MetricsServer, make_registry
-from gateway.service.recorder import Recorder
+
+# The drivers, the loop, the metrics and the recorder load numba and the compiled kernels:
+# they are imported where a command runs, so that `--help` and a bad argument never pay
+# for them (tests/test_cli_lazy.py).
+if TYPE_CHECKING:
+    from drivers.base import Driver
+    from gateway.runtime.loop import CyclicService
+    from gateway.runtime.realtime import RealtimeReport
+    from gateway.service.recorder import Recorder
 
 log = logging.getLogger("cdpr_gateway")
 
@@ -77,6 +80,8 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
 def build_driver(cfg: Config, name: str | None = None, **kwargs: Any) -> Driver:
     """The configured driver; failures become :class:`ConfigError` naming file and key."""
     name = name or cfg.bus.driver
+    from drivers.base import make_driver
+
     try:
         if kwargs:
             from drivers.base import driver_class
@@ -115,6 +120,8 @@ def describe_model(cfg: Config) -> str:
 
 def banner(cfg: Config) -> list[str]:
     """The start-up lines: what runs, from which file, against which PLC, how fast."""
+    from gateway.runtime.loop import describe_bus
+
     lp = cfg.loop
     return [
         f"cdpr-gateway {__version__} starting; config {cfg.source or '(built in)'}",
@@ -144,6 +151,9 @@ def start_recorder(cfg: Config, override: str | None) -> Recorder | None:
     rc = cfg.record if override is None else dataclasses.replace(cfg.record, path=override)
     if rc.path is None:
         return None
+    from gateway.runtime.loop import describe_bus
+    from gateway.service.recorder import Recorder
+
     regs = cfg.bus.modbus_tcp.registers
     with_mass = cfg.bus.driver == "modbus_tcp" and regs.platform_mass is not None
     meta = {
@@ -180,6 +190,12 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         raise ConfigError("--cycles: must be >= 1")
     if args.seconds is not None and not args.seconds > 0:
         raise ConfigError("--seconds: must be > 0")
+    from drivers.base import Lifecycle
+    from gateway.runtime import realtime
+    from gateway.runtime.loop import CyclicService
+    from gateway.runtime.sdnotify import Notifier
+    from gateway.service.metrics import MetricsServer, make_registry
+
     cfg = load_config(args.config)
     for line in banner(cfg):
         log.info("%s", line)
@@ -196,7 +212,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             log.warning("%s", exposed)
     previous = service.install_signal_handlers()
     timer = None
-    rt: realtime.RealtimeReport | None = None
+    rt: RealtimeReport | None = None
     try:
         service.recorder = start_recorder(cfg, args.record)
         if args.seconds is not None:

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from gateway.cli import main
 from gateway.core.config import DEFAULT_CONFIG_PATH
+from gateway.core.configtypes import read_yaml
 from gateway.core.resources import data_dir
 
 FIXTURES = sorted(data_dir().rglob("*.yaml"))
@@ -69,7 +70,7 @@ FIELD = st.fixed_dictionaries(
 )
 @given(st.dictionaries(st.sampled_from(INPUTS + OUTPUTS + ("platform_mass",)), FIELD))
 def test_any_register_map_gets_one_line_per_problem(tmp_path_factory, capsys, fields) -> None:
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data = read_yaml(DEFAULT_CONFIG_PATH)
     data["bus"]["modbus_tcp"]["registers"].update(fields)
     path = tmp_path_factory.mktemp("map") / "map.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -78,7 +79,7 @@ def test_any_register_map_gets_one_line_per_problem(tmp_path_factory, capsys, fi
 
 
 def test_plc_heartbeat_of_two_registers_is_one_line(tmp_path, capsys) -> None:
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data = read_yaml(DEFAULT_CONFIG_PATH)
     data["bus"]["modbus_tcp"]["registers"]["plc_heartbeat"] = {"address": 60, "count": 2}
     path = tmp_path / "hb.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -110,7 +111,7 @@ def test_check_refuses_what_is_not_a_regular_file_at_once(tmp_path, capsys, targ
 def test_an_eds_symlinked_to_dev_zero_is_refused(tmp_path, capsys) -> None:
     eds = tmp_path / "gateway.eds"
     eds.symlink_to("/dev/zero")
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data = read_yaml(DEFAULT_CONFIG_PATH)
     data["bus"]["driver"] = "canopen"
     data["bus"]["canopen"] = {"gateway_eds": str(eds)}
     path = tmp_path / "can.yaml"

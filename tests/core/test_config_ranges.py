@@ -13,13 +13,12 @@ import dataclasses
 import types
 import typing
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any, get_args, get_origin
 
 import pytest
-import yaml
 
 from gateway.core.config import DEFAULT_CONFIG_PATH, Config, config_from_mapping, load_config
+from gateway.core.configtypes import read_yaml
 from gateway.errors import ConfigError
 
 Path_ = tuple[str | int, ...]
@@ -120,7 +119,7 @@ CASES = [
 
 @pytest.mark.parametrize(("path", "cls", "name", "tp"), CASES)
 def test_a_value_beyond_each_bound_is_refused_naming_the_key(path, cls, name, tp) -> None:
-    base = yaml.safe_load(Path(DEFAULT_CONFIG_PATH).read_text())
+    base = read_yaml(DEFAULT_CONFIG_PATH)
     cfg = load_config()
     low, high = cls.RANGES[name]
     integer = int in (tp, *get_args(tp)) or any(int in get_args(a) for a in get_args(tp))
@@ -145,7 +144,7 @@ def test_a_value_beyond_each_bound_is_refused_naming_the_key(path, cls, name, tp
     ],
 )
 def test_the_values_the_hostile_round_slipped_through(section, key, value) -> None:
-    data = yaml.safe_load(Path(DEFAULT_CONFIG_PATH).read_text())
+    data = read_yaml(DEFAULT_CONFIG_PATH)
     node = data
     for part in section.split("."):
         node = node.setdefault(part, {})

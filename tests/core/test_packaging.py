@@ -13,6 +13,7 @@ import pytest
 import yaml
 
 from gateway.core.config import DEFAULT_CONFIG_PATH, load_config
+from gateway.core.configtypes import read_yaml
 from gateway.core.resources import data_dir, data_file
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -30,7 +31,7 @@ def test_the_shipped_files_are_found_through_the_package():
 
 
 def test_eds_paths_resolve_beside_the_config_file(tmp_path):
-    data = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    data = read_yaml(DEFAULT_CONFIG_PATH)
     data["bus"]["canopen"] = {
         "gateway_eds": "nodes/my_gateway.eds",
         "plc_eds": str(data_file("plc_master.eds")),

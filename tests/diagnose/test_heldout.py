@@ -75,16 +75,16 @@ def recording(tmp_path):
 def test_diagnose_refuses_to_write_a_model_worse_on_unseen_data(
     recording, tmp_path, capsys, monkeypatch
 ):
-    from gateway.diagnose import cli as dcli
+    from gateway.diagnose import engine  # the CLI takes diagnose from it when it runs
 
-    real = dcli.diagnose
+    real = engine.diagnose
 
     def worse(*args, **kwargs):
         diag = real(*args, **kwargs)
         rep = {**diag.report, **report(0.7, 0.9, False)}
         return dataclasses.replace(diag, report=rep)
 
-    monkeypatch.setattr(dcli, "diagnose", worse)
+    monkeypatch.setattr(engine, "diagnose", worse)
     fitted = tmp_path / "fitted.yaml"
     rc = main(
         [

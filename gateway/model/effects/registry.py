@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from gateway.fastcall import entry_point
 from gateway.model.chain import ChainParams, ModelName, compensate
 from gateway.model.effects import (
     backlash,
@@ -56,7 +57,6 @@ from gateway.model.effects.base import (
     Values,
 )
 from gateway.model.effects.forms import causal_acceleration
-from gateway.model.fastcall import entry_point
 
 MODULES = (
     coulomb,
