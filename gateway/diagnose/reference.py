@@ -9,7 +9,7 @@ WrenchUnit`: every cable at once.)
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,6 +18,7 @@ from gateway.core.heap import trim_heap
 from gateway.diagnose import locate
 from gateway.diagnose.fit import best_start, joint_fit, linear_refit, spec_for
 from gateway.diagnose.forward import CableData, Forward, Nominal
+from gateway.diagnose.pooling import Pooled, extend, final_pooled
 from gateway.diagnose.prepare import (
     SELECTION_BUDGET,
     Sensitivity,
@@ -141,6 +142,8 @@ class PlatformPrepared:
     clipped: dict
     segments: np.ndarray | None = None
     """(N,) the piece of the recording (trial) of each sample (:func:`.prepare.gap_segments`)."""
+    pooled: dict[str, Pooled] = field(default_factory=dict)
+    """Per effect, its test pooled over the cables (:mod:`.pooling`), once fitted."""
 
 
 class PlatformReference:
@@ -330,14 +333,20 @@ def fit_units(
     survivors refitted on all training samples. A long recording was selected on a subset
     of its training blocks (each split in halves that train and test): the significance
     stage tests there too, on samples the fits never saw, and the recording's own
-    held-out blocks stay unseen for the report's scores."""
+    held-out blocks stay unseen for the report's scores. Before it, an effect whose
+    evidence pooled over the cables is significant is fitted on the cables whose data do
+    not refuse it, and only its own evidence against it drops it from a cable
+    (:mod:`.pooling`)."""
 
     def rebuild(u: Tested) -> tuple[Selector, Model]:
         unit = ref.unit(prep, u.index)
         return Selector(unit, th), unit.evaluate(u.model.kept, u.model.specs)
 
-    decide(tested, th, lambda msg: say(f"significance: {msg}"), rebuild)
+    pooled = extend(tested, th, rebuild, lambda msg: say(f"pooled: {msg}"))
+    common = frozenset(e for e, r in pooled.items() if r.common)
+    decide(tested, th, lambda msg: say(f"significance: {msg}"), rebuild, common)
     harmonize(tested)
+    prep.pooled = final_pooled(tested, th, pooled)
     if prep.subset is not None:
         for i, u in enumerate(tested):
             o = u.outcome

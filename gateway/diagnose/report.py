@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate, signals
+from gateway.diagnose import locate, pooling, signals
 from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.select import Outcome, Thresholds
@@ -291,6 +291,10 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
         ev = evidence(effect, outcomes, located.regime, before[1], after[1])
         findings.append(_finding(effect, fitted, pairs, ev, n_test))
         before = after
+    for f in findings:  # the cables' pooled evidence and shrunk parameters (:mod:`.pooling`)
+        block = pooling.report_field(f, getattr(prep, "pooled", {}).get(f["effect"]))
+        if block is not None:
+            f["pooling"] = block
     thetas = _subset(outcomes, order)
     noise, final_loc, unexplained, structure = final_residual(prep, forwards, thetas, located, th)
     final = {
