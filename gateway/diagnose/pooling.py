@@ -10,7 +10,10 @@ and combined by Stouffer, ``Z = sum z_i / sqrt(k)`` over the ``k`` cables that t
 effect (the cables' residuals are independent readings: one load cell each); its p-values
 go through Benjamini-Hochberg over the effects. An effect is **common** when
 ``q <= Thresholds.fdr``, ``Z >= Thresholds.z_holdout`` (the strict test the selection asks
-of a kept effect) and at least one cable kept it on its own evidence (the per-cable tests
+of a kept effect), the smallest Z with one cable left out is at least
+``Thresholds.z_screen`` (the evidence does not rest on one cable: Stouffer alone lets one
+cable's strong fault carry seven clean ones) and at least one cable kept it on its own
+evidence (the per-cable tests
 of its parameters guard against a stand-in for a model-form error; pooling extends a
 finding, it does not invent one).
 
@@ -60,6 +63,9 @@ class Pooled:
     cables: list[int]
     """0-based cables whose test went into ``statistic``."""
     q: float = 1.0
+    loo: float = 0.0
+    """The smallest Stouffer Z with one cable left out: evidence that rests on one cable
+    alone (a fault on one cable among eight) is not common."""
     common: bool = False
     differs: list[int] = field(default_factory=list)
     """0-based cables whose own held-out data refused the common value."""
@@ -92,13 +98,17 @@ def pooled_tests(units: list[Tested], th: Thresholds) -> dict[str, Pooled]:
     for e, rows in by.items():
         if len(rows) < 2:
             continue
-        z, p = stouffer([p for _, p in rows])
-        out[e] = Pooled(e, z, p, [k for k, _ in rows])
+        ps = [p for _, p in rows]
+        z, p = stouffer(ps)
+        loo = min(stouffer(ps[:j] + ps[j + 1 :])[0] for j in range(len(ps)))
+        out[e] = Pooled(e, z, p, [k for k, _ in rows], loo=loo)
     q = bh_qvalues([r.p for r in out.values()])
     for r, qv in zip(out.values(), q, strict=True):
         r.q = float(qv)
         owners = [u for u in units if r.effect in u.model.kept]
-        r.common = r.q <= th.fdr and r.statistic >= th.z_holdout and bool(owners)
+        r.common = (
+            r.q <= th.fdr and r.statistic >= th.z_holdout and r.loo >= th.z_screen and bool(owners)
+        )
     return out
 
 
