@@ -9,9 +9,9 @@ stage takes the previous stage's output:
    warm-up, clipped readings, candidates, a subset of a long recording;
 2. **locate**: where the nominal model's residual lives (regimes, regions);
 3. **select** (:class:`gateway.diagnose.select.Selector` over the reference's units);
-4. **fit**: the selected effects refitted on every training sample, checked on the
-   validation recording, then kept only by significance over every candidate x unit tried
-   (:mod:`gateway.diagnose.significance`);
+4. **fit**: the selected effects refitted on every training sample, kept only by
+   significance over every candidate x unit tried (:mod:`gateway.diagnose.significance`),
+   then scored on the validation recording (which never decides what is kept);
 5. **report**: findings with their tests, standard errors and alternatives, the final
    residual (where it lives, and what it depends on beyond the catalogue).
 """

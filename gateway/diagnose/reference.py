@@ -9,7 +9,7 @@ WrenchUnit`: every cable at once.)
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,6 +18,7 @@ from gateway.core.heap import trim_heap
 from gateway.diagnose import locate
 from gateway.diagnose.fit import best_start, joint_fit, linear_refit, spec_for
 from gateway.diagnose.forward import CableData, Forward, Nominal
+from gateway.diagnose.pooling import Pooled, extend, final_pooled
 from gateway.diagnose.prepare import (
     SELECTION_BUDGET,
     Sensitivity,
@@ -141,6 +142,8 @@ class PlatformPrepared:
     clipped: dict
     segments: np.ndarray | None = None
     """(N,) the piece of the recording (trial) of each sample (:func:`.prepare.gap_segments`)."""
+    pooled: dict[str, Pooled] = field(default_factory=dict)
+    """Per effect, its test pooled over the cables (:mod:`.pooling`), once fitted."""
 
 
 class PlatformReference:
@@ -306,7 +309,7 @@ def select_units(
     ref: PlatformReference, prep: PlatformPrepared, th: Thresholds, say
 ) -> list[Tested]:
     """Stage 3, with the per-unit half of stage 4: the selector over each cable (on the
-    subset of a long recording), checked against the validation recording, then scored
+    subset of a long recording), then scored
     (every candidate tested, block refits) while its data is at hand; then only its
     numbers are kept (memory: one cable's series at a time)."""
     out = []
@@ -315,11 +318,6 @@ def select_units(
         outcome = sel.run()
         say(f"cable {i + 1}/{len(prep.datas)}: selected {', '.join(outcome.kept) or 'nothing'}")
         model = sel.final
-        if prep.validation is not None and model.kept:
-            vfws, vvalid = prep.validation
-            model, dropped = validate(sel, model, vfws[i], vvalid[:, i], th)
-            if dropped:
-                say(f"cable {i + 1}: {', '.join(dropped)} did not lower the validation error")
         u = Tested(sel, model, outcome, index=i)
         score(u)
         retire(u)
@@ -335,14 +333,20 @@ def fit_units(
     survivors refitted on all training samples. A long recording was selected on a subset
     of its training blocks (each split in halves that train and test): the significance
     stage tests there too, on samples the fits never saw, and the recording's own
-    held-out blocks stay unseen for the report's scores."""
+    held-out blocks stay unseen for the report's scores. Before it, an effect whose
+    evidence pooled over the cables is significant is fitted on the cables whose data do
+    not refuse it, and only its own evidence against it drops it from a cable
+    (:mod:`.pooling`)."""
 
     def rebuild(u: Tested) -> tuple[Selector, Model]:
         unit = ref.unit(prep, u.index)
         return Selector(unit, th), unit.evaluate(u.model.kept, u.model.specs)
 
-    decide(tested, th, lambda msg: say(f"significance: {msg}"), rebuild)
+    pooled = extend(tested, th, rebuild, lambda msg: say(f"pooled: {msg}"))
+    common = frozenset(e for e, r in pooled.items() if r.common)
+    decide(tested, th, lambda msg: say(f"significance: {msg}"), rebuild, common)
     harmonize(tested)
+    prep.pooled = final_pooled(tested, th, pooled)
     if prep.subset is not None:
         for i, u in enumerate(tested):
             o = u.outcome
@@ -352,47 +356,48 @@ def fit_units(
                 o.theta, o.stderr = full.kept, full.stderr
                 unit.release()
                 trim_heap()
+    if prep.validation is not None:
+        vfws, vvalid = prep.validation
+        for i, u in enumerate(tested):
+            for e, t in validation_scores(u.outcome.theta, vfws[i], vvalid[:, i]).items():
+                u.outcome.tests.setdefault(e, {}).update(t)
     for i, u in enumerate(tested):
         say(f"cable {i + 1}/{len(tested)}: kept {', '.join(u.outcome.kept) or 'nothing'}")
     return tested
 
 
-def validate(
-    sel: Selector, model: Model, vfw: Forward, ok: np.ndarray, th: Thresholds
-) -> tuple[Model, list[str]]:
-    """Drop the kept effects that do not lower the error on the validation recording.
-
-    Every kept effect, with the parameters fitted here, must lower the validation SSE
-    against the model without it by ``rel_min`` and by ``z_holdout`` standard errors
-    (:func:`.stats.holdout_z` over the validation's time blocks); the weakest failing one
-    is dropped and the rest refitted, until all pass. ``vfw``: the same cable of the
-    validation recording (never fitted), ``ok`` its valid samples."""
+def validation_scores(
+    kept: dict[str, np.ndarray], vfw: Forward, ok: np.ndarray
+) -> dict[str, dict[str, float]]:
+    """How each kept effect scores on the validation recording (never fitted, and never
+    deciding: the findings are the same whichever recording is handed in). Per effect,
+    with the parameters fitted here: ``validation_z``, how many standard errors the
+    validation SSE of the model with it lies below the model without it
+    (:func:`.stats.holdout_z` over the validation's time blocks), and ``validation_gain``,
+    that decrease relative to the SSE without it. ``vfw``: the same cable of the
+    validation recording, ``ok`` its valid samples. The guard against an effect that does
+    not generalise is the fitted recording's own held-out blocks (the selection's strict
+    test and the significance stage: q over every candidate x cable, presence across
+    refits with whole trials left out)."""
+    out: dict[str, dict[str, float]] = {}
+    if not kept:
+        return out
     vblocks, nvb = time_blocks(vfw.data.t)
     ts = vfw.data.ts
-    dropped: list[str] = []
-    while model.kept:
-        full = vfw.predict(model.kept)
-        r_full = np.where(ok, ts - full, 0.0)
-        sse_full = np.bincount(vblocks, weights=r_full**2, minlength=nvb)
-        worst, worst_z = None, np.inf
-        for effect in model.kept:
-            rest = {k: v for k, v in model.kept.items() if k != effect}
-            red = vfw.predict(rest)
-            r_red = np.where(ok, ts - red, 0.0)
-            sse_red = np.bincount(vblocks, weights=r_red**2, minlength=nvb)
-            cross = np.bincount(
-                vblocks, weights=np.where(ok, r_full * (full - red), 0.0), minlength=nvb
-            )
-            z = holdout_z(sse_red, sse_full, cross)
-            gain = float(sse_red.sum() - sse_full.sum())
-            if (
-                not (z >= th.z_holdout and gain >= th.rel_min * float(sse_red.sum()))
-                and z < worst_z
-            ):
-                worst, worst_z = effect, z
-        if worst is None:
-            break
-        dropped.append(worst)
-        model = sel.fit(*model.without(worst), nfev=30)
+    full = vfw.predict(kept)
+    r_full = np.where(ok, ts - full, 0.0)
+    sse_full = np.bincount(vblocks, weights=r_full**2, minlength=nvb)
+    for effect in kept:
+        rest = {k: v for k, v in kept.items() if k != effect}
+        red = vfw.predict(rest)
+        r_red = np.where(ok, ts - red, 0.0)
+        sse_red = np.bincount(vblocks, weights=r_red**2, minlength=nvb)
+        cross = np.bincount(
+            vblocks, weights=np.where(ok, r_full * (full - red), 0.0), minlength=nvb
+        )
+        before = float(sse_red.sum())
+        gain = (before - float(sse_full.sum())) / before if before > 0 else 0.0
+        z = holdout_z(sse_red, sse_full, cross)
+        out[effect] = {"validation_z": float(z), "validation_gain": float(gain)}
     vfw.clear_cache()
-    return model, dropped
+    return out

@@ -19,7 +19,9 @@ joins several), ``stderr_jacobian`` and ``stderr_blocks``;
 ``alternatives`` lists the effects of its group the held-out data cannot tell from it (each
 with its parameters and held-out RMSE) and ``separate_by`` the motion that would. ``rmse_*``
 are over every cable and sample, ``holdout_*`` over the held-out blocks, ``validation_*``
-over the ``--validate`` recording; each finding's before/after are cumulative in the
+over the ``--validate`` recording (scored, never deciding: ``validation_statistic`` per
+cable is the validation recording's z of the model with the finding against it without,
+:func:`.reference.validation_scores`); each finding's before/after are cumulative in the
 findings' order. A standard error that could not be computed is written as -1.
 """
 
@@ -32,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate, signals
+from gateway.diagnose import locate, pooling, signals
 from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.select import Outcome, Thresholds
@@ -123,7 +125,7 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
     errs: dict[str, list[float]] = {}
     errs_jac: dict[str, list[float]] = {}
     errs_blk: dict[str, list[float]] = {}
-    stat, ps, qs = [], [], []
+    stat, ps, qs, vstat = [], [], [], []
     for i in cables:
         o = tested[i - 1].outcome
         theta, se = o.theta[effect], o.stderr[effect]
@@ -142,6 +144,8 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
         stat.append(_num(t.get("z", math.nan)))
         ps.append(_num(t.get("p", math.nan)))
         qs.append(_num(t.get("q", math.nan)))
+        if "validation_z" in t:
+            vstat.append(_num(t["validation_z"]))
     out = {
         "effect": effect,
         "cables": cables,
@@ -154,6 +158,8 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
         "q": qs,
         "evidence": ev,
     }
+    if vstat and len(vstat) == len(cables):
+        out["validation_statistic"] = vstat
     alts = alternatives(effect, tested, n_test)
     if alts:
         out["alternatives"] = alts
@@ -285,6 +291,10 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
         ev = evidence(effect, outcomes, located.regime, before[1], after[1])
         findings.append(_finding(effect, fitted, pairs, ev, n_test))
         before = after
+    for f in findings:  # the cables' pooled evidence and shrunk parameters (:mod:`.pooling`)
+        block = pooling.report_field(f, getattr(prep, "pooled", {}).get(f["effect"]))
+        if block is not None:
+            f["pooling"] = block
     thetas = _subset(outcomes, order)
     noise, final_loc, unexplained, structure = final_residual(prep, forwards, thetas, located, th)
     final = {

@@ -159,9 +159,11 @@ def retire(u: Tested) -> None:
     u.model = Model(u.model.kept, u.model.specs, u.model.stderr, np.zeros(0))
 
 
-def _fails(units: list[Tested], th) -> list[list[str]]:
+def _fails(units: list[Tested], th, common: frozenset[str] = frozenset()) -> list[list[str]]:
     """q-values over every unit and candidate (stored in each outcome's tests); the kept
-    effects of each unit that fail (module docstring)."""
+    effects of each unit that fail (module docstring). An effect ``common`` to the cables
+    (:mod:`.pooling`: its pooled evidence is significant) fails on a unit only where the
+    unit's own held-out z is below ``-z_screen`` (its data says it differs)."""
     flat = [(k, e) for k, u in enumerate(units) for e in u.outcome.tests]
     q = bh_qvalues([units[k].outcome.tests[e]["p"] for k, e in flat])
     for (k, e), qv in zip(flat, q, strict=True):
@@ -173,23 +175,35 @@ def _fails(units: list[Tested], th) -> list[list[str]]:
             [
                 e
                 for e in u.model.kept
-                if t[e]["q"] > th.fdr or t[e]["gain"] < th.rel_min or t[e]["param_z"] < th.z_min
+                if (
+                    t[e]["z"] <= -th.z_screen
+                    if e in common
+                    else t[e]["q"] > th.fdr
+                    or t[e]["gain"] < th.rel_min
+                    or t[e]["param_z"] < th.z_min
+                )
             ]
         )
     return out
 
 
-def decide(units: list[Tested], th, say=lambda _m: None, rebuild=None) -> None:
+def decide(
+    units: list[Tested],
+    th,
+    say=lambda _m: None,
+    rebuild=None,
+    common: frozenset[str] = frozenset(),
+) -> None:
     """The significance stage over every unit, in place (module docstring): q-values over
     every unit's tests (each unit scored by :func:`score` when it is not yet), failing
     findings dropped and the unit refitted and scored again, until none fails.
     ``rebuild(u)``: a retired unit's selector again (its model re-evaluated at its
-    values)."""
+    values); ``common``: effects the cables share (:func:`_fails`)."""
     for u in units:
         if u.outcome.tests == {} and u.selector is not None:
             score(u)
     for _ in range(ROUNDS):
-        fails = _fails(units, th)
+        fails = _fails(units, th, common)
         if not any(fails):
             break
         for u, fail in zip(units, fails, strict=True):
@@ -206,7 +220,7 @@ def decide(units: list[Tested], th, say=lambda _m: None, rebuild=None) -> None:
             if rebuild is not None:
                 retire(u)
     else:
-        _fails(units, th)
+        _fails(units, th, common)
     for u in units:
         o = u.outcome
         o.kept = [e for e in o.kept if e in u.model.kept] + [

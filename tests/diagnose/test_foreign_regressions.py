@@ -19,7 +19,7 @@ from gateway.diagnose.engine import (
 )
 from gateway.diagnose.fit import spec_for
 from gateway.diagnose.forward import CableData, Forward
-from gateway.diagnose.reference import CableUnit, validate
+from gateway.diagnose.reference import CableUnit, validation_scores
 from gateway.diagnose.select import Selector, Thresholds
 from gateway.diagnose.stats import white_noise
 from tests.diagnose_helpers import Foreign, generate, recording_of, run_foreign
@@ -117,29 +117,48 @@ def test_jittered_200hz_logger_finds_viscous_only():
     assert found["viscous"]["parameters"]["c_ns_m"][0] == pytest.approx(300.0, rel=0.05)
 
 
-def test_validation_drops_an_effect_that_does_not_generalise():
-    """A kept effect that the validation recording does not confirm is dropped; the real
-    one stays."""
+def test_validation_scores_every_kept_effect_and_drops_none():
+    """The validation recording scores each kept effect (its z there with the parameters
+    fitted here) and decides nothing: the real effect scores high, an offset fitted on
+    noise does not, and both are scored."""
     fo = Foreign(pulleys=P5_MIXED, seconds=15.0, effects={"viscous": {"c_ns_m": 80.0}})
     fr = FrictionConfig(pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys))
     nom = nominal_from(fr)
-    rec = recording_of(generate(fo))
     vrec = recording_of(generate(replace(fo, seed=fo.seed + 100)))
-    d = cable_data(rec, rec.tension_platform, None)[0]
     vd = cable_data(vrec, vrec.tension_platform, None)[0]
-    fw, vfw = Forward(d, nom), Forward(vd, nom)
-    blocks, _ = time_blocks(rec.t)
-    train = blocks % 2 == 0
-    specs = {e: spec_for(e, d, nom, d.ts, train) for e in ("viscous", "offset")}
     theta = {"viscous": np.array([80.0]), "offset": np.array([-0.02])}
-    sel = Selector(
-        CableUnit(fw, blocks, int(blocks.max()) + 1, ["viscous", "offset"]), Thresholds()
+    out = validation_scores(theta, Forward(vd, nom), np.ones(vd.t.size, bool))
+    assert set(out) == {"viscous", "offset"}
+    assert out["viscous"]["validation_z"] > Thresholds().z_holdout
+    assert out["viscous"]["validation_gain"] > 0.1
+    assert out["offset"]["validation_z"] < Thresholds().z_holdout
+
+
+def test_same_findings_whichever_validation_recording():
+    """The same fitted recording with two different --validate recordings (and none)
+    gives the same findings, cables and parameters: the validation only scores."""
+    fo = Foreign(cables=2, pulleys=P5_MIXED, seconds=15.0, effects={"viscous": {"c_ns_m": 80.0}})
+    fr = FrictionConfig(pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys))
+    rec = recording_of(generate(fo))
+    reports = []
+    for seed in (None, fo.seed + 100, fo.seed + 200):
+        validation = None
+        if seed is not None:
+            vrec = recording_of(generate(replace(fo, seed=seed, seconds=8.0)), "validation")
+            validation = (vrec, vrec.tension_platform, None)
+        reports.append(diagnose(rec, fr, validation=validation).report)
+
+    def answer(rep):
+        return [(f["effect"], f["cables"], f["parameters"]) for f in rep["findings"]]
+
+    assert answer(reports[0]) and reports[0]["findings"][0]["effect"] == "viscous"
+    assert answer(reports[1]) == answer(reports[0]) == answer(reports[2])
+    for rep in reports[1:]:
+        for f in rep["findings"]:
+            assert len(f["validation_statistic"]) == len(f["cables"])
+    assert reports[1]["final"]["validation_rmse_before_n"] != pytest.approx(
+        reports[2]["final"]["validation_rmse_before_n"]
     )
-    model = sel.unit.evaluate(theta, specs)
-    out, dropped = validate(sel, model, vfw, np.ones(vd.t.size, bool), Thresholds())
-    assert dropped == ["offset"]
-    assert list(out.kept) == ["viscous"]
-    assert out.kept["viscous"][0] == pytest.approx(80.0, rel=0.1)
 
 
 def test_physical_bounds_on_inertia_viscous_and_gain():

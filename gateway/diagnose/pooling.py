@@ -1,0 +1,238 @@
+"""Cables that share a design share evidence: an effect is tested across the cables
+jointly, accepted for the machine when the pooled evidence is significant, and a cable
+keeps or drops it on its own evidence only when its data says it differs.
+
+**The pooled statistic** (:func:`pooled_tests`). Every cable's test of an effect (a kept
+one against the model refitted without it, one not kept screened on top of the cable's
+final model: :func:`.significance.candidate_tests`) has a one-sided p-value from its
+held-out blocks (Student t). Each is turned into a normal score ``z_i = Phi^-1(1 - p_i)``
+and combined by Stouffer, ``Z = sum z_i / sqrt(k)`` over the ``k`` cables that tested the
+effect (the cables' residuals are independent readings: one load cell each); its p-values
+go through Benjamini-Hochberg over the effects. An effect is **common** when
+``q <= Thresholds.fdr``, ``Z >= Thresholds.z_holdout`` (the strict test the selection asks
+of a kept effect), the smallest Z with one cable left out is at least
+``Thresholds.z_screen`` (the evidence does not rest on one cable: Stouffer alone lets one
+cable's strong fault carry seven clean ones) and at least one cable kept it on its own
+evidence (the per-cable tests
+of its parameters guard against a stand-in for a model-form error; pooling extends a
+finding, it does not invent one).
+
+**Where the data says a cable differs** (:func:`differs`). A cable that did not keep a
+common effect is tested with the effect at the common value (the median of the internal
+parameters of the cables that kept it, on top of the cable's kept effects, not refitted)
+against the cable without it, on its held-out blocks: when the model with the common
+value is worse by ``Thresholds.z_screen`` standard errors the cable differs and stays
+without (a fault on one cable among eight: the clean cables' data refuse the faulty
+cable's value); otherwise the effect is fitted on it (its own parameters). A cable that
+kept a common effect drops it only when its own held-out z is below ``-z_screen`` (not for
+a q-value or a parameter test that a weak share of a common effect fails alone).
+
+**Partial pooling of the parameters** (:func:`shrink`): per reported parameter, the
+cables' estimates ``y_i`` with standard errors ``s_i`` are shrunk toward the common value
+by empirical Bayes: the between-cable variance ``tau^2`` from DerSimonian-Laird's moment
+estimator (``Q = sum w_i (y_i - ybar)^2``, ``w_i = 1 / s_i^2``,
+``tau^2 = max(0, (Q - (k - 1)) / (sum w - sum w^2 / sum w))``), the common value
+``mu = sum y_i / (s_i^2 + tau^2) / sum 1 / (s_i^2 + tau^2)``, and each cable's
+``y_i + B_i (mu - y_i)`` with ``B_i = s_i^2 / (s_i^2 + tau^2)``: a cable whose estimate is
+precise keeps it, a noisy one borrows from the others, and where the cables truly differ
+(``tau`` large against the ``s_i``) little is borrowed. The fitted model keeps each cable's
+own estimates (the report's ``parameters``); ``pooling.parameters`` gives the shrunk ones.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import special
+
+from gateway.diagnose.select import Model, Selector, Thresholds, overlaps, rivals
+from gateway.diagnose.significance import Tested, retire, score
+from gateway.diagnose.stats import bh_qvalues
+
+
+@dataclass
+class Pooled:
+    """One effect's pooled test over the cables that tested it."""
+
+    effect: str
+    statistic: float
+    p: float
+    cables: list[int]
+    """0-based cables whose test went into ``statistic``."""
+    q: float = 1.0
+    loo: float = 0.0
+    """The smallest Stouffer Z with one cable left out: evidence that rests on one cable
+    alone (a fault on one cable among eight) is not common."""
+    common: bool = False
+    differs: list[int] = field(default_factory=list)
+    """0-based cables whose own held-out data refused the common value."""
+
+
+def normal_score(p: float) -> float:
+    """``Phi^-1(1 - p)``, bounded to +-8 (a p of 0 or 1 from an exact fit or no change)."""
+    p = min(max(float(p), 1e-15), 1.0 - 1e-15)
+    return float(np.clip(-special.ndtri(p), -8.0, 8.0))
+
+
+def stouffer(ps: list[float]) -> tuple[float, float]:
+    """Stouffer's combination of one-sided p-values: (Z, its one-sided p)."""
+    if not ps:
+        return 0.0, 1.0
+    z = sum(normal_score(p) for p in ps) / math.sqrt(len(ps))
+    return z, float(special.ndtr(-z))
+
+
+def pooled_tests(units: list[Tested], th: Thresholds) -> dict[str, Pooled]:
+    """Per effect tested on two or more cables: the Stouffer statistic over the cables'
+    held-out p-values, BH over the effects, and whether it is common (module
+    docstring)."""
+    by: dict[str, list[tuple[int, float]]] = {}
+    for k, u in enumerate(units):
+        for e, t in u.outcome.tests.items():
+            if "p" in t:
+                by.setdefault(e, []).append((k, float(t["p"])))
+    out = {}
+    for e, rows in by.items():
+        if len(rows) < 2:
+            continue
+        ps = [p for _, p in rows]
+        z, p = stouffer(ps)
+        loo = min(stouffer(ps[:j] + ps[j + 1 :])[0] for j in range(len(ps)))
+        out[e] = Pooled(e, z, p, [k for k, _ in rows], loo=loo)
+    q = bh_qvalues([r.p for r in out.values()])
+    for r, qv in zip(out.values(), q, strict=True):
+        r.q = float(qv)
+        owners = [u for u in units if r.effect in u.model.kept]
+        r.common = (
+            r.q <= th.fdr and r.statistic >= th.z_holdout and r.loo >= th.z_screen and bool(owners)
+        )
+    return out
+
+
+def common_value(units: list[Tested], effect: str) -> np.ndarray:
+    """The common internal parameters of ``effect``: the median over the cables that kept
+    it (robust to one cable's outlying fit)."""
+    return np.median(np.stack([u.model.kept[effect] for u in units if effect in u.model.kept]), 0)
+
+
+def differs(sel: Selector, model: Model, effect: str, value: np.ndarray, th: Thresholds):
+    """``(differs, fitted)``: whether the cable's held-out data refuses ``effect`` at the
+    common ``value`` (the model with it, not refitted, worse than ``model`` by
+    ``z_screen`` standard errors), and else the model with the effect fitted jointly on
+    the cable."""
+    s = sel.unit.screen(model, effect)
+    specs = {**model.specs, effect: s.specs[effect]}
+    at_common = sel.unit.evaluate({**model.kept, effect: value}, specs)
+    if sel.z(model, at_common) <= -th.z_screen:
+        return True, None
+    return False, sel.fit({**model.kept, effect: s.kept[effect]}, specs)
+
+
+def extend(
+    units: list[Tested],
+    th: Thresholds,
+    rebuild: Callable[[Tested], tuple[Selector, Model]],
+    say=lambda _m: None,
+) -> dict[str, Pooled]:
+    """The pooled tests (:func:`pooled_tests`), and each common effect fitted on the cables
+    without it whose data does not refuse it (:func:`differs`), in place; those cables are
+    scored again. Returns the pooled tests (their ``differs`` filled)."""
+    pooled = pooled_tests(units, th)
+    for e, r in sorted(pooled.items(), key=lambda kv: -kv[1].statistic):
+        if not r.common:
+            continue
+        value = common_value(units, e)
+        for k, u in enumerate(units):
+            kept = u.model.kept
+            if e in kept or overlaps(e, kept) or any(x in kept for x in rivals(e)):
+                continue
+            if e not in u.outcome.tests or len(kept) >= th.max_effects:
+                continue
+            sel, model = rebuild(u) if u.selector is None else (u.selector, u.model)
+            no, fitted = differs(sel, model, e, value, th)
+            if no or fitted is None:
+                r.differs.append(k)
+                continue
+            say(f"cable {k + 1}: {e} common to the cables (pooled z {r.statistic:.1f})")
+            u.selector, u.model = sel, fitted
+            u.outcome.kept = [*u.outcome.kept, e]
+            score(u)
+            retire(u)
+    return pooled
+
+
+def against(tests: dict[str, float], th: Thresholds) -> bool:
+    """A cable's own held-out evidence is significantly against an effect."""
+    return float(tests.get("z", 0.0)) <= -th.z_screen
+
+
+def shrink(y: np.ndarray, s: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """Empirical-Bayes partial pooling (module docstring): ``(mu, tau, shrunk)`` from
+    estimates ``y`` (k,) and their standard errors ``s`` (k,). Estimates without a usable
+    error (not finite or <= 0) are left as they are and do not inform ``mu`` or ``tau``;
+    with fewer than two usable ones, ``mu`` is their mean and ``tau`` NaN."""
+    y, s = np.asarray(y, float), np.asarray(s, float)
+    ok = np.isfinite(y) & np.isfinite(s) & (s > 0)
+    out = y.copy()
+    if ok.sum() < 2:
+        mean = float(np.mean(y[np.isfinite(y)])) if np.isfinite(y).any() else math.nan
+        return mean, math.nan, out
+    yy, v = y[ok], s[ok] ** 2
+    w = 1.0 / v
+    ybar = float(np.sum(w * yy) / np.sum(w))
+    q = float(np.sum(w * (yy - ybar) ** 2))
+    denom = float(np.sum(w) - np.sum(w**2) / np.sum(w))
+    tau2 = max(0.0, (q - (yy.size - 1)) / denom) if denom > 0 else 0.0
+    ws = 1.0 / (v + tau2)
+    mu = float(np.sum(ws * yy) / np.sum(ws))
+    b = v / (v + tau2)
+    out[ok] = yy + b * (mu - yy)
+    return mu, math.sqrt(tau2), out
+
+
+def final_pooled(
+    units: list[Tested], th: Thresholds, first: dict[str, Pooled]
+) -> dict[str, Pooled]:
+    """The pooled tests over the final tests (the report's numbers), with the decision of
+    :func:`extend` (``common``, ``differs``) carried over: what was decided is reported."""
+    out = pooled_tests(units, th)
+    for e, r in out.items():
+        was = first.get(e)
+        r.common = bool(was and was.common)
+        r.differs = list(was.differs) if was else []
+    return out
+
+
+def report_field(finding: dict, pooled: Pooled | None) -> dict | None:
+    """A finding's ``pooling`` block (docs/diagnose-report.schema.json), from its reported
+    parameters and standard errors (-1: not known) and its pooled test; None where the
+    effect was not tested on two or more cables."""
+    if pooled is None:
+        return None
+    stderr = finding.get("stderr", {})
+    common_params, sd, shrunk = {}, {}, {}
+    for name, values in finding["parameters"].items():
+        se = np.array(stderr.get(name, [-1.0] * len(values)), float)
+        se[se <= 0] = np.nan
+        mu, tau, out = shrink(np.array(values, float), se)
+        common_params[name] = _num(mu)
+        sd[name] = _num(tau)
+        shrunk[name] = [_num(v) for v in out]
+    return {
+        "scope": "common" if pooled.common and not pooled.differs else "cable_specific",
+        "statistic": _num(pooled.statistic),
+        "p": _num(pooled.p),
+        "q": _num(pooled.q),
+        "cables_tested": [k + 1 for k in pooled.cables],
+        "differs": [k + 1 for k in pooled.differs],
+        "common_parameters": common_params,
+        "between_cable_sd": sd,
+        "parameters": shrunk,
+    }
+
+
+def _num(v: float) -> float:
+    return float(v) if math.isfinite(v) else -1.0

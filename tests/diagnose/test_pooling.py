@@ -1,0 +1,134 @@
+"""Cables that share a design share evidence (:mod:`gateway.diagnose.pooling`): the pooled
+statistic and the partial pooling as properties, and the diagnosis of 4-cable recordings
+from the independent generator (:mod:`tests.diagnose_helpers`): a weak effect every cable
+shares, the same effect on one cable only, and a clean machine."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from gateway.core.config import FrictionConfig, PulleyConfig
+from gateway.diagnose.engine import diagnose
+from gateway.diagnose.pooling import normal_score, shrink, stouffer
+from tests.diagnose_helpers import Foreign, check_report, generate, recording_of
+
+estimates = st.lists(
+    st.tuples(
+        st.floats(-1e3, 1e3, allow_nan=False),
+        st.floats(1e-3, 1e2, allow_nan=False),
+    ),
+    min_size=2,
+    max_size=8,
+)
+
+
+@given(rows=estimates, seed=st.integers(0, 2**16))
+def test_shrinkage_moves_each_estimate_toward_the_common_value(rows, seed) -> None:
+    """Each shrunk estimate lies between the cable's own and the common value, the common
+    value within the estimates' range, the between-cable spread is not negative, and the
+    result does not depend on the order of the cables."""
+    y = np.array([r[0] for r in rows])
+    s = np.array([r[1] for r in rows])
+    mu, tau, out = shrink(y, s)
+    tol = 1e-9 * (1.0 + np.abs(y).max())
+    assert y.min() - tol <= mu <= y.max() + tol
+    assert tau >= 0.0
+    lo, hi = np.minimum(y, mu), np.maximum(y, mu)
+    assert np.all(out >= lo - tol) and np.all(out <= hi + tol)
+    perm = np.random.default_rng(seed).permutation(y.size)
+    mu2, tau2, out2 = shrink(y[perm], s[perm])
+    # summation order only: relative 1e-6 (weights 1/s^2 span up to 1e10)
+    loose = 1e-6 * (1.0 + np.abs(y).max())
+    assert mu2 == pytest.approx(mu, abs=loose) and tau2 == pytest.approx(tau, abs=loose)
+    np.testing.assert_allclose(out2, out[perm], atol=loose)
+
+
+@given(value=st.floats(-1e3, 1e3, allow_nan=False), s=estimates)
+def test_equal_estimates_are_not_moved(value, s) -> None:
+    y = np.full(len(s), value)
+    mu, tau, out = shrink(y, np.array([r[1] for r in s]))
+    assert tau == 0.0
+    np.testing.assert_allclose(out, y, atol=1e-9 * (1 + abs(value)))
+    assert mu == pytest.approx(value, abs=1e-9 * (1 + abs(value)))
+
+
+def test_a_precise_estimate_far_from_the_others_keeps_its_value() -> None:
+    """Cables that truly differ borrow little: tau is large against a precise cable's
+    error."""
+    _mu, tau, out = shrink(np.array([10.0, 10.5, 9.5, 40.0]), np.array([1.0, 1.0, 1.0, 0.1]))
+    assert tau > 5.0
+    assert out[3] == pytest.approx(40.0, abs=0.1)
+
+
+@given(
+    ps=st.lists(st.floats(1e-12, 1.0 - 1e-12), min_size=1, max_size=8),
+    seed=st.integers(0, 2**16),
+)
+def test_stouffer_is_symmetric_and_grows_with_agreeing_evidence(ps, seed) -> None:
+    z, p = stouffer(ps)
+    perm = list(np.random.default_rng(seed).permutation(len(ps)))
+    z2, _ = stouffer([ps[i] for i in perm])
+    assert z2 == pytest.approx(z, abs=1e-9)
+    assert 0.0 <= p <= 1.0
+    same, _ = stouffer([ps[0]] * len(ps))
+    assert same == pytest.approx(math.sqrt(len(ps)) * normal_score(ps[0]), rel=1e-9, abs=1e-9)
+
+
+def _friction(fo: Foreign) -> FrictionConfig:
+    return FrictionConfig(
+        model=fo.model,  # type: ignore[arg-type]
+        pulleys=tuple(PulleyConfig(w, m) for w, m in fo.pulleys),
+        sigma_n_m=fo.sigma_n_m,
+    )
+
+
+FOUR = Foreign(cables=4, seconds=10.0, noise_n=1.5, seed=3)
+
+
+def test_weak_effect_every_cable_shares_is_found_on_every_cable() -> None:
+    """A viscous coefficient of 4 N s/m on four cables under 1.5 N of noise: alone, no
+    cable's evidence survives the false-discovery control (main kept nothing); pooled, it
+    is common to the four, each cable's value near the truth and the shrunk values closer
+    together than the cables' own."""
+    fo = replace(FOUR, effects={"viscous": {"c_ns_m": 4.0}})
+    rep = diagnose(recording_of(generate(fo)), _friction(fo)).report
+    check_report(rep)
+    found = {f["effect"]: f for f in rep["findings"]}
+    assert list(found) == ["viscous"]
+    f = found["viscous"]
+    assert f["cables"] == [1, 2, 3, 4]
+    pool = f["pooling"]
+    assert pool["scope"] == "common" and pool["differs"] == []
+    assert pool["statistic"] >= 4.0
+    own = np.array(f["parameters"]["c_ns_m"])
+    shrunk = np.array(pool["parameters"]["c_ns_m"])
+    np.testing.assert_allclose(own, 4.0, rtol=0.3)
+    assert np.ptp(shrunk) <= np.ptp(own) + 1e-12
+    assert pool["common_parameters"]["c_ns_m"] == pytest.approx(4.0, rel=0.15)
+
+
+def test_effect_on_one_cable_stays_on_that_cable() -> None:
+    """Viscous friction on cable 1 only (the other three clean, the same motions' seed):
+    pooling does not spread it to the clean cables."""
+    fo = replace(FOUR, noise_n=0.5)
+    clean = generate(fo)
+    hot = generate(replace(fo, effects={"viscous": {"c_ns_m": 30.0}}))
+    cols = dict(clean)
+    for k in ("velocity_1", "tension_sensor_1", "tension_platform_1"):
+        cols[k] = hot[k]
+    rep = diagnose(recording_of(cols), _friction(fo)).report
+    check_report(rep)
+    assert [(f["effect"], f["cables"]) for f in rep["findings"]] == [("viscous", [1])]
+    assert rep["findings"][0]["pooling"]["scope"] == "cable_specific"
+
+
+def test_clean_four_cables_give_no_finding() -> None:
+    rep = diagnose(recording_of(generate(FOUR)), _friction(FOUR)).report
+    check_report(rep)
+    assert rep["findings"] == []
