@@ -125,7 +125,7 @@ class CyclicService:
         self.pacing: Pacing = make_pacing(driver, cfg.loop, clock, sleep, wall_clock, self.stats)
         driver.clock = clock  # the output gate and the data's time on the loop's clock
         driver.output_gate  # noqa: B018 - built (compiled) now, not in the first cycle
-        self.comp.heartbeat_modulus = driver.plc_heartbeat_modulus
+        self.comp.heartbeat_modulus = driver.plc_heartbeat_modulus  # the register's wrap
         self.notifier = notifier
         self.state = Lifecycle.STOPPED
         self.heartbeat_fault = False

@@ -9,18 +9,19 @@ import dataclasses
 import numpy as np
 from numpy.testing import assert_allclose
 
-from drivers.base import Inputs, Outputs
+from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.model.chain import ChainStepper
 from gateway.runtime.compensator import MAX_GAP_PERIODS, Compensator
 from tests.loop_helpers import config
 
 PERIOD = 0.001
+SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
 
 
 def run(times: list[float]) -> Compensator:
     """A compensator stepped at the fake-clock ``times`` on one constant moving reading of
     a PLC that samples every ``PERIOD`` (its heartbeat counts them)."""
-    cfg = config(period_s=PERIOD)
+    cfg = config(period_s=PERIOD, stuck_after_s=10.0)
     comp = Compensator(cfg)
     inputs = Inputs.allocate(cfg.cables)
     out = Outputs.allocate(cfg.cables)
@@ -55,13 +56,18 @@ def test_a_skipped_cycle_steps_the_travel_of_both_periods():
     assert np.max(np.abs(comp.stepper.state - fixed)) > 1e-3
 
 
-def test_after_an_outage_the_step_is_bounded():
+def test_after_an_outage_the_step_is_not_integrated_and_the_cables_go_cold():
+    """2 s without a read: the 2000 samples' motion is unknown, so none of it is
+    extrapolated (it was once bounded to MAX_GAP_PERIODS periods and written good): the
+    chain takes no travel over the gap and every cable is substituted, not good."""
     t0 = 100.0
     comp = run([t0, t0 + PERIOD, t0 + 2.0])  # 2 s without a step
-    state, _ = one_go(comp, [0.0, PERIOD, MAX_GAP_PERIODS * PERIOD])
+    state, _ = one_go(comp, [0.0, PERIOD, 0.0])
     assert_allclose(comp.stepper.state, state, rtol=0, atol=1e-9)
-    unbounded, _ = one_go(comp, [0.0, PERIOD, 2.0 - PERIOD])
-    assert np.max(np.abs(comp.stepper.state - unbounded)) > 1e-3
+    bounded, _ = one_go(comp, [0.0, PERIOD, MAX_GAP_PERIODS * PERIOD])
+    assert np.max(np.abs(comp.stepper.state - bounded)) > 1e-3
+    assert np.all(comp.status == SUBSTITUTED)
+    assert comp.clock.resyncs == 1
 
 
 def test_on_canopen_every_cycle_is_a_sample():
