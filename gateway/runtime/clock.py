@@ -34,8 +34,10 @@ cables substituted, then invalid, until the chain has re-warmed (docs/security.m
   ``LEAD_SLACK_PERIODS`` beyond the least delay seen (a jump forward within
   ``MAX_GAP_PERIODS`` that no PLC can have made in the time; a PLC catching up after a
   stall of its own never runs ahead of the time that passed, so it is vouched);
-* a toggle that changed more than ``TOGGLE_MAX_GAP`` cycles after its last change: it may
-  have changed three times (or the PLC held), which no reading can tell apart;
+* a toggle that changed more than ``TOGGLE_MAX_GAP`` cycles after its last change, or has
+  not changed for longer: it may have changed twice or three times, or the PLC held,
+  which no reading can tell apart (a read that shows no change is then not vouched for
+  either: it may be a new sample);
 * any kind: a step longer than ``MAX_GAP_PERIODS`` loop periods on the gateway's clock
   (kind ``none``, CANopen).
 
@@ -101,7 +103,7 @@ class SampleClock:
         self.new = False
         self.dt = 0.0
         self.vouched = True
-        self.resyncs = 0  # steps not vouched since the start
+        self.resyncs = 0  # reads not vouched for since the start
         self._heartbeat = math.nan  # the last finite heartbeat
         self._sample_at = math.nan  # when the last new sample arrived (gateway clock)
         self._cycle_at = math.nan  # when the last cycle ran (paced by the bus)
@@ -113,7 +115,8 @@ class SampleClock:
 
     def tick(self, now: float, heartbeat: float, moved: bool) -> None:
         """One successful read at ``now`` (gateway clock) with the PLC ``heartbeat``;
-        ``moved``: its setpoint velocities differ from the last sample's."""
+        ``moved``: its setpoint velocities differ from the last sample's. ``resyncs``
+        counts the reads not vouched for."""
         self.new, self.dt, self.vouched = False, 0.0, True
         if self.by_bus:
             self._on_gateway_clock(now, True, self._cycle_at)
@@ -127,11 +130,11 @@ class SampleClock:
             if math.isfinite(heartbeat):
                 self._heartbeat = heartbeat
             self._on_gateway_clock(now, moved or changed, self._sample_at)
+        if not self.vouched:
+            self.dt = 0.0
+            self.resyncs += 1
         if self.new:
             self._sample_at = now
-            if not self.vouched:
-                self.dt = 0.0
-                self.resyncs += 1
 
     def _on_gateway_clock(self, now: float, new: bool, since: float) -> None:
         if not new:
@@ -144,7 +147,10 @@ class SampleClock:
 
     def _toggle(self, now: float, heartbeat: float) -> None:
         if not math.isfinite(heartbeat) or heartbeat == self._heartbeat:
-            return  # the same sample again (or no heartbeat in this read)
+            # the same sample again, unless it has not changed for longer than a cycle: then
+            # the PLC held or it changed twice, and this read may be a new sample
+            self.vouched = not now - self._sample_at > TOGGLE_MAX_GAP * self.toggle_period_s
+            return
         first = self._heartbeat != self._heartbeat
         self._heartbeat = heartbeat
         self.new = True

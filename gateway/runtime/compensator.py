@@ -341,7 +341,7 @@ class Compensator:
         moved = _differs(self.velocity_m_s, self._velocity_prev)
         clock.tick(now, float(inputs.plc_heartbeat), moved)
         dt = self._online_inputs(clock.new, clock.dt)
-        if clock.new and not clock.vouched:
+        if not clock.vouched:
             self._resync(now)
         _guard_inputs(self.model_in_n, self.used_n, self.status)
         self.stepper.step(self.model_in_n, self.velocity_m_s, self.corrected_n, dt)
@@ -367,7 +367,8 @@ class Compensator:
         travel over the unknown time (the clock's step is 0) and no acceleration across
         it; the cables are cold until they have travelled far enough for the state to
         have forgotten the difference (:func:`~.clock.warm_travel_m`)."""
-        self.resync_at = now
+        if not self._cold:  # substituted for at most substitute_max_s after the first
+            self.resync_at = now
         self.travel_m[:] = 0.0
         self._cold = True
         self._stepped_since_resync = False
