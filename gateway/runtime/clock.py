@@ -10,7 +10,9 @@ declared in the config (``loop.heartbeat``, :class:`gateway.core.config.Heartbea
   register counts without a wrap): the register counts PLC samples. A new value ``k``
   samples after the last one is a new sample and the step is ``k`` times the PLC's sample
   spacing, averaged over past samples (:meth:`SampleClock._spacing`; single arrival times
-  carry the bus jitter);
+  carry the bus jitter). New setpoint velocities under an unchanged (or NaN) heartbeat
+  are a new sample on the gateway's clock, as before the declaration (the watchdog stops
+  the writes of a PLC whose heartbeat stays frozen);
 * ``toggle``: the register changes every PLC cycle (a 0/1 life bit); only *that* it
   changed is used. The step is the declared PLC cycle ``period_s``;
 * ``none``: the register carries no timing. A read whose heartbeat or setpoint velocities
@@ -25,24 +27,27 @@ A step the clock cannot vouch for is never integrated (:attr:`SampleClock.vouche
 :attr:`SampleClock.dt` 0); the compensator then resynchronises the chain and writes the
 cables substituted, then invalid, until the chain has re-warmed (docs/security.md):
 
-* a counter that steps backwards, or forwards by more than ``MAX_GAP_PERIODS`` samples
-  (a restart, a reset, a value rewritten; also a gap so long that the setpoint motion in
-  it is unknown), shows a value outside its declared modulus or a float step that is no
-  whole positive count;
 * a counter whose samples would have come from the future: the PLC time it has counted
   since the start (or the last resync) runs ahead of the gateway's clock by more than
-  ``LEAD_SLACK_PERIODS`` beyond the least delay seen (a jump forward within
-  ``MAX_GAP_PERIODS`` that no PLC can have made in the time; a PLC catching up after a
+  ``LEAD_SLACK_PERIODS`` beyond the least delay seen. That is a counter stepping
+  backwards (a 16-bit step back of 1 counts as 65 535 samples), restarting from 0, or
+  jumping forward further than the time that passed allows (a PLC catching up after a
   stall of its own never runs ahead of the time that passed, so it is vouched);
+* a counter showing a value outside its declared modulus, or a float step that is no
+  whole positive count, or a step over ``MAX_GAP_PERIODS`` before the spacing is known;
 * a toggle that changed more than ``TOGGLE_MAX_GAP`` cycles after its last change, or has
   not changed for longer: it may have changed twice or three times, or the PLC held,
   which no reading can tell apart (a read that shows no change is then not vouched for
   either: it may be a new sample);
-* any kind: a step longer than ``MAX_GAP_PERIODS`` loop periods on the gateway's clock
-  (kind ``none``, CANopen).
 
-Arrays are not used: the clock is scalar state, stepped once per cycle, allocating
-nothing.
+A gap the clock can vouch for in time (an outage: a counter that advanced no faster than
+the gateway's clock; ``none`` and CANopen, whose clock is the gateway's) is a step of
+its full length for the online effects; the chain's travel over it is bounded by the
+compensator to ``MAX_GAP_PERIODS`` periods, as before (the setpoint motion in it is
+unknown; docs/security.md names this as not covered).
+
+The clock is scalar state, stepped once per cycle, allocating nothing;
+:func:`warm_travel_m` (the re-warm travel) is computed once, at construction.
 """
 
 from __future__ import annotations
@@ -58,8 +63,8 @@ SPACING_OUTLIER = 3.0  # a spacing this far off the average is a hold or a stall
 SPACING_OUTLIER_RUN = 20  # this many in a row: the PLC's period changed, start afresh
 # Heartbeat steps up to this many samples enter the PLC's averaged sample spacing.
 MAX_STEP_PERIODS = 10
-# A step of more samples (or, on the gateway's clock, periods) than this is not vouched:
-# the setpoint motion in between is unknown, its travel is not extrapolated.
+# The chain's travel over a longer gap is bounded to this many periods (the setpoint
+# motion in between is unknown); a counter step over it needs a known spacing.
 MAX_GAP_PERIODS = 100
 # The counted PLC time may run ahead of the gateway's clock by this many sample spacings
 # beyond the least delay seen (bus jitter) before a step is taken for a jump.
@@ -99,7 +104,6 @@ class SampleClock:
         self.register_values = self.modulus if register_values is None else int(register_values)
         self.by_bus = by_bus
         self.toggle_period_s = float(toggle_period_s or loop_period_s)
-        self.max_gap_s = MAX_GAP_PERIODS * float(loop_period_s)
         self.new = False
         self.dt = 0.0
         self.vouched = True
@@ -113,6 +117,15 @@ class SampleClock:
         self._plc_time = 0.0  # PLC time counted since the anchor
         self._lead_floor = math.inf  # least (arrival - counted PLC time) seen
 
+    def asks_setpoints(self, heartbeat: float) -> bool:
+        """Whether :meth:`tick` with this ``heartbeat`` reads ``moved`` (the caller then
+        compares the setpoint velocities; a counter that stepped does not need them)."""
+        if self.by_bus or self.kind == "toggle":
+            return False
+        if self.kind == "none":
+            return True
+        return not (math.isfinite(heartbeat) and heartbeat != self._heartbeat)
+
     def tick(self, now: float, heartbeat: float, moved: bool) -> None:
         """One successful read at ``now`` (gateway clock) with the PLC ``heartbeat``;
         ``moved``: its setpoint velocities differ from the last sample's. ``resyncs``
@@ -123,6 +136,9 @@ class SampleClock:
             self._cycle_at = now
         elif self.kind == "counter":
             self._counter(now, heartbeat)
+            if not self.new and moved:  # new setpoints, no count (as before): arrival time
+                self._on_gateway_clock(now, True, self._sample_at)
+                self._plc_time += self.dt if self.vouched else 0.0
         elif self.kind == "toggle":
             self._toggle(now, heartbeat)
         else:
@@ -142,7 +158,7 @@ class SampleClock:
         self.new = True
         if since == since:
             dt = now - since
-            self.vouched = 0.0 <= dt <= self.max_gap_s
+            self.vouched = dt >= 0.0
             self.dt = max(dt, 0.0)
 
     def _toggle(self, now: float, heartbeat: float) -> None:
@@ -173,17 +189,15 @@ class SampleClock:
         if steps == 0:
             return
         self.new = True
-        if not 1 <= steps <= MAX_GAP_PERIODS:
-            self.vouched = False
-            self._anchor(now)
-            return
         elapsed = now - self._sample_at
         period = self.plc_period_s
+        if steps < 0 or (steps > MAX_GAP_PERIODS and period != period):
+            self._unvouched(now)  # no count, or no spacing yet to tell a gap from a jump
+            return
         if period == period:  # the counted PLC time must not run ahead of the clock
             lead = now - (self._plc_time + steps * period)
             if lead < self._lead_floor - LEAD_SLACK_PERIODS * period:
-                self.vouched = False
-                self._anchor(now)
+                self._unvouched(now)
                 return
         if steps <= MAX_STEP_PERIODS and elapsed > 0.0:
             self.plc_period_s = self._spacing(elapsed / steps)
@@ -192,14 +206,18 @@ class SampleClock:
         self._plc_time += self.dt
         self._lead_floor = min(self._lead_floor, now - self._plc_time)
 
+    def _unvouched(self, now: float) -> None:
+        self.vouched = False
+        self._anchor(now)
+
     def _anchor(self, now: float) -> None:
         """Count the PLC time afresh from this sample (the start, a resync)."""
         self._plc_time = 0.0
         self._lead_floor = now
 
     def _steps(self, prev: float, heartbeat: float) -> int:
-        """Samples between two heartbeats; ``MAX_GAP_PERIODS + 1`` for what is no count."""
-        bad = MAX_GAP_PERIODS + 1
+        """Samples between two heartbeats; -1 for what is no count."""
+        bad = -1
         if heartbeat != int(heartbeat):
             return bad
         if not self.modulus:

@@ -58,7 +58,7 @@ from gateway.model import effects as fx
 from gateway.model.chain import ChainStepper
 from gateway.model.fastcall import entry_point
 from gateway.model.statics import wrench_into
-from gateway.runtime.clock import MAX_GAP_PERIODS, SampleClock, warm_travel_m  # noqa: F401 (re-exported)
+from gateway.runtime.clock import MAX_GAP_PERIODS, SampleClock, warm_travel_m
 
 FLAG_NAN = 1
 FLAG_RANGE = 2
@@ -227,6 +227,7 @@ class Compensator:
         )
         self.stale_after_s = lp.stale_after_s
         self._loop_period_s = lp.period_s
+        self.max_step_s = MAX_GAP_PERIODS * lp.period_s  # the chain's step after an outage
         self._heartbeat_cfg = lp.heartbeat
         # Modbus polls the PLC: its heartbeat tells a new sample from one read again. On
         # CANopen each cycle is one SYNC's samples and the heartbeat comes every 10th.
@@ -239,6 +240,7 @@ class Compensator:
         self.resync_at = -math.inf  # when the chain last resynchronised (gateway clock)
         self._cold = False  # some cable has not re-warmed since the last resync
         self._stepped_since_resync = True
+        self._travelled = False  # the chain has taken a step since the start
         self.frame_anchors = np.array(cfg.geometry.frame_anchors_m, dtype=float)
         self.platform_anchors = np.array(cfg.geometry.platform_anchors_m, dtype=float)
         self.channels = ChannelState.allocate(m)
@@ -268,6 +270,7 @@ class Compensator:
         self._online = fx.OnlineInverse(
             values, m, self.model_in_n, self.velocity_m_s, self._velocity_prev, self._length_in
         )
+        self._differs = entry_point(_differs, self.velocity_m_s, self._velocity_prev)
         self._finish = entry_point(
             _finish, self.corrected_n, self.used_n, self.status, self.friction_n
         )
@@ -319,8 +322,9 @@ class Compensator:
         trapezoid ``(v_prev + v) / 2 dt`` with the previous sample's velocity,
         ``chain.travel_into``) follow the PLC's samples, not the gateway's reads: a
         sample read twice adds no travel, samples missed in an overrun or a stall (of
-        either side) lose none. A step the clock cannot vouch for (a counter stepping
-        back, a jump, a restart, a toggle missed, an outage) is not integrated: the chain
+        either side) lose none; the chain's step is bounded to ``MAX_GAP_PERIODS`` periods
+        (after an outage). A step the clock cannot vouch for (a counter stepping
+        back, a jump, a restart, a toggle missed) is not integrated: the chain
         resynchronises (:meth:`_resync`) and every cable is written substituted, then
         invalid, until it has travelled ``warm_travel_m`` since (:meth:`_hold_cold`).
         """
@@ -338,13 +342,17 @@ class Compensator:
         )
         _hold_finite(self._length_in, self._length_last)  # flagged by plausibility
         clock = self.clock
-        moved = _differs(self.velocity_m_s, self._velocity_prev)
-        clock.tick(now, float(inputs.plc_heartbeat), moved)
+        hb = float(inputs.plc_heartbeat)
+        moved = clock.asks_setpoints(hb) and self._differs(self.velocity_m_s, self._velocity_prev)
+        clock.tick(now, hb, moved)
         dt = self._online_inputs(clock.new, clock.dt)
-        if not clock.vouched:
-            self._resync(now)
+        if not clock.vouched and self._travelled:
+            self._resync(now)  # (before any travel the start's relaxed chain is as good)
+        self._travelled = self._travelled or dt > 0.0
         _guard_inputs(self.model_in_n, self.used_n, self.status)
-        self.stepper.step(self.model_in_n, self.velocity_m_s, self.corrected_n, dt)
+        self.stepper.step(
+            self.model_in_n, self.velocity_m_s, self.corrected_n, min(dt, self.max_step_s)
+        )
         _guard_chain(self.corrected_n, self.stepper.state, self.status)
         if self._cold:
             self._hold_cold(now, dt)
@@ -379,7 +387,8 @@ class Compensator:
         samples) is substituted for at most ``loop.substitute_max_s`` after the resync,
         then invalid."""
         if dt > 0.0:
-            self.travel_m += 0.5 * np.abs(self._velocity_hold + self.velocity_m_s) * dt
+            step = min(dt, self.max_step_s)
+            self.travel_m += 0.5 * np.abs(self._velocity_hold + self.velocity_m_s) * step
             self._stepped_since_resync = True
         cold = self.travel_m < self.warm_travel_m
         if self._stepped_since_resync and not cold.any():
