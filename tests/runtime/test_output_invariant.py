@@ -32,6 +32,7 @@ from gateway.core.config import HeartbeatConfig
 from gateway.errors import DriverIOError, DriverTimeoutError
 from gateway.model import effects as fx
 from gateway.model.chain import ChainStepper
+from gateway.runtime.clock import MAX_GAP_PERIODS
 from gateway.runtime.loop import CyclicService
 from tests.loop_helpers import FakeClock, config
 
@@ -499,7 +500,9 @@ def _reference(cfg: Any, drv: TruePlc) -> np.ndarray:
         dt = 0.0 if prev is None else (k - prev) * drv.T
         ts, v[:] = drv.sample(k)
         inverse(ts, model_in, v, v_prev, dt, length)
-        chain.step(model_in, v, rows[j], dt)
+        # an outage's travel is bounded to MAX_GAP_PERIODS periods, the gateway's documented
+        # rule (docs/security.md: not covered); failed reads and reconnects can make one
+        chain.step(model_in, v, rows[j], min(dt, MAX_GAP_PERIODS * P))
         v_prev[:] = v
         prev = k
     return rows
