@@ -20,10 +20,11 @@ Per cable, sensor reading ``T_s`` from the platform tension ``T_p``:
   :func:`scipy.optimize.least_squares` from three stiffness starts, the five linear ones by
   :func:`numpy.linalg.lstsq` inside each residual evaluation.
 
-Both are fitted on the training samples handed in (the diagnosis' training blocks, thinned
-to at most :data:`FIT_SAMPLES` for the Dahl fit; the Dahl state always runs over every
-sample) and scored by the caller. :func:`ablation` refits the Dahl baseline with each of
-its terms dropped (nonlinear parameters kept), to say which term carries what it explains.
+Both are fitted on the training samples handed in (the diagnosis' training blocks; for
+the Dahl fit of a long recording, those of evenly spaced windows, :class:`Design`) and
+scored by the caller on every held-out and validation sample. :func:`drop_term` refits
+the Dahl baseline with one of its terms dropped (nonlinear parameters kept), to say which
+term carries what it explains.
 """
 
 from __future__ import annotations
@@ -36,7 +37,9 @@ import numpy as np
 from numba import njit
 
 FIT_SAMPLES = 20_000
-"""Training samples a cable's Dahl fit scores (evenly thinned beyond that)."""
+"""About the training samples a cable's Dahl fit scores (:class:`Design`)."""
+WINDOWS = 10
+WARM = 0.1
 MAX_NFEV = 60
 DAHL_LINEAR = ("g", "c_ns_m", "m_kg", "k_n_m", "b_n")
 DAHL_TERMS = ("dahl", "g", "c_ns_m", "m_kg", "k_n_m", "b_n")
@@ -152,11 +155,11 @@ def _linear_columns(c: Cable, idx: np.ndarray, drop: Sequence[str] = ()) -> tupl
     return names, np.column_stack([cols[n] for n in names])
 
 
-def _dahl_linear(c, idx, dx, nl, drop=()):
+def _dahl_linear(c, design, nl, drop=()):
     """The linear parameters given the nonlinear ``nl`` = (mu, f0, log10 sigma): the
-    projected residual on ``idx`` and the parameters."""
-    mu, f0, lsig = nl
-    f = np.zeros(idx.size) if "dahl" in drop else dahl_force(c.tp, dx, mu, f0, 10.0**lsig)[idx]
+    projected residual on the design's scored samples and the parameters."""
+    idx = design.idx
+    f = np.zeros(idx.size) if "dahl" in drop else design.force(c, nl)
     names, a = _linear_columns(c, idx, drop)
     y = c.ts[idx] - c.tp[idx] + f
     coef = _lstsq(a, y)
@@ -173,19 +176,53 @@ def _params(nl, lin: dict[str, float], drop=()) -> dict[str, float]:
     return p
 
 
-def thin(train: np.ndarray, budget: int = FIT_SAMPLES) -> np.ndarray:
-    """Indices of the training samples (evenly thinned to at most ``budget``)."""
-    idx = np.flatnonzero(train)
-    return idx[:: max(1, -(-idx.size // budget))]
+class Design:
+    """The samples a Dahl fit scores and the stretches its state runs over.
+
+    A recording of at most ``2 FIT_SAMPLES`` samples: the state runs over every sample and
+    every training sample is scored. A longer one (a 10-min, 1 kHz recording: a Dahl run
+    over 600 000 samples per residual evaluation would cost tens of seconds a cable):
+    :data:`WINDOWS` evenly spaced windows of ``2 FIT_SAMPLES / WINDOWS`` samples, the state
+    run over each from rest, scored on its training samples past the first
+    :data:`WARM` of the window (the state forgets its start within a few Dahl lengths)."""
+
+    def __init__(self, train: np.ndarray, x: np.ndarray, budget: int | None = None) -> None:
+        budget = FIT_SAMPLES if budget is None else budget
+        n = train.size
+        if n <= 2 * budget:
+            self.windows = [(0, n)]
+            self.idx = np.flatnonzero(train)
+            self.local = [self.idx]
+        else:
+            width = 2 * budget // WINDOWS
+            starts = np.linspace(0, n - width, WINDOWS).astype(int)
+            self.windows = [(int(a), int(a) + width) for a in starts]
+            self.local = []
+            for a, b in self.windows:
+                w = np.flatnonzero(train[a + int(WARM * (b - a)) : b]) + int(WARM * (b - a))
+                self.local.append(w)
+            self.idx = np.concatenate(
+                [w + a for w, (a, _) in zip(self.local, self.windows, strict=True)]
+            )
+        self.dx = [travel(x[a:b]) for a, b in self.windows]
+
+    def force(self, c: Cable, nl) -> np.ndarray:
+        """The Dahl force on the scored samples for ``nl`` = (mu, f0, log10 sigma)."""
+        mu, f0, lsig = nl
+        out = [
+            dahl_force(c.tp[a:b], dx, mu, f0, 10.0**lsig)[w]
+            for (a, b), dx, w in zip(self.windows, self.dx, self.local, strict=True)
+        ]
+        return np.concatenate(out) if out else np.zeros(0)
 
 
 def fit_dahl(c: Cable, train: np.ndarray) -> Fit:
-    """The Dahl baseline (module docstring) on ``train`` (bool), thinned to
-    :data:`FIT_SAMPLES`."""
+    """The Dahl baseline (module docstring) on ``train`` (bool), on the samples of
+    :class:`Design`."""
     from scipy.optimize import least_squares
 
-    idx = thin(train)
-    dx = travel(c.x)
+    design = Design(train, c.x)
+    idx = design.idx
     if idx.size < len(DAHL_LINEAR) + 3:
         return Fit("dahl", _params((0.0, 0.0, 4.0), {}))
     # the level's scale from the data: a friction of a few % of the load, a few N
@@ -196,14 +233,14 @@ def fit_dahl(c: Cable, train: np.ndarray) -> Fit:
     for lsig in (3.0, 4.0, 5.0):  # the stiffness is the one non-convex direction
 
         def resid(nl: np.ndarray) -> np.ndarray:
-            return _dahl_linear(c, idx, dx, nl)[0]
+            return _dahl_linear(c, design, nl)[0]
 
         start = np.clip(np.array([0.02, 0.2 * scale, lsig]), lower, upper)
         res = least_squares(resid, start, bounds=(lower, upper), x_scale="jac", max_nfev=MAX_NFEV)
         if best is None or res.cost < best.cost:
             best = res
     assert best is not None
-    return Fit("dahl", _params(best.x, _dahl_linear(c, idx, dx, best.x)[1]))
+    return Fit("dahl", _params(best.x, _dahl_linear(c, design, best.x)[1]))
 
 
 def drop_term(c: Cable, train: np.ndarray, fitted: Fit, term: str) -> Fit:
@@ -211,8 +248,7 @@ def drop_term(c: Cable, train: np.ndarray, fitted: Fit, term: str) -> Fit:
     nonlinear parameters kept, its linear ones refitted on ``train``."""
     p = fitted.params
     nl = (p["mu"], p["f0_n"], math.log10(p["sigma_n_m"]))
-    idx = thin(train)
-    lin = _dahl_linear(c, idx, travel(c.x), nl, drop=(term,))[1]
+    lin = _dahl_linear(c, Design(train, c.x), nl, drop=(term,))[1]
     return Fit("dahl", _params(nl, lin, drop=(term,)))
 
 

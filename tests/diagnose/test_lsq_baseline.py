@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from gateway.diagnose import lsq
 from gateway.diagnose.cli import diagnose_report
 from gateway.diagnose.engine import diagnose
+from gateway.diagnose.plots import summary
 from gateway.diagnose.signals import DISGUISE_R, disguised_readings
 from gateway.model.chain import simulate
 from gateway.recordings.reader import Recording
@@ -83,6 +84,23 @@ def test_dahl_baseline_predicts_its_own_law_to_the_noise(
     assert err < 0.2 * 1.15, dahl.params
     lin = lsq.fit_coulomb_viscous(cab, train)
     assert err <= float(np.sqrt(np.mean((d.ts - lin.predict(cab))[test] ** 2)))
+
+
+def test_dahl_fit_on_windows_of_a_long_recording(monkeypatch) -> None:
+    """A recording longer than the fit's budget is fitted on windows (the state from rest
+    in each): the prediction over every sample still falls to the noise."""
+    monkeypatch.setattr(lsq, "FIT_SAMPLES", 1000)
+    d = _series(n=8000, seed=3)
+    d.ts = d.tp - lsq.dahl_force(d.tp, lsq.travel(d.x), 0.05, 2.0, 2e4) - 80.0 * d.v
+    d.ts = d.ts + np.random.default_rng(3).normal(0.0, 0.2, d.t.size)
+    train, test = _halves(d.t.size)
+    design = lsq.Design(train, d.x)
+    assert len(design.windows) == lsq.WINDOWS and design.idx.size < 1000
+    assert np.all(train[design.idx])
+    cab = lsq.cable_series(d)
+    fit = lsq.fit_dahl(cab, train)
+    err = float(np.sqrt(np.mean((d.ts - fit.predict(cab))[test] ** 2)))
+    assert err < 0.2 * 1.15, fit.params
 
 
 def test_block_says_when_the_catalogue_loses_and_which_term_carries_it() -> None:
@@ -173,8 +191,12 @@ def test_unexplained_ignores_the_motor_torque_beside_the_tension() -> None:
         extra={"temperature_c": temp, "motor_torque_nm": torque},
         metadata={},
     )
-    rep = diagnose(rec, sc.nominal()).report
+    diag = diagnose(rec, sc.nominal())
+    rep = diag.report
     check_report(rep)
+    text = summary(diag, "thermal.csv")
+    assert "`motor_torque_nm` is not searched" in text
+    assert rep["baseline"]["least_squares"]["sentence"] in text
     (ex,) = rep["unexplained_excluded"]
     assert ex["column"] == "motor_torque_nm" and ex["cable"] == 1
     assert "collinear" in ex["reason"]

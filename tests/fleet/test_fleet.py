@@ -104,6 +104,9 @@ def check_fleet_output(out: Path, recs: list[Path], singles: dict[str, bytes]) -
                 assert r[name] == values[k] and r[f"{name}_stderr"] == f["stderr"][name][k]
             assert r["rmse_after_n"] == f["rmse_after_n"]
             assert r["baseline_rmse_n"] == report["baseline"]["rmse_n"]
+            fits = report["baseline"]["least_squares"]["fits"].values()
+            assert r["lsq_holdout_rmse_n"] == min(f["holdout_rmse_n"] for f in fits)
+            assert r["final_holdout_rmse_n"] == report["final"]["holdout_rmse_n"]
     robots = {r["robot"] for rows in by_rec.values() for r in rows}
     assert robots == {f"r-{e}" for e in HIDDEN}
     hive = next(rows for rec, rows in by_rec.items() if "robot=r-offset" in rec)
