@@ -357,7 +357,7 @@ def block(
     out["best"] = best
     out["beaten"] = bool(ours <= theirs)
     out["margin"] = (theirs - ours) / theirs if theirs > 0 else 0.0
-    terms = []
+    terms: list[dict] = []
     if not out["beaten"] and m:
         full = score["dahl"].overall(on)
         for term in DAHL_TERMS:
@@ -376,7 +376,7 @@ def block(
                     _release(d)
             rmse = s.overall(on)
             terms.append({"term": term, "rmse_without_n": rmse, "rise_n": rmse - full})
-        terms.sort(key=lambda t: -t["rise_n"])
+        terms.sort(key=lambda t: -float(t["rise_n"]))
         out["terms"] = terms
     out["sentence"] = sentence(out)
     return out
