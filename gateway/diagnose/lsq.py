@@ -157,13 +157,19 @@ def _linear_columns(c: Cable, idx: np.ndarray, drop: Sequence[str] = ()) -> tupl
 
 def _dahl_linear(c, design, nl, drop=()):
     """The linear parameters given the nonlinear ``nl`` = (mu, f0, log10 sigma): the
-    projected residual on the design's scored samples and the parameters."""
+    projected residual on the design's scored samples and the parameters. The linear
+    columns do not depend on ``nl``: their pseudo-inverse is computed once per design."""
     idx = design.idx
     f = np.zeros(idx.size) if "dahl" in drop else design.force(c, nl)
-    names, a = _linear_columns(c, idx, drop)
+    key = tuple(drop)
+    if key not in design.pinv:
+        names, a = _linear_columns(c, idx, drop)
+        pinv = np.linalg.pinv(a) if a.shape[0] else np.zeros(a.shape[::-1])
+        design.pinv[key] = (names, a, pinv)
+    names, a, pinv = design.pinv[key]
     y = c.ts[idx] - c.tp[idx] + f
-    coef = _lstsq(a, y)
-    return a @ np.asarray(coef) - y, dict(zip(names, coef, strict=True))
+    coef = pinv @ y
+    return a @ coef - y, {n: float(v) for n, v in zip(names, coef, strict=True)}
 
 
 def _params(nl, lin: dict[str, float], drop=()) -> dict[str, float]:
@@ -205,6 +211,7 @@ class Design:
                 [w + a for w, (a, _) in zip(self.local, self.windows, strict=True)]
             )
         self.dx = [travel(x[a:b]) for a, b in self.windows]
+        self.pinv: dict[tuple, tuple] = {}
 
     def force(self, c: Cable, nl) -> np.ndarray:
         """The Dahl force on the scored samples for ``nl`` = (mu, f0, log10 sigma)."""
