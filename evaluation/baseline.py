@@ -6,8 +6,9 @@ One cable, sensor side from platform side::
     T_s = (1 + g) T_p - F - c v - k x + b
     dF/dx = sigma (1 - F / F_R sgn(dx)),   F_R = mu |T_p| + f0
 
-a Dahl pre-sliding force ``F`` (stepped exactly over each sample's travel ``dx``, the
-trapezoid of the velocities) whose level grows with the load, a gain ``g``, viscous ``c``,
+a Dahl pre-sliding force ``F`` (:func:`gateway.diagnose.lsq.dahl_force`, the law of the
+diagnosis' own least-squares baseline; stepped exactly over each sample's travel ``dx``,
+the trapezoid of the velocities) whose level grows with the load, a gain ``g``, viscous ``c``,
 a spring ``k`` linear in the position ``x`` (the recording's ``length``, e.g. the spindle
 angle times the capstan radius) and a constant ``b`` (the spring's reference force and any
 offset together). Seven parameters, fitted by plain :func:`scipy.optimize.least_squares`
@@ -17,33 +18,15 @@ each trial from a relaxed ``F``; started from the linear least squares without `
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from evaluation.realdata import scored, segments
+from gateway.diagnose.lsq import dahl_force
 from gateway.recordings.reader import Recording
 
 NAMES = ("g", "mu", "f0_n", "log10_sigma_n_m", "c_ns_m", "k_n_m", "b_n")
-
-
-@njit(cache=True)
-def _dahl(tp, dx, mu, f0, sigma):  # pragma: no cover - numba
-    """Dahl force (N,) over travel ``dx`` (N,) with the level ``mu |T_p| + f0``."""
-    out = np.empty(tp.size)
-    f = 0.0
-    for k in range(tp.size):
-        fr = mu * abs(tp[k]) + f0
-        d = dx[k]
-        if fr > 1e-9 and d != 0.0:
-            s = 1.0 if d > 0.0 else -1.0
-            f = s * fr - (s * fr - f) * math.exp(-sigma * abs(d) / fr)
-        elif fr <= 1e-9:
-            f = 0.0
-        out[k] = f
-    return out
 
 
 @dataclass
@@ -78,7 +61,7 @@ def predict(theta: np.ndarray, rec: Recording) -> np.ndarray:
     g, mu, f0, lsig, c, k, b = theta
     f = np.empty(tp.size)
     for seg in segments(rec.t):
-        f[seg] = _dahl(tp[seg], dx[seg], mu, f0, 10.0**lsig)
+        f[seg] = dahl_force(tp[seg], dx[seg], mu, f0, 10.0**lsig)
     return (1.0 + g) * tp - f - c * v - k * x + b
 
 

@@ -254,7 +254,12 @@ def summary(diag: Diagnosis, source: str) -> str:
             f"On the validation recording: {f['validation_rmse_before_n']:.3f} N -> "
             f"{f['validation_rmse_after_n']:.3f} N."
         )
+    lsq = rep["baseline"].get("least_squares")
+    if lsq:
+        lines.append(lsq["sentence"])
     fin = rep["final"]
+    for ex in rep.get("unexplained_excluded", []):
+        lines.append(f"Column `{ex['column']}` is not searched as an explanation: {ex['reason']}.")
     unexpl = rep.get("unexplained")
     if unexpl:
         lines.append(

@@ -9,7 +9,11 @@ noise of the final residual, :func:`.stats.white_noise`) and ``unexplained_n`` (
 held-out RMSE beyond that noise). ``unexplained`` (present only when the final residual
 holds structure that a smooth function of some signal explains on held-out blocks beyond
 chance, :mod:`.signals`) names the signal, its share of the residual variance and the
-closest physical reading.
+closest physical reading; ``unexplained_excluded`` lists the extra columns left out of
+that search because they are a cable's reading in disguise (a scaled or offset copy:
+:func:`.signals.disguised_readings`). ``baseline.least_squares`` holds the engineer's
+least-squares fits (:mod:`.lsq`), scored on the same held-out blocks and validation
+recording as the final model, and one sentence on whether the catalogue's model beats them.
 
 Each finding carries, per cable in ``cables``: ``statistic`` (the held-out z of the model
 with it against the model without it), ``p`` and ``q`` (Benjamini-Hochberg over every
@@ -34,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate, pooling, signals
+from gateway.diagnose import locate, lsq, pooling, signals
 from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.select import Outcome, Thresholds
@@ -218,7 +222,8 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
     """The final model's residual, cable by cable (no (N, m) residual is held): its white
     noise (RMS over cables), where it lives (:class:`locate.EnergyMap`) and the strongest
     significant structure a signal explains (:mod:`.signals`: the report's ``unexplained``
-    and the :class:`signals.Structure`, or Nones)."""
+    and the :class:`signals.Structure`, or Nones), and the extra columns left out of that
+    search as a cable's reading in disguise (:func:`signals.disguised_readings`)."""
     per = np.zeros(len(forwards))
     emap = locate.EnergyMap(prep.rec.t)
     # the structure search on at most EXPLAIN_SAMPLES samples a cable (evenly thinned: a
@@ -227,6 +232,11 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
     idx = np.arange(0, n, max(1, -(-n // EXPLAIN_SAMPLES)))
     blk = prep.blocks[idx]
     extra = {k: np.asarray(v, dtype=float)[idx] for k, v in (prep.rec.extra or {}).items()}
+    excluded = signals.disguised_readings(
+        extra, [d.ts[idx] for d in prep.datas], [prep.valid[idx, i] for i in range(len(forwards))]
+    )
+    for e in excluded:
+        del extra[e["column"]]
     explainer = signals.Explainer(blk, prep.n_blocks, extra)
     for i, (fw, th_i) in enumerate(zip(forwards, thetas, strict=True)):
         r = fw.data.ts - fw.predict(th_i)
@@ -246,7 +256,7 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
     found = explainer.result()
     st = signals.significant(found, th.fdr)
     if st is None:
-        return noise, emap, None, None
+        return noise, emap, None, None, excluded
     field_ = {
         "signal": st.signal,
         "share": st.share,
@@ -261,7 +271,31 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
         },
         "ranking": [{"signal": f.signal, "share": f.share, "q": _num(f.q)} for f in found[:6]],
     }
-    return noise, emap, field_, st
+    return noise, emap, field_, st, excluded
+
+
+def _predict(forwards: list[Forward], thetas: list[dict]):
+    """Cable ``i``'s final-model prediction (N,), chain cache freed."""
+
+    def one(i: int) -> np.ndarray:
+        p = forwards[i].predict(thetas[i])
+        forwards[i].clear_cache()
+        return p
+
+    return one
+
+
+def least_squares(prep, forwards, thetas, test, vfw, vvalid) -> dict:
+    """``baseline.least_squares``: the engineer's fits (:mod:`.lsq`) on the diagnosis'
+    training blocks (its fitted samples: past the warm-up, not clipped), scored on its
+    held-out blocks and the validation recording beside the final model."""
+    train = (prep.blocks % 2 == 0)[:, None] & prep.usable
+    validation = None
+    if vfw is not None:
+        validation = ([fw.data for fw in vfw], vvalid, _predict(vfw, thetas))
+    return lsq.block(
+        [fw.data for fw in forwards], train, test, _predict(forwards, thetas), validation
+    )
 
 
 def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnosis:
@@ -296,7 +330,9 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
         if block is not None:
             f["pooling"] = block
     thetas = _subset(outcomes, order)
-    noise, final_loc, unexplained, structure = final_residual(prep, forwards, thetas, located, th)
+    noise, final_loc, unexplained, structure, excluded = final_residual(
+        prep, forwards, thetas, located, th
+    )
     final = {
         "rmse_n": before[0],
         "holdout_rmse_n": before[1],
@@ -307,6 +343,7 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
         final["validation_rmse_before_n"] = _rmses(vfw, [{} for _ in vfw], [vvalid])[0]
         final["validation_rmse_after_n"] = float(before[2] or 0.0)
     baseline = {**located.baseline, **located.fields}
+    baseline["least_squares"] = least_squares(prep, forwards, thetas, test, vfw, vvalid)
     report = {
         "reference": "platform_tension",
         "cables": rec.cables,
@@ -325,6 +362,8 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
     }
     if unexplained is not None:
         report["unexplained"] = unexplained
+    if excluded:
+        report["unexplained_excluded"] = excluded
     return Diagnosis(
         report,
         rec.t,

@@ -14,7 +14,8 @@ bins, interpolated linearly between their centres) is fitted on the training blo
 scored on the held-out ones with the held-out test of :mod:`.stats`; the p-values of every
 signal go through Benjamini-Hochberg. Only a signal significant at the false-discovery
 level is reported, with its share of the held-out residual variance, its curve with
-standard errors, and the closest physical reading in words.
+standard errors, and the closest physical reading in words. An extra column that is a
+cable's reading in disguise (:func:`disguised_readings`) is never searched.
 """
 
 from __future__ import annotations
@@ -258,3 +259,45 @@ def significant(found: list[Structure], fdr: float) -> Structure | None:
         if st.q <= fdr and st.z > 0 and math.isfinite(st.share):
             return st
     return None
+
+
+DISGUISE_R = 0.95
+"""|correlation| with a cable's reading at or above which an extra column is taken for the
+reading itself (the raw motor torque or current logged beside the scaled tension: an affine
+copy of it, bar friction and noise), explaining 90 % or more of its variance."""
+
+
+def disguised_readings(
+    extra: dict[str, np.ndarray], readings: list[np.ndarray], masks: list[np.ndarray]
+) -> list[dict]:
+    """The extra columns that are a cable's reading in disguise: for each, the cable
+    (1-based) it follows most closely, their correlation over that cable's ``masks``
+    samples, and why it may not explain the residual (the residual is the reading minus a
+    prediction: a copy of the reading "explains" it by construction). Non-finite samples are
+    left out of the correlation; a constant column or reading is no copy."""
+    out = []
+    for name, col in extra.items():
+        best, best_r = 0, 0.0
+        for i, (ts, m) in enumerate(zip(readings, masks, strict=True)):
+            ok = m & np.isfinite(col) & np.isfinite(ts)
+            if ok.sum() < 3:
+                continue
+            a, b = col[ok], ts[ok]
+            sa, sb = float(np.std(a)), float(np.std(b))
+            if sa == 0.0 or sb == 0.0:
+                continue
+            r = float(np.mean((a - a.mean()) * (b - b.mean())) / (sa * sb))
+            if abs(r) > abs(best_r):
+                best, best_r = i + 1, r
+        if abs(best_r) >= DISGUISE_R:
+            out.append(
+                {
+                    "column": name,
+                    "cable": best,
+                    "correlation": best_r,
+                    "reason": f"collinear with cable {best}'s reading (correlation "
+                    f"{best_r:.3f}): a scaled or offset copy of the reading explains the "
+                    "residual by construction, not a cause of it",
+                }
+            )
+    return out

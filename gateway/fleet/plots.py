@@ -45,9 +45,9 @@ def _parameters(rows: list[dict[str, Any]]) -> list[tuple[str, str]]:
 
 
 def _param_names(row: dict[str, Any]) -> set[str]:
-    from gateway.fleet.table import FIXED, RMSE
+    from gateway.fleet.table import FIXED, RECORDING, RMSE
 
-    return set(row) - set(FIXED) - set(RMSE) - {"baseline_rmse_n", "final_rmse_n"}
+    return set(row) - set(FIXED) - set(RMSE) - set(RECORDING)
 
 
 def write_plots(rows: list[dict[str, Any]], out: Path) -> list[Path]:

@@ -8,7 +8,10 @@ finding's place in the report, 1 = most important; 0 without finding), ``cable``
 platform, or no finding), then per parameter name of any finding the value and
 ``NAME_stderr`` (empty where the effect has no such parameter), ``rmse_before_n``,
 ``rmse_after_n``, ``holdout_rmse_before_n``, ``holdout_rmse_after_n`` (the finding's,
-cumulative as in the report), ``baseline_rmse_n`` and ``final_rmse_n`` (the recording's).
+cumulative as in the report), ``baseline_rmse_n`` and ``final_rmse_n`` (the recording's),
+``final_holdout_rmse_n`` and ``lsq_holdout_rmse_n`` (the held-out RMSE of the final model
+and of the better of the engineer's least-squares baselines, ``baseline.least_squares``;
+empty where the report has none, e.g. the wrench reference).
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ FIXED = [
     "cable",
 ]
 RMSE = ["rmse_before_n", "rmse_after_n", "holdout_rmse_before_n", "holdout_rmse_after_n"]
+RECORDING = ["baseline_rmse_n", "final_rmse_n", "final_holdout_rmse_n", "lsq_holdout_rmse_n"]
+"""The recording's RMSE columns (the same on each of its rows)."""
 TEXT = {"recording", "report", "robot", "start", "status", "error", "reference", "effect"}
 INTEGER = {"samples", "rank", "cable"}
 
@@ -64,6 +69,12 @@ def _finding_rows(base: dict[str, Any], rank: int, finding: dict[str, Any]) -> l
     return rows
 
 
+def _lsq_holdout(rep: dict[str, Any]) -> float:
+    """The better least-squares baseline's held-out RMSE (N), or NaN without the block."""
+    fits = rep["baseline"].get("least_squares", {}).get("fits", {})
+    return min((float(f["holdout_rmse_n"]) for f in fits.values()), default=math.nan)
+
+
 def table_rows(results: list[tuple[TaskResult, str]]) -> list[dict[str, Any]]:
     """Rows of the table from (result, report file name) pairs, in the order given."""
     rows: list[dict[str, Any]] = []
@@ -85,6 +96,8 @@ def table_rows(results: list[tuple[TaskResult, str]]) -> list[dict[str, Any]]:
             samples=int(rep.get("samples", 0)),
             baseline_rmse_n=float(rep["baseline"]["rmse_n"]),
             final_rmse_n=float(rep["final"]["rmse_n"]),
+            final_holdout_rmse_n=float(rep["final"].get("holdout_rmse_n", math.nan)),
+            lsq_holdout_rmse_n=_lsq_holdout(rep),
         )
         findings = rep.get("findings", [])
         if not findings:
@@ -95,13 +108,11 @@ def table_rows(results: list[tuple[TaskResult, str]]) -> list[dict[str, Any]]:
 
 
 def columns_of(rows: list[dict[str, Any]]) -> list[str]:
-    params = sorted(
-        {k for r in rows for k in r} - set(FIXED) - set(RMSE) - {"baseline_rmse_n", "final_rmse_n"}
-    )
+    params = sorted({k for r in rows for k in r} - set(FIXED) - set(RMSE) - set(RECORDING))
     values = [p for p in params if not p.endswith("_stderr")]
     ordered = [c for p in values for c in (p, f"{p}_stderr") if c in params]
     ordered += [p for p in params if p not in ordered]
-    return FIXED + ordered + RMSE + ["baseline_rmse_n", "final_rmse_n"]
+    return FIXED + ordered + RMSE + RECORDING
 
 
 def write_table(rows: list[dict[str, Any]], out: Path) -> tuple[Path, Path]:

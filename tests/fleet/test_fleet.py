@@ -18,7 +18,7 @@ import pytest
 from gateway.cli import main
 from gateway.errors import GatewayError
 from gateway.fleet.cli import expand
-from gateway.fleet.table import table_rows
+from gateway.fleet.table import RECORDING, columns_of, table_rows
 from gateway.fleet.task import TaskResult
 from tests.dask_helpers import dask_cluster
 
@@ -104,6 +104,9 @@ def check_fleet_output(out: Path, recs: list[Path], singles: dict[str, bytes]) -
                 assert r[name] == values[k] and r[f"{name}_stderr"] == f["stderr"][name][k]
             assert r["rmse_after_n"] == f["rmse_after_n"]
             assert r["baseline_rmse_n"] == report["baseline"]["rmse_n"]
+            fits = report["baseline"]["least_squares"]["fits"].values()
+            assert r["lsq_holdout_rmse_n"] == min(f["holdout_rmse_n"] for f in fits)
+            assert r["final_holdout_rmse_n"] == report["final"]["holdout_rmse_n"]
     robots = {r["robot"] for rows in by_rec.values() for r in rows}
     assert robots == {f"r-{e}" for e in HIDDEN}
     hive = next(rows for rec, rows in by_rec.items() if "robot=r-offset" in rec)
@@ -219,7 +222,8 @@ def test_the_table_has_a_row_per_finding_and_cable_and_keeps_the_rest() -> None:
             },
         ],
     }
-    none = {**report, "findings": []}
+    lsq = {"fits": {"coulomb_viscous": {"holdout_rmse_n": 1.7}, "dahl": {"holdout_rmse_n": 1.1}}}
+    none = {**report, "findings": [], "baseline": {"rmse_n": 2.0, "least_squares": lsq}}
     res = [
         TaskResult("a", "r", "2026", json.dumps(report), None, 1.0, "w", 1.0),
         TaskResult("b", "r", "2026", json.dumps(none), None, 1.0, "w", 1.0),
@@ -236,6 +240,9 @@ def test_the_table_has_a_row_per_finding_and_cable_and_keeps_the_rest() -> None:
     assert rows[1]["c_n"] == -2.0 and rows[1]["c_n_stderr"] == 0.2
     assert rows[2]["q_kg_s"] == 0.02 and math.isnan(rows[2].get("c_n", math.nan))
     assert rows[4]["status"] == "failed" and rows[4]["error"] == "c: broken"
+    # the better least-squares baseline's held-out RMSE, NaN without the block
+    assert rows[3]["lsq_holdout_rmse_n"] == 1.1 and math.isnan(rows[0]["lsq_holdout_rmse_n"])
+    assert columns_of(rows)[-4:] == RECORDING  # recording columns last, not parameters
 
 
 def test_dask_log_lines_go_to_the_file_and_only_warnings_to_the_terminal_while_running(
