@@ -183,7 +183,7 @@ def _cols(path: Path) -> dict[str, np.ndarray]:
 
 def _design(cols: dict[str, np.ndarray], i: int) -> tuple[np.ndarray, np.ndarray]:
     v, tp = cols[f"velocity_{i}"], cols[f"tension_platform_{i}"]
-    s = np.where(np.abs(v) > 1e-3, np.sign(v), 0.0)
+    s = np.sign(v)  # the setpoint speed is exactly 0 at rest
     lo, li = rl.lambdas(rl.Machine())  # the datasheet loss the nominal states
     nominal = tp - np.where(s > 0, lo, li) * s * tp
     y = cols[f"tension_sensor_{i}"] - nominal
