@@ -80,6 +80,9 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         )
 
 
+RECORDING_SUFFIXES = (".csv", ".csv.gz", ".parquet")
+
+
 def run_command(command: str, args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if command == "record":
@@ -109,6 +112,12 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
     if not args.seconds > 0:
         raise ConfigError("--seconds must be > 0")
     out = output_path(args.out, "--out")  # before the simulation, not after it
+    if not out.name.endswith(RECORDING_SUFFIXES):
+        raise ConfigError(
+            f"--out {out}: not a recording format (the name must end in "
+            + ", ".join(RECORDING_SUFFIXES)
+            + ")"
+        )
     sim = load_sim_config(cfg)
     if getattr(args, "seed", None) is not None:
         traj = sim.trajectory
