@@ -91,18 +91,29 @@ def run_command(command: str, args: argparse.Namespace) -> int:
 
 
 class _ProgressBar:
-    def __init__(self, label: str, quiet: bool = False) -> None:
+    """``LABEL: WHAT: NN % (X of Y s), ~Z s left``: a line rewritten on a terminal, a line
+    every 10 % in a log; the first at 0 %, before any work."""
+
+    def __init__(self, label: str, quiet: bool = False, what: str = "", total_s: float = 0.0):
         self.label, self.quiet, self.last = label, quiet, -1
+        self.what, self.total_s = what, total_s
+        self.t0 = time.monotonic()
 
     def __call__(self, fraction: float) -> None:
         pct = int(fraction * 100)
         if not self.quiet and pct != self.last:
             self.last = pct
+            text = f"{self.label}: " + (f"{self.what}: " if self.what else "") + f"{pct:3d} %"
+            if self.total_s:
+                text += f" ({fraction * self.total_s:.0f} of {self.total_s:g} s)"
+            took = time.monotonic() - self.t0
+            if 0 < fraction < 1:
+                text += f", ~{took * (1 - fraction) / fraction:.0f} s left"
             if sys.stderr.isatty():  # one line, rewritten
                 end = "\n" if pct >= 100 else ""
-                print(f"\r{self.label}: {pct:3d} %", end=end, file=sys.stderr, flush=True)
+                print(f"\r{text}\033[K", end=end, file=sys.stderr, flush=True)
             elif pct % 10 == 0:  # a log file gets a line every 10 %
-                print(f"{self.label}: {pct:3d} %", file=sys.stderr, flush=True)
+                print(text, file=sys.stderr, flush=True)
 
 
 def _record(cfg: Config, args: argparse.Namespace) -> int:
@@ -127,7 +138,9 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
         )
     t0 = time.perf_counter()
     started = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
-    rec = make_recording(cfg, sim, args.seconds, _ProgressBar("record", args.quiet))
+    bar = _ProgressBar("record", args.quiet, "simulating the plant", args.seconds)
+    bar(0.0)  # labelled from the start, before the first step
+    rec = make_recording(cfg, sim, args.seconds, bar)
     robot = args.robot or (Path(cfg.source).stem if cfg.source else "sim")
     write_recording(out, rec, {"robot": robot, "started": started})
     if not args.quiet:
