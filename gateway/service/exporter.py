@@ -52,13 +52,16 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, Metric
 
-from gateway.core.config import MetricsConfig
 from gateway.errors import ConfigError, TemporaryError
 from gateway.runtime import realtime
+
+if TYPE_CHECKING:  # the exporter process never imports the config (and its model: numba)
+    from gateway.core.config import MetricsConfig
 
 log = logging.getLogger("cdpr_gateway.exporter")
 
