@@ -1,7 +1,9 @@
 """The bounded HTTP(S) exporter of the metrics: one selector thread, a fixed connection cap.
 
-The gateway's 1 ms cycle shares the process (and its fd limit) with this server, so the
-server is built to cost a known, small amount whatever the clients do:
+It runs in a process of its own (:mod:`gateway.service.exporter_proc`, fed by the loop
+through shared memory), never in the loop's: a scrape flood in the loop's process held
+its GIL (issue 30). It is still built to cost a known, small amount whatever the clients
+do, as it shares the machine with the 1 ms cycle:
 
 * **one thread** (``metrics-http``) serves every connection with non-blocking sockets and a
   selector; no thread per client;

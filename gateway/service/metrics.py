@@ -1,8 +1,11 @@
-"""Prometheus metrics, read from the loop's statistics at scrape time (the README's metrics table).
+"""Prometheus metrics, read from the loop's statistics through shared memory (the README's
+metrics table).
 
-:class:`GatewayCollector` is a custom collector (prometheus_client): it allocates nothing
-in the loop; each scrape turns :class:`gateway.runtime.loop.LoopStats`, the compensator's arrays
-and the driver's state into exactly these families:
+:class:`GatewayCollector` is a custom collector (prometheus_client). The loop publishes
+:class:`gateway.runtime.loop.LoopStats`, the compensator's arrays and the driver's state
+into a seqlock block (:mod:`gateway.service.metrics_shm`, at most every 50 ms, no lock, no
+allocation); each collection, in the exporter's own process, turns one consistent snapshot
+of it into exactly these families:
 
 ========================================  =========  ===============  ==========================
 name                                      type       labels           source
@@ -29,8 +32,9 @@ cdpr_gateway_sample_age_seconds           gauge                       since the 
 ``cdpr_gateway_state`` is the wire code the PLC reads: 0 stopped, 1 connected (not yet
 writing), 2 active, 3 fault. The two ages are NaN until the first reading.
 
-Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`;
-``MetricsServer`` is re-exported here for the daemon.
+Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`, in
+the process :mod:`gateway.service.exporter_proc` starts; ``process_*`` are the gateway's
+process (read from /proc/PID). ``MetricsServer`` is re-exported here.
 
 Cables are labelled 1..m. The tension and friction gauges of a channel whose status is 2
 (invalid; every channel during a PLC heartbeat fault) are NaN, never its last good value:
