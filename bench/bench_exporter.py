@@ -1,9 +1,17 @@
-"""The metrics exporter under hostile scrapers: fds, threads, latency, overruns.
+"""The metrics exporter under hostile scrapers: fds, threads, latency, overruns, gaps.
 
-``python -m bench exporter``. The gateway daemon (``cdpr-gateway run``) runs as a child
-process at 1 kHz against the soft PLC (``cdpr-gateway sim-plc``, another child) on
+``python -m bench exporter``. The gateway daemon (``cdpr-gateway run --record``) runs as a
+child process at 1 kHz against the soft PLC (``cdpr-gateway sim-plc``, another child) on
 loopback, with the fd limit a systemd service gets by default (``RLIMIT_NOFILE`` 1024).
 Then, against its metrics port:
+
+0. **storm** (issue 30): ``BENCH_STORM_S`` (20) s quiet, then as long with
+   ``BENCH_STORM_CLIENTS`` (32) keep-alive clients scraping ``/metrics`` flat out (each
+   request with a 5 s timeout, every client ended at the window's end); side by side: the
+   overruns of each window (from the gateway's counters), the longest gap between two
+   writes and the gaps over 5 and 10 ms (from the recording's ``t``: one row per written
+   cycle, on the loop's clock), scrapes served per second and the CPU seconds of the
+   gateway's and the exporter's process (/proc) in each window;
 
 1. **idle**: ``BENCH_IDLE`` (300) TCP clients connect and send nothing for
    ``BENCH_IDLE_HOLD_S`` (6 s); printed: the daemon's peak threads and open fds (from
@@ -12,12 +20,21 @@ Then, against its metrics port:
    timeout); printed: latency p50 / p99 / max, failures, and the overrun ratio of the
    cycle during the burst window against a quiet window of the same length.
 
+The soft PLC runs SCHED_FIFO ``BENCH_PLC_FIFO`` (40, below the gateway's 50; 0: as
+started) where permitted: it stands for a PLC of its own, which no scraper on the gateway's
+host can slow; at SCHED_OTHER on a loaded host its replies are what the storm delays.
 ``BENCH_EXPORTER_SRC`` runs the children from another source tree (e.g. an unpacked older
-commit, for a before/after comparison). Figures only: nothing here asserts.
+commit, for a before/after comparison). ``BENCH_EXPORTER_SERVERS=1`` adds the server
+comparison: the exporter process's registry (over a published metrics block) served by the
+project's :class:`MetricsServer` and by prometheus_client's ``start_http_server``, each in a
+process of its own under the same storm for ``BENCH_STORM_S`` s: scrapes/s and server CPU.
+Figures only: nothing here asserts.
 """
 
 from __future__ import annotations
 
+import contextlib
+import http.client
 import os
 import re
 import resource
@@ -45,11 +62,14 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _child(src: Path, args: list[str]) -> subprocess.Popen[str]:
+def _child(src: Path, args: list[str], fifo: int = 0) -> subprocess.Popen[str]:
     env = {**os.environ, "PYTHONPATH": str(src), "PYTHONUNBUFFERED": "1"}
 
     def limit() -> None:
         resource.setrlimit(resource.RLIMIT_NOFILE, (FD_LIMIT, FD_LIMIT))
+        if fifo:  # where permitted; else the child runs as started
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
 
     return subprocess.Popen(
         [sys.executable, "-m", "gateway.cli", *args],
@@ -86,9 +106,12 @@ def _cycles_overruns(port: int) -> tuple[float, float]:
     )
 
 
-def _start(src: Path, tmp: Path) -> tuple[subprocess.Popen[str], subprocess.Popen[str], int]:
+def _start(
+    src: Path, tmp: Path, record: Path | None = None
+) -> tuple[subprocess.Popen[str], subprocess.Popen[str], int]:
     base = src / "config" / "default.yaml"
-    plc = _child(src, ["sim-plc", "--config", str(base), "--port", "0"])
+    fifo = int(os.environ.get("BENCH_PLC_FIFO", "40"))
+    plc = _child(src, ["sim-plc", "--config", str(base), "--port", "0"], fifo)
     assert plc.stdout is not None
     line = plc.stdout.readline()
     host, port = line.rsplit(" on ", 1)[1].strip().rsplit(":", 1)
@@ -98,7 +121,8 @@ def _start(src: Path, tmp: Path) -> tuple[subprocess.Popen[str], subprocess.Pope
     data["metrics"] = {"host": "127.0.0.1", "port": metrics_port}
     cfg = tmp / "gateway.yaml"
     cfg.write_text(yaml.safe_dump(data))
-    gw = _child(src, ["run", "--config", str(cfg)])
+    extra = ["--record", str(record)] if record is not None else []
+    gw = _child(src, ["run", "--config", str(cfg), *extra])
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
@@ -183,13 +207,195 @@ def _burst_phase(port: int, count: int) -> None:
     )
 
 
+def _storm(port: int, clients: int, seconds: float) -> tuple[int, int]:
+    """``clients`` keep-alive clients scraping flat out for ``seconds``: (served, failed)."""
+    served, failed = [0] * clients, [0] * clients
+    end = time.monotonic() + seconds
+
+    def client(i: int) -> None:
+        conn: http.client.HTTPConnection | None = None
+        while time.monotonic() < end:
+            try:
+                if conn is None:
+                    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5.0)
+                conn.request("GET", "/metrics")
+                response = conn.getresponse()
+                response.read()
+                served[i] += response.status == 200
+                if response.will_close:
+                    conn.close()
+                    conn = None
+            except (OSError, http.client.HTTPException):
+                failed[i] += 1
+                if conn is not None:
+                    conn.close()
+                conn = None
+        if conn is not None:
+            conn.close()
+
+    workers = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join(timeout=seconds + 30)
+    return sum(served), sum(failed)
+
+
+def _cpu_s(pid: int | None) -> float:
+    """utime + stime of a process (and its reaped children: none here), in s."""
+    if pid is None:
+        return float("nan")
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return float("nan")
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _exporter_pid(pid: int) -> int | None:
+    """The gateway's exporter process, if it has one (before issue 30 it had none)."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for child in (task / "children").read_text().split():
+            if b"exporter_proc" in Path(f"/proc/{child}/cmdline").read_bytes():
+                return int(child)
+    return None
+
+
+def _gaps(t: np.ndarray, lo: float, hi: float) -> tuple[float, int, int]:
+    """(longest gap in ms, gaps over 5 ms, over 10 ms) between rows with lo <= t <= hi."""
+    d = np.diff(t[(t >= lo) & (t <= hi)]) * 1e3
+    if d.size == 0:
+        return float("nan"), 0, 0
+    return float(d.max()), int((d > 5).sum()), int((d > 10).sum())
+
+
+def _storm_phase(gw: subprocess.Popen[str], port: int, clients: int, seconds: float) -> list[float]:
+    """Quiet window, then the storm; prints overruns, scrapes and CPU; returns the window
+    bounds (time.monotonic()) for the recording's gaps."""
+    exporter = _exporter_pid(gw.pid)
+    marks = [time.monotonic()]
+    c0, o0 = _cycles_overruns(port)
+    cpu0 = (_cpu_s(gw.pid), _cpu_s(exporter))
+    time.sleep(seconds)
+    marks.append(time.monotonic())
+    c1, o1 = _cycles_overruns(port)
+    cpu1 = (_cpu_s(gw.pid), _cpu_s(exporter))
+    served, failed = _storm(port, clients, seconds)
+    marks.append(time.monotonic())
+    c2, o2 = _cycles_overruns(port)
+    cpu2 = (_cpu_s(gw.pid), _cpu_s(exporter))
+    quiet = 100 * (o1 - o0) / max(c1 - c0, 1)
+    storm = 100 * (o2 - o1) / max(c2 - c1, 1)
+    print(
+        f"   storm x{clients} for {seconds:.0f} s: {served} scrapes served "
+        f"({served / (marks[2] - marks[1]):.0f}/s), {failed} failed"
+    )
+    print(
+        f"   overruns: quiet {quiet:.3f} % of {c1 - c0:.0f} cycles, storm {storm:.3f} % of "
+        f"{c2 - c1:.0f} cycles: {storm - quiet:+.3f} percentage points"
+    )
+    print(
+        f"   CPU s (gateway / exporter process): quiet {cpu1[0] - cpu0[0]:.2f} / "
+        f"{cpu1[1] - cpu0[1]:.2f}, storm {cpu2[0] - cpu1[0]:.2f} / {cpu2[1] - cpu1[1]:.2f}"
+        + ("" if exporter else " (no exporter process: it serves from the gateway's)")
+    )
+    return marks
+
+
+def _storm_gaps(record: Path, stopped_at: float, marks: list[float]) -> None:
+    """The recording's ``t`` on the bench's clock: the last row was written just before
+    the stop (both clocks are CLOCK_MONOTONIC; the loop ends within a cycle of SIGTERM)."""
+    with record.open() as fh:
+        rows = [line for line in fh if not line.startswith("#")][1:]  # the header first
+    t = np.array([float(line.split(",", 1)[0]) for line in rows])
+    t0 = stopped_at - t[-1]
+    windows = {"quiet": (marks[0], marks[1]), "storm": (marks[1], marks[2])}
+    parts = []
+    for name, (lo, hi) in windows.items():
+        longest, over5, over10 = _gaps(t, lo - t0 + 0.1, hi - t0 - 0.1)
+        parts.append(f"{name} {longest:.2f} ms ({over5} over 5 ms, {over10} over 10 ms)")
+    print("   longest gap between writes: " + "; ".join(parts))
+
+
+SERVE = """
+import sys, time
+from prometheus_client import start_http_server
+from gateway.core.config import load_config
+from gateway.runtime.loop import CyclicService
+from gateway.service.daemon import build_driver
+from gateway.service.metrics import exporter_registry
+from gateway.service.metrics_shm import MetricsBlock
+from gateway.service.exporter import MetricsServer
+from gateway.core.config import MetricsConfig
+cfg = load_config(sys.argv[2])
+svc = CyclicService(cfg, build_driver(cfg))
+block = MetricsBlock(cfg.cables, len(svc.driver.GATE_REASONS), fd=-1).attach(svc)
+block.publish()
+registry = exporter_registry(block, "modbus_tcp", svc.driver.GATE_REASONS, 1)
+port = int(sys.argv[3])
+if sys.argv[1] == "prometheus_client":
+    start_http_server(port, "127.0.0.1", registry=registry)
+else:
+    MetricsServer(MetricsConfig(host="127.0.0.1", port=port), registry)
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def _servers_phase(src: Path, clients: int, seconds: float) -> None:
+    """Decision input: the same registry, two servers, each in its own process, one storm."""
+    cfg = src / "config" / "default.yaml"
+    for server in ("MetricsServer", "prometheus_client"):
+        port = _free_port()
+        env = {**os.environ, "PYTHONPATH": str(src)}
+        proc = subprocess.Popen(
+            [sys.executable, "-c", SERVE, server, str(cfg), str(port)],
+            cwd=src,
+            env=env,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert proc.stdout is not None
+            proc.stdout.readline()
+            cpu0, start = _cpu_s(proc.pid), time.monotonic()
+            served, failed = _storm(port, clients, seconds)
+            cpu, wall = _cpu_s(proc.pid) - cpu0, time.monotonic() - start
+            threads = len(os.listdir(f"/proc/{proc.pid}/task"))
+            print(
+                f"   server {server}: {served / wall:.0f} scrapes/s ({failed} failed), "
+                f"CPU {cpu:.2f} s in {wall:.1f} s ({1e3 * cpu / max(served, 1):.3f} ms a "
+                f"scrape), {threads} threads after"
+            )
+        finally:
+            assert proc.stdin is not None and proc.stdout is not None
+            proc.stdin.close()
+            stop_process(proc)
+            proc.stdout.close()
+
+
 def run() -> None:
     src = Path(os.environ.get("BENCH_EXPORTER_SRC", ROOT)).resolve()
     idle = int(os.environ.get("BENCH_IDLE", "300"))
     hold = float(os.environ.get("BENCH_IDLE_HOLD_S", "6"))
     scrapes = int(os.environ.get("BENCH_SCRAPES", "200"))
+    clients = int(os.environ.get("BENCH_STORM_CLIENTS", "32"))
+    storm_s = float(os.environ.get("BENCH_STORM_S", "20"))
     print(f"   source {src}; daemon RLIMIT_NOFILE {FD_LIMIT}")
     with tempfile.TemporaryDirectory() as tmp:
+        record = Path(tmp) / "run.csv"
+        plc, gw, port = _start(src, Path(tmp), record)
+        try:
+            time.sleep(1.0)
+            marks = _storm_phase(gw, port, clients, storm_s)
+            stopped_at = time.monotonic()
+            gw.terminate()
+            gw.wait(timeout=30)
+            _storm_gaps(record, stopped_at, marks)
+        finally:
+            for proc in (gw, plc):
+                stop_process(proc)
         plc, gw, port = _start(src, Path(tmp))
         try:
             _idle_phase(gw.pid, port, idle, hold)
@@ -199,6 +405,8 @@ def run() -> None:
         finally:
             for proc in (gw, plc):
                 stop_process(proc)
+    if os.environ.get("BENCH_EXPORTER_SERVERS") == "1":
+        _servers_phase(src, clients, storm_s)
 
 
 if __name__ == "__main__":

@@ -166,6 +166,7 @@ class CyclicService:
         self._configured = False
         self._reporter = _Reporter(self)
         self.recorder: Any = None  # recording hook: a gateway.service.recorder.Recorder, set by run
+        self.metrics: Any = None  # metrics hook: a gateway.service.metrics_shm.MetricsBlock
 
     @property
     def paced(self) -> bool:
@@ -231,6 +232,8 @@ class CyclicService:
             stats.cycles += 1
             done += 1
             self._reporter.report(end)
+            if self.metrics is not None:  # into shared memory at most every 50 ms, no lock
+                self.metrics.publish_due(end)
 
     # --- one cycle ----------------------------------------------------------------------
     def _cycle(self, now: float) -> bool:

@@ -56,6 +56,8 @@ if TYPE_CHECKING:
     from drivers.base import Driver
     from gateway.runtime.loop import CyclicService
     from gateway.runtime.realtime import RealtimeReport
+    from gateway.service.exporter_proc import ExporterProcess
+    from gateway.service.metrics_shm import MetricsBlock
     from gateway.service.recorder import Recorder
 
 log = logging.getLogger("cdpr_gateway")
@@ -194,7 +196,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     from gateway.runtime import realtime
     from gateway.runtime.loop import CyclicService
     from gateway.runtime.sdnotify import Notifier
-    from gateway.service.metrics import MetricsServer, make_registry
+    from gateway.service.exporter_proc import ExporterProcess
+    from gateway.service.metrics_shm import MetricsBlock
 
     cfg = load_config(args.config)
     for line in banner(cfg):
@@ -203,11 +206,28 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         log.warning("%s", line)
     notifier = Notifier.from_env()
     service = CyclicService(cfg, build_driver(cfg), notifier=notifier)
-    server = None
-    if cfg.metrics.enabled:
-        server = MetricsServer(cfg.metrics, make_registry(service), cfg.source)
-        log.info("metrics on http://%s:%d/metrics", server.host, server.port)
-        exposed = exposure_warning("metrics.host", server.host, server.port, cfg.source)
+    server: ExporterProcess | None = None
+    block: MetricsBlock | None = None
+    if cfg.metrics.enabled:  # served by a process of its own (gateway/service/exporter_proc.py)
+        block = MetricsBlock(cfg.cables, len(service.driver.GATE_REASONS)).attach(service)
+        block.publish()  # something to serve before the loop's first publication
+        server = ExporterProcess(
+            cfg.metrics,
+            block,
+            bus=cfg.bus.driver,
+            gate_reasons=service.driver.GATE_REASONS,
+            source=cfg.source,
+            log_level=args.log_level or "INFO",
+        )
+        try:
+            port = server.start()
+        except BaseException:
+            server.close()
+            block.close()
+            raise
+        service.metrics = block
+        log.info("metrics on http://%s:%d/metrics", cfg.metrics.host, port)
+        exposed = exposure_warning("metrics.host", cfg.metrics.host, port, cfg.source)
         if exposed:
             log.warning("%s", exposed)
     previous = service.install_signal_handlers()
@@ -232,6 +252,9 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             timer.cancel()
         if server is not None:
             server.close()
+        if block is not None:
+            service.metrics = None
+            block.close()
         if notifier is not None:
             notifier.close()
         if service.recorder is not None:

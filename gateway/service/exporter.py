@@ -1,7 +1,9 @@
 """The bounded HTTP(S) exporter of the metrics: one selector thread, a fixed connection cap.
 
-The gateway's 1 ms cycle shares the process (and its fd limit) with this server, so the
-server is built to cost a known, small amount whatever the clients do:
+It runs in a process of its own (:mod:`gateway.service.exporter_proc`, fed by the loop
+through shared memory), never in the loop's: a scrape flood in the loop's process held
+its GIL (issue 30). It is still built to cost a known, small amount whatever the clients
+do, as it shares the machine with the 1 ms cycle:
 
 * **one thread** (``metrics-http``) serves every connection with non-blocking sockets and a
   selector; no thread per client;
@@ -52,13 +54,16 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, Metric
 
-from gateway.core.config import MetricsConfig
 from gateway.errors import ConfigError, TemporaryError
 from gateway.runtime import realtime
+
+if TYPE_CHECKING:  # the exporter process never imports the config (and its model: numba)
+    from gateway.core.config import MetricsConfig
 
 log = logging.getLogger("cdpr_gateway.exporter")
 

@@ -1,8 +1,11 @@
-"""Prometheus metrics, read from the loop's statistics at scrape time (the README's metrics table).
+"""Prometheus metrics, read from the loop's statistics through shared memory (the README's
+metrics table).
 
-:class:`GatewayCollector` is a custom collector (prometheus_client): it allocates nothing
-in the loop; each scrape turns :class:`gateway.runtime.loop.LoopStats`, the compensator's arrays
-and the driver's state into exactly these families:
+:class:`GatewayCollector` is a custom collector (prometheus_client). The loop publishes
+:class:`gateway.runtime.loop.LoopStats`, the compensator's arrays and the driver's state
+into a seqlock block (:mod:`gateway.service.metrics_shm`, at most every 50 ms, no lock, no
+allocation); each collection, in the exporter's own process, turns one consistent snapshot
+of it into exactly these families:
 
 ========================================  =========  ===============  ==========================
 name                                      type       labels           source
@@ -29,8 +32,9 @@ cdpr_gateway_sample_age_seconds           gauge                       since the 
 ``cdpr_gateway_state`` is the wire code the PLC reads: 0 stopped, 1 connected (not yet
 writing), 2 active, 3 fault. The two ages are NaN until the first reading.
 
-Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`;
-``MetricsServer`` is re-exported here for the daemon.
+Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`, in
+the process :mod:`gateway.service.exporter_proc` starts; ``process_*`` are the gateway's
+process (read from /proc/PID). ``MetricsServer`` is re-exported here.
 
 Cables are labelled 1..m. The tension and friction gauges of a channel whose status is 2
 (invalid; every channel during a PLC heartbeat fault) are NaN, never its last good value:
@@ -43,8 +47,8 @@ always present (0 until it happens) so dashboards and alerts see a stable set.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from typing import Any
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from prometheus_client import CollectorRegistry, ProcessCollector
@@ -56,15 +60,20 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 
-from drivers.base import ChannelStatus
 from gateway import __version__
-from gateway.runtime.loop import CyclicService
 from gateway.runtime.stats import Histogram
 from gateway.service.exporter import MetricsServer
+from gateway.service.metrics_shm import MetricsBlock, Snapshot
 
-__all__ = ["GatewayCollector", "MetricsServer", "make_registry"]
+if TYPE_CHECKING:
+    from gateway.runtime.loop import CyclicService
+
+__all__ = ["GatewayCollector", "MetricsServer", "exporter_registry", "make_registry"]
 
 PREFIX = "cdpr_gateway"
+# drivers.base.ChannelStatus.INVALID (a test holds them equal): drivers.base imports numba,
+# which the exporter process has no use for (it would add ~1 s and ~60 MB to its start)
+INVALID = 2
 
 
 def _histogram(name: str, doc: str, hist: Histogram, labels: dict[str, str] | None = None):
@@ -75,32 +84,39 @@ def _histogram(name: str, doc: str, hist: Histogram, labels: dict[str, str] | No
 
 
 class GatewayCollector(Collector):
-    """Yields the metric families of the README's table from a running :class:`CyclicService`."""
+    """Yields the metric families of the README's table from one :class:`Snapshot` per
+    collection (``read``: the exporter process reads the shared block; nothing before the
+    loop's first publication)."""
 
-    def __init__(self, service: CyclicService, bus: str | None = None) -> None:
-        self.service = service
-        self.bus = bus or service.cfg.bus.driver
+    def __init__(
+        self, read: Callable[[], Snapshot | None], bus: str, gate_reasons: tuple[str, ...]
+    ) -> None:
+        self.read = read
+        self.bus = bus
+        self.gate_reasons = gate_reasons
 
     def collect(self) -> Iterator[Metric]:
-        svc, stats, bus = self.service, self.service.stats, self.bus
-        yield _histogram("cycle_seconds", "Duration of read + compensate + write.", stats.cycle)
+        snap = self.read()
+        if snap is None:
+            return
+        bus = self.bus
+        yield _histogram("cycle_seconds", "Duration of read + compensate + write.", snap.cycle)
         yield _histogram(
-            "jitter_seconds", "Lateness of each cycle start against its deadline.", stats.jitter
+            "jitter_seconds", "Lateness of each cycle start against its deadline.", snap.jitter
         )
         yield CounterMetricFamily(
-            f"{PREFIX}_overruns_total", "Cycles that missed their deadline.", stats.overruns
+            f"{PREFIX}_overruns_total", "Cycles that missed their deadline.", snap.overruns
         )
-        recorder = getattr(svc, "recorder", None)  # gateway.service.recorder: samples not recorded
         yield CounterMetricFamily(
             f"{PREFIX}_record_dropped_total",
             "Samples the recorder dropped (its buffer was full or the disk failed).",
-            recorder.dropped if recorder is not None else 0,
+            snap.record_dropped,
         )
         yield _histogram(
-            "bus_roundtrip_seconds", "One fieldbus transaction.", stats.roundtrip, {"bus": bus}
+            "bus_roundtrip_seconds", "One fieldbus transaction.", snap.roundtrip, {"bus": bus}
         )
         errors = CounterMetricFamily(f"{PREFIX}_errors_total", "Errors by kind.", labels=["kind"])
-        for kind, count in stats.errors.items():
+        for kind, count in snap.errors.items():
             errors.add_metric([kind], count)
         yield errors
         gated = CounterMetricFamily(
@@ -108,7 +124,7 @@ class GatewayCollector(Collector):
             "Values the output gate wrote invalid instead of good, by reason.",
             labels=["reason"],
         )
-        for reason, stopped in zip(svc.driver.GATE_REASONS, svc.driver.gated, strict=True):
+        for reason, stopped in zip(self.gate_reasons, snap.gated, strict=True):
             gated.add_metric([reason], float(stopped))
         yield gated
         yield _labelled(
@@ -116,32 +132,31 @@ class GatewayCollector(Collector):
             "reconnects_total",
             "Bus reconnections.",
             "bus",
-            {bus: svc.reconnects},
+            {bus: snap.reconnects},
         )
         yield _labelled(
             GaugeMetricFamily,
             "connected",
             "1 while the bus is up.",
             "bus",
-            {bus: 1.0 if svc.bus_up else 0.0},
+            {bus: 1.0 if snap.bus_up else 0.0},
         )
-        status, invalid = channel_status(svc)
-        comp = svc.comp
+        status, invalid = channel_status(snap.status, snap.heartbeat_fault)
         per_cable = (
             (
                 "tension_raw_newtons",
                 "Scaled sensor reading (NaN while invalid).",
-                np.where(invalid, np.nan, comp.raw_n),
+                np.where(invalid, np.nan, snap.raw_n),
             ),
             (
                 "tension_corrected_newtons",
                 "Compensated platform tension (NaN while invalid).",
-                np.where(invalid, np.nan, comp.corrected_n),
+                np.where(invalid, np.nan, snap.corrected_n),
             ),
             (
                 "friction_newtons",
                 "Estimated friction between sensor and platform (NaN while invalid).",
-                np.where(invalid, np.nan, comp.friction_n),
+                np.where(invalid, np.nan, snap.friction_n),
             ),
             ("channel_status", "0 good, 1 substituted, 2 invalid.", status),
         )
@@ -161,27 +176,27 @@ class GatewayCollector(Collector):
         yield GaugeMetricFamily(
             f"{PREFIX}_state",
             "Lifecycle as the PLC sees it: 0 stopped, 1 connected, 2 active, 3 fault.",
-            float(int(svc.state)),
+            float(snap.state),
         )
         yield GaugeMetricFamily(
             f"{PREFIX}_plc_heartbeat_age_seconds",
             "Seconds since the PLC heartbeat last changed (NaN before the first reading).",
-            svc.plc_heartbeat_age_s(),
+            snap.plc_heartbeat_age_s,
         )
         yield GaugeMetricFamily(
             f"{PREFIX}_sample_age_seconds",
             "Seconds since the last successful read from the PLC (NaN before the first).",
-            svc.sample_age_s(),
+            snap.sample_age_s,
         )
 
 
-def channel_status(svc: CyclicService) -> tuple[np.ndarray, np.ndarray]:
+def channel_status(status: np.ndarray, heartbeat_fault: bool) -> tuple[np.ndarray, np.ndarray]:
     """(status per cable as the PLC was last told it, True where invalid). A heartbeat
     fault invalidates every channel (the fault frame), whatever the readings were."""
-    status = np.asarray(svc.comp.status, dtype=float).copy()
-    if svc.heartbeat_fault:
-        status[:] = int(ChannelStatus.INVALID)
-    return status, status == int(ChannelStatus.INVALID)
+    status = np.asarray(status, dtype=float).copy()
+    if heartbeat_fault:
+        status[:] = INVALID
+    return status, status == INVALID
 
 
 def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, float]) -> Metric:
@@ -192,10 +207,32 @@ def _labelled(kind: Any, name: str, doc: str, label: str, values: dict[str, floa
 
 
 def make_registry(service: CyclicService, bus: str | None = None) -> CollectorRegistry:
-    """A fresh registry holding the gateway collector and prometheus_client's process
-    collector (``process_resident_memory_bytes``, ``process_cpu_seconds_total``,
-    ``process_open_fds``, ...: read from /proc at scrape time, nothing in the cycle)."""
+    """An in-process registry of ``service`` (tests, tools): each collection publishes the
+    service into a private block and reads it back, the very path the exporter process
+    reads; with prometheus_client's process collector (``process_resident_memory_bytes``,
+    ``process_cpu_seconds_total``, ``process_open_fds``, ...: this process, from /proc)."""
+    block = MetricsBlock(service.cfg.cables, len(service.driver.GATE_REASONS), fd=-1)
+    block.attach(service)
+
+    def read() -> Snapshot | None:
+        block.publish()
+        return block.snapshot()
+
     registry = CollectorRegistry()
-    registry.register(GatewayCollector(service, bus))
+    registry.register(
+        GatewayCollector(read, bus or service.cfg.bus.driver, service.driver.GATE_REASONS)
+    )
     ProcessCollector(registry=registry)
+    return registry
+
+
+def exporter_registry(
+    block: MetricsBlock, bus: str, gate_reasons: tuple[str, ...], pid: int
+) -> CollectorRegistry:
+    """The exporter process's registry: the gateway collector over the shared block, and
+    the process collector of the gateway's process ``pid`` (read from /proc/PID), so
+    ``process_*`` keeps meaning the gateway, not the exporter."""
+    registry = CollectorRegistry()
+    registry.register(GatewayCollector(block.snapshot, bus, gate_reasons))
+    ProcessCollector(pid=lambda: pid, registry=registry)
     return registry
