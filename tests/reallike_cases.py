@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from sim_plc import sealing
-from sim_plc.suitedoc import replace_section
+from evaluation import sealing
+from evaluation.suitedoc import replace_section
 from tests import reallike as rl
 
 SEALED_FILE = Path(__file__).with_name("reallike_sealed.yaml")

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim_plc import sealing
+from evaluation import sealing
 from tests import reallike as rl
 from tests import reallike_cases as rc
 
