@@ -138,11 +138,13 @@ def test_fault_flagged_counted_recovered(
     ("kind", "params", "good"),
     [
         ("split", {"pieces": 3, "pause_s": 0.0005}, True),
-        # below the 50 ms timeout, but above the data's age limit (2 periods): the output
-        # gate writes those values invalid (reason "age"), and good ones come back after
-        ("delay", {"seconds": 0.005, "direction": "reply"}, False),
+        # below the data's age limit (loop.stale_after_s, 10 ms): late, not stale, good
+        ("delay", {"seconds": 0.005, "direction": "reply"}, True),
+        # below the 50 ms timeout, but above the age limit: the output gate writes those
+        # values invalid (reason "age"), and good ones come back after
+        ("delay", {"seconds": 0.015, "direction": "reply"}, False),
     ],
-    ids=["split", "short-delay"],
+    ids=["split", "short-delay", "long-delay"],
 )
 def test_tolerated_fault_keeps_values_good(
     rig: GatewayRig, kind: str, params: dict[str, Any], good: bool
