@@ -169,7 +169,9 @@ def _run(
             ] = i
         # with_results: each result is fetched as its task ends, never left on a worker
         # that a later task may take down with it
-        finished = distributed.as_completed(futures, with_results=True, raise_errors=False)
+        finished = distributed.as_completed(
+            futures, loop=client.loop, with_results=True, raise_errors=False
+        )
         for future, value in finished:
             i = futures[future]
             results[i] = value if isinstance(value, TaskResult) else _result(future, recordings[i])
