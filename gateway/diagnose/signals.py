@@ -107,6 +107,8 @@ def bin_fit(s: np.ndarray, r: np.ndarray, bins: int = BINS):
     which = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, edges.size - 2)
     n = np.bincount(which, minlength=edges.size - 1).astype(float)
     keep = n > 1
+    if not keep.any():  # too few samples for one bin of two: nothing to fit
+        return None
     sx = np.bincount(which, s, minlength=edges.size - 1)
     sr = np.bincount(which, r, minlength=edges.size - 1)
     sr2 = np.bincount(which, r * r, minlength=edges.size - 1)

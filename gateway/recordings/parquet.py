@@ -264,6 +264,11 @@ def _open(path: Path) -> pq.ParquetFile:
         )
     except (pa.ArrowException, OSError) as exc:
         raise RecordingError(f"{path}: not a readable Parquet file: {_one_line(exc)}") from exc
+    except UnicodeDecodeError as exc:  # pyarrow decodes the schema's names as it opens
+        raise RecordingError(
+            f"{path}: not a readable Parquet file: text in its footer is not UTF-8 "
+            f"(byte {exc.object[exc.start : exc.start + 1]!r})"
+        ) from exc
 
 
 def parquet_metadata(path: Path, pf: pq.ParquetFile, max_items: int, max_chars: int):

@@ -524,6 +524,18 @@ def _read_parquet(
     """A Parquet recording (:mod:`gateway.recordings.parquet`, imported only here: the
     gateway's cycle process never loads pyarrow): the same layout rules, checks and limits
     as a CSV, the schema standing for the header and rows numbered from 1."""
+    try:
+        return _read_parquet_text_checked(path, min_samples, max_samples, first_row_only)
+    except UnicodeDecodeError as exc:  # pyarrow decodes names, paths and metadata lazily
+        raise RecordingError(
+            f"{path}: not a readable Parquet file: text in its footer is not UTF-8 "
+            f"(byte {exc.object[exc.start : exc.start + 1]!r})"
+        ) from exc
+
+
+def _read_parquet_text_checked(
+    path: Path, min_samples: int, max_samples: int, first_row_only: Collection[str]
+) -> Recording:
     from gateway.recordings import parquet
 
     pf, names = parquet.open_checked(path, MAX_COLUMNS)
