@@ -49,7 +49,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "warmup": ("sim_plc.warmup", "compile the numba kernels ahead (the first run does otherwise)"),
     "export": ("gateway.recordings.export", "write a recording as MCAP (Foxglove, PlotJuggler)"),
     "fleet": ("gateway.fleet.cli", "diagnose many recordings on dask.distributed, one table"),
-    "top": ("gateway.service.top", "a live view of a running gateway from its metrics endpoint; q or Ctrl-C quits"),
+    "top": ("gateway.service.top", "a live view of a running gateway, from its metrics (q quits)"),
 }
 
 

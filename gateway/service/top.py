@@ -428,14 +428,14 @@ class Screen:
     def __init__(self, out: TextIO, keys: TextIO | None) -> None:
         self.out = out
         self.key_fd = keys.fileno() if keys is not None and keys.isatty() else None
-        self.saved: list | None = None
+        self.saved: tuple[int, list] | None = None  # the keys' descriptor and its modes
 
     def __enter__(self) -> Screen:
         if self.key_fd is not None:
             import termios
             import tty
 
-            self.saved = termios.tcgetattr(self.key_fd)
+            self.saved = (self.key_fd, termios.tcgetattr(self.key_fd))
             tty.setcbreak(self.key_fd)
         self.out.write(ENTER)
         self.out.flush()
@@ -448,7 +448,8 @@ class Screen:
         if self.saved is not None:
             import termios
 
-            termios.tcsetattr(self.key_fd, termios.TCSADRAIN, self.saved)
+            fd, modes = self.saved
+            termios.tcsetattr(fd, termios.TCSADRAIN, modes)
 
     def draw(self, lines: list[str]) -> None:
         size = os.get_terminal_size(self.out.fileno())

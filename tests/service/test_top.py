@@ -49,8 +49,7 @@ def canned(corrected: list[float], status: list[int], rt_count: float, rt_sum: f
         "# TYPE cdpr_gateway_bus_roundtrip_seconds histogram",
         'cdpr_gateway_bus_roundtrip_seconds_bucket{bus="modbus_tcp",le="0.0003"} '
         + f"{rt_count * 0.5}",
-        'cdpr_gateway_bus_roundtrip_seconds_bucket{bus="modbus_tcp",le="0.0005"} '
-        + f"{rt_count}",
+        'cdpr_gateway_bus_roundtrip_seconds_bucket{bus="modbus_tcp",le="0.0005"} ' + f"{rt_count}",
         'cdpr_gateway_bus_roundtrip_seconds_bucket{bus="modbus_tcp",le="+Inf"} ' + f"{rt_count}",
         f'cdpr_gateway_bus_roundtrip_seconds_count{{bus="modbus_tcp"}} {rt_count}',
         f'cdpr_gateway_bus_roundtrip_seconds_sum{{bus="modbus_tcp"}} {rt_sum}',
