@@ -225,7 +225,9 @@ def _delta_mean_ms(now: Reading, before: Reading, name: str, **labels: str) -> f
     return 1e3 * s / n if n > 0 else math.nan
 
 
-def bucket_quantile(now: list[tuple[float, float]], before: list[tuple[float, float]], q: float):
+def bucket_quantile(
+    now: list[tuple[float, float]], before: list[tuple[float, float]], q: float
+) -> float:
     """The upper bound (ms) of the bucket holding the ``q`` quantile of the observations
     between two readings; NaN without any."""
     old = dict(before)
@@ -355,8 +357,8 @@ def screen(view: View) -> list[str]:
             lines.append("waiting for the first reply ...")
         lines += _problems(view)
         return lines
-    if view.unreachable:
-        age = time.monotonic() - view.last_good_at
+    age = time.monotonic() - view.last_good_at
+    if view.unreachable or age > max(1.0, 3 * view.interval_s):  # or malformed since
         lines.append(f"!! the values below are {age:.1f} s old")
     build = r.labelled("build_info", "version")
     version = next(iter(build), "?")
@@ -521,7 +523,7 @@ def refreshes(fetcher: Fetcher, interval_s: float, count: int) -> Iterator[tuple
         yield view, 0.0 if final else interval_s - (time.monotonic() - started)
 
 
-def run(fetcher: Fetcher, interval_s: float, count: int, out: TextIO, keys: TextIO | None):
+def run(fetcher: Fetcher, interval_s: float, count: int, out: TextIO, keys: TextIO | None) -> int:
     """Draw every refresh on ``out`` until ``q``, Ctrl-C or ``count``; status 0."""
     try:
         if out.isatty():

@@ -126,6 +126,16 @@ def test_an_invalid_channel_shows_nan_not_a_number():
     assert rows(top.screen(view))["4"][1] == "NaN"
 
 
+def test_values_older_than_a_few_refreshes_are_marked_with_their_age():
+    reading = top.parse(canned(CORRECTED, [0] * 8, 10, 0.1))
+    fresh = top.View("u", 0.25, reading, last_good_at=time.monotonic())
+    stale = top.View("u", 0.25, reading, last_good_at=time.monotonic() - 12.0)
+    assert not any(line.startswith("!!") for line in top.screen(fresh))
+    assert re.search(
+        r"^!! the values below are 1[23]\.\d s old$", "\n".join(top.screen(stale)), re.M
+    )
+
+
 class FakeFetcher:
     """Replies from a list: a string is a reply, an exception is raised."""
 
