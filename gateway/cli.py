@@ -1,5 +1,5 @@
 """``cdpr-gateway`` command line: ``run | check | demo | sim-plc | record | replicate | diagnose
-| calibrate | examples | warmup | export | fleet``.
+| calibrate | examples | warmup | export | fleet | top``.
 
 Each command lives in its own module, imported only when that command is chosen. A command
 module provides ``configure_parser(command, parser)`` and ``run_command(command, args)``
@@ -49,6 +49,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "warmup": ("sim_plc.warmup", "compile the numba kernels ahead (the first run does otherwise)"),
     "export": ("gateway.recordings.export", "write a recording as MCAP (Foxglove, PlotJuggler)"),
     "fleet": ("gateway.fleet.cli", "diagnose many recordings on dask.distributed, one table"),
+    "top": ("gateway.service.top", "a live view of a running gateway, from its metrics (q quits)"),
 }
 
 
@@ -69,6 +70,7 @@ EXAMPLES: dict[str, str] = {
     "warmup": "cdpr-gateway warmup --config /etc/cdpr-gateway/gateway.yaml",
     "export": "cdpr-gateway export rec.csv.gz --to mcap rec.mcap",
     "fleet": "cdpr-gateway fleet 'recordings/*.parquet' --model config/default.yaml --out fleet/",
+    "top": "cdpr-gateway top --metrics http://127.0.0.1:9109/metrics",
 }
 
 # One vocabulary of placeholders, by option (dest), for every command's --help.

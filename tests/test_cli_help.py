@@ -12,7 +12,7 @@ import pytest
 from gateway import cli
 from gateway.core.cliopts import add_common_options
 
-WORDS = {"FILE", "DIR", "SECONDS", "N", "HOST", "PORT", "ADDRESS", "NAME", "LEVEL"}
+WORDS = {"FILE", "DIR", "SECONDS", "N", "HOST", "PORT", "ADDRESS", "NAME", "LEVEL", "URL"}
 
 
 def parser_of(command: str) -> argparse.ArgumentParser:
