@@ -64,7 +64,7 @@ import numpy as np
 from numba import njit
 
 from gateway.fastcall import entry_point
-from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step, dahl_step_slope
+from gateway.model.friction import FR_FLOOR_N, coulomb_ratio_exact, dahl_step_power, dahl_step_slope
 
 LAWS = {"none": 0, "coulomb": 1, "dahl": 2, "maxwell_slip": 3}
 """The law table: a friction law's name -> its code in the compiled pulley step
@@ -335,7 +335,7 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
     if p.beta == 1.0:
         f_new, slope = dahl_step_slope(f_old, fr, dx, sigma)
         return f_new, slope * dfr
-    f_new = dahl_step(f_old, fr, dx, sigma, p.beta)
+    f_new = dahl_step_power(f_old, fr, dx, sigma, p.beta)
     return f_new, s * (1.0 - math.exp(-sigma * abs(dx) / fr)) * dfr  # quasi-Newton slope
 
 
@@ -356,7 +356,20 @@ def _elements(p, i, j, t_b, f, dx, strib, store):
     stretching 3-pulley Dahl cable, k = 10^4 N/m, 2.9 trials a sample: 152 ms with scratch
     trials, 96 ms without; 6 ms for a rigid cable). The trial and the commit are compiled
     as two functions (:func:`_trial`, :func:`_commit`): inlined into the kernels they ran
-    in 83 ms but took 2.8 GB and 65 s to compile, against 0.58 GB and 48 s."""
+    in 83 ms but took 2.8 GB and 65 s to compile, against 0.58 GB and 48 s.
+
+    numba inlines at its own IR level and types every inlined copy again, so each copy
+    costs compile time: the sample that needs no solve commits through :func:`_commit`
+    (not a third inlined :func:`_through`), and the ``beta != 1`` step is
+    :func:`friction.dahl_step_power`, without the checks and the ``beta = 1`` step that a
+    whole :func:`friction.dahl_step` carried into every copy. Measured side by side (CPU
+    seconds, a cold cache, the batch plant's kernels with the four test chains of
+    ``simulate``): 146 s before, 102 s after; 150 000 x 8 samples of a stretching Dahl
+    chain 910-1055 ms before, 977-1084 ms after, Maxwell-slip with play 1404-1466 and
+    1182-1468 ms (five runs each, interleaved, machine shared). Keeping the inlining but
+    calling ``dahl_step_power`` out of line compiled in 66 s but ran 20 % slower, although
+    the stretching Dahl chain never takes that branch: a call in the loop costs more than
+    its execution."""
     k_el = f.shape[2]
     total = 0.0
     if dx == 0.0:
@@ -385,7 +398,7 @@ def _elements(p, i, j, t_b, f, dx, strib, store):
             sl = s * (1.0 - e) + rest * e * sigma * abs(dx) / (fr * fr)
             ddx += w * sigma * (1.0 - s * g / fr) * e
         else:
-            g_new = dahl_step(g, fr, dx, sigma, p.beta)
+            g_new = dahl_step_power(g, fr, dx, sigma, p.beta)
             sl = s * (1.0 - e)  # quasi-Newton slopes
             ddx += w * sigma * e
         if store:
@@ -547,7 +560,7 @@ def _step_cable(p, st, i, forward, t_known, v, strib, dx_set):
     the other end's tension and the most Newton passes."""
     c = p.cable[i, STRETCH]
     if c == 0.0 or p.law == LAW_NONE or p.law == LAW_COULOMB:
-        out, _, _, worst = _through(p, st, i, forward, t_known, v, strib, dx_set, True)
+        out, _, _, worst = _commit(p, st, i, forward, t_known, v, strib, dx_set)
         if p.cable[i, PLAY] != 0.0:
             st.gap[i] = _play(st.gap[i], dx_set, p.cable[i, PLAY])[1]
         return out, worst

@@ -70,6 +70,16 @@ def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> flo
         return 0.0
     if beta == 1.0:
         return dahl_step_slope(f, f_r, dx, sigma)[0]
+    return dahl_step_power(f, f_r, dx, sigma, beta)
+
+
+@njit(cache=True, inline="always")
+def dahl_step_power(f: float, f_r: float, dx: float, sigma: float, beta: float) -> float:
+    """:func:`dahl_step` for ``beta != 1``, ``dx != 0`` and ``F_R`` above the floor: the
+    kernels call it where they have checked those, so that each inlined copy carries
+    neither the checks nor the ``beta = 1`` step again (numba inlines at its IR level,
+    and the copies cost compile time: see :func:`gateway.model.chain._elements`)."""
+    s = 1.0 if dx > 0.0 else -1.0
     k = sigma * abs(dx) / f_r
     z = 1.0 - s * f / f_r
     a = abs(z)
