@@ -65,7 +65,6 @@ def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> flo
     """
     if dx == 0.0:
         return f
-    s = 1.0 if dx > 0.0 else -1.0
     if f_r <= FR_FLOOR_N:
         return 0.0
     if beta == 1.0:
