@@ -27,11 +27,9 @@ its own) is counted once, under the first reason in :data:`REASONS` that applies
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
 from gateway.fastcall import entry_point
 
@@ -54,55 +52,6 @@ class GateLimits(NamedTuple):
 NOW, DATA_AT, HEARTBEAT_AT = range(3)  # the stamp: the frame's three times (driver clock)
 
 
-@njit(cache=True)
-def _gate(lim, stamp, tension, status, wrench, counts):
-    """``stamp`` (3,): now (sending), when the data was requested, when the PLC
-    heartbeat last changed (-inf: never seen changing)."""
-    now = stamp[NOW]
-    frame = -1  # a reason that stops the whole frame
-    if not 0.0 <= now - stamp[HEARTBEAT_AT] <= lim.heartbeat_timeout_s:  # NaN, -inf
-        frame = _HEARTBEAT
-    elif not 0.0 <= now - stamp[DATA_AT] <= lim.max_input_age_s:  # no time to come
-        frame = _AGE
-    every_channel = True
-    stopped = 0
-    for i in range(tension.size):
-        if status[i] >= INVALID:
-            status[i] = INVALID
-            tension[i] = np.nan
-            every_channel = False
-            continue
-        x = tension[i]
-        reason = frame
-        if reason < 0:
-            if not math.isfinite(x):
-                reason = _NON_FINITE
-            elif x < lim.tension_lo or x > lim.tension_hi:
-                reason = _RANGE
-        if reason >= 0:
-            counts[reason] += 1
-            stopped += 1
-            status[i] = INVALID
-            tension[i] = np.nan
-            every_channel = False
-    if not every_channel:
-        wrench[:] = np.nan
-        return stopped
-    reason = -1
-    for k in range(wrench.size):
-        w = wrench[k]
-        if not math.isfinite(w):
-            reason = _NON_FINITE
-            break
-        if w < lim.wrench_lo or w > lim.wrench_hi:
-            reason = _RANGE
-    if reason >= 0:
-        counts[reason] += 1
-        stopped += 1
-        wrench[:] = np.nan
-    return stopped
-
-
 class Gate:
     """The gate of one driver: its limits, counts and a compiled entry (no per-call type
     dispatch, :mod:`gateway.fastcall`; ~1 us a frame)."""
@@ -113,9 +62,10 @@ class Gate:
         self._stamp = np.zeros(3)
         self._checked: tuple[object, ...] = (None, None, None)  # arrays found to fit the entry
         tension, status = np.zeros(cables), np.zeros(cables, dtype=np.uint16)
-        self._entry = entry_point(
-            _gate, lim, self._stamp, tension, status, np.zeros(6), self.counts
-        )
+        from drivers.kernels import gate  # numba loads with the first gate, not at import
+
+        self._kernel = gate
+        self._entry = entry_point(gate, lim, self._stamp, tension, status, np.zeros(6), self.counts)
 
     def __call__(
         self,
@@ -134,7 +84,7 @@ class Gate:
         c = self._checked
         same = tension is c[0] and status is c[1] and wrench is c[2]
         if not same and not self._fits(tension, status, wrench):
-            return int(_gate(self.limits, stamp, tension, status, wrench, self.counts))
+            return int(self._kernel(self.limits, stamp, tension, status, wrench, self.counts))
         return int(self._entry(self.limits, stamp, tension, status, wrench, self.counts))
 
     def _fits(self, tension: np.ndarray, status: np.ndarray, wrench: np.ndarray) -> bool:

@@ -40,12 +40,8 @@ from itertools import combinations
 from typing import Any
 
 import numpy as np
-from numba import literal_unroll, njit, types
-from numba.extending import overload
 
 from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW, S7Analog  # noqa: F401 - re-exported
-from drivers.s7 import decode_count as s7_decode_count
-from drivers.s7 import encode_count as s7_encode_count
 from gateway.core.config import RegisterField, RegisterMap, SensorConfig
 from gateway.errors import ConfigError
 
@@ -138,125 +134,12 @@ def _plan_row(
     return tuple(row[name] for name in PLAN.names or ())
 
 
-def _size(value):  # untyped: the overload must have the same signature
-    """Element count of an array; -1 for a scalar (broadcast to the field)."""
-    raise NotImplementedError  # compiled only (see the overload)
+def _kernels() -> Any:
+    """:mod:`drivers.kernels`, imported when the first codec is built (numba loads then,
+    not with this module)."""
+    from drivers import kernels
 
-
-def _get(value, i):
-    """Element ``i`` of an array, or the scalar itself, as float64."""
-    raise NotImplementedError  # compiled only (see the overload)
-
-
-@overload(_size)
-def _size_impl(value):
-    if isinstance(value, types.Array):
-        return lambda value: value.size
-    return lambda value: -1
-
-
-@overload(_get)
-def _get_impl(value, i):
-    if isinstance(value, types.Array):
-        return lambda value, i: float(value[i])
-    return lambda value, i: float(value)
-
-
-@njit(cache=True, inline="always")
-def _decode_one(u, row, bits, as_f32):
-    """The value of the bits ``u`` (one 16-bit word, or two assembled high word first)
-    of a field with plan ``row`` (a :data:`PLAN` record)."""
-    scaled = row.mode == MODE_SCALED
-    scale = row.scale if scaled else 1.0
-    if row.kind == 4:
-        bits[0] = u
-        f = as_f32[0]
-        # numpy multiplies a float32 field by a Python float scale in float32 (NEP 50)
-        return float(f) if scale == 1.0 else float(f * np.float32(scale))
-    if row.kind == 0 and u >= 32768:
-        u -= 65536
-    elif row.kind == 2 and u >= 2**31:
-        u -= 2**32
-    if row.s7 and scaled:
-        return s7_decode_count(u, row.npc, row.s7_lo, row.s7_hi)
-    return float(u) if scale == 1.0 else u * scale
-
-
-@njit(cache=True, inline="always")
-def _encode_one(x, row, bits, as_f32):
-    """The bits stored for ``x`` in a field with plan ``row`` (a :data:`PLAN` record).
-
-    Scaled: S7 fields through the S7 encoding; others ``x / scale``, integers rounded;
-    an integer that is NaN or outside the good band becomes the field's sentinel (never
-    clipped to a plausible number). Raw: as is, integers clipped to the type (the soft
-    PLC's counts). Wrap: modulo the register (2**16, 2**32; 2**24 for float32).
-    """
-    f = x
-    if row.mode == MODE_WRAP:
-        if row.kind == 4:
-            f = x % 16777216.0 if np.isfinite(x) else 0.0
-        else:
-            mask = 0xFFFF if row.kind <= 1 else 0xFFFFFFFF
-            return np.int64(x if np.isfinite(x) else 0.0) & mask
-    elif row.mode == MODE_SCALED:
-        if row.s7:
-            f = s7_encode_count(x, row.npc, row.s7_lo, row.s7_hi)
-        elif row.scale != 1.0:
-            f = x / row.scale
-    if row.kind == 4:
-        as_f32[0] = np.float32(f)
-        return np.int64(bits[0])
-    f = np.rint(f)
-    if row.mode == MODE_SCALED and not row.s7:
-        if np.isnan(f) or f < row.good_lo or f > row.good_hi:
-            f = row.invalid
-    elif np.isnan(f):
-        f = 0.0
-    f = min(max(f, row.type_lo), row.type_hi)
-    return np.int64(f) & (0xFFFF if row.kind <= 1 else 0xFFFFFFFF)
-
-
-@njit(cache=True)
-def _decode_fields(buf, plan, bits, outs):
-    as_f32 = bits.view(np.float32)  # float32 bit patterns are assembled in ``bits``
-    k = 0
-    for out in literal_unroll(outs):
-        row = plan[k]
-        if out.size != row.count:
-            raise ValueError("decode: an output's size differs from its field's count")
-        step = 2 if row.kind <= 1 else 4
-        for i in range(row.count):
-            p = row.start + step * i
-            u = (np.int64(buf[p]) << 8) | np.int64(buf[p + 1])
-            if row.kind >= 2:
-                w = (np.int64(buf[p + 2]) << 8) | np.int64(buf[p + 3])
-                u = (w << 16) | u if row.swap else (u << 16) | w
-            out[i] = _decode_one(u, row, bits, as_f32)
-        k += 1  # noqa: SIM113 (literal_unroll has no enumerate)
-
-
-@njit(cache=True)
-def _encode_fields(buf, plan, bits, values):
-    as_f32 = bits.view(np.float32)
-    k = 0
-    for value in literal_unroll(values):
-        row = plan[k]
-        size = _size(value)
-        if size >= 0 and size != row.count:
-            raise ValueError("encode: a value's size differs from its field's count")
-        step = 2 if row.kind <= 1 else 4
-        for i in range(row.count):
-            u = _encode_one(_get(value, i), row, bits, as_f32)
-            p = row.start + step * i
-            if row.kind <= 1:
-                buf[p], buf[p + 1] = (u >> 8) & 0xFF, u & 0xFF
-                continue
-            hi, lo = (u >> 16) & 0xFFFF, u & 0xFFFF
-            if row.swap:
-                hi, lo = lo, hi
-            buf[p], buf[p + 1] = (hi >> 8) & 0xFF, hi & 0xFF
-            buf[p + 2], buf[p + 3] = (lo >> 8) & 0xFF, lo & 0xFF
-        k += 1
+    return kernels
 
 
 class FieldCodec:
@@ -309,6 +192,7 @@ class FieldCodec:
         self._scaled, self._raw = self.plans[scaled], self.plans[raw]
         self._buf = np.frombuffer(buffer, dtype=np.uint8)
         self._bits = np.zeros(1, dtype=np.uint32)
+        self._k = _kernels()
 
     def plan_row(self, raw: bool = False) -> np.ndarray:
         return (self._raw if raw else self._scaled)[0]
@@ -319,7 +203,7 @@ class FieldCodec:
         ``raw=True`` skips scaling (S7 counts, unscaled integers); otherwise S7 values come
         out in newtons with NaN outside the S7 window.
         """
-        _decode_fields(self._buf, self._raw if raw else self._scaled, self._bits, (out,))
+        self._k.decode_fields(self._buf, self._raw if raw else self._scaled, self._bits, (out,))
         return out
 
     def decode_int(self, index: int = 0) -> int:
@@ -336,7 +220,7 @@ class FieldCodec:
             values = values.astype(np.float64)
         elif isinstance(values, int | float | np.integer | np.floating):
             values = float(values)
-        _encode_fields(self._buf, self._raw if raw else self._scaled, self._bits, (values,))
+        self._k.encode_fields(self._buf, self._raw if raw else self._scaled, self._bits, (values,))
 
 
 class FieldGroup:
@@ -361,14 +245,15 @@ class FieldGroup:
         self.plan = np.array([c.plan_row(r) for c, r in zip(codecs, raw, strict=True)], PLAN)
         self._buf = np.frombuffer(buffer, dtype=np.uint8)
         self._bits = np.zeros(1, dtype=np.uint32)
+        self._k = _kernels()
 
     def decode(self, outs: tuple[np.ndarray, ...]) -> None:
         """Decode codec ``k`` into ``outs[k]`` (float64, shape (count,)), all in one call."""
-        _decode_fields(self._buf, self.plan, self._bits, outs)
+        self._k.decode_fields(self._buf, self.plan, self._bits, outs)
 
     def encode(self, values: tuple[Any, ...]) -> None:
         """Encode ``values[k]`` (an array of shape (count,) or a scalar) into codec ``k``."""
-        _encode_fields(self._buf, self.plan, self._bits, values)
+        self._k.encode_fields(self._buf, self.plan, self._bits, values)
 
 
 @dataclass(frozen=True)

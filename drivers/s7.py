@@ -26,9 +26,10 @@ Encoding rounds ``newtons / newtons_per_count`` to the nearest count; values abo
 window (and NaN) become the overflow code, values below it the underflow code.
 
 The reading and the encoding are written once, as the compiled scalar functions
-:func:`decode_count` and :func:`encode_count`: :class:`S7Analog` (arrays and single counts,
-the soft PLC's A/D converter) and the register codec's kernel (:mod:`drivers.registers`)
-call them.
+:func:`drivers.kernels.s7_decode_count` and :func:`drivers.kernels.s7_encode_count`
+(compiled, so they live with the drivers' other kernels, imported when first used):
+:class:`S7Analog` (arrays and single counts, the soft PLC's A/D converter) and the
+register codec's kernel (:mod:`drivers.registers`) call them.
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numba import njit
 
 S7_NOMINAL = 27648
 S7_OVERFLOW = 32767
@@ -56,38 +56,6 @@ def window(full_scale: int) -> tuple[int, int]:
 
 
 _TABLES: dict[tuple[float, int], np.ndarray] = {}
-
-
-@njit(cache=True, inline="always")
-def decode_count(count, newtons_per_count, min_counts, max_counts):
-    """The one S7 reading: ``count`` (an int16 value) in newtons, NaN outside the window."""
-    if min_counts <= count <= max_counts:
-        return count * newtons_per_count
-    return np.nan
-
-
-@njit(cache=True, inline="always")
-def encode_count(newtons, newtons_per_count, min_counts, max_counts):
-    """The one S7 encoding: newtons -> counts (a float holding an int16 value), rounded;
-    the overflow code above the window and for NaN, the underflow code below it."""
-    f = np.rint(newtons / newtons_per_count)
-    if np.isnan(f) or f > max_counts:
-        return float(S7_OVERFLOW)
-    if f < min_counts:
-        return float(S7_UNDERFLOW)
-    return f
-
-
-@njit(cache=True)
-def _decode_all(words, newtons_per_count, min_counts, max_counts, out):
-    for i in range(words.size):
-        out[i] = decode_count(np.int64(words[i]), newtons_per_count, min_counts, max_counts)
-
-
-@njit(cache=True)
-def _encode_all(newtons, newtons_per_count, min_counts, max_counts, out):
-    for i in range(newtons.size):
-        out[i] = encode_count(newtons[i], newtons_per_count, min_counts, max_counts)
 
 
 @dataclass(frozen=True)
@@ -120,7 +88,9 @@ class S7Analog:
         if table is None:
             counts = np.arange(65536, dtype=np.uint16).view(np.int16).astype(np.int64)
             table = np.empty(65536)
-            _decode_all(counts, self.newtons_per_count, self.min_counts, self.max_counts, table)
+            from drivers.kernels import s7_decode_all
+
+            s7_decode_all(counts, self.newtons_per_count, self.min_counts, self.max_counts, table)
             table.flags.writeable = False
             _TABLES[key] = table
         return table
@@ -139,8 +109,10 @@ class S7Analog:
 
     def decode_count(self, count: int) -> float:
         """One count -> newtons (NaN outside the window)."""
+        from drivers.kernels import s7_decode_count
+
         return float(
-            decode_count(int(count), self.newtons_per_count, self.min_counts, self.max_counts)
+            s7_decode_count(int(count), self.newtons_per_count, self.min_counts, self.max_counts)
         )
 
     def valid(self, count: int) -> bool:
@@ -152,7 +124,9 @@ class S7Analog:
         x = np.asarray(newtons, dtype=float)
         flat = np.ascontiguousarray(x).reshape(-1)
         f = np.empty(flat.size)
-        _encode_all(flat, self.newtons_per_count, self.min_counts, self.max_counts, f)
+        from drivers.kernels import s7_encode_all
+
+        s7_encode_all(flat, self.newtons_per_count, self.min_counts, self.max_counts, f)
         return f.reshape(x.shape).astype(np.int16)
 
 

@@ -69,3 +69,34 @@ def test_a_bad_argument_imports_no_numba(command: str) -> None:
 def test_the_top_level_help_imports_no_numba() -> None:
     status, numba, out, _ = _run("--help")
     assert status == 0 and out > 0 and not numba
+
+
+FLOOR_PROBE = """
+import importlib, pkgutil, sys
+import drivers, gateway.core
+names = []
+for pkg in (gateway.core, drivers):
+    for m in pkgutil.iter_modules(pkg.__path__, pkg.__name__ + "."):
+        if m.name != "drivers.kernels":  # the drivers' compiled kernels themselves
+            importlib.import_module(m.name)
+            names.append(m.name)
+print(len(names), 'numba' in sys.modules)
+"""
+
+
+def test_the_floor_and_the_drivers_import_without_numba() -> None:
+    """Issue 28 item 4: every module of ``gateway.core`` and ``drivers`` (but
+    ``drivers.kernels``, which the first gate or codec imports) imports without loading
+    numba, so ``check`` and the configuration do not pay for the compiler."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(
+        [sys.executable, "-c", FLOOR_PROBE],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr
+    count, numba = proc.stdout.split()
+    assert int(count) >= 15 and numba == "False", proc.stdout
