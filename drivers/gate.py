@@ -23,6 +23,13 @@ written only when every channel is good or substituted and each component is fin
 in range; else every component is NaN. Each channel stopped (and each wrench stopped on
 its own) is counted once, under the first reason in :data:`REASONS` that applies:
 ``cdpr_gateway_gated_total{reason}``.
+
+What no gate in the sending process can close: the process held (SIGSTOP, a VM pause, a
+long page fault) between the last look and the send system call. The frame then leaves
+late with the status it was given; it is one frame per hold (the next cycle's look
+writes it invalid), and the PLC's own watchdog on the gateway's heartbeat is what covers
+that window (docs/operation.md). ``tests/system/test_hostile_plc_invariant.py`` allows
+exactly that frame and no other.
 """
 
 from __future__ import annotations

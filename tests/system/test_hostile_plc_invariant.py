@@ -9,8 +9,10 @@ Every frame that arrives is checked where the PLC sees it, with the PLC's own cl
 value with status good or substituted that is not finite, none that arrives later than
 ``max_input_age_s`` after the request of the newest read served before it, none while the
 served heartbeat has not changed for the timeout (each plus a slack for scheduling on a
-loaded machine, shorter than the stops).
-Bounded: 12 s of traffic, then the server and the process stop.
+loaded machine, shorter than the stops). The one exception is the frame a stop catches
+between the gate's last look and the send (``_caught_by``): at most one per stop, and
+it must still be finite and sent in the operational state.
+Bounded: up to 180 s for the first frame, 12 s of traffic, then the server and the process stop.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ pytestmark = [pytest.mark.long, pytest.mark.loopback]
 
 ROOT = Path(__file__).resolve().parents[2]
 RUN_S = 12.0
+STARTUP_S = 180.0  # bounded wait for the first frame (a cold cache compiles the kernels)
 MAX_AGE_S = 0.01
 HEARTBEAT_TIMEOUT_S = 0.1
 # loopback delivery and scheduling: the server thread dates a frame when it reads it, and
@@ -118,7 +121,7 @@ class HostilePlc:
     def _run(self) -> None:
         with contextlib.suppress(OSError, AttributeError):  # best effort: date frames early
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
-        end = time.monotonic() + RUN_S + 30
+        end = time.monotonic() + STARTUP_S + RUN_S + 30
         while not self.stop.is_set() and time.monotonic() < end:
             try:
                 conn, _ = self.listener.accept()
@@ -197,10 +200,25 @@ def _recv(conn: socket.socket, n: int) -> bytes:
     return out
 
 
+def _caught_by(f: Frame, last: float, stops: list[tuple[float, float]], prev: float) -> bool:
+    """True when ``f`` is the one frame a stop may hold after the gate passed it: the stop
+    began while the frame was still in time (within the age limit of the last read, plus
+    the slack) and ``f`` is the first frame to arrive after it, right after SIGCONT. The
+    gate's last look and the send are two steps no process can make atomic (SIGSTOP lands
+    between any two instructions); what covers that window is the PLC's own watchdog."""
+    return any(
+        0.0 <= a - last <= MAX_AGE_S + SLACK_S and prev < a and b <= f.at <= b + SLACK_S
+        for a, b in stops
+    )
+
+
 def _check(plc: HostilePlc, stops: list[tuple[float, float]]) -> int:
     requests, changes = np.array(plc.requests), np.array(plc.changes)
     usable = 0
+    caught = 0
+    prev = -np.inf  # when the frame before arrived
     for f in plc.frames:
+        before_this, prev = prev, f.at
         good = f.status <= 1
         prior = requests[requests < f.at]
         last = prior[-1] if prior.size else float("nan")
@@ -215,9 +233,15 @@ def _check(plc: HostilePlc, stops: list[tuple[float, float]]) -> int:
         assert f.state == 2, where
         assert np.all(np.isfinite(f.tension[good])), where
         before = requests[requests < f.at]
-        assert before.size and f.at - before[-1] <= MAX_AGE_S + SLACK_S + 0.001, where
         seen = changes[changes < f.at]
-        assert seen.size and f.at - seen[-1] <= HEARTBEAT_TIMEOUT_S + SLACK_S, where
+        in_time = before.size and f.at - before[-1] <= MAX_AGE_S + SLACK_S + 0.001
+        alive = seen.size and f.at - seen[-1] <= HEARTBEAT_TIMEOUT_S + SLACK_S
+        if not (in_time and alive) and _caught_by(f, last, stops, before_this):
+            caught += 1
+            continue
+        assert in_time, where
+        assert alive, where
+    assert caught <= len(stops)  # at most the one frame each stop can hold
     return usable
 
 
@@ -243,8 +267,11 @@ def test_the_gateway_process_against_a_hostile_plc(tmp_path) -> None:
     rng = random.Random(7)
     stops: list[tuple[float, float]] = []  # (SIGSTOP, SIGCONT) times
     try:
+        # start-up (connect; a cold numba cache compiles first): until the first frame
+        started = time.monotonic() + STARTUP_S
+        while not plc.frames and proc.poll() is None and time.monotonic() < started:
+            time.sleep(0.1)
         end = time.monotonic() + RUN_S
-        time.sleep(3.0)  # start-up (numba cache, connect)
         while time.monotonic() < end and proc.poll() is None:
             time.sleep(rng.uniform(0.5, 1.5))
             held = time.monotonic()
