@@ -17,14 +17,22 @@ demo: $(STAMP)
 	$(BIN)/cdpr-gateway warmup
 	$(BIN)/cdpr-gateway demo --seconds $(SECONDS)
 
-# `make test` runs every test but the few marked `long` (kept under ~4 min on 2 cores);
-# `make test-long` runs those; CI (.ci/run) runs both. One BLAS thread: the diagnosis'
-# small SVDs ran ~5x slower with OpenBLAS threads contending on a loaded 2-core machine.
+# `make test` runs every test but the few marked `long`; `make test-long` runs those; CI
+# (.ci/run) runs both. Both run on JOBS pytest-xdist workers (default 2, the machine this
+# project is measured on; `make test JOBS=0` runs in one process, `JOBS=auto` one worker per
+# core): the tests are single-threaded and CPU-bound, so two workers keep both cores busy
+# (figures: docs/performance.md). One BLAS thread: the diagnosis' small
+# SVDs ran ~5x slower with OpenBLAS threads contending on a loaded 2-core machine.
+# worksteal: the long tests' durations differ by 100x; an idle worker takes queued tests
+# from the other's share instead of waiting for the slowest one.
+JOBS ?= 2
+PYTEST := OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -n $(JOBS) --dist worksteal
+
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -m "not long"
+	$(PYTEST) -m "not long"
 
 test-long: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -m long
+	$(PYTEST) -m long
 
 # All benchmarks but the soak (a few minutes); the 600-s soak is `make soak`.
 bench: $(STAMP)

@@ -74,7 +74,11 @@ def finish(proc: subprocess.Popen, exits_by_itself: bool = False) -> tuple[int, 
     return rc, err
 
 
-def test_ready_within_5_s_without_a_plc_then_watchdog_pings_while_it_retries(tmp_path):
+def test_ready_without_a_plc_then_watchdog_pings_while_it_retries(tmp_path):
+    """READY=1 is the daemon's first message, before the first connection attempt's
+    outcome (a STATUS line), so systemd's start never waits for the PLC. An order, not a
+    time: under load (both cores busy) the start-up alone took 16.6 s where it had been
+    asserted to take at most 5 s; how long the start takes is the benchmarks' business."""
     path = str(tmp_path / "notify")
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(path)
@@ -84,7 +88,7 @@ def test_ready_within_5_s_without_a_plc_then_watchdog_pings_while_it_retries(tmp
     proc = start_run(write_config(tmp_path), env)
     msgs: list[tuple[float, str]] = []
     try:
-        deadline = t0 + 30
+        deadline = t0 + 60  # bounded; a loaded machine's start-up took 16.6 s
         while time.monotonic() < deadline and proc.poll() is None:
             try:
                 msgs.append((time.monotonic() - t0, sock.recv(4096).decode()))
@@ -98,8 +102,8 @@ def test_ready_within_5_s_without_a_plc_then_watchdog_pings_while_it_retries(tmp
         sock.close()
     ready = [t for t, m in msgs if m == "READY=1"]
     assert ready, (msgs, err)
-    assert ready[0] <= 5.0, f"READY=1 after {ready[0]:.1f} s\n{err}"
     texts = [m for _, m in msgs]
+    assert texts[0] == "READY=1", (texts[:3], err)
     assert "STATUS=active" not in texts  # no PLC ever answered: ready while unreachable
     assert any(m.startswith("STATUS=cannot reach the PLC yet") for m in texts), texts
     pings = [t for t, m in msgs if m == "WATCHDOG=1" and t > ready[0]]

@@ -207,24 +207,35 @@ def test_mbpoll_sees_what_the_gateway_reports():
         live = with_port(cfg, "modbus_tcp", plc.host, plc.port)
         service, worker = start_gateway(live)
         try:
-            # the state it asserts, waited for (start-up under load may take longer than 1 s),
-            # then read once: a loaded machine's late cycle no longer gates a frame (the age
-            # limit is stale_after_s, 10 ms, not 2 periods: drivers/base.py)
-            deadline = time.monotonic() + 20.0
-            while time.monotonic() < deadline and service.state is not Lifecycle.ACTIVE:
-                time.sleep(0.05)
-            time.sleep(0.2)
-            corrected = mbpoll_values(plc.port, 100, 8, "4:float")
-            reported = service.comp.corrected_n.copy()
-            status = mbpoll_values(plc.port, 116, 8, "4")
-            state = mbpoll_values(plc.port, 125, 1, "4")
+            # the state it asserts, waited for (start-up under load may take longer than 1 s).
+            # Under load (both cores busy) the soft PLC once missed the 50-ms reply limit
+            # between two mbpoll reads: the gateway reconnected and, rightly, wrote every
+            # channel invalid (status 2) until the PLC heartbeat was seen changing again
+            # (docs/operation.md). So the three reads are retried, bounded, until they
+            # catch the gateway active with no reconnect in between; a gateway that never
+            # writes good status fails below.
+            for _ in range(10):
+                deadline = time.monotonic() + 20.0
+                while time.monotonic() < deadline and service.state is not Lifecycle.ACTIVE:
+                    time.sleep(0.05)
+                time.sleep(0.2)
+                reconnects = service.reconnects
+                before = service.comp.corrected_n.copy()
+                corrected = mbpoll_values(plc.port, 100, 8, "4:float")
+                reported = service.comp.corrected_n.copy()
+                status = mbpoll_values(plc.port, 116, 8, "4")
+                state = mbpoll_values(plc.port, 125, 1, "4")
+                if service.reconnects == reconnects:
+                    break
         finally:
             stop_gateway(service, worker)
     finally:
         plc.close()
     assert sorted(corrected) == [100 + 2 * i for i in range(8)]
     values = np.array([corrected[100 + 2 * i] for i in range(8)])
-    # mbpoll and the snapshot are a few ms apart: the tensions move slowly
-    np.testing.assert_allclose(values, reported, atol=2.0)
+    # mbpoll read between the two snapshots (its start-up took long enough under load for a
+    # tension to move 2.2 N): within 2 N of the range the gateway reported meanwhile
+    low, high = np.minimum(before, reported) - 2.0, np.maximum(before, reported) + 2.0
+    assert np.all((values >= low) & (values <= high)), (values, before, reported)
     assert [status[116 + i] for i in range(8)] == [0] * 8
     assert state[125] == Lifecycle.ACTIVE

@@ -25,6 +25,18 @@ def _env() -> dict[str, str]:
     return env
 
 
+def _catches(pid: int, sig: int) -> bool:
+    """The process has a handler for ``sig`` (``SigCgt`` in /proc/PID/status)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("SigCgt:"):
+                    return bool(int(line.split()[1], 16) >> (sig - 1) & 1)
+    except OSError:
+        pass
+    return False
+
+
 def interrupt(args: list[str], after_s: float, sig: int, cwd: Path) -> tuple[int, str]:
     """Start ``cdpr-gateway ARGS``, send ``sig`` after ``after_s``; (status, stderr)."""
     proc = subprocess.Popen(
@@ -35,7 +47,15 @@ def interrupt(args: list[str], after_s: float, sig: int, cwd: Path) -> tuple[int
         stderr=subprocess.PIPE,
         text=True,
     )
-    time.sleep(after_s)
+    start = time.monotonic()
+    # not before the child catches the signal (gateway/cli.py installs its handler first
+    # thing in main()): the interpreter's own start-up, before any line of the project
+    # runs, is a window no Python program can cover. Idle it is long over at 0.4 s; with
+    # both cores busy it was not (the child died of the SIGTERM, status -15)
+    deadline = start + 60.0
+    while time.monotonic() < deadline and proc.poll() is None and not _catches(proc.pid, sig):
+        time.sleep(0.01)
+    time.sleep(max(0.0, after_s - (time.monotonic() - start)))
     proc.send_signal(sig)
     try:
         _, err = proc.communicate(timeout=60)
