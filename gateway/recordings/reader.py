@@ -18,6 +18,14 @@ the result arrays (grown in place, :class:`_Columns`), so the peak memory is the
 million samples, e.g. 410 MB for a million samples of a gateway recording of 8 cables
 (51 columns), 190 MB for a 10-min sim_plc recording (600 000 samples x 40 columns).
 
+Files from other loggers (docs/recording-format.md, "Recordings from other loggers"): the
+fields are split by the header's delimiter (comma, semicolon or tab; with the latter two a
+comma in a number is the decimal comma), ``read_recording(columns=...)`` renames the
+file's columns first (:mod:`gateway.recordings.columns`, ``--columns``), an error about a
+missing column lists the columns found and expected, and a last line without its line end
+(a writer stopped mid-line) is dropped with one warning, as :class:`GzipMembers` drops a
+cut gzip member.
+
 Writing streams too (:class:`RecordingWriter`, :func:`write_recording`): rows are
 formatted and written ``CHUNK_ROWS`` at a time, never the whole file as one string.
 """
@@ -66,6 +74,7 @@ CHUNK_ROWS = 8192
 FIRST_ROW_ONLY = ("length", "pose", "mass", "tension_platform")
 READ_BLOCK_CHARS = 1 << 22
 _TOO_LONG = f"line longer than {MAX_LINE_CHARS} characters"
+RECORDING_SUFFIXES = (".csv", ".csv.gz", ".parquet")  # what a recording is written as
 DELIMITERS = (",", ";", "\t")  # the header's most frequent one separates the fields
 _DELIMITER_NAMES = {",": "comma", ";": "semicolon", "\t": "tab"}
 
@@ -720,6 +729,16 @@ def read_metadata(path: str | Path) -> dict[str, str]:
 
 
 # --- writing ------------------------------------------------------------------------------
+def check_recording_name(path: str | Path, option: str) -> None:
+    """Refuse (:class:`RecordingError`, naming ``option``) a file to write whose name is no
+    recording format's: the extension chooses the format, never silently CSV."""
+    if not Path(path).name.endswith(RECORDING_SUFFIXES):
+        raise RecordingError(
+            f"{option} {path}: not a recording format (the name must end in "
+            f"{', '.join(RECORDING_SUFFIXES)})"
+        )
+
+
 def recording_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
     """(name, column array) of ``rec`` in the order written."""
     columns: list[tuple[str, np.ndarray]] = [("t", rec.t)]

@@ -316,3 +316,53 @@ def test_diagnose_and_fleet_refuse_a_bad_mapping_before_any_work(tmp_path, capsy
     argv += ["--out", str(tmp_path / "f")] if command == "fleet" else []
     status, err = cli(argv, capsys)
     assert status == 2 and err == [f"cdpr-gateway {command}: error: --columns: 't' is given twice"]
+
+
+def test_diagnose_of_a_foreign_file_with_columns_is_the_diagnosis_of_the_original(tmp_path):
+    """The same recording as a semicolon-separated file with decimal commas, its own column
+    names in another order and no final line end: ``diagnose --columns MAP.yaml`` gives the
+    report the original gives, number for number (one warning for the cut line: a row
+    fewer, so the original is cut the same)."""
+    import json
+    from dataclasses import replace
+
+    from evaluation.scenarios import Scenario
+    from tests.diagnose_helpers import write_scenario
+
+    sc = Scenario("byo", {"viscous": {"c_ns_m": 8.0}}, cables=1, seconds=12.0)
+    rec, model = write_scenario(tmp_path, replace(sc, seed=5))
+    text = rec.read_text().rstrip("\n")
+    meta = [ln for ln in text.split("\n") if ln.startswith("#")]
+    head, *rows = [ln for ln in text.split("\n") if not ln.startswith("#")]
+    names = head.split(",")
+    theirs = {n: f"Kanal {k} [{n[:3]}]" for k, n in enumerate(names)}
+    order = names[::-1]
+    body = [";".join(dict(zip(names, r.split(","), strict=True))[n] for n in order) for r in rows]
+    foreign = tmp_path / "logger.txt"
+    foreign.write_text(
+        "\n".join([*meta, ";".join(theirs[n] for n in order), *(b.replace(".", ",") for b in body)])
+    )  # no final line end: its last row is dropped with a warning
+    rec.write_text("\n".join([*meta, head, *rows[:-1]]) + "\n")
+    mapping = tmp_path / "map.yaml"
+    mapping.write_text("".join(f"{n}: '{theirs[n]}'\n" for n in names))
+    reports = []
+    for path, extra in ((rec, []), (foreign, ["--columns", str(mapping)])):
+        out = tmp_path / f"{path.stem}.json"
+        argv = ["diagnose", str(path), "--model", str(model), "--json", str(out), "--quiet"]
+        assert main(argv + extra) == 0
+        reports.append(json.loads(out.read_text()))
+    assert reports[0] == reports[1]
+    assert [f["effect"] for f in reports[0]["findings"]] == ["viscous"]
+
+
+@pytest.mark.parametrize("name", ["r.txt", "r.csv.bak", "r", "r.gz", "r.parq"])
+def test_run_record_refuses_a_name_of_no_recording_format(tmp_path, name):
+    """``run --record r.txt`` wrote CSV under that name; refused before the bus connects
+    (start_recorder runs before the service configures the driver)."""
+    from gateway.core.config import load_config
+    from gateway.service.daemon import start_recorder
+
+    cfg = load_config(MODEL)
+    with pytest.raises(RecordingError, match=rf"^--record {tmp_path / name}: not a recording"):
+        start_recorder(cfg, str(tmp_path / name))
+    assert not (tmp_path / name).exists()
