@@ -586,7 +586,7 @@ def _read_parquet(
     gateway's cycle process never loads pyarrow): the same layout rules, checks and limits
     as a CSV, the schema standing for the header and rows numbered from 1."""
     try:
-        return _read_parquet_text_checked(path, min_samples, max_samples, first_row_only)
+        return _read_parquet_text_checked(path, min_samples, max_samples, first_row_only, columns)
     except UnicodeDecodeError as exc:  # pyarrow decodes names, paths and metadata lazily
         raise RecordingError(
             f"{path}: not a readable Parquet file: text in its footer is not UTF-8 "
@@ -595,7 +595,11 @@ def _read_parquet(
 
 
 def _read_parquet_text_checked(
-    path: Path, min_samples: int, max_samples: int, first_row_only: Collection[str]
+    path: Path,
+    min_samples: int,
+    max_samples: int,
+    first_row_only: Collection[str],
+    columns: Mapping[str, str] | None,
 ) -> Recording:
     from gateway.recordings import parquet
 
