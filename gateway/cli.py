@@ -93,6 +93,7 @@ PLACEHOLDERS: dict[str, str] = {
     "port": "PORT",
     "scheduler": "ADDRESS",
     "robot": "NAME",
+    "columns": "MAP",
 }
 OUT_IS_DIR = ("replicate", "calibrate", "fleet")  # --out: a directory; elsewhere a file
 

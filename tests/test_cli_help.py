@@ -12,7 +12,7 @@ import pytest
 from gateway import cli
 from gateway.core.cliopts import add_common_options
 
-WORDS = {"FILE", "DIR", "SECONDS", "N", "HOST", "PORT", "ADDRESS", "NAME", "LEVEL", "URL"}
+WORDS = {"FILE", "DIR", "SECONDS", "N", "HOST", "PORT", "ADDRESS", "NAME", "LEVEL", "URL", "MAP"}
 
 
 def parser_of(command: str) -> argparse.ArgumentParser:

@@ -1,5 +1,5 @@
 """``cdpr-gateway diagnose RECORDING --model MODEL.yaml [--json REPORT.json] [--report DIR]
-[--validate OTHER] [--write-model FITTED.yaml]``: see docs/recording-format.md,
+[--validate OTHER] [--write-model FITTED.yaml] [--columns MAP]``: see docs/recording-format.md,
 :mod:`gateway.diagnose.engine` and (the model file's fitted effects)
 :mod:`gateway.diagnose.writemodel`."""
 
@@ -10,7 +10,7 @@ import dataclasses
 import json
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,6 +25,7 @@ from gateway.core.config import (
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose import heldout
 from gateway.errors import GatewayError
+from gateway.recordings.columns import add_columns_option, column_map
 from gateway.recordings.reader import Recording, read_recording
 
 # The diagnosis proper (engine, statics, warm-up, model writer) loads numba and the compiled
@@ -53,6 +54,7 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
         type=Path,
         help="write the model plus every fitted effect here (friction.effects)",
     )
+    add_columns_option(parser)  # the recording's and --validate's
 
 
 def load_model(path: Path) -> tuple[object, Config | None]:
@@ -76,7 +78,10 @@ def _tensions(rec: Recording, cfg: Config | None, say):
 
 
 def _read(
-    path: Path, friction: FrictionConfig, cfg: Config | None = None
+    path: Path,
+    friction: FrictionConfig,
+    cfg: Config | None = None,
+    columns: Mapping[str, str] | None = None,
 ) -> tuple[Recording, FrictionConfig]:
     """A recording relative to the model's fitted effects (``friction.effects``) and the
     nominal friction (:func:`relative_to_model`). Without effects, only the first row of
@@ -85,7 +90,8 @@ def _read(
     from gateway.diagnose.writemodel import relative_to_model
 
     first_only = () if friction.effects else ("length",)
-    return relative_to_model(read_recording(path, first_row_only=first_only), friction, cfg)
+    rec = read_recording(path, first_row_only=first_only, columns=columns)
+    return relative_to_model(rec, friction, cfg)
 
 
 def _unchanged(rec: Recording) -> Recording:
@@ -122,14 +128,18 @@ class _Run:
 
 
 def _diagnose_file(
-    recording: Path, model: Path, validate: Path | None, say: Callable[[str], None]
+    recording: Path,
+    model: Path,
+    validate: Path | None,
+    say: Callable[[str], None],
+    columns: Mapping[str, str] | None = None,
 ) -> _Run:
     from gateway.diagnose import warmup
     from gateway.diagnose.engine import diagnose, load_kernels, reference_mode
 
     model_friction, cfg = load_model(model)
     load_kernels(model_friction)  # type: ignore[arg-type]  # LLVM's pages given back after
-    rec, nominal = _read(recording, model_friction, cfg)  # type: ignore[arg-type]
+    rec, nominal = _read(recording, model_friction, cfg, columns)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
         f"{rec.source}: {rec.samples} samples x {rec.cables} cables"
@@ -140,7 +150,7 @@ def _diagnose_file(
     if reference_mode(rec) == "wrench":  # no platform tensions: the wrench balance
         from gateway.diagnose.wrench_select import diagnose_wrench
 
-        wrec = None if validate is None else _read(validate, model_friction, cfg)[0]  # type: ignore[arg-type]
+        wrec = None if validate is None else _read(validate, model_friction, cfg, columns)[0]  # type: ignore[arg-type]
         diag: Diagnosis = diagnose_wrench(rec, friction, cfg, wrec, progress=say)  # type: ignore[arg-type]
     else:
         rec, keep_for_model = _slim(rec)
@@ -148,7 +158,8 @@ def _diagnose_file(
         rec = _without_pose(rec)
         validation = None
         if validate is not None:
-            vrec = dataclasses.replace(_read(validate, model_friction, cfg)[0], length=None)  # type: ignore[arg-type]
+            vread = _read(validate, model_friction, cfg, columns)  # type: ignore[arg-type]
+            vrec = dataclasses.replace(vread[0], length=None)
             vtp, vdm = _tensions(vrec, cfg, say)
             validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
@@ -166,11 +177,15 @@ def diagnose_report(
     model: Path,
     validate: Path | None = None,
     progress: Callable[[str], None] | None = None,
+    columns: Mapping[str, str] | None = None,
 ) -> dict:
-    """The report ``diagnose RECORDING --model MODEL [--validate OTHER]`` writes, as a dict
-    (:func:`report_json` gives its text); bad input raises :class:`GatewayError`. The one
-    entry point for a caller that diagnoses files (``cdpr-gateway fleet``)."""
-    return _diagnose_file(Path(recording), Path(model), validate, progress or _silent).diag.report
+    """The report ``diagnose RECORDING --model MODEL [--validate OTHER] [--columns MAP]``
+    writes, as a dict (:func:`report_json` gives its text); bad input raises
+    :class:`GatewayError`. The one entry point for a caller that diagnoses files
+    (``cdpr-gateway fleet``); ``columns`` as :func:`gateway.recordings.columns.column_map`
+    gives it."""
+    path, say = Path(recording), progress or _silent
+    return _diagnose_file(path, Path(model), validate, say, columns).diag.report
 
 
 def _silent(msg: str) -> None:
@@ -186,13 +201,14 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
+    columns = column_map(args.columns)  # before the work, as the paths below
     if args.json is not None:  # before the work; never creates directories
         output_path(args.json, "--json")
     if args.write_model is not None:
         output_path(args.write_model, "--write-model")
     if args.report is not None:  # a directory: one level is created, now, not after the work
         output_dir(args.report, "--report")
-    run = _diagnose_file(args.recording, args.model, args.validate, say)
+    run = _diagnose_file(args.recording, args.model, args.validate, say, columns)
     diag, rec = run.diag, run.rec
     if args.json is not None:
         try:

@@ -1,5 +1,6 @@
 """``cdpr-gateway fleet RECORDINGS... --model MODEL.yaml --out DIR [--scheduler ADDRESS]
-[--workers N]``: every recording diagnosed as a task on dask.distributed.
+[--workers N] [--columns MAP]``: every recording diagnosed as a task on dask.distributed
+(``--columns``: every recording's columns renamed the same way, as ``diagnose`` does).
 
 RECORDINGS are files (``.csv``, ``.csv.gz``, ``.parquet``), globs (``'runs/*.parquet'``,
 ``**`` recursive) or folders (a Hive tree ``robot=R/date=D/part-N.parquet``: every
@@ -22,6 +23,7 @@ from pathlib import Path
 from gateway.core.config import output_path
 from gateway.errors import GatewayError
 from gateway.fleet.task import TaskResult
+from gateway.recordings.columns import add_columns_option, column_map
 
 SUFFIXES = (".csv", ".csv.gz", ".parquet")
 MAX_RECORDINGS = 100_000
@@ -42,6 +44,7 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--workers", type=int, default=2, help="local cluster: worker processes (default 2)"
     )
+    add_columns_option(parser)
 
 
 def expand(args: list[str]) -> list[str]:
@@ -93,6 +96,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     if not 1 <= args.workers <= 256:
         raise GatewayError("--workers must be in 1..256")
     import_distributed()  # a missing extra is one line, before anything else
+    columns = column_map(args.columns)
     recordings = expand(args.recordings)
     model = args.model.resolve()
     if not model.is_file():
@@ -114,7 +118,13 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             )
 
     results, where = run_tasks(
-        recordings, str(model), args.scheduler, args.workers, progress, args.out / "dask.log"
+        recordings,
+        str(model),
+        args.scheduler,
+        args.workers,
+        progress,
+        args.out / "dask.log",
+        columns,
     )
     wall = time.perf_counter() - t0
     return _write_outputs(args.out, results, where, wall, str(args.model))

@@ -88,12 +88,14 @@ def run_tasks(
     workers: int,
     progress: Callable[[int, TaskResult], None],
     log: Path | None = None,
+    columns: dict[str, str] | None = None,
 ) -> tuple[list[TaskResult], str]:
     """Every recording's result in the order of ``recordings``, and where they ran; Dask's
-    log lines of this process in ``log`` (none kept without it)."""
+    log lines of this process in ``log`` (none kept without it); ``columns``: each
+    recording's columns renamed (``--columns``)."""
     distributed = import_distributed()
     with DaskLog(log).installed() as dask_log:
-        return _run(distributed, recordings, model, scheduler, workers, progress, dask_log)
+        return _run(distributed, recordings, model, scheduler, workers, progress, dask_log, columns)
 
 
 class DaskLog:
@@ -149,6 +151,7 @@ def _run(
     workers: int,
     progress: Callable[[int, TaskResult], None],
     dask_log: DaskLog,
+    columns: dict[str, str] | None = None,
 ) -> tuple[list[TaskResult], str]:
     client, cluster, where = _client(distributed, scheduler, workers)
     dask_log.running()
@@ -164,9 +167,8 @@ def _run(
                 done += 1
                 progress(done, results[i])  # type: ignore[arg-type]
                 continue
-            futures[
-                client.submit(diagnose_task, rec, model, key=f"diagnose-{i}-{rec}", pure=False)
-            ] = i
+            key = f"diagnose-{i}-{rec}"
+            futures[client.submit(diagnose_task, rec, model, columns, key=key, pure=False)] = i
         # with_results: each result is fetched as its task ends, never left on a worker
         # that a later task may take down with it
         finished = distributed.as_completed(

@@ -66,7 +66,7 @@ def _csv(path: Path) -> Size | None:
     lines = [ln for ln in text.split(b"\n")[:-1] if ln and not ln.startswith(b"#")]
     if len(lines) < 2:
         return None
-    columns = lines[0].count(b",") + 1
+    columns = max(lines[0].count(d) for d in (b",", b";", b"\t")) + 1  # the reader's rule
     per_row = sum(len(ln) + 1 for ln in lines[1:]) / (len(lines) - 1)
     return Size(int(size * ratio / per_row), columns, False)
 

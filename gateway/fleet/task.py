@@ -54,8 +54,9 @@ def recording_identity(path: Path, meta: dict[str, str]) -> tuple[str, str]:
     return robot, start
 
 
-def diagnose_task(recording: str, model: str) -> TaskResult:
-    """Diagnose ``recording`` against ``model`` as ``diagnose`` does; never raises."""
+def diagnose_task(recording: str, model: str, columns: dict[str, str] | None = None) -> TaskResult:
+    """Diagnose ``recording`` against ``model`` as ``diagnose [--columns]`` does; never
+    raises."""
     from gateway.diagnose.cli import diagnose_report, report_json
     from gateway.recordings.reader import read_metadata
 
@@ -66,7 +67,7 @@ def diagnose_task(recording: str, model: str) -> TaskResult:
     robot, start = recording_identity(path, {})
     try:
         robot, start = recording_identity(path, read_metadata(path))
-        report = report_json(diagnose_report(path, Path(model)))
+        report = report_json(diagnose_report(path, Path(model), columns=columns))
     except GatewayError as exc:
         error = str(exc)
     except Exception as exc:  # a bug shows its place, but one recording never ends the job

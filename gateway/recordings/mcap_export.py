@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import datetime
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -143,16 +143,21 @@ def mcap_stamps(recording: Path, t: np.ndarray, offset_ns: int, started: str = "
     return stamps
 
 
-def export_mcap(recording: Path, out: Path, progress: Callable[[float], None] | None = None):
-    """Write ``recording`` (any format the reader takes) to ``out`` as MCAP; returns the
-    number of messages written."""
+def export_mcap(
+    recording: Path,
+    out: Path,
+    progress: Callable[[float], None] | None = None,
+    columns: Mapping[str, str] | None = None,
+):
+    """Write ``recording`` (any format the reader takes; ``columns``: its columns renamed,
+    ``--columns``) to ``out`` as MCAP; returns the number of messages written."""
     from mcap.writer import Writer
 
     from gateway import __version__
 
     if out.exists() and not out.is_file():  # /dev/stdout, a pipe: the writer seeks back
         raise GatewayError(f"{out}: not a regular file; MCAP is written to a file (it seeks)")
-    rec = read_recording(recording, min_samples=1)
+    rec = read_recording(recording, min_samples=1, columns=columns)
     offset = time_offset_ns(rec)
     stamps = mcap_stamps(
         recording, rec.t, offset, rec.metadata.get("started", "") if offset else ""

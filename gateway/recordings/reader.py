@@ -18,6 +18,14 @@ the result arrays (grown in place, :class:`_Columns`), so the peak memory is the
 million samples, e.g. 410 MB for a million samples of a gateway recording of 8 cables
 (51 columns), 190 MB for a 10-min sim_plc recording (600 000 samples x 40 columns).
 
+Files from other loggers (docs/recording-format.md, "Recordings from other loggers"): the
+fields are split by the header's delimiter (comma, semicolon or tab; with the latter two a
+comma in a number is the decimal comma), ``read_recording(columns=...)`` renames the
+file's columns first (:mod:`gateway.recordings.columns`, ``--columns``), an error about a
+missing column lists the columns found and expected, and a last line without its line end
+(a writer stopped mid-line) is dropped with one warning, as :class:`GzipMembers` drops a
+cut gzip member.
+
 Writing streams too (:class:`RecordingWriter`, :func:`write_recording`): rows are
 formatted and written ``CHUNK_ROWS`` at a time, never the whole file as one string.
 """
@@ -28,7 +36,7 @@ import io
 import logging
 import re
 import zlib
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -37,6 +45,7 @@ import numpy as np
 
 from gateway.core.heap import return_large_frees
 from gateway.errors import RecordingError
+from gateway.recordings.columns import MAX_CABLES, found_and_expected, rename
 from gateway.recordings.writer import (  # noqa: F401 - re-exported
     RecordingWriter,
     format_rows,
@@ -51,7 +60,6 @@ _CABLE_COLUMN = re.compile(r"^(velocity|tension_sensor|tension_platform|length)_
 _CABLE_INDEX = re.compile(r"^[1-9][0-9]*$", re.ASCII)
 _REQUIRED_KINDS = ("velocity", "tension_sensor")
 
-MAX_CABLES = 1024  # cable indices 1..m, m at most this
 MAX_COLUMNS = 8192
 MAX_LINE_CHARS = 1 << 20  # 1 MiB per line (header included)
 MAX_METADATA_LINES = 1000
@@ -66,6 +74,9 @@ CHUNK_ROWS = 8192
 FIRST_ROW_ONLY = ("length", "pose", "mass", "tension_platform")
 READ_BLOCK_CHARS = 1 << 22
 _TOO_LONG = f"line longer than {MAX_LINE_CHARS} characters"
+RECORDING_SUFFIXES = (".csv", ".csv.gz", ".parquet")  # what a recording is written as
+DELIMITERS = (",", ";", "\t")  # the header's most frequent one separates the fields
+_DELIMITER_NAMES = {",": "comma", ";": "semicolon", "\t": "tab"}
 
 
 @dataclass
@@ -192,16 +203,20 @@ def _open_text(path: Path) -> IO[str]:
     return open(path, encoding="utf-8-sig")  # utf-8-sig: spreadsheets write a BOM
 
 
-def _lines(path: Path, fh: IO[str]) -> Iterator[tuple[int, str]]:
+def _lines(path: Path, fh: IO[str], partial: list[int] | None = None) -> Iterator[tuple[int, str]]:
     """(1-based line number, text without the newline), read in blocks of 4 MiB; a line
-    longer than ``MAX_LINE_CHARS`` is refused before more of it is read."""
+    longer than ``MAX_LINE_CHARS`` is refused before more of it is read.
+
+    A last line without its line end is not yielded: a writer stopped in the middle of a
+    line (killed, a full disk) leaves one, whose last value may be cut short (``12.5`` of
+    ``12.53``); its number is appended to ``partial`` (blanks alone are no line)."""
     number = 0
     carry = ""
     while True:
         data = fh.read(READ_BLOCK_CHARS)
         if not data:
-            if carry:
-                yield number + 1, carry
+            if carry.strip() and partial is not None:
+                partial.append(number + 1)
             return
         data = carry + data
         cut = data.rfind("\n")
@@ -219,8 +234,8 @@ def _lines(path: Path, fh: IO[str]) -> Iterator[tuple[int, str]]:
 
 def _split_header(
     path: Path, lines: Iterator[tuple[int, str]]
-) -> tuple[dict[str, str], int, list[str]]:
-    """Metadata, 1-based line number of the header line, column names."""
+) -> tuple[dict[str, str], int, list[str], str]:
+    """Metadata, 1-based line number of the header line, column names, the delimiter."""
     meta: dict[str, str] = {}
     count = chars = 0
     for number, text in lines:
@@ -242,15 +257,23 @@ def _split_header(
             continue
         if not text.strip():
             continue
-        return meta, number, _names(path, number, text)
+        delimiter = detect_delimiter(text)
+        return meta, number, _names(path, number, text, delimiter), delimiter
     raise RecordingError(f"{path}: no header row")
 
 
-def _names(path: Path, number: int, text: str) -> list[str]:
-    if text.count(",") >= MAX_COLUMNS:
+def detect_delimiter(header: str) -> str:
+    """The delimiter of a header line: the most frequent of comma, semicolon and tab (a
+    comma when none is there or on a tie: column names hold none of them)."""
+    counts = [header.count(d) for d in DELIMITERS]
+    return DELIMITERS[counts.index(max(counts))]
+
+
+def _names(path: Path, number: int, text: str, delimiter: str = ",") -> list[str]:
+    if text.count(delimiter) >= MAX_COLUMNS:
         raise RecordingError(f"{path}:{number}: more than {MAX_COLUMNS} columns")
     # spreadsheets may quote every header name: "t","velocity_1",...
-    names = [c.strip().strip('"').strip() for c in text.rstrip("\r\n").split(",")]
+    names = [c.strip().strip('"').strip() for c in text.rstrip("\r\n").split(delimiter)]
     seen: set[str] = set()
     for col, name in enumerate(names, start=1):
         if not name:
@@ -287,11 +310,14 @@ def _cable_indices(path: Path, line: int, names: list[str]) -> dict[str, dict[in
 def _layout(path: Path, line: int, names: list[str]) -> tuple[int, dict[str, list[int]]]:
     """Number of cables and, per kind, the column index of cables 1..m (-1: absent)."""
     if "t" not in names:
-        raise RecordingError(f"{path}:{line}: no 't' column")
+        raise RecordingError(f"{path}:{line}: no 't' column{found_and_expected(names)}")
     found = _cable_indices(path, line, names)
     cables = max((max(d) for d in found.values()), default=0)
     if cables == 0:
-        raise RecordingError(f"{path}:{line}: no cable columns (velocity_1, tension_sensor_1, ...)")
+        raise RecordingError(
+            f"{path}:{line}: no cable columns (velocity_1, tension_sensor_1, ...)"
+            f"{found_and_expected(names)}"
+        )
     cols = {k: [found.get(k, {}).get(i, -1) for i in range(1, cables + 1)] for k in CABLE_KINDS}
     for i in range(cables):
         for kind in _REQUIRED_KINDS:
@@ -299,34 +325,40 @@ def _layout(path: Path, line: int, names: list[str]) -> tuple[int, dict[str, lis
                 raise RecordingError(
                     f"{path}:{line}: cable {i + 1} has no column '{kind}_{i + 1}' "
                     f"(each cable needs velocity_i and tension_sensor_i; cable indices must be "
-                    f"contiguous 1..m)"
+                    f"contiguous 1..m){found_and_expected(names)}"
                 )
     has_platform = [c >= 0 for c in cols["tension_platform"]]
     if any(has_platform) and not all(has_platform):
         missing = has_platform.index(False) + 1
-        raise RecordingError(f"{path}:{line}: column 'tension_platform_{missing}' is missing")
+        raise RecordingError(
+            f"{path}:{line}: column 'tension_platform_{missing}' is missing"
+            f"{found_and_expected(names)}"
+        )
     if not any(has_platform) and not all(n in names for n in (*POSE_COLUMNS, "mass")):
         raise RecordingError(
             f"{path}:{line}: no tension_platform_i columns and no pose and mass columns "
-            "(x, y, z, rx, ry, rz, mass) to compute them from"
+            f"(x, y, z, rx, ry, rz, mass) to compute them from{found_and_expected(names)}"
         )
     return cables, cols
 
 
-def _parse_careful(path: Path, body: list[str], line_of: list[int], names: list[str]) -> np.ndarray:
+def _parse_careful(
+    path: Path, body: list[str], line_of: list[int], names: list[str], delimiter: str = ","
+) -> np.ndarray:
     """The slow parser that names the line and column of what is wrong."""
     data = np.full((len(body), len(names)), np.nan)
     for r, text in enumerate(body):
-        fields = text.rstrip("\r\n").split(",")
+        fields = text.rstrip("\r\n").split(delimiter)
         if len(fields) != len(names):
+            sep = "" if delimiter == "," else f" ({_DELIMITER_NAMES[delimiter]}-separated)"
             raise RecordingError(
-                f"{path}:{line_of[r]}: {len(fields)} fields, header has {len(names)}"
+                f"{path}:{line_of[r]}: {len(fields)} fields, header has {len(names)}{sep}"
             )
         for c, value in enumerate(fields):
             value = value.strip()
             if value:
                 try:
-                    data[r, c] = float(value)
+                    data[r, c] = float(value if delimiter == "," else value.replace(",", "."))
                 except ValueError:
                     raise RecordingError(
                         f"{path}:{line_of[r]}: column {names[c]!r}: {value!r} is not a number"
@@ -334,30 +366,35 @@ def _parse_careful(path: Path, body: list[str], line_of: list[int], names: list[
     return data
 
 
-def _fill_empty(text: str) -> str:
+def _fill_empty(text: str, d: str = ",") -> str:
     """Empty fields become ``nan`` (str.replace: C speed; a regex was 4x the parse)."""
-    if ",," in text:
-        text = text.replace(",,", ",nan,").replace(",,", ",nan,")  # twice: ',,,' runs
-    if ",\n" in text:
-        text = text.replace(",\n", ",nan\n")
-    if "\n," in text:
-        text = text.replace("\n,", "\nnan,")
-    return "nan" + text if text.startswith(",") else text
+    if d + d in text:
+        text = text.replace(d + d, d + "nan" + d).replace(d + d, d + "nan" + d)  # ',,,' runs
+    if d + "\n" in text:
+        text = text.replace(d + "\n", d + "nan\n")
+    if "\n" + d in text:
+        text = text.replace("\n" + d, "\nnan" + d)
+    return "nan" + text if text.startswith(d) else text
 
 
-def _parse_chunk(path: Path, body: list[str], line_of: list[int], names: list[str]) -> np.ndarray:
-    """(rows, columns) float array; NaN for empty fields; errors name line and column."""
+def _parse_chunk(
+    path: Path, body: list[str], line_of: list[int], names: list[str], delimiter: str = ","
+) -> np.ndarray:
+    """(rows, columns) float array; NaN for empty fields; errors name line and column.
+    Separated by semicolons or tabs, a comma in a number is the decimal comma."""
     text = "\n".join(body) + "\n"
     if "\r" in text:
         text = text.replace("\r", "")
-    text = _fill_empty(text)
+    if delimiter != "," and "," in text:
+        text = text.replace(",", ".")
+    text = _fill_empty(text, delimiter)
     try:
-        data = np.loadtxt(io.StringIO(text), delimiter=",", dtype=float, ndmin=2)
+        data = np.loadtxt(io.StringIO(text), delimiter=delimiter, dtype=float, ndmin=2)
         if data.shape == (len(body), len(names)):
             return data
     except ValueError:
         pass  # bad text or a wrong field count: the careful parser says where
-    return _parse_careful(path, body, line_of, names)
+    return _parse_careful(path, body, line_of, names, delimiter)
 
 
 class _Reader:
@@ -371,8 +408,10 @@ class _Reader:
         max_samples: int,
         sink: _Columns,
         where: str = "{path}:{line}",
+        delimiter: str = ",",
     ):
         self.path, self.names, self.required = path, names, required
+        self.delimiter = delimiter
         self.where = where  # the place of an error: file and line (CSV), or row (Parquet)
         self.t_col = names.index("t")
         self.max_samples = min(max_samples, MAX_VALUES // len(names))
@@ -385,7 +424,7 @@ class _Reader:
         self.limits = limits
 
     def add(self, body: list[str], line_of: list[int]) -> None:
-        self.add_rows(_parse_chunk(self.path, body, line_of, self.names), line_of)
+        self.add_rows(_parse_chunk(self.path, body, line_of, self.names, self.delimiter), line_of)
 
     def at(self, line: int) -> str:
         return self.where.format(path=self.path, line=line)
@@ -456,27 +495,36 @@ def read_recording(
     min_samples: int = MIN_SAMPLES,
     max_samples: int = DEFAULT_MAX_SAMPLES,
     first_row_only: Collection[str] = (),
+    columns: Mapping[str, str] | None = None,
 ) -> Recording:
     """Read and validate a recording (docs/recording-format.md), streaming the body.
 
     ``first_row_only``: names of optional arrays (``length``, ``pose``, ``mass``,
     ``tension_platform``) of which only the first kept row is stored, shape (1, k) (``mass``
     (1,)), for a caller that reads no more of them (memory: 8 bytes per value and sample
-    not held). Their values are parsed and checked as any other: the same refusals."""
+    not held). Their values are parsed and checked as any other: the same refusals.
+    ``columns``: format name -> the file's column (``--columns``,
+    :mod:`gateway.recordings.columns`), applied to the header before anything else.
+
+    A CSV's fields are separated by the header's delimiter (comma, semicolon or tab); a
+    last line without its line end is dropped with a warning, as a ``.csv.gz``'s last
+    member cut short is."""
     path = Path(path)
     if not set(first_row_only) <= set(FIRST_ROW_ONLY):
         raise ValueError(f"first_row_only: only {FIRST_ROW_ONLY}, not {first_row_only!r}")
     return_large_frees()  # the result arrays grow by realloc: mremap, not copies
     if path.suffix == ".parquet":
-        return _read_parquet(path, min_samples, max_samples, first_row_only)
+        return _read_parquet(path, min_samples, max_samples, first_row_only, columns)
+    partial: list[int] = []
     try:
         with _open_text(path) as fh:
-            lines = _lines(path, fh)
-            meta, head, names = _split_header(path, lines)
+            lines = _lines(path, fh, partial)
+            meta, head, names, delimiter = _split_header(path, lines)
+            names = rename(f"{path}:{head}", names, columns)
             cables, cols = _layout(path, head, names)
             sink = _Columns(_targets(names, cables, cols), first_row_only)
             required = _required_columns(names, cols)
-            reader = _Reader(path, names, required, max_samples, sink)
+            reader = _Reader(path, names, required, max_samples, sink, delimiter=delimiter)
             body: list[str] = []
             line_of: list[int] = []
             for number, text in lines:
@@ -501,6 +549,15 @@ def read_recording(
             rec.t[-1],
             cut,
         )
+    if partial:
+        log.warning(
+            "%s: ends after an unclean stop: %d rows to t = %.3f s, the last partial line "
+            "(line %d) dropped",
+            path,
+            rec.t.size,
+            rec.t[-1],
+            partial[0],
+        )
     return rec
 
 
@@ -519,13 +576,17 @@ def _finish(path: Path, meta: dict[str, str], sink: _Columns, reader: _Reader, m
 
 
 def _read_parquet(
-    path: Path, min_samples: int, max_samples: int, first_row_only: Collection[str]
+    path: Path,
+    min_samples: int,
+    max_samples: int,
+    first_row_only: Collection[str],
+    columns: Mapping[str, str] | None = None,
 ) -> Recording:
     """A Parquet recording (:mod:`gateway.recordings.parquet`, imported only here: the
     gateway's cycle process never loads pyarrow): the same layout rules, checks and limits
     as a CSV, the schema standing for the header and rows numbered from 1."""
     try:
-        return _read_parquet_text_checked(path, min_samples, max_samples, first_row_only)
+        return _read_parquet_text_checked(path, min_samples, max_samples, first_row_only, columns)
     except UnicodeDecodeError as exc:  # pyarrow decodes names, paths and metadata lazily
         raise RecordingError(
             f"{path}: not a readable Parquet file: text in its footer is not UTF-8 "
@@ -534,11 +595,16 @@ def _read_parquet(
 
 
 def _read_parquet_text_checked(
-    path: Path, min_samples: int, max_samples: int, first_row_only: Collection[str]
+    path: Path,
+    min_samples: int,
+    max_samples: int,
+    first_row_only: Collection[str],
+    columns: Mapping[str, str] | None,
 ) -> Recording:
     from gateway.recordings import parquet
 
-    pf, names = parquet.open_checked(path, MAX_COLUMNS)
+    pf, stored = parquet.open_checked(path, MAX_COLUMNS)
+    names = rename(f"{path}: schema", stored, columns)
     max_rows = min(max_samples, MAX_VALUES // max(len(names), 1))
     if pf.metadata.num_rows > max_rows:
         raise RecordingError(
@@ -553,7 +619,7 @@ def _read_parquet_text_checked(
     sink = _Columns(_targets(names, cables, cols), first_row_only)
     where = "{path}: row {line}"
     reader = _Reader(path, names, _required_columns(names, cols), max_samples, sink, where)
-    for first, block in parquet.iter_row_groups(path, pf, names):
+    for first, block in parquet.iter_row_groups(path, pf, stored):
         for start in range(0, block.shape[0], 8 * CHUNK_ROWS):
             part = block[start : start + 8 * CHUNK_ROWS]
             reader.add_rows(part, list(range(first + start, first + start + len(part))))
@@ -667,6 +733,16 @@ def read_metadata(path: str | Path) -> dict[str, str]:
 
 
 # --- writing ------------------------------------------------------------------------------
+def check_recording_name(path: str | Path, option: str) -> None:
+    """Refuse (:class:`RecordingError`, naming ``option``) a file to write whose name is no
+    recording format's: the extension chooses the format, never silently CSV."""
+    if not Path(path).name.endswith(RECORDING_SUFFIXES):
+        raise RecordingError(
+            f"{option} {path}: not a recording format (the name must end in "
+            f"{', '.join(RECORDING_SUFFIXES)})"
+        )
+
+
 def recording_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
     """(name, column array) of ``rec`` in the order written."""
     columns: list[tuple[str, np.ndarray]] = [("t", rec.t)]

@@ -153,8 +153,12 @@ def start_recorder(cfg: Config, override: str | None) -> Recorder | None:
     rc = cfg.record if override is None else dataclasses.replace(cfg.record, path=override)
     if rc.path is None:
         return None
+    from gateway.recordings.reader import check_recording_name
     from gateway.runtime.loop import describe_bus
     from gateway.service.recorder import Recorder
+
+    if rc.layout == "files":  # before the bus is connected; hive: a folder of .parquet
+        check_recording_name(rc.path, "--record" if override else f"{cfg.source}: record.path")
 
     regs = cfg.bus.modbus_tcp.registers
     with_mass = cfg.bus.driver == "modbus_tcp" and regs.platform_mass is not None
