@@ -61,7 +61,11 @@ __all__ = ["RECORD_KINDS", "RecordConfig", "Recorder", "ring_columns"]
 log = logging.getLogger("cdpr_gateway.recorder")
 
 PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])  # where ``gateway`` is found
-ROW_GROUP_S = 5.0  # a Parquet recording's row groups: what a killed writer can lose at most
+# A Parquet recording's row groups: what a killed writer can lose at most (1 s, issue 30
+# item 3). The footer rewritten every second costs 18.5 us of CPU per row over a 600-s file
+# (57 columns) against 6.0 with 5-s groups, and grows with the file (docs/recording-format.md,
+# "Parquet", ``python -m bench parquet_kill``).
+ROW_GROUP_S = 1.0
 
 
 def ring_columns(cables: int, with_mass: bool) -> list[tuple[str, str]]:
