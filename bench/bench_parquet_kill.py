@@ -1,14 +1,14 @@
 """Parquet recordings that survive a kill (issue 30 item 3): the footer rewritten after every
-row group (gateway/recordings/parquet.py with the hand-written Thrift codec,
-gateway/recordings/thrift.py) against an append-only Arrow IPC stream converted to Parquet
-at close. ``python -m bench parquet_kill``: for each, the CPU per row of a 1 kHz x 57-column
-recording written 100 rows at a time (as the recorder's writer drains its ring), the
-footer's growth, and the rows a SIGKILL at a random moment loses (a child writing in real
-time, killed 2-4 s in, the file read back)."""
+row group (bench/parquet_footer.py with the hand-written Thrift codec,
+tests/recordings/thrift.py: the recorder's writer until then) against an append-only Arrow
+IPC stream converted to Parquet at close (gateway/recordings/parquet.py now). ``python -m
+bench parquet_kill``: for each, the CPU per row of a 1 kHz x 57-column recording written 100
+rows at a time (as the recorder's writer drains its ring), the footer's growth, and the rows
+a SIGKILL at a random moment loses (a child writing in real time, killed 2-4 s in, the file
+read back)."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -21,7 +21,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from gateway.recordings.parquet import ParquetRecordingWriter, schema_for
+from bench.parquet_footer import FooterRewritingWriter
+from gateway.recordings.parquet import ParquetRecordingWriter, stream_path
 
 ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["t"] + [f"c{i}_{k}" for i in range(1, 9) for k in range(7)]  # 57, as a recorder
@@ -33,41 +34,6 @@ def block(first: int, n: int) -> np.ndarray:
     out = 100 + rng.standard_normal((n, len(COLUMNS)))
     out[:, 0] = np.arange(first, first + n) * 1e-3
     return out
-
-
-class IpcWriter:
-    """The alternative: record batches appended to an Arrow IPC stream (each batch of
-    ``batch_rows`` one ``write``), converted to Parquet at close."""
-
-    def __init__(self, path: Path, batch_rows: int = 1000) -> None:
-        self.path, self.batch_rows = path, batch_rows
-        self.schema = schema_for(COLUMNS, {"robot": "bench"})
-        self.sink = pa.OSFile(str(path.with_suffix(".arrows")), "wb")
-        self.stream = pa.ipc.new_stream(self.sink, self.schema)
-        self.pending: list[np.ndarray] = []
-        self.rows = 0
-
-    def write_rows(self, table: np.ndarray) -> None:
-        self.pending.append(table)
-        self.rows += table.shape[0]
-        if sum(p.shape[0] for p in self.pending) >= self.batch_rows:
-            self._flush()
-
-    def _flush(self) -> None:
-        data = np.concatenate(self.pending)
-        self.pending = []
-        arrays = [pa.array(data[:, c]) for c in range(data.shape[1])]
-        self.stream.write_batch(pa.record_batch(arrays, schema=self.schema))
-        self.sink.flush()
-
-    def close(self) -> None:
-        if self.pending:
-            self._flush()
-        self.stream.close()
-        self.sink.close()
-        table = pa.ipc.open_stream(str(self.path.with_suffix(".arrows"))).read_all()
-        pq.write_table(table, self.path, row_group_size=5000, compression="zstd")
-        os.remove(self.path.with_suffix(".arrows"))
 
 
 def read_ipc_rows(path: Path) -> int:
@@ -105,13 +71,13 @@ CHILD = textwrap.dedent(
     """
     import sys, time
     sys.path.insert(0, {root!r})
-    from bench.bench_parquet_kill import IpcWriter, COLUMNS, block, BATCH
+    from bench.bench_parquet_kill import COLUMNS, block, BATCH
+    from bench.parquet_footer import FooterRewritingWriter
     from gateway.recordings.parquet import ParquetRecordingWriter
-    from pathlib import Path
     if {kind!r} == "footer":
-        w = ParquetRecordingWriter({path!r}, COLUMNS, {{"robot": "r"}}, row_group_rows=1000)
+        w = FooterRewritingWriter({path!r}, COLUMNS, {{"robot": "r"}}, row_group_rows=1000)
     else:
-        w = IpcWriter(Path({path!r}))
+        w = ParquetRecordingWriter({path!r}, COLUMNS, {{"robot": "r"}})
     first = 0
     while True:
         w.write_rows(block(first, BATCH))
@@ -138,7 +104,7 @@ def kill_loss(kind: str, after_rows: int) -> tuple[int, int]:
         proc.stdout.close()
         if kind == "footer":
             return written, pq.read_table(path).num_rows  # the whole file, read
-        return written, read_ipc_rows(path.with_suffix(".arrows"))
+        return written, read_ipc_rows(stream_path(path))
 
 
 def run() -> None:
@@ -149,11 +115,13 @@ def run() -> None:
         print(f"   {kind}: rows lost per SIGKILL at 1 kHz (kills after {moments} rows): {lost}")
     for seconds in (60, 600):
         cases = {
-            "footer, 5-s row groups": lambda p: ParquetRecordingWriter(p, COLUMNS, {}),
-            "footer, 1-s row groups": lambda p: ParquetRecordingWriter(
+            "footer, 5-s row groups": lambda p: FooterRewritingWriter(p, COLUMNS, {}),
+            "footer, 1-s row groups": lambda p: FooterRewritingWriter(
                 p, COLUMNS, {}, row_group_rows=1000
             ),
-            "ipc, 1-s batches + conversion": IpcWriter,
+            "ipc, a batch per write (0.1 s) + conversion": lambda p: ParquetRecordingWriter(
+                p, COLUMNS, {}
+            ),
         }
         for name, make in cases.items():
             per_row, last, size = cpu(make, seconds)
@@ -161,9 +129,24 @@ def run() -> None:
                 f"   {seconds:4d} s, {name}: {per_row:.2f} us CPU/row overall, "
                 f"{last:.2f} in the last tenth, {size / 1e6:.1f} MB"
             )
-    here = Path(__file__).resolve().parents[1] / "gateway" / "recordings"
-    lines = {f: len((here / f).read_text().splitlines()) for f in ("parquet.py", "thrift.py")}
-    print(f"   code: {lines}")
+    w = FooterRewritingWriter(
+        Path(tempfile.mkdtemp()) / "f.parquet", COLUMNS, {}, row_group_rows=1000
+    )
+    for first in range(0, 60_000, 1000):
+        w.write_rows(block(first, 1000))
+    per = len(w._tail) / 60
+    print(
+        f"   footer: {per / 1e3:.1f} kB per row group, rewritten whole after each: with 1-s "
+        f"groups the reader's 64 MiB footer limit is reached after {(64 << 20) / per / 3600:.1f} h"
+    )
+    w.close()
+    files = [
+        "gateway/recordings/parquet.py",
+        "bench/parquet_footer.py",
+        "tests/recordings/thrift.py",
+    ]
+    lines = {f: len((ROOT / f).read_text().splitlines()) for f in files}
+    print(f"   code (lines): {lines}")
 
 
 if __name__ == "__main__":

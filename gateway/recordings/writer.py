@@ -88,8 +88,6 @@ class RecordingWriter:
         self._member_at = clock()
         head = "".join(f"# {k}: {v}\n" for k, v in (metadata or {}).items())
         self._write(head + ",".join(self.columns) + "\n")
-        if self._gz:  # metadata and header a member of their own: a kill leaves a header
-            self._member()
 
     def _write(self, text: str) -> None:
         data = text.encode("utf-8")

@@ -4,7 +4,7 @@
   later): one line, exit 130 / 143, no traceback, and either a valid file holding exactly
   the rows the line states (a prefix of the run: t = 0, 1 ms, ...) or, before the first
   row, no file and a line that says so.
-* Each format's writer (csv, csv.gz, parquet with the recorder's 1-s row groups) killed
+* Each format's writer (csv, csv.gz, parquet) killed
   with SIGKILL at a random moment (a random phase: inside a write or between writes) while
   writing 1 kHz rows 100 at a time: the file reads, is a prefix of what was written, and
   lacks at most 1 s of rows (plus the batch in flight).
@@ -128,8 +128,7 @@ CHILD = textwrap.dedent(
     import numpy as np
     from gateway.recordings.writer import open_writer
     path, delay = sys.argv[1], float(sys.argv[2])
-    # row groups of 1 s at 1 kHz: the recorder's (gateway/service/recorder.py, ROW_GROUP_S)
-    w = open_writer(path, {columns!r}, {{"robot": "k"}}, compresslevel=1, row_group_rows=1000)
+    w = open_writer(path, {columns!r}, {{"robot": "k"}}, compresslevel=1)
     first = 0
     while True:
         k = np.arange(first, first + {batch}, dtype=float)
@@ -165,8 +164,9 @@ def kill_writer(path: Path, after_rows: int, phase_s: float) -> tuple[int, int]:
         proc.stdout.close()
     try:
         rec = read_recording(path, min_samples=1)
-    except RecordingError as exc:  # killed within its first second: a file with no row yet
-        assert str(exc) == f"{path}: no data rows", exc
+    except RecordingError as exc:  # killed within its first second: no row on disk yet
+        # (a .gz holds its header with the first member: an empty file until then)
+        assert str(exc) in (f"{path}: no data rows", f"{path}: no header row"), exc
         return written, 0
     n = rec.samples
     np.testing.assert_allclose(rec.t, np.arange(n) * 1e-3, rtol=0, atol=1e-9)
@@ -174,17 +174,23 @@ def kill_writer(path: Path, after_rows: int, phase_s: float) -> tuple[int, int]:
     return written, n
 
 
-def check_loss(written: int, read: int) -> None:
-    # at most the unfinished second (a member, a row group) and the batch being written;
+# rows a kill may take besides the batch being written: a .gz member gathers up to 1 s;
+# a plain CSV and a Parquet stream write each batch as it comes (the second a bound, not
+# more: docs/recording-format.md)
+HELD = {".csv": 0, ".csv.gz": 1000, ".parquet": 0}
+
+
+def check_loss(suffix: str, written: int, read: int) -> None:
     # at most one batch more than reported (written, not yet printed)
-    assert written - 1000 - BATCH <= read <= written + BATCH, (written, read)
+    assert written - HELD[suffix] - BATCH <= read <= written + BATCH, (written, read)
+    assert written - read <= 1000 + BATCH  # never more than the last second
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".csv", ".csv.gz", ".parquet"])
 def test_a_killed_writer_loses_at_most_one_second(tmp_path: Path, suffix: str) -> None:
     phase = float(np.random.default_rng(len(suffix)).uniform(0, 0.1))
-    check_loss(*kill_writer(tmp_path / f"k{suffix}", 1500, phase))
+    check_loss(suffix, *kill_writer(tmp_path / f"k{suffix}", 1500, phase))
 
 
 @pytest.mark.long
@@ -195,7 +201,7 @@ def test_writers_killed_at_random_moments(tmp_path: Path, suffix: str) -> None:
     for i in range(6):
         after, phase = int(rng.integers(5, 40)) * 100, float(rng.uniform(0, 0.1))
         written, read = kill_writer(tmp_path / f"k{i}{suffix}", after, phase)
-        check_loss(written, read)
+        check_loss(suffix, written, read)
         losses.append(written - read)
     print(f"{suffix}: rows lost per SIGKILL at 1 kHz: {losses}")  # with -s: the figures
 
