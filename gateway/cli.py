@@ -165,11 +165,14 @@ def _quiet(quiet: bool) -> Iterator[None]:
 class Interrupted(KeyboardInterrupt):
     """SIGINT or SIGTERM outside the daemon's loop (which handles its own): raised where the
     program is, so that ``finally`` blocks and context managers close files; ends the
-    program with one line and 128 + the signal's number."""
+    program with one line and 128 + the signal's number. A command that stops in order on
+    its own (``record``: the file closed) raises it with ``detail``, the end of that line
+    (how much was done)."""
 
-    def __init__(self, signum: int) -> None:
+    def __init__(self, signum: int, detail: str = "") -> None:
         super().__init__(signum)
         self.signum = signum
+        self.detail = detail
 
 
 def _interrupt(signum: int, _frame: object) -> None:
@@ -200,7 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # `run` has written nothing yet or has already stopped: an orderly stop as well
         code = 0 if command == "run" else 128 + exc.signum
         what = "stopped" if command == "run" else "interrupted"
-        print(f"cdpr-gateway {command}: {what} ({_signal_name(exc.signum)})", file=sys.stderr)
+        line = f"cdpr-gateway {command}: {what} ({_signal_name(exc.signum)}){exc.detail}"
+        print(line, file=sys.stderr)
         return code
     except KeyboardInterrupt:  # raised by a handler of the command's own
         print(f"cdpr-gateway {command}: interrupted (SIGINT)", file=sys.stderr)

@@ -1,7 +1,9 @@
 """``cdpr-gateway record`` and ``cdpr-gateway sim-plc``.
 
-* ``record --config FILE --seconds N --out FILE.csv[.gz]``: the plant in batch mode,
-  written as a recording (docs/recording-format.md); progress on stderr.
+* ``record --config FILE --seconds N --out FILE.csv[.gz]|FILE.parquet``: the plant
+  simulated block by block, each block written as it comes (docs/recording-format.md);
+  progress on stderr; SIGINT or SIGTERM closes the file with what was simulated, says how
+  much in one line and exits 128 + the signal's number.
 * ``sim-plc --config FILE [--host H] [--port P] [--bus modbus_tcp|canopen]``: the plant
   stepped in real time at the config's period and served on the bus until SIGINT or
   SIGTERM; prints ``sim-plc: serving modbus_tcp on HOST:PORT`` once listening. The plant's
@@ -23,6 +25,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from gateway.cli import Interrupted
 from gateway.core.cliopts import add_config_option
 from gateway.core.config import (
     DEFAULT_CONFIG_PATH,
@@ -33,7 +38,8 @@ from gateway.core.config import (
     output_path,
 )
 from gateway.errors import ConfigError
-from gateway.recordings.reader import write_recording
+from gateway.recordings.reader import recording_columns
+from gateway.recordings.writer import RowWriter, open_writer
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
@@ -115,10 +121,21 @@ class _ProgressBar:
             elif pct % 10 == 0:  # a log file gets a line every 10 %
                 print(text, file=sys.stderr, flush=True)
 
+    def end(self) -> None:
+        """End a line left open on a terminal (before a closing line of another kind)."""
+        if not self.quiet and 0 <= self.last < 100 and sys.stderr.isatty():
+            print(file=sys.stderr, flush=True)
+
 
 def _record(cfg: Config, args: argparse.Namespace) -> int:
+    """The plant simulated block by block (:func:`sim_plc.plant.stream_recording`), each
+    block written before the next is simulated. SIGINT or SIGTERM once the first block is
+    written stops after the block being simulated: the file is closed properly (a valid
+    recording of what was simulated), one line says how much, exit 128 + the signal's
+    number. Before the first block (loading, compiling) nothing is on disk and nothing is
+    left: one line says so."""
     from sim_plc.config import load_sim_config  # the effects registry: numba, when run
-    from sim_plc.plant import make_recording
+    from sim_plc.plant import stream_recording
 
     if not args.seconds > 0:
         raise ConfigError("--seconds must be > 0")
@@ -139,17 +156,74 @@ def _record(cfg: Config, args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     started = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     bar = _ProgressBar("record", args.quiet, "simulating the plant", args.seconds)
-    bar(0.0)  # labelled from the start, before the first step
-    rec = make_recording(cfg, sim, args.seconds, bar)
     robot = args.robot or (Path(cfg.source).stem if cfg.source else "sim")
-    write_recording(out, rec, {"robot": robot, "started": started})
+    writer: RowWriter | None = None
+    stop = _StopSignals()
+    try:
+        bar(0.0)  # labelled from the start, before the first step
+        blocks = stream_recording(cfg, sim, args.seconds, bar)
+        for block in blocks:
+            columns = recording_columns(block)
+            if writer is None:  # the first block: kernels compiled; from now on a file
+                stop.catch()  # a signal ends the loop below, never a write half done
+                meta = {**block.metadata, "robot": robot, "started": started}
+                writer = open_writer(out, [n for n, _ in columns], meta)
+            writer.write_rows(np.column_stack([v for _, v in columns]))
+            if stop.signum is not None:
+                break
+    except KeyboardInterrupt as exc:  # before the first block: the program's handler
+        if writer is not None:  # not from a signal (ours notes them): not ours to end
+            raise
+        bar.end()
+        nothing = f": before the first row: nothing recorded, no file written ({out})"
+        raise Interrupted(int(getattr(exc, "signum", signal.SIGINT)), nothing) from None
+    finally:
+        try:
+            if writer is not None:
+                writer.close()  # our handler still in place: a signal cannot cut it
+        finally:
+            stop.restore()
+    assert writer is not None
+    took = time.perf_counter() - t0
+    seconds = f"{writer.rows * sim.period_s:g} s"
+    if stop.signum is not None:  # one line, by the program (gateway/cli.py), even if --quiet
+        bar.end()
+        raise Interrupted(
+            stop.signum,
+            f": {writer.rows} rows ({seconds} of {args.seconds:g} s) recorded in {out}, "
+            f"the file closed ({took:.1f} s)",
+        )
     if not args.quiet:
-        took = time.perf_counter() - t0
         print(
-            f"record: {rec.samples} samples x {rec.cables} cables -> {out} ({took:.1f} s)",
+            f"record: {writer.rows} samples x {cfg.cables} cables -> {out} ({took:.1f} s)",
             file=sys.stderr,
         )
     return 0
+
+
+class _StopSignals:
+    """SIGINT and SIGTERM noted instead of raised once :meth:`catch` is called (main thread
+    only), the previous handlers back at :meth:`restore`."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def _note(self, signum: int, _frame: object) -> None:
+        if self.signum is None:
+            self.signum = signum
+
+    def catch(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                self._old[sig] = signal.signal(sig, self._note)
+
+    def restore(self) -> None:
+        for sig, handler in self._old.items():
+            signal.signal(sig, handler)
+        self._old.clear()
 
 
 def _server(

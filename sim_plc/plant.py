@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -419,3 +419,71 @@ class Plant:
                 image.true_tension_n[:] = tp
                 image.time_s = t
         self.k += 1
+
+
+STREAM_CHUNK = 1000  # samples per block of stream_recording (1 s at 1 kHz)
+
+
+def stream_recording(
+    cfg: Config,
+    sim: SimPlcConfig | None,
+    seconds: float,
+    progress: Progress | None = None,
+    chunk: int = STREAM_CHUNK,
+) -> Iterator[Recording]:
+    """:func:`make_recording` as blocks of ``chunk`` samples, each a :class:`Recording`
+    (``metadata`` on every block), computed only when the caller asks for it: ``record``
+    writes each block before the next is simulated, so an interrupt keeps what was
+    simulated. The friction chain runs as in the batch form with its state carried from
+    block to block (value for value the batch's), the noise is drawn in the same order; the
+    path and sensor effects, if any, run per sample (:class:`effects.ForwardStepper`, the
+    soft PLC's form, ``tests/sim_plc/test_plant.py``: within 1e-9 N of the batch form) and
+    look one sample past each block, the last sample of the run included (the batch form
+    takes a one-sided difference there)."""
+    model = PlantModel(cfg, sim)
+    period, m = model.sim.period_s, model.cables
+    n = max(round(seconds / period), 2)
+    t = np.arange(n + 1) * period  # one sample past the end: the effects' look-ahead
+    meta = _metadata(model, seconds)
+    rng = np.random.default_rng(model.sim.seed)
+    kp = chain.kernel_params(model.params)
+    state = chain.new_state(model.params)
+    fx = effects.ForwardStepper(model.effects, m, period)
+    t3, v3 = np.zeros(3), np.zeros((3, m))
+    dt = np.concatenate(([0.0], np.diff(t)))  # as the batch form: no travel at t = 0
+    v_prev: np.ndarray | None = None
+    chunk = max(int(chunk), 1)
+    with compiling("the soft PLC's plant", [chain.simulate_kernel, statics.wrench_into], log.info):
+        for a in range(0, n, chunk):
+            b = min(a + chunk, n)
+            sp = model.prepare(t[a : b + 1])
+            for k in range(sp.t.size):
+                model.solve_tensions(sp, k)
+            rows = b - a
+            vel = np.ascontiguousarray(sp.velocity[:rows])
+            if v_prev is None:
+                v_prev = vel[0].copy()
+            dx = np.empty_like(vel)
+            chain.travel_into(vel, dt[a:b], v_prev, dx)
+            ts = np.empty((rows, m))
+            tension = np.ascontiguousarray(sp.tension_true[:rows])
+            chain.simulate_kernel(kp, tension, vel, dx, state, ts)
+            if fx.steppers:
+                for i in range(rows):
+                    t3[:2], v3[:2] = t3[1:], v3[1:]
+                    t3[1:], v3[1:] = sp.t[i : i + 2], sp.velocity[i : i + 2]
+                    s = effects.Sample(a + i, float(sp.t[i]), t3, v3, sp.length[i])
+                    ts[i] = fx.step(s, ts[i].copy())
+            ts += rng.standard_normal(ts.shape) * model.noise_std
+            yield Recording(
+                t=sp.t[:rows],
+                velocity=sp.velocity[:rows],
+                tension_sensor=model.reading(model.adc(ts)),
+                tension_platform=sp.tension_recorded[:rows],
+                length=sp.length[:rows],
+                pose=sp.pose[:rows],
+                mass=sp.mass[:rows],
+                metadata=meta,
+            )
+            if progress is not None:
+                progress(b / n)

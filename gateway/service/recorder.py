@@ -17,8 +17,9 @@ wake-up and overruns went from 0.08 % to 0.46 % of cycles (``python -m bench rec
 Files rotate at whole-row boundaries after ``record.rotate_bytes`` bytes or
 ``record.rotate_s`` seconds; with rotation every file is numbered (``out-0000.csv.gz``,
 ``out-0001.csv.gz``, ...) and each one is a complete recording (metadata, header, rows).
-A ``.parquet`` path writes Parquet (row groups of :data:`ROW_GROUP_S`, each leaving a
-complete file; pyarrow is imported by the writer process only, never by the gateway's);
+A ``.parquet`` path writes Parquet (an Arrow IPC stream, a record batch per drain, that a
+kill cuts at most by the batch being written, converted at close into row groups of
+:data:`ROW_GROUP_S`; pyarrow is imported by the writer process only, never by the gateway's);
 ``record.layout: hive`` writes ``path/robot=R/date=YYYY-MM-DD/part-N.parquet``.
 A write that fails (a full disk: ``ENOSPC``) is logged once, the recorder stops (every
 later sample, and what was still in the ring, is counted as dropped), a plain CSV is cut
@@ -61,7 +62,7 @@ __all__ = ["RECORD_KINDS", "RecordConfig", "Recorder", "ring_columns"]
 log = logging.getLogger("cdpr_gateway.recorder")
 
 PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])  # where ``gateway`` is found
-ROW_GROUP_S = 5.0  # a Parquet recording's row groups: what a killed writer can lose at most
+ROW_GROUP_S = 5.0  # a Parquet recording's row groups (converted at close from its stream)
 
 
 def ring_columns(cables: int, with_mass: bool) -> list[tuple[str, str]]:

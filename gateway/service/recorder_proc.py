@@ -1,5 +1,6 @@
 """The recorder's writer process: drains the shared ring, writes whole rows (CSV, or Parquet
-row groups: :func:`gateway.recordings.writer.open_writer` by the file name), rotates.
+through an Arrow IPC stream: :func:`gateway.recordings.writer.open_writer` by the file
+name), rotates.
 
 Started by :class:`gateway.service.recorder.Recorder` as ``python -m
 gateway.service.recorder_proc`` (a fresh interpreter: fork+exec, never a fork of the
@@ -100,7 +101,7 @@ class Sink:
             except OSError as exc:
                 self.fail(exc)
                 return
-            # on disk: a Parquet writer holds rows back until a row group is full
+            # on disk (a writer may hold rows back: a .gz member being gathered)
             ctl[WRITTEN] = self.done_rows + self.writer.rows_on_disk
             ctl[TAIL] = tail + count  # after the copy: the slots are free again
 
@@ -123,10 +124,10 @@ class Sink:
             day = time.strftime("%Y-%m-%d", time.gmtime())
             folder = path / f"robot={job['robot']}" / f"date={day}"
             folder.mkdir(parents=True, exist_ok=True)
-            taken = [
+            taken = [  # a stream a killed writer left (not converted yet) takes its number
                 int(m.group(1))
-                for p in folder.glob("part-*.parquet")
-                if (m := re.fullmatch(r"part-(\d+)\.parquet", p.name))
+                for p in folder.glob("part-*")
+                if (m := re.fullmatch(r"part-(\d+)\.parquet(?:\.arrows|\.tmp)?", p.name))
             ]
             return folder / f"part-{max(taken, default=-1) + 1:04d}.parquet"
         if job["rotate_bytes"] is None and job["rotate_s"] is None:
@@ -183,7 +184,7 @@ class Sink:
 
     def abandon(self, w: RowWriter) -> None:
         """Close after a failed write; a plain CSV is cut back to its last whole row (a
-        Parquet writer has put its last footer back itself)."""
+        Parquet writer's stream keeps its complete batches: converted when it is read)."""
         with contextlib.suppress(OSError, ValueError):
             w._raw.close()  # type: ignore[attr-defined]  # may still flush part of a row
         with contextlib.suppress(OSError):

@@ -1,9 +1,11 @@
-"""Parquet recordings: the same values as written, a complete file after every row group
-(killed or out of space), malformed files refused whole like a CSV."""
+"""Parquet recordings: the same values as written, every batch on disk as it is written
+(an Arrow IPC stream, converted at close, or when a killed writer's recording is next
+opened), malformed files refused whole like a CSV."""
 
 from __future__ import annotations
 
 import io
+import logging
 import os
 import signal
 import subprocess
@@ -20,7 +22,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_array_equal
 
 from gateway.errors import RecordingError
-from gateway.recordings.parquet import ParquetRecordingWriter
+from gateway.recordings.parquet import ParquetRecordingWriter, stream_path
 from gateway.recordings.reader import Recording, read_recording, write_recording
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,6 +43,19 @@ def on_disk(path: Path) -> np.ndarray:
     return np.column_stack([t[c].to_numpy() for c in COLUMNS]) if t.num_rows else np.empty((0, 6))
 
 
+def stream_rows(data: bytes) -> np.ndarray:
+    """The complete record batches of an Arrow IPC stream (a cut last one left out)."""
+    got = []
+    with pa.ipc.open_stream(pa.BufferReader(data)) as reader:
+        while True:
+            try:
+                got.append(reader.read_next_batch())
+            except (StopIteration, pa.ArrowInvalid, OSError):  # the end, or cut short
+                break
+    t = pa.Table.from_batches(got, reader.schema)
+    return np.column_stack([t[c].to_numpy() for c in COLUMNS]) if t.num_rows else np.empty((0, 6))
+
+
 @settings(
     max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
@@ -49,12 +64,14 @@ def on_disk(path: Path) -> np.ndarray:
     group=st.integers(1, 150),
     nan_at=st.integers(0, 50),
 )
-def test_every_row_group_leaves_a_complete_file_with_the_values_written(
+def test_every_batch_is_on_disk_when_written_and_the_file_has_the_values_written(
     tmp_path: Path, batches: list[int], group: int, nan_at: int
 ) -> None:
     path = tmp_path / "p.parquet"
+    path.unlink(missing_ok=True)
     w = ParquetRecordingWriter(path, COLUMNS, {"robot": "r1"}, row_group_rows=group)
-    assert pq.read_table(path).num_rows == 0  # valid from the start
+    stream = stream_path(path)
+    assert stream_rows(stream.read_bytes()).shape == (0, 6)  # a valid stream from the start
     written, start = [], 0
     for k, n in enumerate(batches):
         block = table(n, k, start)
@@ -62,16 +79,16 @@ def test_every_row_group_leaves_a_complete_file_with_the_values_written(
         start += n
         w.write_rows(block)
         written.append(block)
-        # after each batch: exactly the full row groups so far, each value as written
-        every = np.concatenate(written)
-        assert_array_equal(on_disk(path), every[: w.rows_on_disk])
-        md = pq.ParquetFile(path).metadata
-        assert md.num_rows == sum(md.row_group(i).num_rows for i in range(md.num_row_groups))
-        assert w.rows_on_disk == start - start % group  # whole row groups, the rest held
-        assert path.stat().st_size == w.bytes
+        # after each batch: every row so far on disk, each value as written
+        assert_array_equal(stream_rows(stream.read_bytes()), np.concatenate(written))
+        assert w.rows_on_disk == start and stream.stat().st_size == w.bytes
+        assert not path.exists()  # the Parquet file appears whole, at close
     w.close()
+    assert not stream.exists()
     assert_array_equal(on_disk(path), np.concatenate(written))
     pf = pq.ParquetFile(path)
+    sizes = [pf.metadata.row_group(i).num_rows for i in range(pf.metadata.num_row_groups)]
+    assert sizes == [group] * (start // group) + ([start % group] if start % group else [])
     assert pf.schema_arrow.metadata[b"robot"] == b"r1"
     assert pf.schema_arrow.field("tension_sensor_1").metadata == {b"unit": b"N"}
     assert pf.schema_arrow.field("t").metadata == {b"unit": b"s"}
@@ -182,43 +199,40 @@ class FullDisk(io.BytesIO):
         pass
 
 
-def test_a_full_disk_keeps_every_finished_row_group(tmp_path: Path) -> None:
+def test_a_full_disk_keeps_every_complete_batch(tmp_path: Path) -> None:
     disk = FullDisk(limit=14_000)
-    w = ParquetRecordingWriter(
-        tmp_path / "x.parquet", COLUMNS, {}, fileobj=disk, row_group_rows=100
-    )
+    w = ParquetRecordingWriter(tmp_path / "x.parquet", COLUMNS, {}, fileobj=disk)
     rows = []
     with pytest.raises(OSError, match="No space"):
         for k in range(100):
             rows.append(table(100, k, 100 * k))
             w.write_rows(rows[-1])
     assert 0 < w.rows_on_disk < 100 * len(rows)
-    t = pq.read_table(pa.BufferReader(disk.getvalue()))  # the previous footer is back
-    got = np.column_stack([t[c].to_numpy() for c in COLUMNS])
+    got = stream_rows(disk.getvalue())  # the batches before the cut one, whole
     assert_array_equal(got, np.concatenate(rows)[: w.rows_on_disk])
 
 
 KILLED = textwrap.dedent(
     """
     import sys
-    from gateway.recordings.parquet import ParquetRecordingWriter
+    from gateway.recordings.parquet import ParquetRecordingWriter, stream_path
     from tests.recordings.test_parquet import COLUMNS, table
 
     w = ParquetRecordingWriter(sys.argv[1], COLUMNS, {"robot": "k"}, row_group_rows=50)
-    for k in range(33):  # 6 row groups of 50 rows written, 30 rows buffered
+    for k in range(33):  # 33 batches of 10 rows
         w.write_rows(table(10, k, 10 * k))
     print(w.rows_on_disk, w.rows, flush=True)
-    sys.stdin.readline()  # killed here, between two writes, close() never called
+    sys.stdin.readline()  # killed here, close() never called
     """
 )
 
 
-def test_a_killed_writer_leaves_a_readable_file(tmp_path: Path) -> None:
-    """SIGKILL after the last row group's write: the file holds every finished row group
-    and nothing else. The kill lands between writes on purpose: the module promises
-    nothing for a kill inside the one ``write`` of a row group (docs/recording-format.md),
-    and a test killing at a random moment failed there under load ("Couldn't deserialize
-    thrift")."""
+def test_a_killed_writer_leaves_a_stream_that_the_reader_recovers(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """SIGKILL: no Parquet file, the stream holds every batch; opening the recording
+    converts it (one warning) and reads every row; the stream is gone after. A kill inside
+    a write is tests/recordings/test_kill_recordings.py's."""
     path = tmp_path / "killed.parquet"
     proc = subprocess.Popen(
         [sys.executable, "-c", KILLED, str(path)],
@@ -228,18 +242,43 @@ def test_a_killed_writer_leaves_a_readable_file(tmp_path: Path) -> None:
         text=True,
     )
     try:
-        assert proc.stdout is not None and proc.stdout.readline() == "300 330\n"
+        assert proc.stdout is not None and proc.stdout.readline() == "330 330\n"
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
         proc.stdout.close()  # type: ignore[union-attr]
         proc.stdin.close()  # type: ignore[union-attr]
-    back = read_recording(path)  # the rows of every finished row group, nothing else
-    assert back.samples == 300
-    expected = np.concatenate([table(10, k, 10 * k) for k in range(30)])
+    assert not path.exists() and stream_path(path).exists()
+    with caplog.at_level(logging.WARNING):
+        back = read_recording(path)
+    assert back.samples == 330
+    expected = np.concatenate([table(10, k, 10 * k) for k in range(33)])
     assert_array_equal(back.t, expected[:, 0])
     assert_array_equal(back.tension_sensor[:, 0], expected[:, 2])
     assert back.metadata == {"robot": "k"}
+    said = [r.getMessage() for r in caplog.records if "unclean stop" in r.getMessage()]
+    assert said == [
+        f"{path}: ends after an unclean stop: 330 rows to t = 0.329 s recovered "
+        f"from {path.name}.arrows"
+    ]
+    assert not stream_path(path).exists()
+
+
+def test_a_cut_stream_keeps_its_complete_batches(tmp_path: Path, caplog) -> None:
+    path = tmp_path / "cut.parquet"
+    w = ParquetRecordingWriter(path, COLUMNS, {"robot": "c"})
+    for k in range(5):
+        w.write_rows(table(100, k, 100 * k))
+    data = stream_path(path).read_bytes()
+    w._raw.close()  # as a kill would: no end of stream, no conversion
+    # a batch: 100 rows x 6 float64 (4800 bytes) and its message header
+    for cut, whole in ((1, 400), (3000, 400), (9000, 300)):
+        stream_path(path).write_bytes(data[: len(data) - cut])
+        path.unlink(missing_ok=True)
+        with caplog.at_level(logging.WARNING):
+            back = read_recording(path)
+        assert back.samples == whole  # the batches before the cut one, whole
+        assert "the last partial batch dropped" in caplog.records[-1].getMessage()
 
 
 @pytest.mark.long  # two diagnoses: ~5-9 s

@@ -16,8 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gateway.errors import RecordingError
-from gateway.recordings import thrift
 from gateway.recordings.reader import read_recording
+from tests.recordings import thrift
 
 ROWS, GROUPS = 300, 3
 COLUMNS = ["t", "velocity_1", "tension_sensor_1", "tension_platform_1"]

@@ -12,8 +12,8 @@ import pyarrow.parquet as pq
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.recordings import thrift
-from gateway.recordings.thrift import Field, Map, Seq
+from tests.recordings import thrift
+from tests.recordings.thrift import Field, Map, Seq
 
 INTS = st.integers(-(2**63), 2**63 - 1)
 SCALARS = {

@@ -1,5 +1,5 @@
 """The recorder writing Parquet: the gateway's process never loads pyarrow; a killed writer
-leaves the finished row groups; the Hive tree that ``run --record`` writes reads the same
+leaves every batch it wrote; the Hive tree that ``run --record`` writes reads the same
 in pyarrow, DuckDB and the diagnosis' reader."""
 
 from __future__ import annotations
@@ -65,20 +65,20 @@ def test_the_gateways_process_records_parquet_without_importing_pyarrow(tmp_path
     assert back.metadata["source"] == "cdpr-gateway run --record" and back.metadata["robot"]
 
 
-def test_a_killed_writer_process_leaves_every_finished_row_group(tmp_path: Path) -> None:
+def test_a_killed_writer_process_leaves_every_batch_it_wrote(tmp_path: Path) -> None:
     path = tmp_path / "k.parquet"
     rec = Recorder(RecordConfig(path=str(path), batch_s=0.001), M, with_mass=True, period_s=0.01)
     rec.start()
     push_many(rec, 0, 1700)
-    assert wait_for(lambda: rec.rows_written == 1500)  # three row groups on disk
+    assert wait_for(lambda: rec.rows_written == 1700)  # each drain a batch on disk
     assert rec.pid is not None
     os.kill(rec.pid, signal.SIGKILL)
     assert wait_for(lambda: rec.failed is not None)
     rec.close()
-    assert rec.rows_written == 1500 and rec.dropped == 200  # the held-back rows are counted
-    back = read_recording(path)
-    assert back.samples == 1500
-    assert_array_equal(back.tension_sensor[:, 2], 100.0 + np.arange(1500))
+    assert rec.rows_written == 1700 and rec.dropped == 0
+    back = read_recording(path)  # converted from the stream the killed writer left
+    assert back.samples == 1700
+    assert_array_equal(back.tension_sensor[:, 2], 100.0 + np.arange(1700))
 
 
 def test_the_hive_layout_rotates_into_a_tree_duckdb_reads_as_one_table(tmp_path: Path) -> None:

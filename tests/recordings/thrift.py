@@ -1,13 +1,13 @@
 """Thrift compact protocol, as far as a Parquet footer needs it: decode and encode.
 
 A Parquet file ends with its footer (``FileMetaData``, Thrift compact protocol), its length
-(4 bytes, little endian) and ``PAR1``. :mod:`gateway.recordings.parquet` keeps a recording
-readable after every row group by rewriting that footer (pyarrow writes it only on close,
-and refuses a sink that does not start at offset 0); this module reads and writes the
-footer's structure. A struct is a list of :class:`Field` in the order read; a list is a
-:class:`Seq`; a map a :class:`Map`; integers, doubles and bytes are Python values; a bool
-field carries its value in ``Field.type`` (1 true, 2 false) and ``value`` None.
-"""
+(4 bytes, little endian) and ``PAR1``. The tests craft hostile footers with it
+(``test_parquet_counts.py``), and ``bench/parquet_footer.py`` rewrites a growing file's
+footer after every row group: how the recorder wrote Parquet until an Arrow IPC stream
+converted at close replaced it (``python -m bench parquet_kill`` compares the two). A struct
+is a list of :class:`Field` in the order read; a list is a :class:`Seq`; a map a
+:class:`Map`; integers, doubles and bytes are Python values; a bool field carries its value
+in ``Field.type`` (1 true, 2 false) and ``value`` None."""
 
 from __future__ import annotations
 
