@@ -35,6 +35,8 @@ from gateway.diagnose.prepare import (
     warmup_mask,
 )
 from gateway.diagnose.select import Model, Selector, Thresholds
+from gateway.diagnose.sessions import Sessions
+from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.significance import Tested, decide, harmonize, retire, score
 from gateway.diagnose.stats import holdout_z
 from gateway.errors import RecordingError
@@ -144,6 +146,8 @@ class PlatformPrepared:
     """(N,) the piece of the recording (trial) of each sample (:func:`.prepare.gap_segments`)."""
     pooled: dict[str, Pooled] = field(default_factory=dict)
     """Per effect, its test pooled over the cables (:mod:`.pooling`), once fitted."""
+    sessions: Sessions | None = None
+    """The recordings of a joined series (:mod:`.sessions`); None: one recording."""
 
 
 class PlatformReference:
@@ -152,8 +156,10 @@ class PlatformReference:
 
     name = "platform_tension"
 
-    def __init__(self, tp: np.ndarray | None = None, dtp_dm: Sensitivity = None) -> None:
-        self.tp, self.dtp_dm = tp, dtp_dm
+    def __init__(
+        self, tp: np.ndarray | None = None, dtp_dm: Sensitivity = None, sessions=None
+    ) -> None:
+        self.tp, self.dtp_dm, self.sessions = tp, dtp_dm, sessions
 
     def prepare(self, rec: Recording, friction, validation, say) -> PlatformPrepared:
         tp = rec.tension_platform if self.tp is None else self.tp
@@ -161,8 +167,11 @@ class PlatformReference:
             raise RecordingError(f"{rec.source}: no platform tensions")
         nom = nominal_from(friction)
         rec, tp, dtp_dm = finite_rows(rec, tp, self.dtp_dm)
-        datas = cable_data(rec, tp, dtp_dm)
-        blocks, nb = time_blocks(rec.t)
+        sessions = self.sessions
+        if sessions is not None and sessions.index.size != rec.samples:
+            raise RecordingError(f"{rec.source}: rows without values in a joined series")
+        datas = cable_data(rec, tp, dtp_dm, sessions=sessions)
+        blocks, nb = session_blocks(rec.t, sessions)
         valid = np.empty((rec.samples, rec.cables), bool)
         usable = np.empty((rec.samples, rec.cables), bool)
         levels, cands = [], []
@@ -195,6 +204,7 @@ class PlatformReference:
             ),
             clipped,
             gap_segments(rec.t),
+            sessions=sessions if sessions is not None and sessions.count > 1 else None,
         )
 
     def units(self, prep: PlatformPrepared, say) -> Iterator[tuple[int, CableUnit]]:

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate, lsq, pooling, signals
+from gateway.diagnose import locate, lsq, pooling, sessions, signals
 from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.select import Outcome, Thresholds
@@ -164,11 +164,31 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
     }
     if vstat and len(vstat) == len(cables):
         out["validation_statistic"] = vstat
+    per = per_recording_field(effect, [tested[i - 1].outcome.theta[effect] for i in cables])
+    if per is not None:
+        out["per_recording"] = per
     alts = alternatives(effect, tested, n_test)
     if alts:
         out["alternatives"] = alts
         out["separate_by"] = fx.REGISTRY[effect].separate
     out.update(pairs)
+    return out
+
+
+def per_recording_field(effect: str, thetas: list[np.ndarray]) -> list[dict] | None:
+    """An effect fitted per recording (:mod:`.sessions`): per recording (in the order of
+    the report's ``recordings``), its reported parameters per cable of the finding (the
+    finding's ``parameters`` are their mean); None for an effect shared by the recordings."""
+    if not thetas or sessions.per_recording(effect, thetas[0].size) == 1:
+        return None
+    per = [sessions.rows(effect, th) for th in thetas]
+    out = []
+    for r in range(per[0].shape[0]):
+        params: dict[str, list[float]] = {}
+        for rows in per:
+            for k, v in to_report(effect, rows[r]).items():
+                params.setdefault(k, []).append(_num(v))
+        out.append({"parameters": params})
     return out
 
 
@@ -247,7 +267,16 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
         use = prep.usable[idx, i]
         d = fw.data  # thinned: its x and a from the thinned series (not the whole's)
         length = None if d.length is None else d.length[idx]
-        thin = CableData(d.t[idx], d.v[idx], d.tp[idx], d.ts[idx], d.t0, x0=d.x0, length=length)
+        thin = CableData(
+            d.t[idx],
+            d.v[idx],
+            d.tp[idx],
+            d.ts[idx],
+            d.t0_at(idx),
+            x0=d.x0,
+            length=length,
+            session=None if d.session is None else d.session[idx],
+        )
         explainer.add(thin, r[idx], (blk % 2 == 0) & use, (blk % 2 == 1) & use)
         del thin, r
         d.release()
@@ -349,6 +378,7 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
         "cables": rec.cables,
         "samples": rec.samples,
         "skipped_rows": rec.skipped_rows,
+        **({} if prep.sessions is None else {"recordings": prep.sessions.report()}),
         "baseline": baseline,
         **final_loc.report_fields(final_loc.regions()),
         "findings": findings,
