@@ -38,8 +38,8 @@ class CableData:
     length (a filtered derivative's bias, the jumps across a gap between joined trials:
     up to 3 mm on the da Vinci's 5 mm stroke); ``t0`` the recording's first time (drift
     is ``k (t - t0)``; several recordings joined: (N,) each sample's recording start, and
-    ``session`` (N,) its recording, :mod:`.sessions`); ``dtp_dm`` (N,) N/kg, the change of platform tension per kg of
-    platform mass (None: no pose/mass, no ``mass_change``).
+    ``session`` (N,) its recording, :mod:`.sessions`); ``dtp_dm`` (N,) N/kg, the change
+    of platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
     ``x`` and ``a`` are given (a subset of a longer recording takes them from the whole
     recording) or computed from ``t`` and ``v`` when first read and dropped again by
     :meth:`release` (memory: 16 bytes per sample that only the cable being worked on holds;
