@@ -19,7 +19,9 @@ Each finding carries, per cable in ``cables``: ``statistic`` (the held-out z of 
 with it against the model without it), ``p`` and ``q`` (Benjamini-Hochberg over every
 candidate x cable tried, :mod:`.significance`), ``stderr`` (the larger of the Jacobian's
 and the spread of refits across time blocks, whole trials left out where the recording
-joins several), ``stderr_jacobian`` and ``stderr_blocks``;
+joins several), ``stderr_jacobian`` and ``stderr_blocks``; with several recordings
+(:mod:`.sessions`) ``recordings_statistic``, the z on recordings left out in turn, and
+``statistic`` the smaller of the two (``p`` the larger);
 ``alternatives`` lists the effects of its group the held-out data cannot tell from it (each
 with its parameters and held-out RMSE) and ``separate_by`` the motion that would. ``rmse_*``
 are over every cable and sample, ``holdout_*`` over the held-out blocks, ``validation_*``
@@ -129,7 +131,7 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
     errs: dict[str, list[float]] = {}
     errs_jac: dict[str, list[float]] = {}
     errs_blk: dict[str, list[float]] = {}
-    stat, ps, qs, vstat = [], [], [], []
+    stat, ps, qs, vstat, rstat = [], [], [], [], []
     for i in cables:
         o = tested[i - 1].outcome
         theta, se = o.theta[effect], o.stderr[effect]
@@ -150,6 +152,8 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
         qs.append(_num(t.get("q", math.nan)))
         if "validation_z" in t:
             vstat.append(_num(t["validation_z"]))
+        if "recordings_z" in t:
+            rstat.append(_num(t["recordings_z"]))
     out = {
         "effect": effect,
         "cables": cables,
@@ -164,6 +168,8 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
     }
     if vstat and len(vstat) == len(cables):
         out["validation_statistic"] = vstat
+    if rstat and len(rstat) == len(cables):
+        out["recordings_statistic"] = rstat
     per = per_recording_field(effect, [tested[i - 1].outcome.theta[effect] for i in cables])
     if per is not None:
         out["per_recording"] = per

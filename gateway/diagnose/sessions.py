@@ -9,7 +9,12 @@ whole recordings, out: :func:`.significance.block_refits`). What that gives:
 - **held out**: the time blocks are drawn within each recording (:func:`time_blocks`:
   about one a second, even ones train, odd ones are held out), so every recording trains
   and is held out, and one statistic per effect and cable pools the held-out blocks of all
-  of them, into the cross-cable pooling (:mod:`.pooling`) as for one recording;
+  of them;
+- **recordings left out**: each kept effect is also tested on recordings left out in turn
+  (:meth:`.reference.CableUnit.recordings_left_out`); it must pass both (the smaller z,
+  the larger p: :func:`.significance.score`), and that one p per effect and cable goes into
+  the significance stage and the cross-cable pooling (:mod:`.pooling`) as for one
+  recording;
 - **parameters**: fitted jointly on the training blocks of every recording; a machine's
   property (a friction coefficient, a gain) is one value for all, a session's property
   (``Effect.per_recording``: an offset, a drift, each recording's sensor zero) one value
@@ -61,10 +66,13 @@ class Sessions:
         return self.starts[self.index]
 
     def report(self) -> list[dict]:
-        """The report's ``recordings``."""
+        """The report's ``recordings``: ``start_s`` is where each begins on the joined
+        clock, which the report's times (``mismatch`` regions, ``warmup``) are on."""
         return [
-            {"name": n, "samples": s, "duration_s": d}
-            for n, s, d in zip(self.names, self.samples, self.durations_s, strict=True)
+            {"name": n, "samples": s, "duration_s": d, "start_s": float(t0)}
+            for n, s, d, t0 in zip(
+                self.names, self.samples, self.durations_s, self.starts, strict=True
+            )
         ]
 
 

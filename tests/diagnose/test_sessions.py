@@ -23,6 +23,7 @@ from gateway.diagnose.prepare import time_blocks as one_blocks
 from gateway.model import effects as fx
 from gateway.recordings.reader import Recording
 from tests import reallike as rl
+from tests import reallike_cases as rc
 from tests.diagnose_helpers import check_report
 
 
@@ -152,11 +153,13 @@ def test_one_answer_whichever_recording_is_held_out_and_in_any_order(tmp_path: P
     """Issue 29's 4-cable robot (shared viscous 200 N s/m, offset -8 N, noise 18 %), three
     recordings of different motions: every choice of the ``--validate`` recording and both
     orders of the two fitted, and the three fitted together in every order, give the same
-    findings, the truth (viscous and offset on every cable), per-recording offsets for
-    the fitted recordings, and a schema-valid report."""
+    findings, the truth (viscous and offset on every cable, parameters within the real-like
+    scorer's tolerances), per-recording offsets for the fitted recordings, a lower
+    validation error, and a schema-valid report."""
     machine = rl.Machine(cables=4, c_ns_m=200.0, offset_n=-8.0, noise_frac=0.18)
     paths, model = _three(tmp_path, machine, 200.0)
-    truth = {e: [1, 2, 3, 4] for e in rl.truth_effects(machine)}
+    machine_truth = rl.truth_effects(machine)
+    truth = {e: [1, 2, 3, 4] for e in machine_truth}
     answers = []
     for val in range(3):
         fit = [paths[k] for k in range(3) if k != val]
@@ -169,6 +172,9 @@ def test_one_answer_whichever_recording_is_held_out_and_in_any_order(tmp_path: P
             assert (
                 rep["final"]["validation_rmse_after_n"] < rep["final"]["validation_rmse_before_n"]
             )
+            # every parameter within the real-like scorer's tolerance (the offset: the mean
+            # over the fitted recordings)
+            assert max(rc._param_errors(machine_truth, f) for f in rep["findings"]) <= 1.0
             answers.append(_found(rep))
     for order in itertools.permutations(paths):
         rep = diagnose_report(list(order), model)
