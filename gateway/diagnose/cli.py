@@ -180,7 +180,7 @@ def _diagnose_joined(
     keep_for_model: Callable[[Recording], Recording] = _unchanged
     nominal = None
     for k, path in enumerate(recordings):
-        rec, nominal = _read(path, model_friction, cfg)  # type: ignore[arg-type]
+        rec, nominal = _read(path, model_friction, cfg)
         say(f"{rec.source}: {rec.samples} samples x {rec.cables} cables")
         if reference_mode(rec) == "wrench":
             raise GatewayError(
@@ -197,7 +197,7 @@ def _diagnose_joined(
     del parts
     validation = None
     if validate is not None:
-        vrec = dataclasses.replace(_read(validate, model_friction, cfg)[0], length=None)  # type: ignore[arg-type]
+        vrec = dataclasses.replace(_read(validate, model_friction, cfg)[0], length=None)
         vtp, vdm = _tensions(vrec, cfg, say)
         validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
     say(f"{sessions.count} recordings joined: {joined.samples} samples")
@@ -210,6 +210,7 @@ def _diagnose_joined(
         progress=say,
         sessions=sessions,
     )
+    assert nominal is not None  # at least two recordings were read
     warmup.annotate(diag.report, joined, nominal)
     return _Run(diag, joined, keep_for_model, model_friction)
 

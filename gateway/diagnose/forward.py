@@ -233,7 +233,8 @@ class Forward:
     def _chain_input(self, eff: dict[str, np.ndarray]) -> tuple[ChainParams, np.ndarray]:
         d = self.data
         tp = d.tp
-        delta = fx.mass_delta(report_values(eff, "statics"), d.t, d.t0)
+        # t0: per-sample recording starts on a joined series (elementwise, :mod:`.sessions`)
+        delta = fx.mass_delta(report_values(eff, "statics"), d.t, d.t0)  # type: ignore[arg-type]
         if delta is not None and d.dtp_dm is not None:
             tp = tp + delta * d.dtp_dm
         return chain_params(self.nom, eff), tp
@@ -280,4 +281,4 @@ class Forward:
     def predict(self, eff: dict[str, np.ndarray]) -> np.ndarray:
         """The sensor reading (N,) the nominal model plus ``eff`` predicts (N)."""
         values = report_values(eff, "path", "sensor", session=self.data.session)
-        return fx.forward(self.data, self.chain(eff), values)
+        return fx.forward(self.data, self.chain(eff), values)  # type: ignore[arg-type]  # t0

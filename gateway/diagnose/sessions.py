@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -87,7 +88,7 @@ def _shape(rec: Recording, dm) -> dict[str, object]:
     }
 
 
-def check_alike(parts: list[tuple[Recording, np.ndarray, object]], names: list[str]) -> None:
+def check_alike(parts: list[tuple[Recording, np.ndarray, Any]], names: list[str]) -> None:
     """One line naming the first recording whose cable set or columns differ from the
     first recording's (:class:`RecordingError`)."""
     ref = _shape(parts[0][0], parts[0][2])
@@ -102,7 +103,7 @@ def check_alike(parts: list[tuple[Recording, np.ndarray, object]], names: list[s
 
 
 def join(
-    parts: list[tuple[Recording, np.ndarray, object]], names: list[str]
+    parts: list[tuple[Recording, np.ndarray, Any]], names: list[str]
 ) -> tuple[Recording, np.ndarray, np.ndarray | None, Sessions]:
     """The recordings (each with its platform tensions and dT_p/dm) as one series: rows
     without a required value dropped per recording, times shifted so that each starts
@@ -141,7 +142,7 @@ def join(
     )
     tp = np.concatenate([p for _, p, _ in clean])
     dms = [d for _, _, d in clean]
-    dm = None if dms[0] is None else np.concatenate(dms)  # type: ignore[arg-type]
+    dm = None if dms[0] is None else np.concatenate(dms)
     sessions = Sessions(
         [Path(n).name for n in names],
         np.concatenate([np.full(r.samples, k, np.int64) for k, (r, _, _) in enumerate(clean)]),
