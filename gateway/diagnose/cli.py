@@ -1,6 +1,7 @@
-"""``cdpr-gateway diagnose RECORDING --model MODEL.yaml [--json REPORT.json] [--report DIR]
-[--validate OTHER] [--write-model FITTED.yaml] [--columns MAP]``: see docs/recording-format.md,
-:mod:`gateway.diagnose.engine` and (the model file's fitted effects)
+"""``cdpr-gateway diagnose RECORDING [RECORDING ...] --model MODEL.yaml [--json REPORT.json]
+[--report DIR] [--validate OTHER] [--write-model FITTED.yaml] [--columns MAP]``: see
+docs/recording-format.md, :mod:`gateway.diagnose.engine`, (several recordings of one
+machine) :mod:`gateway.diagnose.sessions` and (the model file's fitted effects)
 :mod:`gateway.diagnose.writemodel`."""
 
 from __future__ import annotations
@@ -35,7 +36,13 @@ if TYPE_CHECKING:
 
 
 def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recording", type=Path, help="recording (.csv, .csv.gz or .parquet)")
+    parser.add_argument(
+        "recording",
+        type=Path,
+        nargs="+",
+        help="recording (.csv, .csv.gz or .parquet); several: recordings of one machine, "
+        "diagnosed together for one set of findings",
+    )
     parser.add_argument(
         "--model",
         type=Path,
@@ -128,7 +135,7 @@ class _Run:
 
 
 def _diagnose_file(
-    recording: Path,
+    recording: Path | list[Path],
     model: Path,
     validate: Path | None,
     say: Callable[[str], None],
@@ -137,8 +144,12 @@ def _diagnose_file(
     from gateway.diagnose import warmup
     from gateway.diagnose.engine import diagnose, load_kernels, reference_mode
 
+    recordings = list(recording) if isinstance(recording, list | tuple) else [recording]
     model_friction, cfg = load_model(model)
     load_kernels(model_friction)  # type: ignore[arg-type]  # LLVM's pages given back after
+    if len(recordings) > 1:
+        return _diagnose_joined(recordings, model_friction, cfg, validate, say, columns)
+    recording = recordings[0]
     rec, nominal = _read(recording, model_friction, cfg, columns)  # type: ignore[arg-type]
     friction: object = nominal  # the nominal chain; the model's effects are in ``rec``
     say(
@@ -167,25 +178,78 @@ def _diagnose_file(
     return _Run(diag, rec, keep_for_model, model_friction)
 
 
+def _diagnose_joined(
+    recordings: list[Path],
+    model_friction,
+    cfg: Config | None,
+    validate,
+    say,
+    columns: Mapping[str, str] | None = None,
+) -> _Run:
+    """Several recordings of one machine, joined (:mod:`gateway.diagnose.sessions`) and
+    diagnosed as one against their platform tensions."""
+    from gateway.diagnose import warmup
+    from gateway.diagnose.engine import diagnose, reference_mode
+    from gateway.diagnose.sessions import join
+
+    parts = []
+    keep_for_model: Callable[[Recording], Recording] = _unchanged
+    nominal = None
+    for k, path in enumerate(recordings):
+        rec, nominal = _read(path, model_friction, cfg, columns)
+        say(f"{rec.source}: {rec.samples} samples x {rec.cables} cables")
+        if reference_mode(rec) == "wrench":
+            raise GatewayError(
+                f"{path}: no tension_platform_i columns: several recordings are diagnosed "
+                "together against platform tensions only (the wrench balance takes one)"
+            )
+        if k == 0:
+            rec, keep_for_model = _slim(rec)  # the model writer reads the first's lengths
+        else:
+            rec = dataclasses.replace(rec, length=None)
+        tp, dm = _tensions(rec, cfg, say)
+        parts.append((_without_pose(rec), tp, dm))
+    joined, tp, dm, sessions = join(parts, [str(p) for p in recordings])
+    del parts
+    validation = None
+    if validate is not None:
+        vrec = dataclasses.replace(_read(validate, model_friction, cfg, columns)[0], length=None)
+        vtp, vdm = _tensions(vrec, cfg, say)
+        validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
+    say(f"{sessions.count} recordings joined: {joined.samples} samples")
+    diag = diagnose(
+        joined,
+        nominal,  # type: ignore[arg-type]
+        tp=tp,
+        dtp_dm=dm,
+        validation=validation,
+        progress=say,
+        sessions=sessions,
+    )
+    assert nominal is not None  # at least two recordings were read
+    warmup.annotate(diag.report, joined, nominal)
+    return _Run(diag, joined, keep_for_model, model_friction)
+
+
 def report_json(report: dict) -> str:
     """The text of ``--json REPORT.json``."""
     return json.dumps(report, indent=1)
 
 
 def diagnose_report(
-    recording: Path,
+    recording: Path | list[Path],
     model: Path,
     validate: Path | None = None,
     progress: Callable[[str], None] | None = None,
     columns: Mapping[str, str] | None = None,
 ) -> dict:
-    """The report ``diagnose RECORDING --model MODEL [--validate OTHER] [--columns MAP]``
-    writes, as a dict (:func:`report_json` gives its text); bad input raises
-    :class:`GatewayError`. The one entry point for a caller that diagnoses files
-    (``cdpr-gateway fleet``); ``columns`` as :func:`gateway.recordings.columns.column_map`
-    gives it."""
-    path, say = Path(recording), progress or _silent
-    return _diagnose_file(path, Path(model), validate, say, columns).diag.report
+    """The report ``diagnose RECORDING [RECORDING ...] --model MODEL [--validate OTHER]
+    [--columns MAP]`` writes, as a dict (:func:`report_json` gives its text); bad input
+    raises :class:`GatewayError`. The one entry point for a caller that diagnoses files
+    (``cdpr-gateway fleet``); ``recording``: one path, or a list of one machine's;
+    ``columns`` as :func:`gateway.recordings.columns.column_map` gives it."""
+    paths = [Path(p) for p in recording] if isinstance(recording, list | tuple) else Path(recording)
+    return _diagnose_file(paths, Path(model), validate, progress or _silent, columns).diag.report
 
 
 def _silent(msg: str) -> None:
@@ -220,10 +284,11 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         from gateway.diagnose.plots import write_report
         from gateway.diagnose.wrench_plots import write_report as write_wrench_report
 
+        name = " + ".join(str(p) for p in args.recording)
         if diag.report["reference"] == "wrench":
-            write_wrench_report(diag, args.report, str(args.recording))  # type: ignore[arg-type]
+            write_wrench_report(diag, args.report, name)  # type: ignore[arg-type]
         else:
-            write_report(diag, args.report, str(args.recording))
+            write_report(diag, args.report, name)
         say(f"pictures and summary.md in {args.report}")
     if args.write_model is not None:
         refused = heldout.refusal(diag.report, heldout.motion(rec.t, rec.velocity))

@@ -42,6 +42,7 @@ from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-e
 from gateway.diagnose.reference import PlatformReference, fit_units, select_units
 from gateway.diagnose.report import Diagnosis, build_report
 from gateway.diagnose.select import Thresholds
+from gateway.diagnose.sessions import Sessions
 from gateway.model.effects.forms import lowpass
 from gateway.recordings.reader import Recording
 
@@ -56,18 +57,21 @@ def diagnose(
     validation: tuple[Recording, object, Sensitivity] | None = None,
     thresholds: Thresholds | None = None,
     progress: Progress | None = None,
+    sessions: Sessions | None = None,
 ) -> Diagnosis:
     """Diagnose ``rec`` against the nominal ``friction`` model with the platform-tension
     reference (module docstring).
 
     ``tp`` (N, m): platform tensions (default: the recording's); ``dtp_dm``: platform tension
     per kg of platform mass (enables a platform mass effect); ``validation``: a second
-    recording of the same machine, its platform tensions and dtp_dm (never fitted).
+    recording of the same machine, its platform tensions and dtp_dm (never fitted);
+    ``sessions``: ``rec`` is several recordings of one machine joined
+    (:func:`.sessions.join`), diagnosed for one set of findings.
     """
     say = progress or (lambda _msg: None)
     th = thresholds or Thresholds()
     return_large_frees()  # many (N,) temporaries: freed ones must not stay resident
-    ref = PlatformReference(tp, dtp_dm)
+    ref = PlatformReference(tp, dtp_dm, sessions)
     prepared = ref.prepare(rec, friction, validation, say)
     located = ref.locate(prepared)  # gives back LLVM's pages and the heap after each cable
     selected = select_units(ref, prepared, th, say)

@@ -19,14 +19,21 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from gateway.diagnose.forward import CableData, Forward, Nominal
+from gateway.diagnose.sessions import tile_spec
 from gateway.model import effects as fx
 from gateway.model.effects import Spec
 
 
 def spec_for(effect: str, d: CableData, nom: Nominal, resid: np.ndarray, mask: np.ndarray) -> Spec:
     """The fitting recipe of ``effect`` for this cable (``resid``: current residual;
-    ``mask``: the training samples): the effect module's :meth:`~Effect.spec`."""
-    return fx.REGISTRY[effect].spec(d, nom, resid, mask)
+    ``mask``: the training samples): the effect module's :meth:`~Effect.spec`, repeated
+    per recording for an effect fitted per recording on several (:mod:`.sessions`)."""
+    e = fx.REGISTRY[effect]
+    spec = e.spec(d, nom, resid, mask)
+    count = 0 if d.session is None else int(d.session.max()) + 1
+    if e.per_recording and count > 1:
+        return tile_spec(spec, len(e.params), count)
+    return spec
 
 
 @dataclass

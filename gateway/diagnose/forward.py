@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gateway.diagnose.sessions import mean_stderr, mean_theta, per_recording, session_values
 from gateway.model import effects as fx
 from gateway.model.chain import ChainParams, simulate, simulate_rows
 
@@ -36,8 +37,9 @@ class CableData:
     lengths ``length`` (m) are given: an integrated velocity drifts away from a measured
     length (a filtered derivative's bias, the jumps across a gap between joined trials:
     up to 3 mm on the da Vinci's 5 mm stroke); ``t0`` the recording's first time (drift
-    is ``k (t - t0)``); ``dtp_dm`` (N,) N/kg, the change of platform tension per kg of
-    platform mass (None: no pose/mass, no ``mass_change``).
+    is ``k (t - t0)``; several recordings joined: (N,) each sample's recording start, and
+    ``session`` (N,) its recording, :mod:`.sessions`); ``dtp_dm`` (N,) N/kg, the change
+    of platform tension per kg of platform mass (None: no pose/mass, no ``mass_change``).
     ``x`` and ``a`` are given (a subset of a longer recording takes them from the whole
     recording) or computed from ``t`` and ``v`` when first read and dropped again by
     :meth:`release` (memory: 16 bytes per sample that only the cable being worked on holds;
@@ -52,14 +54,16 @@ class CableData:
         v: np.ndarray,
         tp: np.ndarray,
         ts: np.ndarray,
-        t0: float,
+        t0: float | np.ndarray,
         dtp_dm: np.ndarray | Callable[[], np.ndarray] | None = None,
         x: np.ndarray | None = None,
         a: np.ndarray | None = None,
         x0: float = 0.0,
         length: np.ndarray | None = None,
+        session: np.ndarray | None = None,
     ) -> None:
         self.t, self.v, self.tp, self.ts, self.t0, self.x0 = t, v, tp, ts, t0, x0
+        self.session = session
         self.length = length
         self._given = x is not None or a is not None
         self._x, self._a = x, a
@@ -105,11 +109,16 @@ class CableData:
             self.v[idx],
             self.tp[idx],
             self.ts[idx],
-            self.t0,
+            self.t0_at(idx),
             dm,
             self.x[idx],
             self.a[idx],
+            session=None if self.session is None else self.session[idx],
         )
+
+    def t0_at(self, idx: np.ndarray):
+        """``t0`` for the samples ``idx`` (a float, or their recordings' starts)."""
+        return self.t0[idx] if isinstance(self.t0, np.ndarray) else self.t0
 
 
 @dataclass(frozen=True)
@@ -131,18 +140,26 @@ class Nominal:
 
 def to_report(effect: str, theta: np.ndarray) -> dict[str, float]:
     """Internal parameter vector -> reported parameters (names and units of
-    docs/recording-format.md)."""
+    docs/recording-format.md); one fitted per recording: its mean (:mod:`.sessions`)."""
+    if per_recording(effect, np.size(theta)) > 1:
+        theta = mean_theta(effect, theta)
     return fx.REGISTRY[effect].report(np.asarray(theta, dtype=float))
 
 
 def report_stderr(effect: str, theta: np.ndarray, se: np.ndarray) -> dict[str, float]:
     """Standard errors of the reported parameters (delta method for the transforms)."""
+    if per_recording(effect, np.size(theta)) > 1:
+        theta, se = mean_theta(effect, theta), mean_stderr(effect, theta, se)
     return fx.REGISTRY[effect].report_stderr(np.asarray(theta, dtype=float), np.asarray(se))
 
 
-def report_values(eff: dict[str, np.ndarray], *stages: str) -> fx.Effects:
-    """Internal vectors of the effects of ``stages`` -> report values as (1,) arrays."""
-    return {e.name: e.report_arrays(eff[e.name]) for e in fx.ordered(eff, *stages)}
+def report_values(
+    eff: dict[str, np.ndarray], *stages: str, session: np.ndarray | None = None
+) -> fx.Effects:
+    """Internal vectors of the effects of ``stages`` -> report values as (1,) arrays; an
+    effect fitted per recording (:mod:`.sessions`) as (N,) arrays on a joined series
+    (``session``: each sample's recording), as its mean over the recordings on another."""
+    return {e.name: session_values(e.name, eff[e.name], session) for e in fx.ordered(eff, *stages)}
 
 
 def chain_params(nom: Nominal, eff: dict[str, np.ndarray]) -> ChainParams:
@@ -216,7 +233,8 @@ class Forward:
     def _chain_input(self, eff: dict[str, np.ndarray]) -> tuple[ChainParams, np.ndarray]:
         d = self.data
         tp = d.tp
-        delta = fx.mass_delta(report_values(eff, "statics"), d.t, d.t0)
+        # t0: per-sample recording starts on a joined series (elementwise, :mod:`.sessions`)
+        delta = fx.mass_delta(report_values(eff, "statics"), d.t, d.t0)  # type: ignore[arg-type]
         if delta is not None and d.dtp_dm is not None:
             tp = tp + delta * d.dtp_dm
         return chain_params(self.nom, eff), tp
@@ -262,4 +280,5 @@ class Forward:
 
     def predict(self, eff: dict[str, np.ndarray]) -> np.ndarray:
         """The sensor reading (N,) the nominal model plus ``eff`` predicts (N)."""
-        return fx.forward(self.data, self.chain(eff), report_values(eff, "path", "sensor"))
+        values = report_values(eff, "path", "sensor", session=self.data.session)
+        return fx.forward(self.data, self.chain(eff), values)  # type: ignore[arg-type]  # t0

@@ -15,6 +15,7 @@ from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate, stats
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.platform import MassSensitivity
+from gateway.diagnose.sessions import Sessions
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
 from gateway.model.chain import coulomb_coefficients
@@ -76,7 +77,11 @@ Sensitivity = np.ndarray | MassSensitivity | None
 
 
 def cable_data(
-    rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity, origin: np.ndarray | None = None
+    rec: Recording,
+    tp: np.ndarray,
+    dtp_dm: Sensitivity,
+    origin: np.ndarray | None = None,
+    sessions: Sessions | None = None,
 ) -> list[CableData]:
     """One :class:`CableData` per cable; ``tp`` (N, m); velocity through :func:`deadband`.
 
@@ -91,8 +96,12 @@ def cable_data(
     copies); displacement and acceleration (16 bytes per sample) and ``dtp_dm`` given as
     :class:`MassSensitivity` (8) are computed when a cable is worked on and freed by
     :meth:`Forward.clear_cache` (float32 would halve them but moves the finite-difference
-    fits of eccentricity and inertia)."""
-    t0 = float(rec.t[0])
+    fits of eccentricity and inertia). ``sessions``: the recordings a joined series is
+    made of (:mod:`.sessions`: each sample's recording and its start)."""
+    t0: float | np.ndarray = float(rec.t[0])
+    session = None
+    if sessions is not None and sessions.count > 1:
+        t0, session = sessions.t0(), sessions.index
     x0 = np.zeros(rec.cables)
     if origin is not None and rec.length is not None:
         x0 = np.asarray(rec.length[0], dtype=float) - np.asarray(origin, dtype=float)
@@ -107,7 +116,15 @@ def cable_data(
         length = None if rec.length is None else rec.length[:, i]
         out.append(
             CableData(
-                rec.t, v, tp[:, i], rec.tension_sensor[:, i], t0, dm, x0=float(x0[i]), length=length
+                rec.t,
+                v,
+                tp[:, i],
+                rec.tension_sensor[:, i],
+                t0,
+                dm,
+                x0=float(x0[i]),
+                length=length,
+                session=session,
             )
         )
     return out

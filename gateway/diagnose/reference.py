@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate
+from gateway.diagnose import locate, sessions
 from gateway.diagnose.fit import best_start, joint_fit, linear_refit, spec_for
 from gateway.diagnose.forward import CableData, Forward, Nominal
 from gateway.diagnose.pooling import Pooled, extend, final_pooled
@@ -35,8 +35,10 @@ from gateway.diagnose.prepare import (
     warmup_mask,
 )
 from gateway.diagnose.select import Model, Selector, Thresholds
+from gateway.diagnose.sessions import Sessions
+from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.significance import Tested, decide, harmonize, retire, score
-from gateway.diagnose.stats import holdout_z
+from gateway.diagnose.stats import holdout_z, p_value
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
 from gateway.recordings.reader import Recording
@@ -106,6 +108,55 @@ class CableUnit:
         f = joint_fit(self.fw, model.kept, model.specs, mask, max_nfev=nfev, stride=stride)
         return f.theta
 
+    def recordings_left_out(self, model: Model) -> dict[str, dict[str, float]]:
+        """Several recordings joined (:mod:`.sessions`): per kept effect, the test of the
+        model with it against the model without it on recordings left out in turn. Each
+        fold refits both (from the model's values) on the training samples of the other
+        recordings, gives a per-recording effect (an offset) on the left-out recording the
+        mean of the others' values (that session's zero is not known to the fold), and
+        scores every usable sample of the left-out recording, block by block; the blocks
+        of all folds make one held-out z (``z``, ``p``: :func:`.stats.holdout_z`,
+        :func:`.stats.p_value`). Empty for one recording."""
+        fw = self.fw
+        session = fw.data.session
+        if session is None or not model.kept:
+            return {}
+        ts = fw.data.ts
+        usable = self.train | self.test
+        parts: dict[str, list[list[np.ndarray]]] = {e: [[], [], []] for e in model.kept}
+        for r in range(int(session.max()) + 1):
+            fit, scored = self.train & (session != r), usable & (session == r)
+            if not fit.any() or not scored.any():
+                continue
+            stride = max(1, int(fit.sum()) // SELECTION_BUDGET)
+            blk = self.blocks[scored]
+            present = np.unique(blk)
+
+            def per_block(w: np.ndarray, blk=blk, present=present) -> np.ndarray:
+                return np.bincount(blk, weights=w, minlength=self.n_blocks)[present]
+
+            def refit(theta, specs, r=r, fit=fit, stride=stride) -> dict[str, np.ndarray]:
+                if not theta:
+                    return {}
+                f = joint_fit(fw, theta, specs, fit, max_nfev=20, stride=stride)
+                return {e: _unknown_session(e, v, r) for e, v in f.theta.items()}
+
+            r_full = (ts - fw.predict(refit(model.kept, model.specs)))[scored]
+            sse_full = per_block(r_full**2)
+            for e in model.kept:
+                r_red = (ts - fw.predict(refit(*model.without(e))))[scored]
+                row = parts[e]
+                row[0].append(per_block(r_red**2))
+                row[1].append(sse_full)
+                row[2].append(per_block(r_full * (r_red - r_full)))
+        out = {}
+        for e, (red, full, cross) in parts.items():
+            if not red:
+                continue
+            z = holdout_z(np.concatenate(red), np.concatenate(full), np.concatenate(cross))
+            out[e] = {"z": float(z), "p": p_value(z, int(sum(a.size for a in red)))}
+        return out
+
     def contribution(self, theta: dict[str, np.ndarray], effect: str) -> np.ndarray:
         """What ``effect`` adds to the prediction of ``theta`` on the training samples."""
         rest = {k: v for k, v in theta.items() if k != effect}
@@ -119,6 +170,17 @@ class CableUnit:
         return fx.REGISTRY[effect].significance(
             model.kept[effect], model.stderr[effect], model.specs[effect].neutral
         )
+
+
+def _unknown_session(effect: str, theta: np.ndarray, r: int) -> np.ndarray:
+    """``theta`` with recording ``r``'s part of a per-recording effect set to the mean of
+    the other recordings' (a fold that left ``r`` out cannot know it)."""
+    rows = sessions.rows(effect, theta)
+    if rows.shape[0] == 1:
+        return theta
+    rows = rows.copy()
+    rows[r] = np.delete(rows, r, axis=0).mean(axis=0)
+    return rows.ravel()
 
 
 # ---- the platform-tension reference: stages -------------------------------------------------
@@ -144,6 +206,8 @@ class PlatformPrepared:
     """(N,) the piece of the recording (trial) of each sample (:func:`.prepare.gap_segments`)."""
     pooled: dict[str, Pooled] = field(default_factory=dict)
     """Per effect, its test pooled over the cables (:mod:`.pooling`), once fitted."""
+    sessions: Sessions | None = None
+    """The recordings of a joined series (:mod:`.sessions`); None: one recording."""
 
 
 class PlatformReference:
@@ -152,8 +216,10 @@ class PlatformReference:
 
     name = "platform_tension"
 
-    def __init__(self, tp: np.ndarray | None = None, dtp_dm: Sensitivity = None) -> None:
-        self.tp, self.dtp_dm = tp, dtp_dm
+    def __init__(
+        self, tp: np.ndarray | None = None, dtp_dm: Sensitivity = None, sessions=None
+    ) -> None:
+        self.tp, self.dtp_dm, self.sessions = tp, dtp_dm, sessions
 
     def prepare(self, rec: Recording, friction, validation, say) -> PlatformPrepared:
         tp = rec.tension_platform if self.tp is None else self.tp
@@ -161,8 +227,11 @@ class PlatformReference:
             raise RecordingError(f"{rec.source}: no platform tensions")
         nom = nominal_from(friction)
         rec, tp, dtp_dm = finite_rows(rec, tp, self.dtp_dm)
-        datas = cable_data(rec, tp, dtp_dm)
-        blocks, nb = time_blocks(rec.t)
+        sessions = self.sessions
+        if sessions is not None and sessions.index.size != rec.samples:
+            raise RecordingError(f"{rec.source}: rows without values in a joined series")
+        datas = cable_data(rec, tp, dtp_dm, sessions=sessions)
+        blocks, nb = session_blocks(rec.t, sessions)
         valid = np.empty((rec.samples, rec.cables), bool)
         usable = np.empty((rec.samples, rec.cables), bool)
         levels, cands = [], []
@@ -195,6 +264,7 @@ class PlatformReference:
             ),
             clipped,
             gap_segments(rec.t),
+            sessions=sessions if sessions is not None and sessions.count > 1 else None,
         )
 
     def units(self, prep: PlatformPrepared, say) -> Iterator[tuple[int, CableUnit]]:

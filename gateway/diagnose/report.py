@@ -19,7 +19,9 @@ Each finding carries, per cable in ``cables``: ``statistic`` (the held-out z of 
 with it against the model without it), ``p`` and ``q`` (Benjamini-Hochberg over every
 candidate x cable tried, :mod:`.significance`), ``stderr`` (the larger of the Jacobian's
 and the spread of refits across time blocks, whole trials left out where the recording
-joins several), ``stderr_jacobian`` and ``stderr_blocks``;
+joins several), ``stderr_jacobian`` and ``stderr_blocks``; with several recordings
+(:mod:`.sessions`) ``recordings_statistic``, the z on recordings left out in turn, and
+``statistic`` the smaller of the two (``p`` the larger);
 ``alternatives`` lists the effects of its group the held-out data cannot tell from it (each
 with its parameters and held-out RMSE) and ``separate_by`` the motion that would. ``rmse_*``
 are over every cable and sample, ``holdout_*`` over the held-out blocks, ``validation_*``
@@ -38,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate, lsq, pooling, signals
+from gateway.diagnose import locate, lsq, pooling, sessions, signals
 from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.select import Outcome, Thresholds
@@ -129,7 +131,7 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
     errs: dict[str, list[float]] = {}
     errs_jac: dict[str, list[float]] = {}
     errs_blk: dict[str, list[float]] = {}
-    stat, ps, qs, vstat = [], [], [], []
+    stat, ps, qs, vstat, rstat = [], [], [], [], []
     for i in cables:
         o = tested[i - 1].outcome
         theta, se = o.theta[effect], o.stderr[effect]
@@ -150,6 +152,8 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
         qs.append(_num(t.get("q", math.nan)))
         if "validation_z" in t:
             vstat.append(_num(t["validation_z"]))
+        if "recordings_z" in t:
+            rstat.append(_num(t["recordings_z"]))
     out = {
         "effect": effect,
         "cables": cables,
@@ -164,11 +168,33 @@ def _finding(effect: str, tested: list[Tested], pairs: dict, ev: str, n_test: in
     }
     if vstat and len(vstat) == len(cables):
         out["validation_statistic"] = vstat
+    if rstat and len(rstat) == len(cables):
+        out["recordings_statistic"] = rstat
+    per = per_recording_field(effect, [tested[i - 1].outcome.theta[effect] for i in cables])
+    if per is not None:
+        out["per_recording"] = per
     alts = alternatives(effect, tested, n_test)
     if alts:
         out["alternatives"] = alts
         out["separate_by"] = fx.REGISTRY[effect].separate
     out.update(pairs)
+    return out
+
+
+def per_recording_field(effect: str, thetas: list[np.ndarray]) -> list[dict] | None:
+    """An effect fitted per recording (:mod:`.sessions`): per recording (in the order of
+    the report's ``recordings``), its reported parameters per cable of the finding (the
+    finding's ``parameters`` are their mean); None for an effect shared by the recordings."""
+    if not thetas or sessions.per_recording(effect, thetas[0].size) == 1:
+        return None
+    per = [sessions.rows(effect, th) for th in thetas]
+    out = []
+    for r in range(per[0].shape[0]):
+        params: dict[str, list[float]] = {}
+        for rows in per:
+            for k, v in to_report(effect, rows[r]).items():
+                params.setdefault(k, []).append(_num(v))
+        out.append({"parameters": params})
     return out
 
 
@@ -247,7 +273,16 @@ def final_residual(prep, forwards, thetas, located, th: Thresholds):
         use = prep.usable[idx, i]
         d = fw.data  # thinned: its x and a from the thinned series (not the whole's)
         length = None if d.length is None else d.length[idx]
-        thin = CableData(d.t[idx], d.v[idx], d.tp[idx], d.ts[idx], d.t0, x0=d.x0, length=length)
+        thin = CableData(
+            d.t[idx],
+            d.v[idx],
+            d.tp[idx],
+            d.ts[idx],
+            d.t0_at(idx),
+            x0=d.x0,
+            length=length,
+            session=None if d.session is None else d.session[idx],
+        )
         explainer.add(thin, r[idx], (blk % 2 == 0) & use, (blk % 2 == 1) & use)
         del thin, r
         d.release()
@@ -349,6 +384,7 @@ def build_report(prep, located, fitted: list[Tested], th: Thresholds) -> Diagnos
         "cables": rec.cables,
         "samples": rec.samples,
         "skipped_rows": rec.skipped_rows,
+        **({} if prep.sessions is None else {"recordings": prep.sessions.report()}),
         "baseline": baseline,
         **final_loc.report_fields(final_loc.regions()),
         "findings": findings,

@@ -146,6 +146,13 @@ def score(u: Tested) -> None:
     sel, model = u.selector, u.model
     assert sel is not None
     tests = candidate_tests(sel, model)
+    left_out = getattr(sel.unit, "recordings_left_out", None)
+    for e, t in ({} if left_out is None else left_out(model)).items():
+        # several recordings: a kept effect must beat chance on the held-out blocks and
+        # on the recordings left out in turn (the larger p, the smaller z)
+        b = tests[e]
+        b["blocks_z"], b["recordings_z"] = b["z"], t["z"]
+        b["z"], b["p"] = min(b["z"], t["z"]), max(b["p"], t["p"])
     se_blocks, presence = block_refits(sel, model)
     for e in model.kept:
         tests[e]["param_z"] = param_z(sel, model, e, presence.get(e))

@@ -325,6 +325,11 @@ class Effect:
     order: ClassVar[int] = 0
     """Position within the stage (forward order, smallest acts first)."""
     per_cable: ClassVar[bool] = True
+    per_recording: ClassVar[bool] = False
+    """A session's property, not the machine's (a sensor's zero, its drift): diagnosed on
+    several recordings of one machine it gets one parameter vector per recording (a path
+    or sensor effect only; :mod:`gateway.diagnose.sessions`); a machine's property (a
+    friction coefficient) one for all."""
     needs_motion: ClassVar[bool] = False
     needs_mass: ClassVar[bool] = False
     """The recording must carry pose and mass (a platform effect)."""

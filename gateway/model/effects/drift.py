@@ -41,6 +41,7 @@ class Drift(Effect):
         "share; recalibrate the zero (an offset) instead",
     )
     wrench = True
+    per_recording = True  # each session re-zeroes the sensor
     group = "level"
     look = "the mean residual grows linearly with time (plot residual against t)"
     plot = "t"

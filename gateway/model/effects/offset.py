@@ -32,6 +32,7 @@ class Offset(Effect):
     online = Online(True, "subtract c")
     online_kernel = inverse_step
     wrench = True
+    per_recording = True  # each session re-zeroes the sensor
     group = "level"
     look = "the residual has a constant non-zero mean over the whole recording"
     plot = "t"
