@@ -273,6 +273,10 @@ class HeartbeatConfig:
         require(self.kind == "toggle" or self.period_s is None, "period_s: only for a toggle")
 
 
+# The averaged PLC sample spacing may be this far off (relative) when a count is held
+# against the gateway's clock (gateway/runtime/clock.py; the correctness property bounds it
+# at 10 %, and a spacing 3x off the average does not move it).
+SPACING_TOLERANCE = 0.1
 HEARTBEAT_VALUES = {"int16": 2**16, "uint16": 2**16, "int32": 2**32, "uint32": 2**32}
 FLOAT32_EXACT = 2**24  # a float32 holds every integer up to this, not beyond
 
@@ -331,6 +335,15 @@ class LoopConfig:
         22.9 % with both cores busy (every cycle started 1 ms late); 10 ms, 0.02 % and
         0.16 %: a robot stopped for nothing. A stall of 20 ms is still stopped by age."""
         return self.stale_after_s if self.max_input_age_s is None else self.max_input_age_s
+
+    @property
+    def clock_lag_bound_s(self) -> float:
+        """The longest before its read a PLC sample the gateway uses can have been made:
+        ``heartbeat_timeout_s`` (the longest the PLC can hold its newest sample with the
+        watchdog armed) + ``input_age_limit_s`` (the oldest a reply may be). A counting
+        heartbeat may count no more PLC time than passed on the gateway's clock since the
+        last sample plus this (gateway/runtime/clock.py, docs/security.md)."""
+        return self.heartbeat_timeout_s + self.input_age_limit_s
 
 
 @dataclass(frozen=True)
@@ -554,6 +567,15 @@ class Config:
             raise ValueError(
                 f"loop.heartbeat.modulus: {hb.modulus} is more than {key} ({reg}) can count "
                 f"({values} values)"
+            )
+        lp = self.loop
+        span = (hb.modulus // 2 - 1) * lp.period_s  # the time half a wrap counts
+        need = lp.clock_lag_bound_s * (1.0 + SPACING_TOLERANCE)
+        if span <= need:
+            raise ValueError(
+                f"loop.heartbeat.modulus: {hb.modulus} counts half a wrap in {span:.3g} s of "
+                f"loop.period_s, not more than the clock's lag bound ({need:.3g} s: "
+                "heartbeat_timeout_s + max_input_age_s, +10 %): no step could be vouched for"
             )
 
     @property

@@ -27,22 +27,34 @@ A step the clock cannot vouch for is never integrated (:attr:`SampleClock.vouche
 :attr:`SampleClock.dt` 0); the compensator then resynchronises the chain and writes the
 cables substituted, then invalid, until the chain has re-warmed (docs/security.md):
 
-* a counter whose samples would have come from the future: the PLC time it has counted
-  since the start (or the last resync) runs ahead of the gateway's clock by more than
-  ``LEAD_SLACK_PERIODS`` beyond the least delay seen. That is a counter stepping
-  backwards (a 16-bit step back of 1 counts as 65 535 samples), restarting from 0, or
-  jumping forward further than the time that passed allows (a PLC catching up after a
-  stall of its own never runs ahead of the time that passed, so it is vouched);
-* a counter showing a value outside its declared modulus, or a float step that is no
-  whole positive count, or a step over ``MAX_GAP_PERIODS`` before the spacing is known;
+* a counter step the count itself cannot tell from a step back: ``k`` samples on with
+  ``k >= modulus / 2`` (serial-number arithmetic, RFC 1982: a 16-bit step back of 1 reads
+  65 535 on), and every step after a gap of more than ``modulus / 2 - 1`` spacings minus
+  the lag bound on the gateway's clock (the counter may have wrapped: ``k`` is known only
+  modulo the modulus); a value outside the declared modulus; a float step that is no
+  whole count; a step over ``MAX_GAP_PERIODS`` before the spacing is known;
+* a counter whose count runs ahead of the gateway's clock: ``k`` samples counted in
+  ``e`` seconds of the gateway's time since the last new sample with
+  ``k * spacing > (e + lag_bound_s) * (1 + SPACING_TOLERANCE)``. The PLC's samples are
+  made on its time base and read late, never early; the last sample was read at most
+  ``lag_bound_s`` after it was made (``loop.heartbeat_timeout_s``: the longest a PLC can
+  hold its newest sample with the watchdog armed, + ``loop.max_input_age_s``: the oldest a
+  reply may be), so at most ``e + lag_bound_s`` of PLC time can have passed. A PLC (or a
+  bus, or this process) catching up after a stall, however bursty, counts no more: its
+  delta is its own count of the samples made and is integrated. A restart, a jump on by
+  more than the time allows, is not. The check is per step, against the gateway's clock
+  since the previous sample only: an error in the averaged spacing never accumulates
+  into it (a check of the count since the start against the time since the start took
+  the first sample's delay for the PLC's and refused the soft PLC catching up 8 samples
+  after its first chunk: issue 30 item 1's revert);
 * a toggle that changed more than ``TOGGLE_MAX_GAP`` cycles after its last change, or has
   not changed for longer: it may have changed twice or three times, or the PLC held,
   which no reading can tell apart (a read that shows no change is then not vouched for
-  either: it may be a new sample);
+  either: it may be a new sample).
 
 A gap the clock can vouch for in time (an outage: a counter that advanced no faster than
-the gateway's clock; ``none`` and CANopen, whose clock is the gateway's) is a step of
-its full length for the online effects; the chain's travel over it is bounded by the
+the gateway's clock allows; ``none`` and CANopen, whose clock is the gateway's) is a step
+of its full length for the online effects; the chain's travel over it is bounded by the
 compensator to ``MAX_GAP_PERIODS`` periods, as before (the setpoint motion in it is
 unknown; docs/security.md names this as not covered).
 
@@ -56,6 +68,7 @@ import math
 
 import numpy as np
 
+from gateway.core.config import SPACING_TOLERANCE
 from gateway.model.chain import ChainParams, coulomb_coefficients
 
 PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples
@@ -66,9 +79,6 @@ MAX_STEP_PERIODS = 10
 # The chain's travel over a longer gap is bounded to this many periods (the setpoint
 # motion in between is unknown); a counter step over it needs a known spacing.
 MAX_GAP_PERIODS = 100
-# The counted PLC time may run ahead of the gateway's clock by this many sample spacings
-# beyond the least delay seen (bus jitter) before a step is taken for a jump.
-LEAD_SLACK_PERIODS = 3.0
 # A toggle that changes within this many PLC cycles of its last change changed once.
 TOGGLE_MAX_GAP = 1.5
 KINDS = ("counter", "toggle", "none")
@@ -95,6 +105,7 @@ class SampleClock:
         by_bus: bool = False,
         toggle_period_s: float | None = None,
         register_values: int | None = None,
+        lag_bound_s: float = 0.11,
     ) -> None:
         if kind not in KINDS:
             raise ValueError(f"heartbeat kind must be one of {', '.join(KINDS)}, got {kind!r}")
@@ -104,6 +115,8 @@ class SampleClock:
         self.register_values = self.modulus if register_values is None else int(register_values)
         self.by_bus = by_bus
         self.toggle_period_s = float(toggle_period_s or loop_period_s)
+        # the longest a sample read may have been made before (heartbeat_timeout + age)
+        self.lag_bound_s = float(lag_bound_s)
         self.new = False
         self.dt = 0.0
         self.vouched = True
@@ -114,8 +127,6 @@ class SampleClock:
         self.plc_period_s = math.nan  # the PLC's sample spacing, averaged over samples
         self._outliers = 0  # spacings in a row too far off the average to move it
         self._spacings = 0  # spacings averaged so far (a running mean until 1 / gain)
-        self._plc_time = 0.0  # PLC time counted since the anchor
-        self._lead_floor = math.inf  # least (arrival - counted PLC time) seen
 
     def asks_setpoints(self, heartbeat: float) -> bool:
         """Whether :meth:`tick` with this ``heartbeat`` reads ``moved`` (the caller then
@@ -138,7 +149,6 @@ class SampleClock:
             self._counter(now, heartbeat)
             if not self.new and moved:  # new setpoints, no count (as before): arrival time
                 self._on_gateway_clock(now, True, self._sample_at)
-                self._plc_time += self.dt if self.vouched else 0.0
         elif self.kind == "toggle":
             self._toggle(now, heartbeat)
         else:
@@ -183,7 +193,6 @@ class SampleClock:
         self._heartbeat = heartbeat
         if prev != prev:
             self.new = True  # the first sample: no step
-            self._anchor(now)
             return
         steps = self._steps(prev, heartbeat)
         if steps == 0:
@@ -192,28 +201,28 @@ class SampleClock:
         elapsed = now - self._sample_at
         period = self.plc_period_s
         if steps < 0 or (steps > MAX_GAP_PERIODS and period != period):
-            self._unvouched(now)  # no count, or no spacing yet to tell a gap from a jump
+            self.vouched = False  # no count, or no spacing yet to tell a gap from a jump
             return
-        if period == period:  # the counted PLC time must not run ahead of the clock
-            lead = now - (self._plc_time + steps * period)
-            if lead < self._lead_floor - LEAD_SLACK_PERIODS * period:
-                self._unvouched(now)
-                return
+        if period == period and not self.count_agrees(steps, elapsed, period):
+            self.vouched = False
+            return
         if steps <= MAX_STEP_PERIODS and elapsed > 0.0:
             self.plc_period_s = self._spacing(elapsed / steps)
         period = self.plc_period_s
         self.dt = steps * period if period == period else max(elapsed, 0.0)
-        self._plc_time += self.dt
-        self._lead_floor = min(self._lead_floor, now - self._plc_time)
 
-    def _unvouched(self, now: float) -> None:
-        self.vouched = False
-        self._anchor(now)
-
-    def _anchor(self, now: float) -> None:
-        """Count the PLC time afresh from this sample (the start, a resync)."""
-        self._plc_time = 0.0
-        self._lead_floor = now
+    def count_agrees(self, steps: int, elapsed: float, period: float) -> bool:
+        """Whether ``steps`` counted samples can have been made in ``elapsed`` seconds of
+        the gateway's clock since the last new sample (module doc): no more PLC time than
+        the time passed plus the lag bound (with the spacing's tolerance), a step under
+        half the modulus, and a gap in which the counter cannot have wrapped."""
+        if self.modulus and (
+            2 * steps >= self.modulus
+            or (elapsed + self.lag_bound_s) * (1.0 + SPACING_TOLERANCE)
+            >= (self.modulus // 2 - 1) * period
+        ):
+            return False  # a step back, or k known only modulo the modulus
+        return steps * period <= (max(elapsed, 0.0) + self.lag_bound_s) * (1.0 + SPACING_TOLERANCE)
 
     def _steps(self, prev: float, heartbeat: float) -> int:
         """Samples between two heartbeats; -1 for what is no count."""

@@ -229,6 +229,9 @@ class Compensator:
         self._loop_period_s = lp.period_s
         self.max_step_s = MAX_GAP_PERIODS * lp.period_s  # the chain's step after an outage
         self._heartbeat_cfg = lp.heartbeat
+        # the longest a sample read may have been made before: held with the watchdog
+        # armed, then in flight (gateway/runtime/clock.py, docs/security.md)
+        self._lag_bound_s = lp.clock_lag_bound_s
         # Modbus polls the PLC: its heartbeat tells a new sample from one read again. On
         # CANopen each cycle is one SYNC's samples and the heartbeat comes every 10th.
         self._by_bus = cfg.bus.driver == "canopen"
@@ -293,6 +296,7 @@ class Compensator:
             by_bus=self._by_bus,
             toggle_period_s=hb.period_s,
             register_values=register_modulus,
+            lag_bound_s=self._lag_bound_s,
         )
 
     @property

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.base import ChannelStatus, Inputs, Outputs
-from gateway.core.config import HeartbeatConfig, config_from_mapping, load_config
+from gateway.core.config import SPACING_TOLERANCE, HeartbeatConfig, config_from_mapping, load_config
 from gateway.errors import ConfigError
 from gateway.model import effects as fx
 from gateway.model.chain import ChainStepper, simulate
@@ -137,13 +137,33 @@ def test_a_counter_read_on_time_is_vouched_for_every_step_it_counts(steps, start
         assert clock.dt == pytest.approx(s * T, rel=1e-6)
 
 
-@settings(max_examples=50, deadline=None)
-@given(st.integers(2, 65535 - MAX_GAP_PERIODS), st.integers(0, 65535))
-def test_a_counter_stepping_back_or_far_on_is_never_integrated(back, start):
+LAG = 0.11  # the clock's lag bound: loop.heartbeat_timeout_s + loop.max_input_age_s
+
+
+def _allowed(elapsed: float) -> int:
+    """The most samples a count may say were made in ``elapsed`` of the gateway's time."""
+    return math.floor((elapsed + LAG) * (1.0 + SPACING_TOLERANCE) / T)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(1, 65535), st.integers(0, 65535), st.integers(1, 200))
+def test_a_count_is_vouched_for_exactly_when_the_time_allows_it(step, start, waited):
+    """Any step on (a step back of ``b`` reads ``65536 - b`` on) after ``waited`` periods
+    on the gateway's clock is integrated if and only if that many samples can have been
+    made in the time plus the lag bound (the last sample read up to LAG after it was
+    made) and it is under half the wrap (serial-number arithmetic)."""
     clock = _counter()
+    assert clock.lag_bound_s == LAG
     now = _counting(clock, 20, start, 10.0)
-    clock.tick(now + T, float((start + 19 - back) & 0xFFFF), False)
-    assert clock.new and not clock.vouched and clock.dt == 0.0
+    clock.tick(now + waited * T, float((start + 19 + step) & 0xFFFF), False)
+    ok = step <= _allowed(waited * T) and 2 * step < 65536
+    assert clock.new and clock.vouched == ok
+    assert clock.dt == (pytest.approx(step * clock.plc_period_s) if ok else 0.0)
+
+
+def test_the_lag_bound_is_the_watchdog_and_the_age_limit():
+    comp = Compensator(config(period_s=T, heartbeat_timeout_s=0.2, stale_after_s=0.02))
+    assert comp.clock.lag_bound_s == pytest.approx(0.22)
 
 
 def test_a_restart_is_not_integrated_and_the_count_starts_afresh():
@@ -158,18 +178,55 @@ def test_a_restart_is_not_integrated_and_the_count_starts_afresh():
 def test_a_jump_no_plc_can_have_made_in_the_time_is_not_integrated():
     clock = _counter()
     now = _counting(clock, 50)
-    clock.tick(now + T, 49.0 + 40.0, False)  # 40 samples in one millisecond
+    clock.tick(now + T, 49.0 + _allowed(T) + 1, False)  # more than 0.122 s in 1 ms
     assert not clock.vouched
+    clock.tick(now + 2 * T, 49.0 + _allowed(T) + 2, False)  # and on from there
+    assert clock.vouched and clock.dt == pytest.approx(T)
+
+
+def test_a_gap_the_counter_may_have_wrapped_in_is_not_integrated():
+    """A 9-bit counter at 1 ms: (gap + 0.11 s) x 1.1 must stay under 255 samples."""
+    clock = _counter(512)
+    now = _counting(clock, 50)
+    clock.tick(now + 0.02, float((49 + 20) % 512), False)  # 20 ms, 20 on: no wrap
+    assert clock.vouched
+    clock.tick(now + 0.17, float((49 + 170) % 512), False)  # 150 ms: 279 > 255
+    assert not clock.vouched
+
+
+def test_a_plc_catching_up_its_start_is_not_a_jump():
+    """The revert of the first clock: its check of the count since the first sample
+    against the time since took the first sample's delay for none and refused the soft
+    PLC catching up after its first chunk (8 samples in 1.5 ms, 7.5 ms ahead of that first
+    sample's schedule); the gateway stayed cold for seconds. A PLC that falls behind by up
+    to 0.1 s and catches up in bursts is integrated, every step its count."""
+    rng = np.random.default_rng(11)
+    clock = _counter()
+    read, now, k_read = 0, 100.02, 0
+    behind = 0.0095  # its first samples read 9.5 ms after they were made
+    for i in range(3000):
+        now += T * rng.uniform(0.7, 1.3)
+        if i >= 30:  # then it catches up in bursts, falls behind again now and then
+            if rng.random() < 0.01:
+                behind = rng.uniform(0.0, 0.1)
+            behind = max(0.0, behind - T * rng.uniform(0.0, 3.0))
+        k_read = max(k_read, int((now - 100.0 - behind) / T))
+        clock.tick(now, float(k_read & 0xFFFF), False)
+        assert clock.vouched, (i, k_read, behind)
+        read += clock.new
+    assert read > 1000 and clock.resyncs == 0
 
 
 def test_a_plc_catching_up_after_a_stall_of_its_own_is_vouched():
     clock = _counter()
     now = _counting(clock, 50)
-    for j in range(1, 41):  # the PLC's replies held 40 ms: the same sample read again
+    for j in range(1, 101):  # the PLC's replies held 100 ms: the same sample read again
         clock.tick(now + j * T, 49.0, False)
         assert not clock.new
-    clock.tick(now + 41 * T, 49.0 + 41.0, False)  # it caught up
-    assert clock.vouched and clock.dt == pytest.approx(41 * T)
+    clock.tick(now + 101 * T, 49.0 + 101.0, False)  # it caught up
+    assert clock.vouched and clock.dt == pytest.approx(101 * T)
+    clock.tick(now + 102 * T, 49.0 + 101.0 + 60.0, False)  # and its backlog came late
+    assert clock.vouched and clock.dt == pytest.approx(60 * T)
 
 
 def test_a_value_outside_the_declared_modulus_is_no_count():
@@ -250,6 +307,7 @@ def _mapping(heartbeat: dict, register: str = "uint16") -> dict:
         ({"kind": "toggle", "modulus": 2}, "uint16", "modulus: only for a counter"),
         ({"kind": "counter", "period_s": 0.001}, "uint16", "period_s: only for a toggle"),
         ({"kind": "tick"}, "uint16", "heartbeat.kind"),
+        ({"kind": "counter", "modulus": 200}, "uint16", "no step could be vouched for"),
     ],
 )
 def test_check_refuses_a_heartbeat_its_register_cannot_be(heartbeat, register, says):
@@ -263,3 +321,5 @@ def test_the_shipped_configs_declare_todays_counter():
     assert cfg.loop.heartbeat == HeartbeatConfig("counter", 65536)
     ok = config_from_mapping(_mapping({"kind": "counter", "modulus": 2**32}, "uint32"))
     assert ok.loop.heartbeat.modulus == 2**32
+    ok = config_from_mapping(_mapping({"kind": "counter", "modulus": 256}))
+    assert ok.loop.heartbeat.modulus == 256  # 127 ms of half a wrap > 1.1 x 0.11 s
