@@ -273,10 +273,12 @@ class HeartbeatConfig:
         require(self.kind == "toggle" or self.period_s is None, "period_s: only for a toggle")
 
 
-# The averaged PLC sample spacing may be this far off (relative) when a count is held
-# against the gateway's clock (gateway/runtime/clock.py; the correctness property bounds it
-# at 10 %, and a spacing 3x off the average does not move it).
-SPACING_TOLERANCE = 0.1
+# The averaged PLC sample spacing may be this far off (relative) the PLC's rate over a gap
+# when a count is held against the gateway's clock (gateway/runtime/clock.py). Generous on
+# purpose: the average takes spacings up to 3x off it, a soft PLC's counting thread on a
+# loaded machine changes its rate by tens of percent, and a count refused for nothing leaves
+# the cables cold for seconds; what it lets through is a count at most 1.5 (e + L) long.
+SPACING_TOLERANCE = 0.5
 HEARTBEAT_VALUES = {"int16": 2**16, "uint16": 2**16, "int32": 2**32, "uint32": 2**32}
 FLOAT32_EXACT = 2**24  # a float32 holds every integer up to this, not beyond
 
@@ -567,15 +569,6 @@ class Config:
             raise ValueError(
                 f"loop.heartbeat.modulus: {hb.modulus} is more than {key} ({reg}) can count "
                 f"({values} values)"
-            )
-        lp = self.loop
-        span = (hb.modulus // 2 - 1) * lp.period_s  # the time half a wrap counts
-        need = lp.clock_lag_bound_s * (1.0 + SPACING_TOLERANCE)
-        if span <= need:
-            raise ValueError(
-                f"loop.heartbeat.modulus: {hb.modulus} counts half a wrap in {span:.3g} s of "
-                f"loop.period_s, not more than the clock's lag bound ({need:.3g} s: "
-                "heartbeat_timeout_s + max_input_age_s, +10 %): no step could be vouched for"
             )
 
     @property

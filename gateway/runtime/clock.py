@@ -29,10 +29,11 @@ cables substituted, then invalid, until the chain has re-warmed (docs/security.m
 
 * a counter step the count itself cannot tell from a step back: ``k`` samples on with
   ``k >= modulus / 2`` (serial-number arithmetic, RFC 1982: a 16-bit step back of 1 reads
-  65 535 on), and every step after a gap of more than ``modulus / 2 - 1`` spacings minus
-  the lag bound on the gateway's clock (the counter may have wrapped: ``k`` is known only
-  modulo the modulus); a value outside the declared modulus; a float step that is no
-  whole count; a step over ``MAX_GAP_PERIODS`` before the spacing is known;
+  65 535 on), and a step after which one more wrap, ``k + modulus`` samples, also fits
+  the time below (``k`` is known only modulo the modulus: a 16-bit counter at 1 ms after
+  a gap of 43.7 s, or with a ``loop.heartbeat_timeout_s`` of that); a value outside the
+  declared modulus; a float step that is no whole count; a step over
+  ``MAX_GAP_PERIODS`` before the spacing is known;
 * a counter whose count runs ahead of the gateway's clock: ``k`` samples counted in
   ``e`` seconds of the gateway's time since the last new sample with
   ``k * spacing > (e + lag_bound_s) * (1 + SPACING_TOLERANCE)``. The PLC's samples are
@@ -216,13 +217,11 @@ class SampleClock:
         the gateway's clock since the last new sample (module doc): no more PLC time than
         the time passed plus the lag bound (with the spacing's tolerance), a step under
         half the modulus, and a gap in which the counter cannot have wrapped."""
-        if self.modulus and (
-            2 * steps >= self.modulus
-            or (elapsed + self.lag_bound_s) * (1.0 + SPACING_TOLERANCE)
-            >= (self.modulus // 2 - 1) * period
-        ):
-            return False  # a step back, or k known only modulo the modulus
-        return steps * period <= (max(elapsed, 0.0) + self.lag_bound_s) * (1.0 + SPACING_TOLERANCE)
+        allowed = (max(elapsed, 0.0) + self.lag_bound_s) * (1.0 + SPACING_TOLERANCE)
+        m = self.modulus
+        if m and (2 * steps >= m or (steps + m) * period <= allowed):
+            return False  # a step back, or k known only modulo the modulus: a wrap more fits
+        return steps * period <= allowed
 
     def _steps(self, prev: float, heartbeat: float) -> int:
         """Samples between two heartbeats; -1 for what is no count."""

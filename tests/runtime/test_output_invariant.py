@@ -349,7 +349,7 @@ def test_the_check_catches_a_gate_that_lets_a_stalled_frame_through(monkeypatch)
 # periods), failed reads and, for a counter, PLC restarts, counts stepping back,
 # jumping on in one read by more than any time here allows (JUMP_MIN: the clock takes a
 # count for a catch-up up to the gap plus loop.heartbeat_timeout_s + loop.max_input_age_s,
-# 0.11 s, 220 samples at 2 per period; tests/runtime/test_sample_clock.py checks that
+# 0.11 s, x 1.5 for the spacing's tolerance; tests/runtime/test_sample_clock.py checks that
 # bound itself) and replies held 3-40 periods then caught up (the count tells how many
 # samples came); a toggling PLC's cycle stands still for 3-40
 # periods instead (a toggle that catches up is no clock: several changes in one reply are
@@ -364,8 +364,8 @@ EPS_ARITHMETIC = 1e-4  # relative step error of the fake clock's ticks (1e-7 s a
 MAX_EPS = 0.1  # the averaged spacing stays this close to the PLC's period here
 # A jump on by at least this many samples is beyond what any gap here (< 0.7 s: up to 90
 # periods of stall, 400 reads down) plus the lag bound (0.11 s) allows at 2 samples a
-# period, with the spacing's tolerance: (0.7 + 0.11) * 1.1 / 0.5e-3 = 1782.
-JUMP_MIN = 2000
+# period, with the spacing's tolerance: (0.7 + 0.11) * 1.5 / 0.5e-3 = 2430.
+JUMP_MIN = 2500
 # A PLC restarting from 0 within this many counts of its wrap reads as a catch-up (the
 # count cannot tell; docs/security.md): it restarts from half a wrap back instead.
 RESTART_BLIND = JUMP_MIN
