@@ -368,6 +368,9 @@ def table(run: DemoRun, title: str) -> str:
         f"  cycles skipped       {s.skipped}  (deadlines dropped after those overruns, phase "
         "kept: no cycle ran for them)",
         f"  reconnects           {service.reconnects}",
+        f"  clock resyncs        {service.comp.clock.resyncs}  (PLC samples whose step the one "
+        f"sample clock could not vouch for, heartbeat kind {service.comp.clock.kind}: each "
+        "leaves the cables cold until re-warmed, docs/security.md)",
         f"  jitter p50 / p99     {_us(s.jitter_ring.percentile(50))} / "
         f"{_us(s.jitter_ring.percentile(99))}",
         f"  round trip p50 / p99 {_us(s.roundtrip_ring.percentile(50))} / "

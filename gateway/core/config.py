@@ -253,6 +253,37 @@ class RealtimeConfig:
 
 
 @dataclass(frozen=True)
+class HeartbeatConfig:
+    """``loop.heartbeat``: what the PLC heartbeat register says about the PLC's samples,
+    the one source of the time step of the compensation (gateway/runtime/clock.py).
+
+    ``counter``: it counts PLC samples, wrapping at ``modulus`` (None: the register's
+    range; a float32 register counts without a wrap); ``toggle``: it changes every PLC
+    cycle of ``period_s`` (a 0/1 life bit; None: ``loop.period_s``); ``none``: it carries
+    no timing and the gateway's own clock is used. The watchdog
+    (``loop.heartbeat_timeout_s``) watches it whatever the kind."""
+
+    kind: Literal["counter", "toggle", "none"] = "counter"  # what the register does
+    modulus: int | None = None  # counter: it wraps here (null: the register's range)
+    period_s: float | None = None  # toggle: the PLC cycle it changes every (null: period_s)
+    RANGES: ClassVar[Ranges] = {"modulus": (2, 2**32), "period_s": (1e-5, 1.0)}
+
+    def __post_init__(self) -> None:
+        require(self.kind == "counter" or self.modulus is None, "modulus: only for a counter")
+        require(self.kind == "toggle" or self.period_s is None, "period_s: only for a toggle")
+
+
+# The averaged PLC sample spacing may be this far off (relative) the PLC's rate over a gap
+# when a count is held against the gateway's clock (gateway/runtime/clock.py). Generous on
+# purpose: the average takes spacings up to 3x off it, a soft PLC's counting thread on a
+# loaded machine changes its rate by tens of percent, and a count refused for nothing leaves
+# the cables cold for seconds; what it lets through is a count at most 1.5 (e + L) long.
+SPACING_TOLERANCE = 0.5
+HEARTBEAT_VALUES = {"int16": 2**16, "uint16": 2**16, "int32": 2**32, "uint32": 2**32}
+FLOAT32_EXACT = 2**24  # a float32 holds every integer up to this, not beyond
+
+
+@dataclass(frozen=True)
 class LoopConfig:
     """The cyclic service: period, channel validation and the PLC watchdog."""
 
@@ -270,6 +301,7 @@ class LoopConfig:
     overrun_warning_interval_s: float = 10.0
     busy_wait_s: float = 0.0002  # spin this long before each deadline instead of sleeping
     realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
+    heartbeat: HeartbeatConfig = field(default_factory=HeartbeatConfig)
     RANGES: ClassVar[Ranges] = {
         "period_s": (1e-4, 1.0),
         "substitute_max_s": (0.0, 10.0),
@@ -305,6 +337,15 @@ class LoopConfig:
         22.9 % with both cores busy (every cycle started 1 ms late); 10 ms, 0.02 % and
         0.16 %: a robot stopped for nothing. A stall of 20 ms is still stopped by age."""
         return self.stale_after_s if self.max_input_age_s is None else self.max_input_age_s
+
+    @property
+    def clock_lag_bound_s(self) -> float:
+        """The longest before its read a PLC sample the gateway uses can have been made:
+        ``heartbeat_timeout_s`` (the longest the PLC can hold its newest sample with the
+        watchdog armed) + ``input_age_limit_s`` (the oldest a reply may be). A counting
+        heartbeat may count no more PLC time than passed on the gateway's clock since the
+        last sample plus this (gateway/runtime/clock.py, docs/security.md)."""
+        return self.heartbeat_timeout_s + self.input_age_limit_s
 
 
 @dataclass(frozen=True)
@@ -511,6 +552,24 @@ class Config:
             _effect_values(fr.effects, self.cables, fr.pulley_radius_m, "effects")
         except ValueError as exc:
             raise ValueError(f"friction: {exc}") from None
+        self._check_heartbeat()
+
+    def _check_heartbeat(self) -> None:
+        """A counter's modulus must fit the register the heartbeat is read from."""
+        hb = self.loop.heartbeat
+        if hb.kind != "counter" or hb.modulus is None:
+            return
+        if self.bus.driver == "modbus_tcp":
+            reg = self.bus.modbus_tcp.registers.plc_heartbeat.type
+            key = "bus.modbus_tcp.registers.plc_heartbeat"
+        else:  # CANopen 2004h and the virtual image: uint16
+            reg, key = "uint16", f"the {self.bus.driver} PLC heartbeat"
+        values = HEARTBEAT_VALUES.get(reg, FLOAT32_EXACT)
+        if hb.modulus > values:
+            raise ValueError(
+                f"loop.heartbeat.modulus: {hb.modulus} is more than {key} ({reg}) can count "
+                f"({values} values)"
+            )
 
     @property
     def cables(self) -> int:

@@ -58,6 +58,7 @@ from gateway.fastcall import entry_point
 from gateway.model import effects as fx
 from gateway.model.chain import ChainStepper
 from gateway.model.statics import wrench_into
+from gateway.runtime.clock import MAX_GAP_PERIODS, SampleClock, warm_travel_m
 
 FLAG_NAN = 1
 FLAG_RANGE = 2
@@ -65,15 +66,6 @@ FLAG_STUCK = 4
 FLAG_STALE = 8
 RANGE_MARGIN = 0.05  # readings down to -5 % of the range are noise around zero, not faults
 MOVING_M_S = 1e-6  # |setpoint velocity| above this counts as moving for the stuck check
-PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples
-SPACING_OUTLIER = 3.0  # a spacing this far off the average is a hold or a stall, not data
-SPACING_OUTLIER_RUN = 20  # this many in a row: the PLC's period changed, start afresh
-# Heartbeat steps up to this many samples enter the PLC's averaged sample spacing.
-MAX_STEP_PERIODS = 10
-# The chain's time step (the PLC time between the samples it compensates) is bounded to
-# this many periods: after a longer outage the setpoint motion in between is unknown, so its
-# travel is not extrapolated from the velocities before and after it.
-MAX_GAP_PERIODS = 100
 GOOD = int(ChannelStatus.GOOD)
 SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
 INVALID = int(ChannelStatus.INVALID)
@@ -217,7 +209,7 @@ def _finish(corrected, used, status, friction):
 class Compensator:
     """Validation, substitution, compensation of the fitted effects and wrench, m cables."""
 
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, register_modulus: int = 1 << 16) -> None:
         m = cfg.cables
         lp = cfg.loop
         fr = cfg.friction
@@ -234,10 +226,24 @@ class Compensator:
             lp.substitute_max_s,
         )
         self.stale_after_s = lp.stale_after_s
-        self.max_step_s = MAX_GAP_PERIODS * lp.period_s
+        self._loop_period_s = lp.period_s
+        self.max_step_s = MAX_GAP_PERIODS * lp.period_s  # the chain's step after an outage
+        self._heartbeat_cfg = lp.heartbeat
+        # the longest a sample read may have been made before: held with the watchdog
+        # armed, then in flight (gateway/runtime/clock.py, docs/security.md)
+        self._lag_bound_s = lp.clock_lag_bound_s
         # Modbus polls the PLC: its heartbeat tells a new sample from one read again. On
         # CANopen each cycle is one SYNC's samples and the heartbeat comes every 10th.
-        self.samples_by_heartbeat = cfg.bus.driver != "canopen"
+        self._by_bus = cfg.bus.driver == "canopen"
+        self.clock = self._make_clock(register_modulus)
+        # after a step the clock cannot vouch for, the chain resynchronises: the cables
+        # are not good until they have travelled this far (clock.warm_travel_m)
+        self.warm_travel_m = warm_travel_m(self.params, cfg.sensor.range_n)
+        self.travel_m = np.full(m, np.inf)  # setpoint travel since the last resync
+        self.resync_at = -math.inf  # when the chain last resynchronised (gateway clock)
+        self._cold = False  # some cable has not re-warmed since the last resync
+        self._stepped_since_resync = True
+        self._travelled = False  # the chain has taken a step since the start
         self.frame_anchors = np.array(cfg.geometry.frame_anchors_m, dtype=float)
         self.platform_anchors = np.array(cfg.geometry.platform_anchors_m, dtype=float)
         self.channels = ChannelState.allocate(m)
@@ -252,18 +258,11 @@ class Compensator:
         self.wrench = np.full(6, np.nan)
         self._velocity_prev = np.zeros(m)  # the previous PLC sample's setpoint velocity
         self._velocity_hold = np.zeros(m)  # the one before it (a repeated sample: hold a)
-        self._sample_at = math.nan  # when the last new PLC sample arrived
         self._sample_dt = 0.0  # time between the last two new PLC samples
-        self._heartbeat = math.nan  # the last finite PLC heartbeat
-        self.heartbeat_modulus = 1 << 16  # its register's wrap (0: float32), set by the loop
-        self._plc_period_s = math.nan  # the PLC's sample spacing, averaged over samples
-        self._outliers = 0  # spacings in a row too far off the average to move it
-        self._spacings = 0  # spacings averaged so far (a running mean until 1 / gain)
         self._velocity_in = np.zeros(m)  # the cycle's inputs, copied into own buffers
         self._length_in = np.zeros(m)
         self._length_last = np.zeros(m)  # the last finite setpoint length per cable
         self._pose_in = np.zeros(6)
-        self._stepped_at = math.nan
         self._last_read_time = math.nan
         self._fresh_at = -math.inf
         self.flag_events = 0  # channels that went from good to flagged (errors{invalid_value})
@@ -274,6 +273,7 @@ class Compensator:
         self._online = fx.OnlineInverse(
             values, m, self.model_in_n, self.velocity_m_s, self._velocity_prev, self._length_in
         )
+        self._differs = entry_point(_differs, self.velocity_m_s, self._velocity_prev)
         self._finish = entry_point(
             _finish, self.corrected_n, self.used_n, self.status, self.friction_n
         )
@@ -286,6 +286,29 @@ class Compensator:
             self.wrench,
         )
 
+    def _make_clock(self, register_modulus: int) -> SampleClock:
+        hb = self._heartbeat_cfg
+        modulus = register_modulus if hb.modulus is None else hb.modulus
+        return SampleClock(
+            hb.kind,
+            modulus,
+            self._loop_period_s,
+            by_bus=self._by_bus,
+            toggle_period_s=hb.period_s,
+            register_values=register_modulus,
+            lag_bound_s=self._lag_bound_s,
+        )
+
+    @property
+    def heartbeat_modulus(self) -> int:
+        """The wrap of the PLC heartbeat's register (0: float32); set by the loop from
+        the driver before the first cycle (a declared ``loop.heartbeat.modulus`` wins)."""
+        return self.clock.register_values
+
+    @heartbeat_modulus.setter
+    def heartbeat_modulus(self, register_modulus: int) -> None:
+        self.clock = self._make_clock(int(register_modulus))
+
     @property
     def stuck_after_s(self) -> float:
         return self.limits.stuck_after_s
@@ -297,14 +320,17 @@ class Compensator:
     def step(self, inputs: Inputs, now_s: float, out: Outputs) -> None:
         """One cycle on a successful read; fills ``out`` tensions, status and wrench.
 
-        The model's time step is the PLC's time between the samples it compensates
-        (:meth:`_online_inputs`; 0 on the first), so the acceleration (inertia) and the
-        cable travel (Dahl, the trapezoid ``(v_prev + v) / 2 dt`` with the previous
-        sample's velocity, ``chain.travel_into``) follow the PLC's samples, not the
-        gateway's reads: a sample read twice adds no travel, samples missed in an overrun
-        or a stall (of either side) lose none. Where the heartbeat does not count samples
-        (CANopen: every cycle is a new SYNC) the time since the previous cycle is used.
-        The chain's step is bounded to ``MAX_GAP_PERIODS`` periods (after an outage).
+        The model's time step is the one sample clock's (:class:`~.clock.SampleClock`:
+        the PLC's time between the samples it compensates; 0 on the first and for a
+        sample read again), so the acceleration (inertia) and the cable travel (Dahl, the
+        trapezoid ``(v_prev + v) / 2 dt`` with the previous sample's velocity,
+        ``chain.travel_into``) follow the PLC's samples, not the gateway's reads: a
+        sample read twice adds no travel, samples missed in an overrun or a stall (of
+        either side) lose none; the chain's step is bounded to ``MAX_GAP_PERIODS`` periods
+        (after an outage). A step the clock cannot vouch for (a counter stepping
+        back, a jump, a restart, a toggle missed) is not integrated: the chain
+        resynchronises (:meth:`_resync`) and every cable is written substituted, then
+        invalid, until it has travelled ``warm_travel_m`` since (:meth:`_hold_cold`).
         """
         if inputs.read_time_s != self._last_read_time:
             self._last_read_time = inputs.read_time_s
@@ -318,17 +344,22 @@ class Compensator:
         self.flag_events += self._validate(
             self.limits, self.channels, self.raw_n, self._velocity_in, now, stale
         )
-        dt = now - self._stepped_at if self._stepped_at == self._stepped_at else 0.0
-        dt = dt if dt > 0.0 else 0.0
-        self._stepped_at = now
         _hold_finite(self._length_in, self._length_last)  # flagged by plausibility
-        sample_dt = self._online_inputs(now, float(inputs.plc_heartbeat))
+        clock = self.clock
+        hb = float(inputs.plc_heartbeat)
+        moved = clock.asks_setpoints(hb) and self._differs(self.velocity_m_s, self._velocity_prev)
+        clock.tick(now, hb, moved)
+        dt = self._online_inputs(clock.new, clock.dt)
+        if not clock.vouched and self._travelled:
+            self._resync(now)  # (before any travel the start's relaxed chain is as good)
+        self._travelled = self._travelled or dt > 0.0
         _guard_inputs(self.model_in_n, self.used_n, self.status)
-        dt = sample_dt if self.samples_by_heartbeat else dt
         self.stepper.step(
             self.model_in_n, self.velocity_m_s, self.corrected_n, min(dt, self.max_step_s)
         )
         _guard_chain(self.corrected_n, self.stepper.state, self.status)
+        if self._cold:
+            self._hold_cold(now, dt)
         if self._finish(self.corrected_n, self.used_n, self.status, self.friction_n):
             self.wrench[:] = np.nan
         else:
@@ -343,40 +374,43 @@ class Compensator:
         out.channel_status[:] = self.status
         out.wrench[:] = self.wrench
 
-    def _heartbeat_steps(self, heartbeat: float) -> int:
-        """PLC samples since the last one by its heartbeat (modulo its register; a float
-        heartbeat by its difference); 0 for the same value, NaN or the first one, and
-        ``MAX_STEP_PERIODS + 1`` for a difference that is no count of samples."""
-        prev = self._heartbeat
-        if not math.isfinite(heartbeat):
-            return 0
-        self._heartbeat = heartbeat
-        if prev != prev:
-            return 0
-        d = heartbeat - prev
-        if self.heartbeat_modulus:
-            return int(d) % self.heartbeat_modulus
-        if d == 0.0:
-            return 0
-        return int(d) if d == int(d) and 0 < d <= MAX_STEP_PERIODS else MAX_STEP_PERIODS + 1
+    def _resync(self, now: float) -> None:
+        """A step the clock could not vouch for: the chain keeps its state but took no
+        travel over the unknown time (the clock's step is 0) and no acceleration across
+        it; the cables are cold until they have travelled far enough for the state to
+        have forgotten the difference (:func:`~.clock.warm_travel_m`)."""
+        if not self._cold:  # substituted for at most substitute_max_s after the first
+            self.resync_at = now
+        self.travel_m[:] = 0.0
+        self._cold = True
+        self._stepped_since_resync = False
 
-    def _online_inputs(self, now: float, heartbeat: float) -> float:
-        """The online path and sensor effects removed; returns the PLC time (s) since the
-        previous sample, 0 for the same sample again. An acceleration (inertia) is the
-        backward difference between *new* PLC samples (a new heartbeat or a new setpoint
-        velocity); a cycle that reads the same sample again holds it (a difference of 0
-        over one cycle, then of two samples over the next, would swing the inertia term
-        between 0 and twice its size). The time between two samples ``k`` heartbeats apart
-        is ``k`` times the PLC's sample spacing, averaged over past samples
-        (``PLC_PERIOD_GAIN``, :meth:`_spacing`), also across a gap of more than
-        ``MAX_STEP_PERIODS`` samples (a stall of the gateway, or the PLC catching up after
-        one of its own: arrival times are no measure of the PLC's time then). Single
-        arrival times carry the bus jitter, which the difference quotient would amplify.
-        Without a counting heartbeat the arrival times are used."""
-        steps = self._heartbeat_steps(heartbeat)
-        new = steps != 0 or _differs(self.velocity_m_s, self._velocity_prev)
-        if not new:  # the same sample again: the same acceleration, no time passed, a filter
-            # with state not advanced twice
+    def _hold_cold(self, now: float, dt: float) -> None:
+        """Count the travel since the resync; a cable short of ``warm_travel_m`` (and
+        every cable before the first vouched step after it: the acceleration needs two
+        samples) is substituted for at most ``loop.substitute_max_s`` after the resync,
+        then invalid."""
+        if dt > 0.0:
+            step = min(dt, self.max_step_s)
+            self.travel_m += 0.5 * np.abs(self._velocity_hold + self.velocity_m_s) * step
+            self._stepped_since_resync = True
+        cold = self.travel_m < self.warm_travel_m
+        if self._stepped_since_resync and not cold.any():
+            self._cold = False
+            return
+        if not self._stepped_since_resync:
+            cold[:] = True
+        fresh = now - self.resync_at <= self.limits.substitute_max_s
+        self.status[cold] = np.maximum(self.status[cold], SUBSTITUTED if fresh else INVALID)
+
+    def _online_inputs(self, new: bool, dt: float) -> float:
+        """The online path and sensor effects removed; returns the chain's step (s): the
+        clock's step for a new sample, 0 for the same sample again. An acceleration
+        (inertia) is the backward difference between *new* PLC samples; a cycle that reads
+        the same sample again holds it (a difference of 0 over one cycle, then of two
+        samples over the next, would swing the inertia term between 0 and twice its
+        size), and a filter with state is not advanced twice."""
+        if not new:
             self._online(
                 self.used_n,
                 self.model_in_n,
@@ -387,12 +421,6 @@ class Compensator:
                 False,
             )
             return 0.0
-        dt = now - self._sample_at if self._sample_at == self._sample_at else 0.0
-        dt = dt if dt > 0.0 else 0.0
-        if 1 <= steps <= MAX_STEP_PERIODS and dt > 0.0:
-            self._plc_period_s = self._spacing(dt / steps)
-        if steps >= 1 and self._plc_period_s == self._plc_period_s:
-            dt = steps * self._plc_period_s
         self._online(
             self.used_n,
             self.model_in_n,
@@ -403,28 +431,8 @@ class Compensator:
         )
         self._velocity_hold[:] = self._velocity_prev
         self._velocity_prev[:] = self.velocity_m_s
-        self._sample_at, self._sample_dt = now, dt
+        self._sample_dt = dt
         return dt
-
-    def _spacing(self, spacing: float) -> float:
-        """The PLC's averaged sample spacing after one more ``spacing``: the running mean
-        of the first ``1 / PLC_PERIOD_GAIN`` spacings, then an exponential average (a start
-        from one jittered spacing took ~100 samples to settle, and the chain's travel was
-        off by that much meanwhile). A spacing off the average by more than a factor
-        ``SPACING_OUTLIER`` (the PLC held its samples, or this process stalled) does not
-        move it; ``SPACING_OUTLIER_RUN`` of them in a row restart it (the PLC's period
-        changed)."""
-        est = self._plc_period_s
-        if est != est or self._outliers >= SPACING_OUTLIER_RUN:
-            self._outliers = 0
-            self._spacings = 1
-            return spacing
-        if not est / SPACING_OUTLIER <= spacing <= est * SPACING_OUTLIER:
-            self._outliers += 1
-            return est
-        self._outliers = 0
-        self._spacings += 1
-        return est + max(PLC_PERIOD_GAIN, 1.0 / self._spacings) * (spacing - est)
 
     def mark_unread(self, now_s: float) -> None:
         """A cycle whose read failed: flag every channel stale; the model is not stepped."""

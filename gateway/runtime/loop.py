@@ -143,7 +143,7 @@ class CyclicService:
         self.stats = LoopStats(history)
         self.pacing: Pacing = make_pacing(driver, cfg.loop, clock, sleep, wall_clock, self.stats)
         driver.clock = clock  # the output gate and the data's time on the loop's clock
-        self.comp.heartbeat_modulus = driver.plc_heartbeat_modulus
+        self.comp.heartbeat_modulus = driver.plc_heartbeat_modulus  # the register's wrap
         self.notifier = notifier
         self.state = Lifecycle.STOPPED
         self.heartbeat_fault = False

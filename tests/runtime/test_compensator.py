@@ -33,6 +33,7 @@ def feed(comp, inp, out, k, tension, velocity):
     inp.tension_raw_n[:] = tension
     inp.velocity_m_s[:] = velocity
     inp.read_time_s = float(k)  # a new read every cycle
+    inp.plc_heartbeat = k & 0xFFFF  # of a new PLC sample (the heartbeat counts them)
     comp.step(inp, k * DT, out)
 
 

@@ -9,18 +9,19 @@ import dataclasses
 import numpy as np
 from numpy.testing import assert_allclose
 
-from drivers.base import Inputs, Outputs
+from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.model.chain import ChainStepper
 from gateway.runtime.compensator import MAX_GAP_PERIODS, Compensator
 from tests.loop_helpers import config
 
 PERIOD = 0.001
+SUBSTITUTED = int(ChannelStatus.SUBSTITUTED)
 
 
 def run(times: list[float]) -> Compensator:
     """A compensator stepped at the fake-clock ``times`` on one constant moving reading of
     a PLC that samples every ``PERIOD`` (its heartbeat counts them)."""
-    cfg = config(period_s=PERIOD)
+    cfg = config(period_s=PERIOD, stuck_after_s=10.0)
     comp = Compensator(cfg)
     inputs = Inputs.allocate(cfg.cables)
     out = Outputs.allocate(cfg.cables)
@@ -62,6 +63,7 @@ def test_after_an_outage_the_step_is_bounded():
     assert_allclose(comp.stepper.state, state, rtol=0, atol=1e-9)
     unbounded, _ = one_go(comp, [0.0, PERIOD, 2.0 - PERIOD])
     assert np.max(np.abs(comp.stepper.state - unbounded)) > 1e-3
+    assert comp.clock.resyncs == 0  # the count advanced no faster than the time: a gap
 
 
 def test_on_canopen_every_cycle_is_a_sample():
