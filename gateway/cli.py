@@ -53,7 +53,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-# One example per command, shown under its --help (the README's tour uses the same).
+# One example per command (a second line: another form), shown under its --help (the
+# README's tour uses the same).
 EXAMPLES: dict[str, str] = {
     "run": "cdpr-gateway run --config /etc/cdpr-gateway/gateway.yaml",
     "check": "cdpr-gateway check --config yours.yaml --connect",
@@ -69,7 +70,9 @@ EXAMPLES: dict[str, str] = {
     "examples": "cdpr-gateway examples deploy service/",
     "warmup": "cdpr-gateway warmup --config /etc/cdpr-gateway/gateway.yaml",
     "export": "cdpr-gateway export rec.csv.gz --to mcap rec.mcap",
-    "fleet": "cdpr-gateway fleet 'recordings/*.parquet' --model config/default.yaml --out fleet/",
+    "fleet": "cdpr-gateway fleet 'recordings/*.parquet' --model config/default.yaml --out fleet/"
+    "\n  cdpr-gateway fleet logs/ --model config/default.yaml --out fleet/ --per-robot"
+    "   # each robot's recordings jointly",
     "top": "cdpr-gateway top --metrics http://127.0.0.1:9109/metrics",
 }
 
