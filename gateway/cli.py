@@ -64,9 +64,11 @@ EXAMPLES: dict[str, str] = {
     "--out rec.csv.gz",
     "replicate": "cdpr-gateway replicate --out replication/",
     "diagnose": "cdpr-gateway diagnose rec.csv.gz --model config/default.yaml --json rep.json "
-    "--report rep/",
+    "--report rep/\n  cdpr-gateway diagnose run1.csv run2.csv run3.csv --model model.yaml "
+    "--json rep.json   # one machine's recordings, jointly",
     "calibrate": "cdpr-gateway calibrate --config config/calibrate/viscous.yaml --seconds 30 "
-    "--out cal/",
+    "--out cal/\n  cdpr-gateway calibrate --config config/calibrate/viscous.yaml --seconds 30 "
+    "--runs 3 --out cal/   # 3 runs, other motions, fitted jointly",
     "examples": "cdpr-gateway examples deploy service/",
     "warmup": "cdpr-gateway warmup --config /etc/cdpr-gateway/gateway.yaml",
     "export": "cdpr-gateway export rec.csv.gz --to mcap rec.mcap",
@@ -92,6 +94,7 @@ PLACEHOLDERS: dict[str, str] = {
     "cycles": "N",
     "workers": "N",
     "seed": "N",
+    "runs": "N",
     "host": "HOST",
     "port": "PORT",
     "scheduler": "ADDRESS",
