@@ -64,6 +64,11 @@ def test_recordings_are_grouped_by_robot_in_order_of_start(fleet_dir, tmp_path) 
     write_recording(tmp_path / "robot=a" / "x.csv", rec)
     got = by_robot([*expand([str(tree)]), str(tmp_path / "robot=a" / "x.csv")])
     assert [len(g) for g in got] == [2, 2, 1] and got[-1][0].endswith("x.csv")
+    # a file whose metadata cannot be read goes with its folder's robot (its task fails)
+    (tmp_path / "robot=b").mkdir()
+    (tmp_path / "robot=b" / "junk.parquet").write_bytes(b"junk")
+    got = by_robot([*expand([str(tree)]), str(tmp_path / "robot=b" / "junk.parquet")])
+    assert [len(g) for g in got] == [2, 3] and any(p.endswith("junk.parquet") for p in got[1])
 
 
 def test_a_robot_task_is_sized_as_its_recordings_joined(tmp_path) -> None:
@@ -113,7 +118,6 @@ def test_a_robot_task_is_the_joined_diagnosis_of_its_recordings(fleet_dir) -> No
 
 
 @pytest.mark.loopback
-@pytest.mark.long
 def test_fleet_per_robot_writes_one_report_and_one_row_set_per_robot(
     fleet_dir, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
