@@ -543,11 +543,13 @@ class Prepared:
     n_blocks: int
     warm: np.ndarray
 
-    def whiten(self, x: np.ndarray) -> np.ndarray:
-        """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` -> whitened."""
+    def whiten(self, x: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+        """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` (or at
+        ``rows[among]``, ``among`` a bool mask of ``rows``) -> whitened."""
+        chol = self.chol if among is None else self.chol[among]
         if x.ndim == 2:
-            return np.linalg.solve(self.chol, x[:, :, None])[:, :, 0] / self.sigma
-        return np.linalg.solve(self.chol, x) / self.sigma
+            return np.linalg.solve(chol, x[:, :, None])[:, :, 0] / self.sigma
+        return np.linalg.solve(chol, x) / self.sigma
 
 
 def load_inverse_kernels(cables: int) -> None:

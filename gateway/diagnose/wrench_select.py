@@ -22,7 +22,8 @@ wrench (:class:`wrench.Prepared`): generalised least squares.
 4. **Report**: every ``*_rmse_n`` is the RMS of the force part of the unweighted wrench
    residual (N, over the three components and the samples); moments in ``wrench``. The
    balance is one unit: a finding's ``statistic``, ``p`` and ``q`` are one joint test,
-   repeated for each of its cables.
+   repeated for each of its cables. ``baseline.least_squares``: the engineer's Coulomb +
+   viscous + offset per cable fitted on the same balance (:mod:`.wrench_lsq`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import numpy as np
 
 from gateway.core.config import Config, FrictionConfig
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate
+from gateway.diagnose import locate, wrench_lsq
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
 from gateway.diagnose.select import Model, Selector, Thresholds
@@ -709,7 +710,17 @@ def diagnose_wrench(
         contrib = (without - before[3]).reshape(-1)[::step].copy()
         signatures[e] = (contrib, without.reshape(-1)[::step].copy())
         del without, contrib
+    least_squares = wrench_lsq.block(
+        prep,
+        sel.r0,
+        sel.train_samples,
+        test,
+        nominal[3],
+        before[3],
+        None if vmodel is None else (vmodel, float(before[2] or 0.0)),
+    )
     diag = _build(rec, prep, sel, findings, order, nominal, before, vmodel)
+    diag.report["baseline"]["least_squares"] = least_squares
     diag.signatures.update(signatures)
     if sessions is not None:  # after samples and skipped_rows, as the platform report
         rep = diag.report
