@@ -13,7 +13,8 @@ import sys
 import time
 from pathlib import Path
 
-ONLY_BY_NAME = {"soak", "calibrate", "real"}  # minutes each: only when named, not in `make bench`
+# minutes each: only when named, not in `make bench`
+ONLY_BY_NAME = {"soak", "calibrate", "real", "wrench_lsq"}
 
 
 def main(argv: list[str]) -> int:

@@ -53,7 +53,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-# One example per command, shown under its --help (the README's tour uses the same).
+# One example per command (a second line: another form), shown under its --help (the
+# README's tour uses the same).
 EXAMPLES: dict[str, str] = {
     "run": "cdpr-gateway run --config /etc/cdpr-gateway/gateway.yaml",
     "check": "cdpr-gateway check --config yours.yaml --connect",
@@ -63,13 +64,17 @@ EXAMPLES: dict[str, str] = {
     "--out rec.csv.gz",
     "replicate": "cdpr-gateway replicate --out replication/",
     "diagnose": "cdpr-gateway diagnose rec.csv.gz --model config/default.yaml --json rep.json "
-    "--report rep/",
+    "--report rep/\n  cdpr-gateway diagnose run1.csv run2.csv run3.csv --model model.yaml "
+    "--json rep.json   # one machine's recordings, jointly",
     "calibrate": "cdpr-gateway calibrate --config config/calibrate/viscous.yaml --seconds 30 "
-    "--out cal/",
+    "--out cal/\n  cdpr-gateway calibrate --config config/calibrate/viscous.yaml --seconds 30 "
+    "--runs 3 --out cal/   # 3 runs, other motions, fitted jointly",
     "examples": "cdpr-gateway examples deploy service/",
     "warmup": "cdpr-gateway warmup --config /etc/cdpr-gateway/gateway.yaml",
     "export": "cdpr-gateway export rec.csv.gz --to mcap rec.mcap",
-    "fleet": "cdpr-gateway fleet 'recordings/*.parquet' --model config/default.yaml --out fleet/",
+    "fleet": "cdpr-gateway fleet 'recordings/*.parquet' --model config/default.yaml --out fleet/"
+    "\n  cdpr-gateway fleet logs/ --model config/default.yaml --out fleet/ --per-robot"
+    "   # each robot's recordings jointly",
     "top": "cdpr-gateway top --metrics http://127.0.0.1:9109/metrics",
 }
 
@@ -89,6 +94,7 @@ PLACEHOLDERS: dict[str, str] = {
     "cycles": "N",
     "workers": "N",
     "seed": "N",
+    "runs": "N",
     "host": "HOST",
     "port": "PORT",
     "scheduler": "ADDRESS",

@@ -1,5 +1,5 @@
-"""``cdpr-gateway calibrate --config SIM.yaml [--seconds N] --out DIR``: the real-robot loop,
-closed on the soft PLC.
+"""``cdpr-gateway calibrate --config SIM.yaml [--seconds N] [--runs R] --out DIR``: the
+real-robot loop, closed on the soft PLC.
 
 The soft PLC (a ``sim-plc`` subprocess, as the demo starts it) runs SIM.yaml's plant with
 its concealed effects (``sim_plc.effects``, ``sim_plc.distribution``); the gateway sees
@@ -25,6 +25,18 @@ cables pooled. ``DIR/calibration.json`` holds ``before``, ``after``, ``noise_flo
 ``findings`` and ``reference``; a table goes to stdout. The gateway's side of the config
 (``DIR/nominal.yaml``: SIM.yaml without ``sim_plc:``) is the nominal model; the plant of
 step 1 is ``DIR/plant-clean.yaml``.
+
+``--runs R`` (R > 1): step 2 records R runs, each another motion and noise draw of the same
+plant -- run 1 SIM.yaml itself, run k ``DIR/plant-run-K.yaml``, SIM.yaml with
+``sim_plc.seed`` and ``sim_plc.trajectory.random.seed`` raised by k - 1 (as ``record
+--seed`` draws another recording of a machine; the motion differs with a ``random``
+trajectory, the other kinds repeat theirs and only the noise differs) -- into
+``DIR/before-K.csv.gz``; step 3 diagnoses them **jointly**, one set of findings for the
+machine (:func:`gateway.diagnose.wrench_select.diagnose_joined_wrench`, the path of
+``diagnose REC REC ...`` for recordings without platform tensions): the first 75 % of every
+run fitted, the last quarters of all runs joined as the validation; the report lists the
+runs in ``recordings``. ``before`` in ``calibration.json`` is run 1 (the motion ``after``
+repeats), ``before_runs`` every run's score. R = 1 is the four steps above, unchanged.
 """
 
 from __future__ import annotations
@@ -53,6 +65,7 @@ from gateway.service.daemon import build_driver, start_recorder
 from sim_plc import demo
 
 BUS = "modbus_tcp"  # the truth side channel is a Modbus register block
+MAX_RUNS = 20  # --runs: each is a gateway run of --seconds, one after another
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,6 +128,34 @@ def prepare_dir(config: str, out: Path) -> tuple[Path, Path]:
         f"{config} with no concealed effects: the noise floor's plant",
     )
     return nominal, clean
+
+
+def run_plants(config: str, runs: int, out: Path) -> list[str]:
+    """The plant of each 'before' run (module docstring, ``--runs``): SIM.yaml, then
+    ``DIR/plant-run-K.yaml`` with the seeds raised by K - 1."""
+    from sim_plc.config import RandomConfig, SimPlcRaw
+
+    if runs == 1:
+        return [config]
+    data = read_yaml(config)
+    sim = _absolute_paths(dict(data.get("sim_plc") or {}), Path(config).resolve().parent)
+    traj = dict(sim.get("trajectory") or {})
+    motion = dict(traj.get("random") or {})
+    seed, motion_seed = (
+        int(sim.get("seed", SimPlcRaw.seed) or 0),
+        int(motion.get("seed", RandomConfig.seed) or 0),
+    )
+    plants = [config]
+    for k in range(1, runs):
+        drawn = {**traj, "random": {**motion, "seed": motion_seed + k}}
+        path = out / f"plant-run-{k + 1}.yaml"
+        _write_yaml(
+            path,
+            {**data, "sim_plc": {**sim, "seed": seed + k, "trajectory": drawn}},
+            f"{config} with sim_plc.seed and trajectory.random.seed + {k}: calibrate run {k + 1}",
+        )
+        plants.append(str(path))
+    return plants
 
 
 def run_scored(
@@ -237,6 +278,48 @@ def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path,
     return diag.report
 
 
+def diagnose_runs(recordings: list[Path], model: Path, report: Path, fitted: Path, say) -> dict:
+    """:func:`diagnose_recording` of several runs of one plant, jointly: each run's rows
+    with new, good readings (:func:`gateway_rows`), the first 75 % of every run fitted and
+    their last quarters the validation, joined and diagnosed as one against the wrench
+    balance (:func:`gateway.diagnose.wrench_select.diagnose_joined_wrench`); writes the
+    report and the fitted model, returns the report."""
+    from gateway.diagnose.wrench_select import diagnose_joined_wrench
+
+    if len(recordings) == 1:
+        return diagnose_recording(recordings[0], model, report, fitted, say)
+    cfg = load_config(model)
+    model_friction = load_friction(model)
+    fits, checks = [], []
+    friction = None
+    for path in recordings:
+        rec = gateway_rows(read_recording(path))
+        say(f"{path}: {rec.samples} rows with new, good readings ({rec.skipped_rows} left out)")
+        if reference_mode(rec) != "wrench":
+            raise GatewayError(f"{path}: no pose and mass columns: no wrench reference")
+        rec, friction = relative_to_model(rec, model_friction, cfg)
+        fit, check = split_validation(rec)
+        fits.append(fit)
+        checks.append(check)
+    say(
+        f"fit on the first 75 % of {len(fits)} runs ({sum(f.samples for f in fits)} rows), "
+        f"validate on their last quarters ({sum(c.samples for c in checks)} rows)"
+    )
+    names = [str(p) for p in recordings]
+    diag, joined = diagnose_joined_wrench(fits, names, friction, cfg, checks, progress=say)  # type: ignore[arg-type]
+    warmup.annotate(diag.report, joined, friction)  # type: ignore[arg-type]
+    try:
+        report.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
+    except OSError as exc:
+        raise GatewayError(f"{report}: cannot write: {exc.strerror or exc}") from exc
+    moved = heldout.motion(joined.t, joined.velocity)
+    refused = heldout.refusal(diag.report, moved, "the runs' last quarters, not fitted")
+    if refused is not None:
+        raise GatewayError(f"{fitted}: {refused}")
+    write_model(fitted, model, model_friction, diag.report, joined)
+    return diag.report
+
+
 def _finding_text(f: dict) -> str:
     parts = []
     for name, values in f["parameters"].items():
@@ -260,8 +343,12 @@ def table(result: dict[str, Any], config: str, seconds: float) -> str:
         ("before", "before (nominal model)"),
         ("after", "after (fitted model)"),
     )
-    for key, title in runs:
-        r = result[key]
+    scored = [(result[key], title) for key, title in runs]
+    if "before_runs" in result:  # --runs: every before run, diagnosed jointly
+        scored[1:2] = [
+            (r, f"before run {k + 1} (nominal)") for k, r in enumerate(result["before_runs"])
+        ]
+    for r, title in scored:
         rows.append(
             f"  {title:<26} {r['rmse_n']:16.3f}   {r['raw_rmse_n']:10.3f}   "
             f"{r['rmse_n'] / floor:7.2f}"
@@ -269,20 +356,28 @@ def table(result: dict[str, Any], config: str, seconds: float) -> str:
     return "\n".join(rows)
 
 
-def calibrate(config: str, seconds: float, out: Path, say) -> dict[str, Any]:
-    """The four steps of the module docstring; returns what calibration.json holds."""
+def calibrate(config: str, seconds: float, out: Path, say, runs: int = 1) -> dict[str, Any]:
+    """The four steps of the module docstring (``runs`` 'before' runs, diagnosed jointly);
+    returns what calibration.json holds."""
     sim_cfg = load_config(config)
     _check(sim_cfg, config)
     nominal_path, clean_path = prepare_dir(config, out)
+    plants = run_plants(config, runs, out)
     nominal = load_config(nominal_path)
     say(f"1/4 noise floor: plant without concealed effects, nominal model, {seconds:g} s")
     floor = run_scored(clean_path, nominal, seconds, "calibrate floor")
-    say(f"2/4 before: plant {config}, nominal model, recording {seconds:g} s")
-    before = run_scored(config, nominal, seconds, "calibrate before", out / "before.csv.gz")
-    say("3/4 diagnose before.csv.gz against the wrench balance")
-    report = diagnose_recording(
-        out / "before.csv.gz", nominal_path, out / "diagnosis.json", out / "fitted.yaml", say
-    )
+    befores, recorded = [], []
+    for k, plant in enumerate(plants):
+        name = "before.csv.gz" if runs == 1 else f"before-{k + 1}.csv.gz"
+        which = "" if runs == 1 else f" run {k + 1}/{runs}"
+        say(f"2/4 before{which}: plant {plant}, nominal model, recording {seconds:g} s")
+        label = "calibrate before" + ("" if runs == 1 else f" {k + 1}/{runs}")
+        befores.append(run_scored(plant, nominal, seconds, label, out / name))
+        recorded.append(out / name)
+    before = befores[0]
+    what = "before.csv.gz" if runs == 1 else f"the {runs} runs jointly"
+    say(f"3/4 diagnose {what} against the wrench balance")
+    report = diagnose_runs(recorded, nominal_path, out / "diagnosis.json", out / "fitted.yaml", say)
     say(f"4/4 after: plant {config}, fitted model {out / 'fitted.yaml'}, {seconds:g} s")
     fitted = load_config(out / "fitted.yaml")
     after = run_scored(config, fitted, seconds, "calibrate after", out / "after.csv.gz")
@@ -297,6 +392,9 @@ def calibrate(config: str, seconds: float, out: Path, say) -> dict[str, Any]:
         "seconds": seconds,
         "config": config,
     }
+    if runs > 1:
+        result["runs"] = runs
+        result["before_runs"] = [b.as_dict() for b in befores]
     try:
         (out / "calibration.json").write_text(json.dumps(result, indent=1), encoding="utf-8")
     except OSError as exc:
@@ -307,11 +405,13 @@ def calibrate(config: str, seconds: float, out: Path, say) -> dict[str, Any]:
 def run_command(command: str, args: argparse.Namespace) -> int:
     if not args.seconds > 0:
         raise GatewayError("--seconds: must be > 0")
+    if not 1 <= args.runs <= MAX_RUNS:
+        raise GatewayError(f"--runs: must be in 1..{MAX_RUNS}")
     start = time.perf_counter()
 
     def say(msg: str) -> None:
         print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    result = calibrate(args.config, args.seconds, args.out, say)
+    result = calibrate(args.config, args.seconds, args.out, say, args.runs)
     print(table(result, args.config, args.seconds))
     return 0

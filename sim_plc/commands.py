@@ -71,3 +71,10 @@ def _calibrate(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seconds", type=float, default=30.0, help="length of each gateway run")
     parser.add_argument("--out", type=Path, required=True, help="directory for the results")
+    parser.add_argument(
+        "--runs",
+        type=int,
+        default=1,
+        help="'before' runs recorded, each another motion and noise draw (the plant's "
+        "seeds + 1, + 2, ...), diagnosed jointly for one fitted model",
+    )

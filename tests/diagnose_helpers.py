@@ -692,3 +692,40 @@ SCHEMA = r"""
  }
 }
 """
+
+
+def wrench_recordings(tmp: Path, config: Path, seconds: float, seeds: list[int]) -> list[Path]:
+    """Recordings of the soft PLC's plant as a real robot has them (``record --seed K``;
+    no platform tensions, thinned to 100 Hz): the wrench reference's input, small."""
+    import dataclasses
+
+    from gateway.cli import main
+    from gateway.recordings.reader import read_recording
+
+    out = []
+    for seed in seeds:
+        raw = tmp / f"raw-{seed}.parquet"
+        argv = ["record", "--config", str(config), "--seconds", str(seconds), "--out", str(raw)]
+        assert main([*argv, "--quiet", "--seed", str(seed)]) == 0
+        rec = read_recording(raw)
+        k = np.arange(0, rec.samples, 10)
+
+        def rows(a: np.ndarray | None, k: np.ndarray = k) -> np.ndarray | None:
+            return None if a is None else a[k]
+
+        thin = dataclasses.replace(
+            rec,
+            t=rec.t[k],
+            velocity=rec.velocity[k],
+            tension_sensor=rec.tension_sensor[k],
+            tension_platform=None,  # what a real robot has
+            length=rows(rec.length),
+            pose=rows(rec.pose),
+            mass=rows(rec.mass),
+            extra={n: v[k] for n, v in rec.extra.items()},
+        )
+        path = tmp / f"run-{seed}.csv"
+        write_recording(path, thin)
+        raw.unlink()
+        out.append(path)
+    return out

@@ -187,21 +187,29 @@ def _diagnose_joined(
     columns: Mapping[str, str] | None = None,
 ) -> _Run:
     """Several recordings of one machine, joined (:mod:`gateway.diagnose.sessions`) and
-    diagnosed as one against their platform tensions."""
+    diagnosed as one against their platform tensions (or, none of them having any, the
+    wrench balance: :func:`_diagnose_joined_wrench`)."""
     from gateway.diagnose import warmup
     from gateway.diagnose.engine import diagnose, reference_mode
     from gateway.diagnose.sessions import join
 
+    first, nominal = _read(recordings[0], model_friction, cfg, columns)
+    if reference_mode(first) == "wrench":
+        return _diagnose_joined_wrench(
+            first, recordings, model_friction, nominal, cfg, validate, say, columns
+        )
     parts = []
     keep_for_model: Callable[[Recording], Recording] = _unchanged
-    nominal = None
     for k, path in enumerate(recordings):
-        rec, nominal = _read(path, model_friction, cfg, columns)
+        if k == 0:
+            rec, first = first, None  # type: ignore[assignment]  # read above, held once
+        else:
+            rec, nominal = _read(path, model_friction, cfg, columns)
         say(f"{rec.source}: {rec.samples} samples x {rec.cables} cables")
         if reference_mode(rec) == "wrench":
             raise GatewayError(
-                f"{path}: no tension_platform_i columns: several recordings are diagnosed "
-                "together against platform tensions only (the wrench balance takes one)"
+                f"{path}: no tension_platform_i columns, {recordings[0]} has them: the "
+                "recordings diagnosed together must all have platform tensions or none"
             )
         if k == 0:
             rec, keep_for_model = _slim(rec)  # the model writer reads the first's lengths
@@ -219,7 +227,7 @@ def _diagnose_joined(
     say(f"{sessions.count} recordings joined: {joined.samples} samples")
     diag = diagnose(
         joined,
-        nominal,  # type: ignore[arg-type]
+        nominal,
         tp=tp,
         dtp_dm=dm,
         validation=validation,
@@ -229,6 +237,41 @@ def _diagnose_joined(
     assert nominal is not None  # at least two recordings were read
     warmup.annotate(diag.report, joined, nominal)
     return _Run(diag, joined, keep_for_model, model_friction)
+
+
+def _diagnose_joined_wrench(
+    first: Recording,
+    recordings: list[Path],
+    model_friction,
+    nominal,
+    cfg: Config | None,
+    validate,
+    say,
+    columns: Mapping[str, str] | None = None,
+) -> _Run:
+    """Several recordings without platform tensions, joined and diagnosed as one against
+    the wrench balance (:func:`gateway.diagnose.wrench_select.diagnose_joined_wrench`)."""
+    from gateway.diagnose import warmup
+    from gateway.diagnose.engine import reference_mode
+    from gateway.diagnose.wrench_select import diagnose_joined_wrench
+
+    recs = [first]
+    for path in recordings[1:]:
+        rec = _read(path, model_friction, cfg, columns)[0]
+        if reference_mode(rec) != "wrench":
+            raise GatewayError(
+                f"{path}: tension_platform_i columns, {recordings[0]} has none: the "
+                "recordings diagnosed together must all have platform tensions or none"
+            )
+        recs.append(rec)
+    for rec in recs:
+        say(f"{rec.source}: {rec.samples} samples x {rec.cables} cables")
+    wrec = None if validate is None else [_read(validate, model_friction, cfg, columns)[0]]
+    diag, joined = diagnose_joined_wrench(
+        recs, [str(p) for p in recordings], nominal, cfg, wrec, progress=say
+    )
+    warmup.annotate(diag.report, joined, nominal)
+    return _Run(diag, joined, _unchanged, model_friction)
 
 
 def report_json(report: dict) -> str:

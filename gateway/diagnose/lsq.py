@@ -27,6 +27,9 @@ scored by the caller on every held-out and validation sample. :func:`drop_term` 
 the Dahl baseline with one of its terms dropped (nonlinear parameters kept), to say which
 term carries what it explains.
 
+The report's block is written by :func:`assemble`, which the wrench reference's
+(:mod:`.wrench_lsq`: Coulomb + viscous + offset through the structure matrix) shares.
+
 Cost: on bench_diagnose's 10-min, 1 kHz, 8-cable recording (hidden case) the block took
 17.0 s of a 540 s diagnosis (3.1 %), peak RSS 374 MiB, on a 2-core machine under a load
 of 6-9 (about a third of a core; the figures scale together).
@@ -55,6 +58,9 @@ TERM_WORDS = {
     "m_kg": "the inertia",
     "k_n_m": "the position spring",
     "b_n": "the constant offset",
+    "coulomb_n": "the Coulomb friction",
+    "viscous_ns_m": "the viscous friction",
+    "offset_n": "the offset",
 }
 
 
@@ -271,9 +277,9 @@ def _release(d) -> None:
         d.release()
 
 
-class _Score:
-    """Per cable squared errors and counts of one predictor on the held-out and the
-    validation samples; pooled RMSE over every cable as the report's."""
+class Score:
+    """Per cable squared errors and counts of one predictor on the held-out (row 0) and the
+    validation (row 1) samples; pooled RMSE over every cable as the report's."""
 
     def __init__(self, cables: int) -> None:
         self.sse = np.zeros((2, cables))
@@ -282,6 +288,11 @@ class _Score:
     def add(self, which: int, i: int, res: np.ndarray) -> None:
         self.sse[which, i] += float(res @ res)
         self.n[which, i] += res.size
+
+    def add_sums(self, which: int, i: int, sse: float, n: int) -> None:
+        """Add a sum of squares over ``n`` values computed elsewhere."""
+        self.sse[which, i] += sse
+        self.n[which, i] += n
 
     def per_cable(self, which: int) -> list[float]:
         return [
@@ -298,6 +309,10 @@ NAMES = {
     "coulomb_viscous": "Coulomb + viscous + offset",
     "dahl": "load-dependent Dahl + gain + viscous + inertia + spring",
 }
+LINEAR_TERMS = ("coulomb_n", "viscous_ns_m", "offset_n")
+TERM_FIT = {**dict.fromkeys(DAHL_TERMS, "dahl"), **dict.fromkeys(LINEAR_TERMS, "coulomb_viscous")}
+"""The baseline fit a term of ``terms`` was dropped from (:func:`sentence`)."""
+FIT_WORDS = {"coulomb_viscous": "the Coulomb + viscous + offset fit", "dahl": "the Dahl fit"}
 
 
 def block(
@@ -317,7 +332,7 @@ def block(
     m = len(datas)
     kinds = ("coulomb_viscous", "dahl")
     fits: dict[str, list[Fit]] = {k: [] for k in kinds}
-    score = {k: _Score(m) for k in (*kinds, "catalogue")}
+    score = {k: Score(m) for k in (*kinds, "catalogue")}
     for i, d in enumerate(datas):
         c = cable_series(d)
         tr, te = train[:, i], test[:, i]
@@ -336,41 +351,13 @@ def block(
                 score[k].add(1, i, (c.ts - fits[k][i].predict(c))[ok])
             score["catalogue"].add(1, i, (c.ts - vcat(i))[ok])
             _release(d)
-    on = 1 if validation is not None else 0
-    out: dict = {"fit_samples": FIT_SAMPLES, "fits": {}}
-    for k in kinds:
-        entry: dict = {
-            "model": NAMES[k],
-            "parameters": {p: [float(f.params[p]) for f in fits[k]] for p in fits[k][0].params}
-            if m
-            else {},
-            "holdout_rmse_n": score[k].overall(0),
-            "per_cable_holdout_rmse_n": score[k].per_cable(0),
-        }
-        if validation is not None:
-            entry["validation_rmse_n"] = score[k].overall(1)
-            entry["per_cable_validation_rmse_n"] = score[k].per_cable(1)
-        out["fits"][k] = entry
-    cat = score["catalogue"]
-    out["catalogue"] = {
-        "holdout_rmse_n": cat.overall(0),
-        "per_cable_holdout_rmse_n": cat.per_cable(0),
-    }
-    if validation is not None:
-        out["catalogue"]["validation_rmse_n"] = cat.overall(1)
-        out["catalogue"]["per_cable_validation_rmse_n"] = cat.per_cable(1)
-    basis = "validation" if on else "holdout"
-    best = min(kinds, key=lambda k: score[k].overall(on))
-    ours, theirs = cat.overall(on), score[best].overall(on)
-    out["compared_on"] = basis
-    out["best"] = best
-    out["beaten"] = bool(ours <= theirs)
-    out["margin"] = (theirs - ours) / theirs if theirs > 0 else 0.0
-    terms: list[dict] = []
-    if not out["beaten"] and m:
+
+    def dropped(on: int) -> list[dict]:
+        """The Dahl fit's error with each of its terms dropped in turn."""
         full = score["dahl"].overall(on)
+        terms: list[dict] = []
         for term in DAHL_TERMS:
-            s = _Score(m)
+            s = Score(m)
             for i, d in enumerate(datas):
                 f = drop_term(cable_series(d), train[:, i], fits["dahl"][i], term)
                 _release(d)
@@ -385,8 +372,58 @@ def block(
                     _release(d)
             rmse = s.overall(on)
             terms.append({"term": term, "rmse_without_n": rmse, "rise_n": rmse - full})
-        terms.sort(key=lambda t: -float(t["rise_n"]))
-        out["terms"] = terms
+        return terms
+
+    params = {k: [f.params for f in fits[k]] for k in kinds}
+    out = assemble(params, score, validation is not None, dropped if m else None)
+    return {"fit_samples": FIT_SAMPLES, **out}
+
+
+def assemble(
+    params: dict[str, list[dict[str, float]]],
+    score: dict[str, Score],
+    validated: bool,
+    dropped: Callable[[int], list[dict]] | None,
+    per_cable: bool = True,
+) -> dict:
+    """The block's shape (docs/recording-format.md), shared by both references: per
+    baseline ``params`` (one dict per cable) and ``score`` (and the catalogue's,
+    ``score["catalogue"]``); ``validated``: the scores' validation row is filled;
+    ``dropped(on)``: the terms' errors (each ``term``, ``rmse_without_n``, ``rise_n``),
+    asked for only when the catalogue does not beat the better baseline; ``per_cable``:
+    False where the errors are not per cable (the wrench balance: empty lists)."""
+    on = 1 if validated else 0
+    kinds = list(params)
+
+    def errors(s: Score, which: int, key: str) -> dict:
+        return {
+            f"{key}_rmse_n": s.overall(which),
+            f"per_cable_{key}_rmse_n": s.per_cable(which) if per_cable else [],
+        }
+
+    out: dict = {"fits": {}}
+    for k in kinds:
+        ps = params[k]
+        entry: dict = {
+            "model": NAMES[k],
+            "parameters": {p: [float(f[p]) for f in ps] for p in ps[0]} if ps else {},
+            **errors(score[k], 0, "holdout"),
+        }
+        if validated:
+            entry.update(errors(score[k], 1, "validation"))
+        out["fits"][k] = entry
+    cat = score["catalogue"]
+    out["catalogue"] = errors(cat, 0, "holdout")
+    if validated:
+        out["catalogue"].update(errors(cat, 1, "validation"))
+    best = min(kinds, key=lambda k: score[k].overall(on))
+    ours, theirs = cat.overall(on), score[best].overall(on)
+    out["compared_on"] = "validation" if validated else "holdout"
+    out["best"] = best
+    out["beaten"] = bool(ours <= theirs)
+    out["margin"] = (theirs - ours) / theirs if theirs > 0 else 0.0
+    if not out["beaten"] and dropped is not None:
+        out["terms"] = sorted(dropped(on), key=lambda t: -float(t["rise_n"]))
     out["sentence"] = sentence(out)
     return out
 
@@ -413,6 +450,7 @@ def sentence(lsq: dict) -> str:
         return head + "."
     top = terms[0]
     return (
-        f"{head}; dropping {TERM_WORDS[top['term']]} from the Dahl fit raises its error most "
+        f"{head}; dropping {TERM_WORDS[top['term']]} from {FIT_WORDS[TERM_FIT[top['term']]]} "
+        f"raises its error most "
         f"(+{top['rise_n']:.3f} N): that term carries what the catalogue lacks."
     )

@@ -117,14 +117,7 @@ def join(
         if isinstance(dm, MassSensitivity):
             dm = dm.full(rec.t)
         clean.append(finite_rows(rec, tp, dm))
-    spacing = max(float(np.median(np.diff(r.t))) if r.samples > 1 else 0.0 for r, _, _ in clean)
-    gap = JOIN_SPACINGS * max(spacing, 1e-6)
-    ts, starts, cursor = [], [], 0.0
-    for rec, _tp, _dm in clean:
-        t = rec.t - float(rec.t[0]) + cursor
-        ts.append(t)
-        starts.append(cursor)
-        cursor = float(t[-1]) + gap
+    ts, starts = _clock([r for r, _, _ in clean])
     first = clean[0][0]
     extra = {k: np.concatenate([r.extra[k] for r, _, _ in clean]) for k in first.extra or {}}
     joined = replace(
@@ -143,14 +136,91 @@ def join(
     tp = np.concatenate([p for _, p, _ in clean])
     dms = [d for _, _, d in clean]
     dm = None if dms[0] is None else np.concatenate(dms)
-    sessions = Sessions(
+    return joined, tp, dm, _sessions([r for r, _, _ in clean], names, starts)
+
+
+def _clock(recs: list[Recording]) -> tuple[list[np.ndarray], list[float]]:
+    """Each recording's times on the joined clock, and where each starts: one after the
+    other, ``JOIN_SPACINGS`` of the larger median sample spacing apart."""
+    spacing = max(float(np.median(np.diff(r.t))) if r.samples > 1 else 0.0 for r in recs)
+    gap = JOIN_SPACINGS * max(spacing, 1e-6)
+    ts, starts, cursor = [], [], 0.0
+    for rec in recs:
+        t = rec.t - float(rec.t[0]) + cursor
+        ts.append(t)
+        starts.append(cursor)
+        cursor = float(t[-1]) + gap
+    return ts, starts
+
+
+def _sessions(recs: list[Recording], names: list[str], starts: list[float]) -> Sessions:
+    return Sessions(
         [Path(n).name for n in names],
-        np.concatenate([np.full(r.samples, k, np.int64) for k, (r, _, _) in enumerate(clean)]),
+        np.concatenate([np.full(r.samples, k, np.int64) for k, r in enumerate(recs)]),
         np.array(starts),
-        [float(r.t[-1] - r.t[0]) for r, _, _ in clean],
-        [r.samples for r, _, _ in clean],
+        [float(r.t[-1] - r.t[0]) for r in recs],
+        [r.samples for r in recs],
     )
-    return joined, tp, dm, sessions
+
+
+def join_wrench(recs: list[Recording], names: list[str]) -> tuple[Recording, Sessions]:
+    """Recordings without platform tensions (the wrench reference: pose and mass columns)
+    as one series, as :func:`join` does: the rows without every value the wrench balance
+    reads (velocity, readings, pose, mass) dropped per recording, each recording behind a
+    gap; pose and mass kept, of the cable lengths the first row of the first recording (the
+    model writer's eccentricity phase; the diagnosis reads none). The wrench
+    reference differentiates the pose within each recording (``Sessions.index``), never
+    across a join (:func:`gateway.diagnose.wrench.wrench_data`)."""
+    check_alike([(r, np.empty(0), None) for r in recs], names)
+    if any(r.pose is None or r.mass is None for r in recs):
+        bad = next(n for r, n in zip(recs, names, strict=True) if r.pose is None or r.mass is None)
+        raise RecordingError(
+            f"{bad}: no tension_platform_i columns and no pose and mass columns: several "
+            "recordings are diagnosed together against platform tensions or the wrench balance"
+        )
+    clean = []
+    for rec, name in zip(recs, names, strict=True):
+        assert rec.pose is not None and rec.mass is not None
+        ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
+        ok &= np.isfinite(rec.pose).all(1) & np.isfinite(rec.mass)
+        if ok.sum() < 10:
+            raise RecordingError(f"{name}: fewer than 10 samples have every value")
+        clean.append(rec if ok.all() else _rows(rec, ok))
+    ts, starts = _clock(clean)
+    first = clean[0]
+    joined = replace(
+        first,
+        t=np.concatenate(ts),
+        velocity=np.concatenate([r.velocity for r in clean]),
+        tension_sensor=np.concatenate([r.tension_sensor for r in clean]),
+        tension_platform=None,
+        length=None if first.length is None else first.length[:1],  # what the writer reads
+        pose=np.concatenate([r.pose for r in clean]),
+        mass=np.concatenate([r.mass for r in clean]),
+        extra={k: np.concatenate([r.extra[k] for r in clean]) for k in first.extra or {}},
+        skipped_rows=sum(r.skipped_rows for r in clean),
+        source=" + ".join(names),
+    )
+    return joined, _sessions(clean, names, starts)
+
+
+def _rows(rec: Recording, ok: np.ndarray) -> Recording:
+    """``rec`` with the rows ``ok`` only (the others counted in ``skipped_rows``)."""
+
+    def sub(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[ok]
+
+    return replace(
+        rec,
+        t=rec.t[ok],
+        velocity=rec.velocity[ok],
+        tension_sensor=rec.tension_sensor[ok],
+        length=sub(rec.length),
+        pose=sub(rec.pose),
+        mass=sub(rec.mass),
+        extra={k: v[ok] for k, v in (rec.extra or {}).items()},
+        skipped_rows=rec.skipped_rows + int((~ok).sum()),
+    )
 
 
 def time_blocks(t: np.ndarray, sessions: Sessions | None) -> tuple[np.ndarray, int]:

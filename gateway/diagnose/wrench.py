@@ -30,6 +30,7 @@ ones compensated; a statics effect changes the mass in the balance
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -41,6 +42,8 @@ from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose.engine import deadband, nominal_from, time_blocks, warmup_mask
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.platform import require_geometry
+from gateway.diagnose.sessions import Sessions
+from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.stats import white_noise_columns
 from gateway.errors import RecordingError
 from gateway.model import chain, kinematics, statics
@@ -172,8 +175,12 @@ def usable(rec: Recording, cfg: Config | None) -> bool:
     return rec.pose is not None and rec.mass is not None and cfg is not None
 
 
-def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
-    """Build :class:`WrenchData`; rows without every value are dropped (counted by caller)."""
+def wrench_data(
+    rec: Recording, cfg: Config | None, session: np.ndarray | None = None
+) -> WrenchData:
+    """Build :class:`WrenchData`; rows without every value are dropped (counted by caller).
+    ``session`` (N,): several recordings joined (:func:`.sessions.join_wrench`), each
+    sample's recording; the pose is differentiated within each, never across a join."""
     if rec.pose is None or rec.mass is None:
         raise RecordingError(
             f"{rec.source}: no tension_platform_i columns and no pose and mass columns: "
@@ -188,7 +195,10 @@ def wrench_data(rec: Recording, cfg: Config | None) -> WrenchData:
     t, pose, mass = rec.t[keep], rec.pose[keep], rec.mass[keep]
     ts = np.asarray(rec.tension_sensor[keep], dtype=float)
     geo = cfg.geometry
-    vel, acc = _smooth_derivatives(t, pose[:, :3])
+    if session is None:
+        vel, acc = _smooth_derivatives(t, pose[:, :3])
+    else:
+        vel, acc = _derivatives_per_session(t, pose[:, :3], session[keep])
     speed = np.linalg.norm(vel, axis=1)
     del vel
     velocity = rec.velocity[keep]
@@ -230,6 +240,17 @@ def _smooth_derivatives(t: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.nd
         ts = t
     vel = np.gradient(_box(x, n), ts, axis=0)
     return vel, np.gradient(_box(vel, n), ts, axis=0)
+
+
+def _derivatives_per_session(
+    t: np.ndarray, x: np.ndarray, session: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_smooth_derivatives` of each recording of a joined series on its own."""
+    vel, acc = np.empty_like(x, dtype=float), np.empty_like(x, dtype=float)
+    cuts = [0, *(np.nonzero(np.diff(session))[0] + 1).tolist(), t.size]
+    for a, b in itertools.pairwise(cuts):
+        vel[a:b], acc[a:b] = _smooth_derivatives(t[a:b], x[a:b])
+    return vel, acc
 
 
 def _plain_steps(t: np.ndarray, n: int) -> bool:
@@ -522,11 +543,13 @@ class Prepared:
     n_blocks: int
     warm: np.ndarray
 
-    def whiten(self, x: np.ndarray) -> np.ndarray:
-        """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` -> whitened."""
+    def whiten(self, x: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+        """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` (or at
+        ``rows[among]``, ``among`` a bool mask of ``rows``) -> whitened."""
+        chol = self.chol if among is None else self.chol[among]
         if x.ndim == 2:
-            return np.linalg.solve(self.chol, x[:, :, None])[:, :, 0] / self.sigma
-        return np.linalg.solve(self.chol, x) / self.sigma
+            return np.linalg.solve(chol, x[:, :, None])[:, :, 0] / self.sigma
+        return np.linalg.solve(chol, x) / self.sigma
 
 
 def load_inverse_kernels(cables: int) -> None:
@@ -544,9 +567,14 @@ def load_inverse_kernels(cables: int) -> None:
             e.inverse(s, y, {p: np.full(cables, v) for p, v in e.example.items()})
 
 
-def prepare(rec: Recording, cfg: Config | None, friction: FrictionConfig) -> Prepared:
-    """Data, nominal model, whitening (from the nominal residual), time blocks, warm-up."""
-    data = wrench_data(rec, cfg)
+def prepare(
+    rec: Recording, cfg: Config | None, friction: FrictionConfig, sessions: Sessions | None = None
+) -> Prepared:
+    """Data, nominal model, whitening (from the nominal residual), time blocks, warm-up.
+    ``sessions``: ``rec`` is several recordings joined (:func:`.sessions.join_wrench`):
+    the time blocks are drawn within each (:func:`.sessions.time_blocks`), the pose
+    differentiated within each; the warm-up after each join is the one after any gap."""
+    data = wrench_data(rec, cfg, None if sessions is None else sessions.index)
     load_inverse_kernels(data.cables)
     nom = nominal_from(friction)
     model = WrenchModel(data, nom)
@@ -555,7 +583,7 @@ def prepare(rec: Recording, cfg: Config | None, friction: FrictionConfig) -> Pre
     chol = np.linalg.cholesky(np.einsum("nim,njm->nij", a_rows, a_rows))
     unit = np.linalg.solve(chol, model.residual({}, rows=rows)[:, :, None])[:, :, 0]
     sigma = float(math.sqrt(np.mean(noise_scale(unit) ** 2)))
-    blocks, nb = time_blocks(data.t)
+    blocks, nb = time_blocks(data.t) if sessions is None else session_blocks(data.t, sessions)
     warm = np.ones(data.t.size, bool)
     for i in range(data.cables):
         warm &= warmup_mask(

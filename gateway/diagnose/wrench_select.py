@@ -22,7 +22,8 @@ wrench (:class:`wrench.Prepared`): generalised least squares.
 4. **Report**: every ``*_rmse_n`` is the RMS of the force part of the unweighted wrench
    residual (N, over the three components and the samples); moments in ``wrench``. The
    balance is one unit: a finding's ``statistic``, ``p`` and ``q`` are one joint test,
-   repeated for each of its cables.
+   repeated for each of its cables. ``baseline.least_squares``: the engineer's Coulomb +
+   viscous + offset per cable fitted on the same balance (:mod:`.wrench_lsq`).
 """
 
 from __future__ import annotations
@@ -35,10 +36,11 @@ import numpy as np
 
 from gateway.core.config import Config, FrictionConfig
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate
+from gateway.diagnose import locate, wrench_lsq
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
 from gateway.diagnose.select import Model, Selector, Thresholds
+from gateway.diagnose.sessions import Sessions, join_wrench
 from gateway.diagnose.significance import Tested, combined_stderr, decide
 from gateway.diagnose.stats import white_noise_columns
 from gateway.diagnose.wrench import (
@@ -620,12 +622,18 @@ def diagnose_wrench(
     validation: Recording | None = None,
     thresholds: Thresholds | None = None,
     progress=None,
+    sessions: Sessions | None = None,
+    validation_sessions: Sessions | None = None,
 ) -> WrenchDiagnosis:
     """Diagnose ``rec`` against the platform's wrench balance: the pipeline of
-    :mod:`gateway.diagnose.engine` with one unit, every cable at once (module docstring)."""
+    :mod:`gateway.diagnose.engine` with one unit, every cable at once (module docstring).
+    ``sessions`` (``validation_sessions``): ``rec`` (``validation``) is several recordings
+    of one machine joined (:func:`.sessions.join_wrench`), diagnosed for one set of
+    findings: time blocks within each recording, the pose differentiated within each, the
+    report's ``recordings`` (:func:`diagnose_joined_wrench`)."""
     say = progress or (lambda _msg: None)
     th = thresholds or Thresholds()
-    prep = prepare(rec, cfg, friction)  # 1. prepare
+    prep = prepare(rec, cfg, friction, sessions)  # 1. prepare
     trim_heap()  # the preparation's temporaries and LLVM's pages leave the process
     data, model = prep.model.data, prep.model
     say(
@@ -655,7 +663,8 @@ def diagnose_wrench(
     order = _order(model, theta, test) if theta else []
     vmodel = None
     if validation is not None:
-        vmodel = WrenchModel(wrench_data(validation, cfg), model.nom)
+        vsession = None if validation_sessions is None else validation_sessions.index
+        vmodel = WrenchModel(wrench_data(validation, cfg, vsession), model.nom)
 
     def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray, float]:
         """RMS of the force residual (all, held out, validation), the force residual
@@ -701,9 +710,54 @@ def diagnose_wrench(
         contrib = (without - before[3]).reshape(-1)[::step].copy()
         signatures[e] = (contrib, without.reshape(-1)[::step].copy())
         del without, contrib
+    least_squares = wrench_lsq.block(
+        prep,
+        sel.r0,
+        sel.train_samples,
+        test,
+        nominal[3],
+        before[3],
+        None if vmodel is None else (vmodel, float(before[2] or 0.0)),
+    )
     diag = _build(rec, prep, sel, findings, order, nominal, before, vmodel)
+    diag.report["baseline"]["least_squares"] = least_squares
     diag.signatures.update(signatures)
+    if sessions is not None:  # after samples and skipped_rows, as the platform report
+        rep = diag.report
+        where = list(rep).index("skipped_rows") + 1
+        items = list(rep.items())
+        rep.clear()
+        rep.update([*items[:where], ("recordings", sessions.report()), *items[where:]])
     return diag
+
+
+def diagnose_joined_wrench(
+    recs: list[Recording],
+    names: list[str],
+    friction: FrictionConfig,
+    cfg: Config | None,
+    validation: list[Recording] | None = None,
+    progress=None,
+) -> tuple[WrenchDiagnosis, Recording]:
+    """Several recordings of one machine without platform tensions, joined
+    (:func:`.sessions.join_wrench`) and diagnosed as one against the wrench balance; the
+    validation recordings (several: joined too) scored, never fitted. Returns the
+    diagnosis and the joined recording (for the model writer and the held-out check).
+    ``diagnose REC REC ...`` on such recordings and ``calibrate --runs N`` take this path.
+    """
+    say = progress or (lambda _msg: None)
+    joined, sessions = join_wrench(recs, names)
+    vrec = vsess = None
+    if validation:
+        vnames = [v.source or f"validation {k + 1}" for k, v in enumerate(validation)]
+        vrec, vsess = (
+            join_wrench(validation, vnames) if len(validation) > 1 else (validation[0], None)
+        )
+    say(f"{sessions.count} recordings joined: {joined.samples} samples (wrench reference)")
+    diag = diagnose_wrench(
+        joined, friction, cfg, vrec, progress=say, sessions=sessions, validation_sessions=vsess
+    )
+    return diag, joined
 
 
 def _build(rec, prep, sel, findings, order, nominal, final, vmodel) -> WrenchDiagnosis:

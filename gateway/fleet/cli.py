@@ -1,6 +1,17 @@
-"""``cdpr-gateway fleet RECORDINGS... --model MODEL.yaml --out DIR [--scheduler ADDRESS]
-[--workers N] [--columns MAP]``: every recording diagnosed as a task on dask.distributed
-(``--columns``: every recording's columns renamed the same way, as ``diagnose`` does).
+"""``cdpr-gateway fleet RECORDINGS... --model MODEL.yaml --out DIR [--per-robot]
+[--scheduler ADDRESS] [--workers N] [--columns MAP]``: every recording diagnosed as a task on
+dask.distributed (``--columns``: every recording's columns renamed the same way, as
+``diagnose`` does).
+
+``--per-robot``: one task per robot instead, its recordings diagnosed jointly for one set
+of findings, as ``diagnose REC REC ... --model MODEL`` does (:mod:`gateway.diagnose.sessions`;
+the robot of each recording as :func:`gateway.fleet.task.recording_identity` tells it: the
+metadata's ``robot``, else the Hive folder ``robot=R``, else the parent folder's name; its
+recordings in order of start, then path). One report per robot
+(``DIR/reports/NNN-robot-R.json``, the bytes ``diagnose --json`` writes for those
+recordings), one row per robot x finding x cable in the table (``recording``: the
+recordings joined by `` + ``; ``start``: the earliest), one point per robot in its plot; a
+robot's task is sized as its recordings joined (:func:`gateway.fleet.sizing.joined`).
 
 RECORDINGS are files (``.csv``, ``.csv.gz``, ``.parquet``), globs (``'runs/*.parquet'``,
 ``**`` recursive) or folders (a Hive tree ``robot=R/date=D/part-N.parquet``: every
@@ -36,6 +47,12 @@ def configure_parser(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, required=True, help="nominal model YAML")
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
     parser.add_argument(
+        "--per-robot",
+        action="store_true",
+        help="one task per robot: its recordings diagnosed jointly (as diagnose REC REC ...), "
+        "one report and one set of findings per robot",
+    )
+    parser.add_argument(
         "--scheduler",
         help="address of a running dask scheduler (tcp://HOST:8786) instead of a local "
         "cluster; its workers need cdpr-gateway installed and must see the recordings and "
@@ -70,6 +87,29 @@ def expand(args: list[str]) -> list[str]:
     return list(found)
 
 
+def by_robot(recordings: list[str]) -> list[list[str]]:
+    """The recordings grouped by robot (:func:`gateway.fleet.task.recording_identity`, from
+    each file's metadata), robots in order of name, each robot's recordings in order of
+    start, then path. A file whose metadata cannot be read is grouped by its path (its
+    task then says what is wrong with it)."""
+    from gateway.fleet.task import recording_identity
+    from gateway.recordings.reader import read_metadata
+
+    groups: dict[str, list[tuple[str, str]]] = {}
+    for rec in recordings:
+        try:
+            meta = read_metadata(rec)
+        except GatewayError:
+            meta = {}
+        robot, start = recording_identity(Path(rec), meta)
+        groups.setdefault(robot, []).append((start, rec))
+    return [[rec for _, rec in sorted(groups[robot])] for robot in sorted(groups)]
+
+
+def _robot_name(i: int, robot: str) -> str:
+    return f"{i:03d}-robot-{''.join(c if c.isalnum() or c in '-_.=' else '_' for c in robot)}.json"
+
+
 def _name(i: int, recording: str) -> str:
     stem = Path(recording).name
     for suffix in SUFFIXES[::-1]:
@@ -98,6 +138,7 @@ def run_command(command: str, args: argparse.Namespace) -> int:
     import_distributed()  # a missing extra is one line, before anything else
     columns = column_map(args.columns)
     recordings = expand(args.recordings)
+    tasks: list[str] | list[list[str]] = by_robot(recordings) if args.per_robot else recordings
     model = args.model.resolve()
     if not model.is_file():
         raise GatewayError(f"--model {args.model}: no such file")
@@ -111,14 +152,14 @@ def run_command(command: str, args: argparse.Namespace) -> int:
             verdict, rmse = _verdict(res)
             what = f"{verdict} (RMSE {rmse} N)" if res.report_json else f"FAILED: {res.error}"
             print(
-                f"[{done:{len(str(len(recordings)))}d}/{len(recordings)}] {res.recording}: "
+                f"[{done:{len(str(len(tasks)))}d}/{len(tasks)}] {_what(res)}: "
                 f"{what}, {res.seconds:.1f} s",
                 file=sys.stderr,
                 flush=True,
             )
 
     results, where = run_tasks(
-        recordings,
+        tasks,  # type: ignore[arg-type]
         str(model),
         args.scheduler,
         args.workers,
@@ -127,16 +168,33 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         columns,
     )
     wall = time.perf_counter() - t0
-    return _write_outputs(args.out, results, where, wall, str(args.model))
+    return _write_outputs(args.out, results, where, wall, str(args.model), args.per_robot)
+
+
+def _what(res: TaskResult) -> str:
+    """The task on the terminal: the recording, or the robot and its recordings' count."""
+    if not res.recordings:
+        return res.recording
+    from gateway.fleet.plots import plural
+
+    return f"robot {res.robot} ({plural(len(res.recordings), 'recording')})"
 
 
 def _write_outputs(
-    out: Path, results: list[TaskResult], where: str, wall: float, model: str
+    out: Path,
+    results: list[TaskResult],
+    where: str,
+    wall: float,
+    model: str,
+    per_robot: bool = False,
 ) -> int:
     from gateway.fleet.plots import plural, write_plots, write_summary
     from gateway.fleet.table import table_rows, write_table
 
-    named = [(res, _name(i, res.recording)) for i, res in enumerate(results)]
+    named = [
+        (res, _robot_name(i, res.robot) if per_robot else _name(i, res.recording))
+        for i, res in enumerate(results)
+    ]
     for res, name in named:
         if res.report_json is not None:
             (out / "reports" / name).write_text(res.report_json, encoding="utf-8")
@@ -159,13 +217,18 @@ def _write_outputs(
         )
     summary.sort(key=lambda r: (r["robot"], r["start"], r["recording"]))
     info = {"cluster": where, "wall": f"{wall:.1f} s", "model": model}
+    if per_robot:
+        info["recordings"] = str(sum(len(r.recordings) for r in results))
     write_summary(out / "fleet.md", summary, plots, info)
     failed = sum(1 for r in results if r.error)
+    what = plural(len(results), "recording")
+    if per_robot:
+        what = f"{plural(len(results), 'robot')} ({info['recordings']} recordings)"
     print(
-        f"fleet: {plural(len(results), 'recording')}, {failed} failed, {wall:.1f} s on {where}; "
+        f"fleet: {what}, {failed} failed, {wall:.1f} s on {where}; "
         f"table, fleet.md and plots in {out}"
     )
     for res in results:
         if res.error:
-            print(f"  failed: {res.recording}: {res.error}")
+            print(f"  failed: {_what(res)}: {res.error}")
     return 1 if failed == len(results) else 0

@@ -74,9 +74,11 @@ def write_plots(rows: list[dict[str, Any]], out: Path) -> list[Path]:
             _panel(ax, rs, recordings, effect, name)
         axes[-1, 0].set_xlabel("recording start (UTC)")
         axes[-1, 0].set_xlim(*time_span([w for w, _ in recordings.values()]))
-        fig.suptitle(
-            f"robot {robot}: fitted parameters over time ({plural(len(recordings), 'recording')})"
-        )
+        joined = sum(rec.count(" + ") for rec in recordings)  # --per-robot: recordings joined
+        count = plural(len(recordings) + joined, "recording")
+        if joined:
+            count += " diagnosed jointly"
+        fig.suptitle(f"robot {robot}: fitted parameters over time ({count})")
         fig.autofmt_xdate()
         fig.tight_layout()
         path = out / f"robot-{_safe(robot)}.png"
@@ -161,7 +163,8 @@ def _panel(ax, rs, recordings, effect: str, name: str) -> None:
 def write_summary(
     path: Path, results: list[dict[str, Any]], plots: list[Path], info: dict[str, str]
 ) -> None:
-    """``fleet.md``: what ran where, per recording the verdict, the failures, the files."""
+    """``fleet.md``: what ran where, per recording (``info["recordings"]`` given: per robot,
+    its recordings diagnosed jointly) the verdict, the failures, the files."""
     ok = [r for r in results if not r["error"]]
     failed = [r for r in results if r["error"]]
     lines = [
@@ -177,6 +180,21 @@ def write_summary(
         "| robot | start | recording | verdict | RMSE before -> after (N) | report |",
         "|---|---|---|---|---|---|",
     ]
+    if "recordings" in info:  # --per-robot: one task per robot, its recordings joined
+        lines[2] = (
+            f"{plural(len(results), 'robot')} ({info['recordings']} recordings), "
+            f"{len(ok)} diagnosed, {len(failed)} failed; "
+            f"{info.get('cluster', '')}; wall time {info.get('wall', '')}."
+        )
+        lines[4] = (
+            f"Model: `{info.get('model', '')}`. Each robot's recordings diagnosed jointly "
+            "(`--per-robot`). Table: `fleet.parquet`, `fleet.csv` (one row per robot x "
+            "finding x cable); each robot's report under `reports/` is what "
+            "`cdpr-gateway diagnose REC REC ...` writes for its recordings together."
+        )
+        lines[6] = (
+            "| robot | first start | recordings | verdict | RMSE before -> after (N) | report |"
+        )
     for r in results:
         lines.append(
             f"| {r['robot']} | {r['start']} | `{r['recording']}` | {r['verdict']} | "

@@ -1,6 +1,7 @@
 """The tasks on dask.distributed: a LocalCluster on this machine, or an existing scheduler.
 
-One task per recording (:func:`gateway.fleet.task.diagnose_task`), results taken as they
+One task per recording (:func:`gateway.fleet.task.diagnose_task`; with ``--per-robot`` one
+per robot, its recordings a list diagnosed jointly), results taken as they
 finish (a line each on ``progress``); a task that fails in Dask itself (a worker killed
 over its memory limit, a lost worker) becomes an error of that recording, never the end
 of the job. Workers run one task at a time (``threads_per_worker=1``; the diagnosis is
@@ -33,7 +34,10 @@ from typing import Any
 
 from gateway.errors import GatewayError
 from gateway.fleet.sizing import refusal
-from gateway.fleet.task import TaskResult, diagnose_task, recording_identity
+from gateway.fleet.task import JOIN, TaskResult, diagnose_task, group_identity
+
+Task = str | list[str]
+"""One task: a recording, or one robot's recordings diagnosed jointly (``--per-robot``)."""
 
 TASK_MEMORY_BYTES = 400 << 20  # one diagnosis of 10 min x 1 kHz x 8 cables
 WORKER_BASE_BYTES = 250 << 20  # a dask worker with numpy, scipy, numba, matplotlib loaded
@@ -82,7 +86,7 @@ def _client(distributed: Any, scheduler: str | None, workers: int) -> tuple[Any,
 
 
 def run_tasks(
-    recordings: list[str],
+    recordings: list[Task],
     model: str,
     scheduler: str | None,
     workers: int,
@@ -145,7 +149,7 @@ class DaskLog:
 
 def _run(
     distributed: Any,
-    recordings: list[str],
+    recordings: list[Task],
     model: str,
     scheduler: str | None,
     workers: int,
@@ -161,13 +165,13 @@ def _run(
         done = 0
         futures = {}
         for i, rec in enumerate(recordings):
-            why = refusal(Path(rec), budget)
+            why = refusal([Path(r) for r in rec] if isinstance(rec, list) else Path(rec), budget)
             if why is not None:  # refused before it is loaded: no worker is lost to it
                 results[i] = _failed(rec, why)
                 done += 1
                 progress(done, results[i])  # type: ignore[arg-type]
                 continue
-            key = f"diagnose-{i}-{rec}"
+            key = f"diagnose-{i}-{_label(rec)}"
             futures[client.submit(diagnose_task, rec, model, columns, key=key, pure=False)] = i
         # with_results: each result is fetched as its task ends, never left on a worker
         # that a later task may take down with it
@@ -196,20 +200,30 @@ def _task_budget(client: Any) -> int:
     return (min(limits) if limits else WORKER_MEMORY_BYTES) - WORKER_BASE_BYTES
 
 
-def _failed(recording: str, error: str) -> TaskResult:
-    robot, start = recording_identity(Path(recording), {})
-    return TaskResult(recording, robot, start, None, error, 0.0, "", 0.0)
+def _label(task: Task) -> str:
+    return JOIN.join(task) if isinstance(task, list) else task
 
 
-def _result(future: Any, recording: str) -> TaskResult:
+def _identity(task: Task) -> tuple[str, str]:
+    paths = [Path(r) for r in task] if isinstance(task, list) else [Path(task)]
+    return group_identity(paths, [{} for _ in paths])
+
+
+def _failed(recording: Task, error: str) -> TaskResult:
+    robot, start = _identity(recording)
+    joined = tuple(recording) if isinstance(recording, list) else ()
+    return TaskResult(_label(recording), robot, start, None, error, 0.0, "", 0.0, joined)
+
+
+def _result(future: Any, recording: Task) -> TaskResult:
     t0 = time.perf_counter()
     try:
         res: TaskResult = future.result()
         return res
     except Exception as exc:  # the task never returned: a lost or killed worker
-        robot, start = recording_identity(Path(recording), {})
+        robot, start = _identity(recording)
         return TaskResult(
-            recording,
+            _label(recording),
             robot,
             start,
             None,
@@ -217,4 +231,5 @@ def _result(future: Any, recording: str) -> TaskResult:
             time.perf_counter() - t0,
             "",
             0.0,
+            tuple(recording) if isinstance(recording, list) else (),
         )

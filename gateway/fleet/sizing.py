@@ -7,7 +7,9 @@ Rows x columns x 8 bytes is the recording as float64 columns; the diagnosis hold
 loads): 10 min x 1 kHz x 8 cables (600 000 x 33) is 158 MB of columns, estimated 403 MB,
 measured 373-422 MB (docs/performance.md). Parquet states its rows and columns in the
 footer; a CSV's rows are estimated from its size and its first MiB of text (a ``.gz``'s
-compression ratio from the same sample).
+compression ratio from the same sample). Several recordings of one robot diagnosed as one
+task (``fleet --per-robot``) are joined into one series first: their rows add up, the
+columns are one recording's (:func:`joined`).
 """
 
 from __future__ import annotations
@@ -71,12 +73,30 @@ def _csv(path: Path) -> Size | None:
     return Size(int(size * ratio / per_row), columns, False)
 
 
-def refusal(path: Path, budget_bytes: int) -> str | None:
-    """One line when the recording's diagnosis would not fit ``budget_bytes``, else None."""
-    found = estimate(path)
+def joined(paths: list[Path]) -> Size | None:
+    """The size of several recordings diagnosed as one (:mod:`gateway.diagnose.sessions`
+    joins them into one series): the sum of their rows, the most columns of any; None when
+    one of them cannot tell."""
+    sizes = [estimate(p) for p in paths]
+    if not sizes or any(s is None for s in sizes):
+        return None
+    known = [s for s in sizes if s is not None]
+    return Size(
+        sum(s.rows for s in known), max(s.columns for s in known), all(s.exact for s in known)
+    )
+
+
+def refusal(path: Path | list[Path], budget_bytes: int) -> str | None:
+    """One line when the recording's diagnosis (a list: the recordings' joined diagnosis)
+    would not fit ``budget_bytes``, else None."""
+    if isinstance(path, list):
+        found = joined(path)
+        what = f"{len(path)} recordings joined ({path[0]}, ...)" if len(path) > 1 else path[0]
+    else:
+        found, what = estimate(path), path
     if found is None or found.need_bytes <= budget_bytes:
         return None
     return (
-        f"{path}: not sent to a worker: {found.describe()}, over the {budget_bytes >> 20} MiB "
+        f"{what}: not sent to a worker: {found.describe()}, over the {budget_bytes >> 20} MiB "
         "a worker has for one task (diagnose it alone, or split it)"
     )

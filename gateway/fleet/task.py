@@ -4,7 +4,9 @@
 this package installed, and the recording and model must be at paths it sees). Whatever
 goes wrong with one recording -- a malformed file, a diagnosis that fails -- comes back as
 an ``error`` in the result instead of an exception, so the job lists it and goes on (an
-exception would make Dask retry the task or fail the gather).
+exception would make Dask retry the task or fail the gather). With ``fleet --per-robot`` a
+task is one robot's recordings, diagnosed jointly as ``diagnose REC REC ...`` does (one
+report, :mod:`gateway.diagnose.sessions`).
 """
 
 from __future__ import annotations
@@ -37,6 +39,9 @@ class TaskResult:
     seconds: float  # wall time of the diagnosis
     worker: str  # host:pid
     peak_rss_mb: float  # the worker process's peak RSS so far
+    recordings: tuple[str, ...] = ()
+    """A joined task's recordings (``fleet --per-robot``; ``recording`` is then their names
+    joined by `` + ``); empty for one recording."""
 
 
 def recording_identity(path: Path, meta: dict[str, str]) -> tuple[str, str]:
@@ -54,20 +59,35 @@ def recording_identity(path: Path, meta: dict[str, str]) -> tuple[str, str]:
     return robot, start
 
 
-def diagnose_task(recording: str, model: str, columns: dict[str, str] | None = None) -> TaskResult:
-    """Diagnose ``recording`` against ``model`` as ``diagnose [--columns]`` does; never
-    raises."""
+JOIN = " + "
+"""What separates a joined task's recordings in its ``recording`` (as in a joined report's
+``source``)."""
+
+
+def group_identity(paths: list[Path], metas: list[dict[str, str]]) -> tuple[str, str]:
+    """(robot, start) of recordings diagnosed as one: the first's robot, the earliest start."""
+    ids = [recording_identity(p, m) for p, m in zip(paths, metas, strict=True)]
+    return ids[0][0], min(start for _, start in ids)
+
+
+def diagnose_task(
+    recording: str | list[str], model: str, columns: dict[str, str] | None = None
+) -> TaskResult:
+    """Diagnose ``recording`` against ``model`` as ``diagnose [--columns]`` does (a list:
+    one robot's recordings jointly, as ``diagnose REC REC ...``); never raises."""
     from gateway.diagnose.cli import diagnose_report, report_json
     from gateway.recordings.reader import read_metadata
 
-    path = Path(recording)
+    several = isinstance(recording, list)
+    paths = [Path(r) for r in recording] if isinstance(recording, list) else [Path(recording)]
     t0 = time.perf_counter()
     report: str | None = None
     error: str | None = None
-    robot, start = recording_identity(path, {})
+    robot, start = group_identity(paths, [{} for _ in paths])
     try:
-        robot, start = recording_identity(path, read_metadata(path))
-        report = report_json(diagnose_report(path, Path(model), columns=columns))
+        robot, start = group_identity(paths, [read_metadata(p) for p in paths])
+        what: Path | list[Path] = paths if several else paths[0]
+        report = report_json(diagnose_report(what, Path(model), columns=columns))
     except GatewayError as exc:
         error = str(exc)
     except Exception as exc:  # a bug shows its place, but one recording never ends the job
@@ -75,7 +95,7 @@ def diagnose_task(recording: str, model: str, columns: dict[str, str] | None = N
         error = f"{type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})"
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return TaskResult(
-        recording=recording,
+        recording=JOIN.join(recording) if isinstance(recording, list) else recording,
         robot=robot,
         start=start,
         report_json=report,
@@ -83,4 +103,5 @@ def diagnose_task(recording: str, model: str, columns: dict[str, str] | None = N
         seconds=time.perf_counter() - t0,
         worker=f"{socket.gethostname()}:{os.getpid()}",
         peak_rss_mb=peak,
+        recordings=tuple(recording) if isinstance(recording, list) else (),
     )

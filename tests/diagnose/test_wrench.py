@@ -384,7 +384,9 @@ def test_cli_wrench_mode_writes_report_and_pictures(tmp_path):
     assert [f["effect"] for f in report["findings"]] == ["viscous"]
     for name in ("residual.png", "overlay.png", "signature_viscous.png", "summary.md"):
         assert (tmp_path / "rep" / name).stat().st_size > 0, name
-    assert "wrench balance" in (tmp_path / "rep" / "summary.md").read_text()
+    text = (tmp_path / "rep" / "summary.md").read_text()
+    assert "wrench balance" in text
+    assert report["baseline"]["least_squares"]["sentence"] in text  # the engineer's baseline
 
 
 @pytest.mark.long
