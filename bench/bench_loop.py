@@ -59,7 +59,7 @@ from bench import stop_process
 from gateway.core.config import Config, load_config
 from gateway.runtime import realtime
 from gateway.runtime.loop import CyclicService
-from gateway.runtime.stats import Ring
+from gateway.runtime.loopstats import Ring
 from gateway.service.daemon import build_driver
 from sim_plc.demo import InProcessCanopenPlc, with_port
 

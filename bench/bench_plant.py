@@ -12,7 +12,7 @@
    by as long as something else held the GIL (or the CPU), exactly what the soft PLC's
    Modbus server thread waits through. Once with chunks prepared in process (the old
    way: statics of 250 samples every 250th step) and once with them prepared by the
-   worker process (:mod:`sim_plc.prepare`), side by side; all of that with real-time
+   worker process (:mod:`sim_plc.chunk_worker`), side by side; all of that with real-time
    settings off and on (SCHED_FIFO 50 for this process: the other load of the machine
    drops out and the GIL is what is left);
 3. ``make_recording`` throughput.
@@ -83,7 +83,7 @@ def _stall_run(cfg: Any, seconds: float, worker: bool, rt: bool) -> None:
     drops out and what is left is the GIL."""
     from gateway.core.config import RealtimeConfig
     from gateway.runtime import realtime
-    from sim_plc.prepare import ChunkWorker
+    from sim_plc.chunk_worker import ChunkWorker
 
     plant = Plant(cfg)
     chunks = None
@@ -112,7 +112,7 @@ def _step_cost(cfg, worker: bool) -> tuple[np.ndarray, np.ndarray]:
     plant = Plant(cfg)
     chunks = None
     if worker:
-        from sim_plc.prepare import ChunkWorker
+        from sim_plc.chunk_worker import ChunkWorker
 
         chunks = ChunkWorker(plant.model.cfg, plant.model.sim, plant.chunk).start()
         plant.use_chunks(chunks)

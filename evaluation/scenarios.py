@@ -346,7 +346,7 @@ def evaluate(sc: Scenario) -> dict:
     val = make_recording(vsc)
     dm = vdm = None
     if sc.plant:
-        from gateway.diagnose.platform import mass_sensitivity
+        from gateway.diagnose.pose_statics import mass_sensitivity
 
         dm = mass_sensitivity(rec, plant_config(sc))
         vdm = mass_sensitivity(val, plant_config(vsc))

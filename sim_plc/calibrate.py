@@ -55,7 +55,7 @@ import yaml
 
 from gateway.core.config import Config, load_config, load_friction
 from gateway.core.configtypes import read_yaml
-from gateway.diagnose import heldout, warmup
+from gateway.diagnose import heldout, transient
 from gateway.diagnose.engine import reference_mode
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
@@ -265,7 +265,7 @@ def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path,
     fit, check = split_validation(rec)
     say(f"fit on the first {fit.samples} rows, validate on the last {check.samples}")
     diag = diagnose_wrench(fit, friction, cfg, check, progress=say)
-    warmup.annotate(diag.report, fit, friction)  # the start-up transient, said as such
+    transient.annotate(diag.report, fit, friction)  # the start-up transient, said as such
     try:
         report.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
     except OSError as exc:
@@ -307,7 +307,7 @@ def diagnose_runs(recordings: list[Path], model: Path, report: Path, fitted: Pat
     )
     names = [str(p) for p in recordings]
     diag, joined = diagnose_joined_wrench(fits, names, friction, cfg, checks, progress=say)  # type: ignore[arg-type]
-    warmup.annotate(diag.report, joined, friction)  # type: ignore[arg-type]
+    transient.annotate(diag.report, joined, friction)  # type: ignore[arg-type]
     try:
         report.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
     except OSError as exc:

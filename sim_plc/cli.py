@@ -7,7 +7,7 @@
 * ``sim-plc --config FILE [--host H] [--port P] [--bus modbus_tcp|canopen]``: the plant
   stepped in real time at the config's period and served on the bus until SIGINT or
   SIGTERM; prints ``sim-plc: serving modbus_tcp on HOST:PORT`` once listening. The plant's
-  chunks are prepared by a worker process (``sim_plc.prepare``) so the serving process
+  chunks are prepared by a worker process (``sim_plc.chunk_worker``) so the serving process
   never stalls on them; ``--realtime`` applies the config's real-time settings
   (``loop.realtime``, which ``run`` applies by default) to the PLC's threads, reported in
   one line on stderr.
@@ -261,10 +261,10 @@ def _tls_from_args(args: argparse.Namespace) -> TlsConfig | None:
 
 def _plant(cfg: Config, in_process: bool) -> tuple[Any, Any, Any]:
     """(plant, chunk worker or None, image holding a valid first sample)."""
+    from sim_plc.chunk_worker import ChunkWorker
     from sim_plc.config import load_sim_config
     from sim_plc.image import ProcessImage
     from sim_plc.plant import Plant
-    from sim_plc.prepare import ChunkWorker
 
     sim = load_sim_config(cfg)
     plant = Plant(cfg, sim)

@@ -26,7 +26,7 @@ Two forms over the same code: :func:`make_recording` (batch, vectorised) and
 :meth:`Plant.step` (one period into a :class:`ProcessImage`; setpoints and statics are
 precomputed one chunk ahead, spread evenly over the cycles of the chunk before). The soft
 PLC runs that stepping in a worker process and only replays its samples
-(:mod:`sim_plc.prepare`, :meth:`Plant.use_chunks`).
+(:mod:`sim_plc.chunk_worker`, :meth:`Plant.use_chunks`).
 """
 
 from __future__ import annotations
@@ -319,11 +319,11 @@ class Plant:
         self.chunk = max(int(chunk), 2)
         self.analog = np.zeros(self.model.cables)  # last analog reading before the A/D (N)
         self.counts = np.zeros(self.model.cables, dtype=np.int16)
-        self.chunks: Any = None  # a source of solved chunks (sim_plc.prepare), or None
+        self.chunks: Any = None  # a source of solved chunks (sim_plc.chunk_worker), or None
         self.reset()
 
     def use_chunks(self, chunks: Any) -> None:
-        """Replay the samples of ``chunks.get(index)`` (:class:`sim_plc.prepare.ChunkWorker`:
+        """Replay the samples of ``chunks.get(index)`` (:class:`sim_plc.chunk_worker.ChunkWorker`:
         the same plant run in another process) instead of stepping the physics here;
         restarts at t = 0."""
         self.chunks = chunks

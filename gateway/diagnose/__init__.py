@@ -16,7 +16,7 @@ One way through, five stages (:mod:`.engine` reads as them):
    mass and a geometry), a subset of a long recording (> 150 000 samples per cable).
 2. **Locate** (:mod:`.locate`): regimes per sample and the regions where the nominal
    model's residual concentrates.
-3. **Select** (:mod:`.select`): one selector over the reference's units, a strategy it is
+3. **Select** (:mod:`.selection`): one selector over the reference's units, a strategy it is
    given: one :class:`.reference.CableUnit` per cable (the reading against the nominal chain
    run from the platform tension, :mod:`.forward`, :mod:`.fit`), or one
    :class:`.wrench_select.WrenchUnit` for the platform's wrench balance (every cable at once

@@ -74,14 +74,14 @@ def load_model(path: Path) -> tuple[object, Config | None]:
 
 def _tensions(rec: Recording, cfg: Config | None, say):
     """Platform tensions (N, m) and dT_p/dm (N, m) or None."""
-    from gateway.diagnose import platform
+    from gateway.diagnose import pose_statics
 
     if rec.tension_platform is not None:
         tp = rec.tension_platform
     else:
         say(f"{rec.source}: platform tensions from pose and mass (statics)")
-        tp = platform.platform_tensions(rec, cfg)
-    return tp, platform.mass_sensitivity(rec, cfg, say)
+        tp = pose_statics.platform_tensions(rec, cfg)
+    return tp, pose_statics.mass_sensitivity(rec, cfg, say)
 
 
 def _read(
@@ -141,7 +141,7 @@ def _diagnose_file(
     say: Callable[[str], None],
     columns: Mapping[str, str] | None = None,
 ) -> _Run:
-    from gateway.diagnose import warmup
+    from gateway.diagnose import transient
     from gateway.diagnose.engine import diagnose, load_kernels, reference_mode
 
     recordings = list(recording) if isinstance(recording, list | tuple) else [recording]
@@ -174,7 +174,7 @@ def _diagnose_file(
             vtp, vdm = _tensions(vrec, cfg, say)
             validation = (_without_pose(vrec), vtp, vdm if dm is not None else None)
         diag = diagnose(rec, friction, tp=tp, dtp_dm=dm, validation=validation, progress=say)  # type: ignore[arg-type]
-    warmup.annotate(diag.report, rec, nominal)  # the start-up transient, said as such
+    transient.annotate(diag.report, rec, nominal)  # the start-up transient, said as such
     return _Run(diag, rec, keep_for_model, model_friction)
 
 
@@ -189,7 +189,7 @@ def _diagnose_joined(
     """Several recordings of one machine, joined (:mod:`gateway.diagnose.sessions`) and
     diagnosed as one against their platform tensions (or, none of them having any, the
     wrench balance: :func:`_diagnose_joined_wrench`)."""
-    from gateway.diagnose import warmup
+    from gateway.diagnose import transient
     from gateway.diagnose.engine import diagnose, reference_mode
     from gateway.diagnose.sessions import join
 
@@ -235,7 +235,7 @@ def _diagnose_joined(
         sessions=sessions,
     )
     assert nominal is not None  # at least two recordings were read
-    warmup.annotate(diag.report, joined, nominal)
+    transient.annotate(diag.report, joined, nominal)
     return _Run(diag, joined, keep_for_model, model_friction)
 
 
@@ -251,7 +251,7 @@ def _diagnose_joined_wrench(
 ) -> _Run:
     """Several recordings without platform tensions, joined and diagnosed as one against
     the wrench balance (:func:`gateway.diagnose.wrench_select.diagnose_joined_wrench`)."""
-    from gateway.diagnose import warmup
+    from gateway.diagnose import transient
     from gateway.diagnose.engine import reference_mode
     from gateway.diagnose.wrench_select import diagnose_joined_wrench
 
@@ -270,7 +270,7 @@ def _diagnose_joined_wrench(
     diag, joined = diagnose_joined_wrench(
         recs, [str(p) for p in recordings], nominal, cfg, wrec, progress=say
     )
-    warmup.annotate(diag.report, joined, nominal)
+    transient.annotate(diag.report, joined, nominal)
     return _Run(diag, joined, _unchanged, model_friction)
 
 

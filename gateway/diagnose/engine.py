@@ -8,7 +8,7 @@ stage takes the previous stage's output:
 1. **prepare** (the reference's ``prepare``): finite rows, per-cable series, time blocks,
    warm-up, clipped readings, candidates, a subset of a long recording;
 2. **locate**: where the nominal model's residual lives (regimes, regions);
-3. **select** (:class:`gateway.diagnose.select.Selector` over the reference's units);
+3. **select** (:class:`gateway.diagnose.selection.Selector` over the reference's units);
 4. **fit**: the selected effects refitted on every training sample, kept only by
    significance over every candidate x unit tried (:mod:`gateway.diagnose.significance`),
    then scored on the validation recording (which never decides what is kept);
@@ -41,7 +41,7 @@ from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-e
 )
 from gateway.diagnose.reference import PlatformReference, fit_units, select_units
 from gateway.diagnose.report import Diagnosis, build_report
-from gateway.diagnose.select import Thresholds
+from gateway.diagnose.selection import Thresholds
 from gateway.diagnose.sessions import Sessions
 from gateway.model.effects.forms import lowpass
 from gateway.recordings.reader import Recording

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from gateway.diagnose.forward import report_stderr, to_report
-from gateway.diagnose.select import Outcome as CableOutcome
+from gateway.diagnose.selection import Outcome as CableOutcome
 from gateway.model import effects as fx
 
 

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
-from gateway.diagnose.select import Model, Selector, Thresholds, overlaps, rivals
+from gateway.diagnose.selection import Model, Selector, Thresholds, overlaps, rivals
 from gateway.diagnose.significance import Tested, retire, score
 from gateway.diagnose.stats import bh_qvalues
 

@@ -14,7 +14,7 @@ import numpy as np
 from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate, stats
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
-from gateway.diagnose.platform import MassSensitivity
+from gateway.diagnose.pose_statics import MassSensitivity
 from gateway.diagnose.sessions import Sessions
 from gateway.errors import RecordingError
 from gateway.model import effects as fx

@@ -34,7 +34,7 @@ from gateway.diagnose.prepare import (
     validation_forwards,
     warmup_mask,
 )
-from gateway.diagnose.select import Model, Selector, Thresholds
+from gateway.diagnose.selection import Model, Selector, Thresholds
 from gateway.diagnose.sessions import Sessions
 from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.significance import Tested, decide, harmonize, retire, score
@@ -45,7 +45,7 @@ from gateway.recordings.reader import Recording
 
 
 class CableUnit:
-    """One cable for the selector (:class:`gateway.diagnose.select.Unit`): residual =
+    """One cable for the selector (:class:`gateway.diagnose.selection.Unit`): residual =
     measured reading - the model's prediction, per sample."""
 
     def __init__(

@@ -43,7 +43,7 @@ from gateway.core.heap import trim_heap
 from gateway.diagnose import locate, lsq, pooling, sessions, signals
 from gateway.diagnose.evidence import evidence
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
-from gateway.diagnose.select import Outcome, Thresholds
+from gateway.diagnose.selection import Outcome, Thresholds
 from gateway.diagnose.significance import Tested, combined_stderr
 from gateway.diagnose.stats import white_noise
 from gateway.model import effects as fx

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.diagnose.platform import MassSensitivity
+from gateway.diagnose.pose_statics import MassSensitivity
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
 from gateway.model.effects import Spec

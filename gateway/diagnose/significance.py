@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gateway.diagnose.select import Model, Outcome, Rival, Selector, overlaps
+from gateway.diagnose.selection import Model, Outcome, Rival, Selector, overlaps
 from gateway.diagnose.stats import bh_qvalues, block_groups, jackknife_se
 
 ROUNDS = 3

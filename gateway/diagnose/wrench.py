@@ -41,7 +41,7 @@ from scipy.ndimage import uniform_filter1d
 from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose.engine import deadband, nominal_from, time_blocks, warmup_mask
 from gateway.diagnose.forward import CableData, Nominal
-from gateway.diagnose.platform import require_geometry
+from gateway.diagnose.pose_statics import require_geometry
 from gateway.diagnose.sessions import Sessions
 from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.stats import white_noise_columns

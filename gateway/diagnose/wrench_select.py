@@ -11,7 +11,7 @@ wrench (:class:`wrench.Prepared`): generalised least squares.
    its variance inflation decides identifiability (:func:`wrench.identifiability`):
    unidentifiable cables are not fitted and the report says so (``identifiability``).
 2. **Selection**: :class:`WrenchUnit` (the linearised residual, linear least squares) given
-   to :class:`gateway.diagnose.select.Selector`, the same selector and the same held-out
+   to :class:`gateway.diagnose.selection.Selector`, the same selector and the same held-out
    tests as the per-cable reference; then the significance stage
    (:mod:`gateway.diagnose.significance`: BH over every candidate, parameters against
    their spread across time blocks).
@@ -39,7 +39,7 @@ from gateway.core.heap import trim_heap
 from gateway.diagnose import locate, wrench_lsq
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
-from gateway.diagnose.select import Model, Selector, Thresholds
+from gateway.diagnose.selection import Model, Selector, Thresholds
 from gateway.diagnose.sessions import Sessions, join_wrench
 from gateway.diagnose.significance import Tested, combined_stderr, decide
 from gateway.diagnose.stats import white_noise_columns
@@ -95,7 +95,7 @@ class WrenchDiagnosis(Diagnosis):
 
 
 class WrenchUnit:
-    """The wrench balance as one selection unit (:class:`gateway.diagnose.select.Unit`):
+    """The wrench balance as one selection unit (:class:`gateway.diagnose.selection.Unit`):
     every candidate's identifiable per-cable parameters enter the linearised, whitened
     residual (elements: sample x wrench component), fitted by linear least squares on the
     training samples (normal equations formed once).

@@ -37,7 +37,7 @@ import numpy as np
 from gateway.core.config import Config, FrictionConfig
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose.modelfile import with_effects
-from gateway.diagnose.platform import mass_sensitivity
+from gateway.diagnose.pose_statics import mass_sensitivity
 from gateway.errors import ConfigError, GatewayError
 from gateway.model import chain
 from gateway.model import effects as fx

@@ -10,8 +10,9 @@ the PLC's SYNC; ``read_into`` blocks until the next set). Each cycle
 
 1. waits as its pacing says;
 2. reads, checks the setpoints' plausibility (:mod:`gateway.runtime.plausibility`), compensates,
-   writes, timing each phase into preallocated statistics (:class:`gateway.runtime.stats.LoopStats`)
-   that the metrics collector reads at scrape time; observers added with
+   writes, timing each phase into preallocated statistics
+   (:class:`gateway.runtime.loopstats.LoopStats`) that the metrics collector reads at
+   scrape time; observers added with
    :meth:`CyclicService.add_observer` see each successful cycle (the demo's scoring, a
    recorder);
 3. books its timing with the pacing.
@@ -62,11 +63,11 @@ from gateway.core.config import Config
 from gateway.core.firstrun import compiling
 from gateway.errors import DriverError, DriverTimeoutError
 from gateway.runtime.compensator import Compensator, warm_up
+from gateway.runtime.loopstats import ERROR_KINDS, LoopStats
 from gateway.runtime.pacing import Pacing, make_pacing
 from gateway.runtime.plausibility import Plausibility
 from gateway.runtime.plausibility import warm_up as warm_up_plausibility
 from gateway.runtime.sdnotify import Notifier
-from gateway.runtime.stats import ERROR_KINDS, LoopStats
 
 log = logging.getLogger("cdpr_gateway.loop")
 

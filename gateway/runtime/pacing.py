@@ -5,7 +5,7 @@ answers three questions for it:
 
 * :meth:`Pacing.wait`: block until the next cycle may start, return its start time;
 * :meth:`Pacing.finish`: book the cycle's jitter, duration and overruns into
-  :class:`gateway.runtime.stats.LoopStats` and plan the next start;
+  :class:`gateway.runtime.loopstats.LoopStats` and plan the next start;
 * :attr:`Pacing.by_bus`: whether the bus, not the loop, is the clock.
 
 :class:`PeriodicPacing` keeps absolute deadlines (``next += period``), sleeping and then
@@ -30,7 +30,7 @@ from collections.abc import Callable
 from typing import Any
 
 from gateway.core.config import LoopConfig
-from gateway.runtime.stats import LoopStats
+from gateway.runtime.loopstats import LoopStats
 
 
 class Pacing(ABC):

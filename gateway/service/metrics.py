@@ -61,7 +61,7 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 
 from gateway import __version__
-from gateway.runtime.stats import Histogram
+from gateway.runtime.loopstats import Histogram
 from gateway.service.exporter import MetricsServer
 from gateway.service.metrics_shm import MetricsBlock, Snapshot
 

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.runtime.stats import (
+from gateway.runtime.loopstats import (
     CYCLE_BUCKETS_S,
     ERROR_KINDS,
     JITTER_BUCKETS_S,

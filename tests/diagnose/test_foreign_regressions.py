@@ -20,7 +20,7 @@ from gateway.diagnose.engine import (
 from gateway.diagnose.fit import spec_for
 from gateway.diagnose.forward import CableData, Forward
 from gateway.diagnose.reference import CableUnit, validation_scores
-from gateway.diagnose.select import Selector, Thresholds
+from gateway.diagnose.selection import Selector, Thresholds
 from gateway.diagnose.stats import white_noise
 from tests.diagnose_helpers import Foreign, generate, recording_of, run_foreign
 from tests.foreign_cases import P5_MIXED, RIG_AXIS

@@ -169,7 +169,7 @@ def test_reader_refuses_a_bad_value_in_a_column_read_for_its_first_row(tmp_path:
 
 
 def test_mass_sensitivity_knots_read_per_cable_equal_the_whole() -> None:
-    from gateway.diagnose.platform import MassSensitivity
+    from gateway.diagnose.pose_statics import MassSensitivity
     from gateway.diagnose.prepare import cable_data, finite_rows
 
     rec = _with_lengths_and_pose(300)

@@ -21,7 +21,7 @@ from scipy.optimize import minimize
 from evaluation.scenarios import tolerance
 from gateway.core.config import DEFAULT_CONFIG_PATH, Config, config_from_mapping
 from gateway.core.configtypes import read_yaml
-from gateway.diagnose import platform
+from gateway.diagnose import pose_statics
 from gateway.diagnose.engine import diagnose, reference_mode
 from gateway.diagnose.wrench import WrenchModel, nominal_from, wrench_data
 from gateway.diagnose.wrench_select import diagnose_wrench
@@ -174,7 +174,7 @@ def test_closed_form_plant_balances_the_wrench_and_differs_from_the_gateway_stat
     resid = np.einsum("nim,nm->ni", data.structure(), full.tension_platform) + data.w0
     # the plant balances the analytic acceleration; ours is from the sampled pose
     assert np.sqrt(np.mean(resid[:, :3] ** 2)) < 0.05
-    statics_tp = platform.platform_tensions(rec, cfg)
+    statics_tp = pose_statics.platform_tensions(rec, cfg)
     assert np.mean(np.abs(statics_tp - full.tension_platform)) > 30.0  # N: another sharing
 
 
@@ -201,8 +201,8 @@ def test_old_statics_route_goes_wrong_and_the_wrench_route_holds():
     old = diagnose(
         head,
         cfg.friction,
-        tp=platform.platform_tensions(head, cfg),
-        dtp_dm=platform.mass_sensitivity(head, cfg),
+        tp=pose_statics.platform_tensions(head, cfg),
+        dtp_dm=pose_statics.mass_sensitivity(head, cfg),
     ).report
     old_effects = [f["effect"] for f in old["findings"]]
     assert old_effects != ["viscous"]
@@ -281,7 +281,7 @@ def test_wrench_route_holds_under_a_qp_controller_with_another_target():
     dist = {"method": "qp", "tau_min_n": 0.0, "tau_max_n": 400.0, "target_n": 120.0}
     cfg = plant_config(CASES["viscous"], seed=5, distribution=dist)
     full = make_recording(cfg, None, SECONDS)
-    assert np.mean(np.abs(platform.platform_tensions(full, cfg) - full.tension_platform)) > 30
+    assert np.mean(np.abs(pose_statics.platform_tensions(full, cfg) - full.tension_platform)) > 30
     rep = diagnose_wrench(replace(full, tension_platform=None), cfg.friction, cfg).report
     assert [f["effect"] for f in rep["findings"]] == ["viscous"]
     assert_parameters("viscous", rep["findings"][0])
@@ -317,7 +317,7 @@ def test_standing_platform_leaves_per_cable_effects_unidentifiable():
     n = 1500
     pose = np.tile(np.asarray(cfg.geometry.home_pose, float), (n, 1))
     t = np.arange(n) / RATE
-    tp = platform.platform_tensions(replace(full, t=t, pose=pose, mass=np.full(n, 40.0)), cfg)
+    tp = pose_statics.platform_tensions(replace(full, t=t, pose=pose, mass=np.full(n, 40.0)), cfg)
     rng = np.random.default_rng(0)
     reading = tp + rng.normal(0, NOISE, tp.shape)
     rec = Recording(

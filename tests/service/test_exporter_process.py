@@ -27,7 +27,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.base import ChannelStatus
-from gateway.runtime.stats import ERROR_KINDS, LoopStats
+from gateway.runtime.loopstats import ERROR_KINDS, LoopStats
 from gateway.service import metrics
 from gateway.service.metrics_shm import MetricsBlock, TornSnapshot
 from tests.service.test_daemon_operator import write_config

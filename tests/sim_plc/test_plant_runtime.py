@@ -188,7 +188,7 @@ def test_plant_with_chunks_from_a_worker_matches_the_in_process_plant() -> None:
     boundaries and a reset; the worker has them ready (few waits)."""
     from numpy.testing import assert_allclose, assert_array_equal
 
-    from sim_plc.prepare import ChunkWorker
+    from sim_plc.chunk_worker import ChunkWorker
 
     cfg = make_config()
     ref, fed = Plant(cfg, chunk=40), Plant(cfg, chunk=40)
