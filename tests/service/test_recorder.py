@@ -187,7 +187,13 @@ SMALL_FILE = textwrap.dedent(
     rec = Recorder(RecordConfig(path=sys.argv[1], batch_s=0.001), M, with_mass=True)
     resource.setrlimit(resource.RLIMIT_FSIZE, (3000, resource.RLIM_INFINITY))  # inherited
     rec.start()
-    for k in range(200):
+    push_many(rec, 0, 1)
+    # the first row on disk before the rest: a writer started late on a loaded machine
+    # would take all 200 rows in its first write, which the limit cuts, leaving none
+    deadline = time.monotonic() + 30
+    while rec.rows_written == 0 and not rec.failed and time.monotonic() < deadline:
+        time.sleep(0.001)
+    for k in range(1, 200):
         push_many(rec, k, 1)
         time.sleep(0.0002)
     rec.close()

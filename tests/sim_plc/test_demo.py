@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import signal
@@ -15,6 +16,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from drivers.base import Inputs
@@ -237,3 +240,30 @@ def test_demo_against_the_soft_plc_explains_its_counts(capsys):
     assert mean, out
     assert float(mean.group(2)) < 0.5 * float(mean.group(1))
     assert re.search(r"corrected RMSE [\d.]+x the floor", out)
+
+
+@given(st.lists(st.floats(0.0, 0.5), min_size=1, max_size=60))
+def test_the_offline_plant_keeps_real_time(gaps: list[float]) -> None:
+    """The in-process plant steps as many periods as elapsed, at least one a read: after
+    any reads its time is the elapsed time (within a period), unless a stall passed
+    CATCH_UP_MAX periods, which is skipped, never replayed in one read."""
+    from sim_plc.demo import CATCH_UP_MAX, real_time
+
+    period = 0.001
+    now = [10.0]
+    steps: list[int] = []
+    stepped = real_time(lambda: steps.append(1), period, clock=lambda: now[0])
+    skipped = 0.0
+    for reads, gap in enumerate([0.0, *gaps], start=1):
+        now[0] += gap
+        before = len(steps)
+        stepped()
+        made = len(steps) - before
+        assert 1 <= made <= CATCH_UP_MAX
+        elapsed = now[0] - 10.0
+        if gap / period > CATCH_UP_MAX:
+            skipped += gap - CATCH_UP_MAX * period
+        # never behind the elapsed time less the skipped stalls (the first read steps the
+        # first period); ahead at most by the reads that came within a period
+        due = math.floor((elapsed - skipped) / period + 1e-6) + 1
+        assert due - 1 <= len(steps) <= due + reads, (len(steps), due, reads)
