@@ -14,8 +14,12 @@ recording but the validation one is passed). A case passes only if on every spli
 - the same set whichever recording is left out (the splits agree).
 
 ``python -m tests.reallike_cases --table docs/diagnose-suite.md [--set tuning|sealed|both]
-[-k NAME] [--splits N]`` runs and writes the section; ``--seal SEED`` draws the sealed file,
-``--reseal REASON`` records its hash (docs/diagnose-suite.md, ## Seals).
+[-k NAME] [--splits N] [--results FILE] [--load FILE ...]`` runs and writes the section (after
+every case, so a run cut short still publishes what was run and names what was not);
+``--results`` appends each case's score as a JSON line, ``--load`` takes cases already scored
+from such files instead of running them (two processes can score the two sets and one writes
+the table); ``--seal SEED`` draws the sealed file, ``--reseal REASON`` records its hash
+(docs/diagnose-suite.md, ## Seals).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import resource
 import subprocess
 import sys
 import tempfile
@@ -241,6 +246,19 @@ class Split:
 class Score:
     case: Case
     splits: list[Split] = field(default_factory=list)
+    wall: float = 0.0  # the case's wall time (s): recordings, diagnoses, baseline
+    cpu: float = 0.0  # its CPU time (s), the diagnoses' processes included
+
+    def to_json(self) -> str:
+        d = {"case": self.case.name, "wall": self.wall, "cpu": self.cpu}
+        d["splits"] = [vars(s) for s in self.splits]
+        return json.dumps(d)
+
+    @classmethod
+    def from_json(cls, line: str, cases: dict[str, Case]) -> Score:
+        d = json.loads(line)
+        splits = [Split(**{**s, "validation": tuple(s["validation"])}) for s in d["splits"]]
+        return cls(cases[d["case"]], splits, d["wall"], d["cpu"])
 
     @property
     def same_set(self) -> bool:
@@ -300,8 +318,19 @@ def score_split(case: Case, paths: list[Path], model: Path, fit: list[int], val:
     return Split(fit, val, found, errors, vrmse, base, seconds)
 
 
+def _cpu() -> float:
+    return sum(
+        r.ru_utime + r.ru_stime
+        for r in (
+            resource.getrusage(resource.RUSAGE_SELF),
+            resource.getrusage(resource.RUSAGE_CHILDREN),
+        )
+    )
+
+
 def score(case: Case, splits: int = RECORDINGS, workdir: Path | None = None) -> Score:
     """Generate the case's recordings and score ``splits`` of its leave-one-out splits."""
+    wall, cpu = time.perf_counter(), _cpu()
     with tempfile.TemporaryDirectory() as tmp:
         d = workdir or Path(tmp)
         paths = [
@@ -316,6 +345,7 @@ def score(case: Case, splits: int = RECORDINGS, workdir: Path | None = None) -> 
             fit = [k for k in range(RECORDINGS) if k != val]
             fit = fit if multi else [(val + 1) % RECORDINGS]
             sc.splits.append(score_split(case, paths, model, fit, val))
+        sc.wall, sc.cpu = time.perf_counter() - wall, _cpu() - cpu
         return sc
 
 
@@ -348,22 +378,41 @@ def rows(scores: list[Score]) -> list[str]:
     return lines
 
 
-def table(tuning: list[Score], sealed: list[Score], digest: str, note: str) -> str:
+def table(
+    tuning: list[Score], sealed: list[Score], digest: str, note: str, missing: list[str]
+) -> str:
     def tally(scores: list[Score]) -> str:
         clean = [s for s in scores if not s.case.truth]
         false = sum(len(sp.found) for s in clean for sp in s.splits)
+        split = [s for s in scores if len(s.splits) > 1]
+        same = (
+            f"{sum(s.same_set for s in split)}/{len(split)}"
+            if split
+            else "not tested (one split per case)"
+        )
         return (
             f"{sum(s.passed for s in scores)}/{len(scores)} cases passed; "
             f"false findings on {len(clean)} clean machines: {false}; "
             f"validation <= least squares on "
             f"{sum(LOSES not in sp.errors for s in scores for sp in s.splits)}/"
-            f"{sum(len(s.splits) for s in scores)} runs; same set on every split: "
-            f"{sum(s.same_set for s in scores)}/{len(scores)}"
+            f"{sum(len(s.splits) for s in scores)} runs; the same set whichever recording is "
+            f"left out: {same}"
         )
 
+    done = [*tuning, *sealed]
+    wall, cpu = sum(s.wall for s in done), sum(s.cpu for s in done)
+    nsplits = sum(len(s.splits) for s in done)
+    fits = sorted({len(sp.fit) for s in done for sp in s.splits})
     head = (
         "| case | machine | truth | fit / validation | found [cables] | pass | validation "
         "before -> after (N) | least squares (N) | s |\n|---|---|---|---|---|---|---|---|---|"
+    )
+    run = (
+        f"Run {time.strftime('%Y-%m-%d', time.gmtime())}: {len(done)} cases, {nsplits} "
+        f"diagnoses of {' or '.join(str(f) for f in fits)} fit recording(s) each; "
+        f"{wall / 60:.0f} min wall, {cpu / 60:.0f} min CPU (the cases' sum, the diagnoses' "
+        "processes included; 2 shared cores). "
+        + (f"Not run: {', '.join(missing)}." if missing else "Every case was run.")
     )
     return (
         "\n".join(
@@ -379,14 +428,20 @@ def table(tuning: list[Score], sealed: list[Score], digest: str, note: str) -> s
                 "load. Nominal model: the datasheet loss (one 180-degree pulley, mu 0.01, "
                 "Coulomb). Truth in catalogue names: `coulomb` (f0, mu), `coulomb_directional` "
                 "(mu_out != mu_in), `viscous`, `presliding` (Dahl state held at rest), `gain`, "
-                "`offset`, every one on all cables. Strict: exact set, all cables, parameters "
-                "in tolerance (`tests/reallike_cases.py: TOL`), validation RMSE <= the "
-                "engineer's least squares (Coulomb + viscous + offset per cable, linear, on the "
-                "same fit data), the same set on every split. Today's `diagnose` takes one fit "
-                "recording, so a split fits recording k+1 and validates on k; the scorer passes "
-                "all other recordings once `diagnose --help` shows it takes several.",
+                "`offset`, every one on all cables. Each case has three recordings of different "
+                "motions; leave-one-recording-out: a split diagnoses the other two together "
+                "(`cdpr-gateway diagnose REC REC --validate VAL`: one set of findings for both) "
+                "and validates on the one left out, so a case is three splits (`fit / "
+                "validation` numbers the recordings). A split passes only with the exact set "
+                "(an extra finding fails), every effect on all cables, every parameter in "
+                "tolerance (`tests/reallike_cases.py: TOL`) and the validation RMSE at or "
+                "below the engineer's least squares (Coulomb + viscous + offset per cable, "
+                "linear, fitted on the same two recordings, scored on the same left-out one); "
+                "a case passes only if all its splits pass and find the same set of effects. "
+                "`s`: the diagnosis' wall time.",
                 "",
-                note,
+                run,
+                *(["", note] if note else []),
                 "",
                 f"**Tuning: {tally(tuning)}.**",
                 "",
@@ -408,7 +463,9 @@ def main() -> None:
     ap.add_argument("--set", choices=("tuning", "sealed", "both"), default="both")
     ap.add_argument("-k", default="", help="only these cases (comma-separated names)")
     ap.add_argument("--splits", type=int, default=RECORDINGS, help="leave-one-out splits run")
-    ap.add_argument("--note", default="", help="a sentence for the section (e.g. what was run)")
+    ap.add_argument("--note", default="", help="a paragraph for the section (e.g. the failures)")
+    ap.add_argument("--results", type=Path, help="append each case's score here (JSON lines)")
+    ap.add_argument("--load", type=Path, nargs="*", default=[], help="cases already scored")
     ap.add_argument("--seal", type=int, metavar="SEED", help="draw the sealed file anew")
     ap.add_argument("--reseal", metavar="REASON", help="record the sealed file's hash")
     args = ap.parse_args()
@@ -421,11 +478,32 @@ def main() -> None:
         sealing.add(doc, SEALED_FILE, args.reseal)
         return
     digest = sealing.check(doc, SEALED_FILE)
+    sets = {"tuning": CASES, "sealed": sealed_cases()}
+    by_name = {c.name: c for cases in sets.values() for c in cases}
+    loaded: dict[str, Score] = {}
+    for path in args.load:
+        for line in path.read_text(encoding="utf-8").splitlines():
+            if line.strip():
+                sc = Score.from_json(line, by_name)
+                loaded[sc.case.name] = sc
     result: dict[str, list[Score]] = {"tuning": [], "sealed": []}
-    for which, cases in (("tuning", CASES), ("sealed", sealed_cases())):
-        if args.set not in (which, "both"):
-            continue
+
+    def publish() -> None:
+        if not args.table:
+            return
+        done = {s.case.name for v in result.values() for s in v}
+        missing = [n for n in by_name if n not in done]
+        replace_section(
+            args.table, table(result["tuning"], result["sealed"], digest, args.note, missing)
+        )
+
+    for which, cases in sets.items():
         for case in cases:
+            if case.name in loaded:
+                result[which].append(loaded[case.name])
+                continue
+            if args.set not in (which, "both"):
+                continue
             if args.k and case.name not in args.k.split(","):
                 continue
             sc = score(case, args.splits)
@@ -435,9 +513,13 @@ def main() -> None:
                     f"ls {s.baseline:.2f} {s.seconds:.0f}s",
                     flush=True,
                 )
+            print(f"{case.name}: passed {sc.passed}, {sc.wall:.0f} s wall, {sc.cpu:.0f} s CPU")
+            if args.results:
+                with args.results.open("a", encoding="utf-8") as fh:
+                    fh.write(sc.to_json() + "\n")
             result[which].append(sc)
-    if args.table:
-        replace_section(args.table, table(result["tuning"], result["sealed"], digest, args.note))
+            publish()
+    publish()
 
 
 if __name__ == "__main__":
