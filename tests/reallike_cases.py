@@ -240,6 +240,7 @@ class Split:
     validation: tuple[float, float]
     baseline: float
     seconds: float
+    detail: list[str] = field(default_factory=list)  # which effect, cable, parameter missed
 
 
 @dataclass
@@ -290,6 +291,26 @@ def _param_errors(truth: dict, finding: dict) -> float:
     return worst
 
 
+def _g(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def _param_misses(truth: dict, finding: dict) -> list[str]:
+    """The parameters of ``finding`` out of tolerance: 'effect name got (truth +- tol)'."""
+    out = []
+    for name, value in truth.get(finding["effect"], {}).items():
+        rel, ab = TOL[name]
+        tol = max(rel * abs(value), ab)
+        got = finding["parameters"].get(name)
+        if not got:
+            out.append(f"{finding['effect']} {name} not reported ({_g(value)})")
+        elif max(abs(x - value) for x in got) > tol:
+            lo, hi = min(got), max(got)
+            span = _g(lo) if lo == hi else f"{_g(lo)}..{_g(hi)}"
+            out.append(f"{finding['effect']} {name} {span} ({_g(value)} +- {_g(tol)})")
+    return out
+
+
 def score_split(case: Case, paths: list[Path], model: Path, fit: list[int], val: int) -> Split:
     """One diagnosis through the command line, scored strictly."""
     out = model.with_name(f"{case.name}_{val}.json")
@@ -303,19 +324,25 @@ def score_split(case: Case, paths: list[Path], model: Path, fit: list[int], val:
     rep = json.loads(out.read_text(encoding="utf-8"))
     truth, every = case.truth, list(range(1, case.machine.cables + 1))
     found = {f["effect"]: f["cables"] for f in rep["findings"]}
-    errors = []
+    errors, detail = [], []
     if set(found) != set(truth):
         errors.append("effects")
+        detail += [f"missing {e}" for e in sorted(set(truth) - set(found))]
+        detail += [f"extra {e} {found[e]}" for e in found if e not in truth]
     if any(found[e] != every for e in found if e in truth):
         errors.append("cables")
+        detail += [f"{e} on {found[e]} only" for e in found if e in truth and found[e] != every]
     if max([0.0, *(_param_errors(truth, f) for f in rep["findings"])]) > 1.0:
         errors.append("parameters")
+        for f in rep["findings"]:
+            detail += _param_misses(truth, f)
     fin = rep["final"]
     vrmse = (fin["validation_rmse_before_n"], fin["validation_rmse_after_n"])
     base = baseline_rmse([paths[k] for k in fit], paths[val])
     if vrmse[1] > base:
         errors.append(LOSES)
-    return Split(fit, val, found, errors, vrmse, base, seconds)
+        detail.append(f"{LOSES} by {_g(vrmse[1] - base)} N")
+    return Split(fit, val, found, errors, vrmse, base, seconds, detail)
 
 
 def _cpu() -> float:
@@ -367,11 +394,12 @@ def rows(scores: list[Score]) -> list[str]:
     lines = []
     for sc in scores:
         for s in sc.splits:
-            outcome = "yes" if not s.errors else "**no** (" + ", ".join(s.errors) + ")"
+            outcome = "yes" if not s.errors else "**no** (" + "; ".join(s.detail or s.errors) + ")"
             lines.append(
                 f"| {sc.case.name} | {_machine(sc.case)} "
                 f"| {', '.join(sorted(sc.case.truth)) or 'none'} "
-                f"| {'+'.join(str(k + 1) for k in s.fit)} / {s.val + 1} | {_found(s)} "
+                f"| {'+'.join(str(k + 1) for k in s.fit)} / {s.val + 1} | {_found(s)}"
+                f"{'' if sc.same_set else ' (set differs between splits)'} "
                 f"| {outcome} | {s.validation[0]:.2f} -> {s.validation[1]:.2f} "
                 f"| {s.baseline:.2f} | {s.seconds:.0f} |"
             )
@@ -509,7 +537,7 @@ def main() -> None:
             sc = score(case, args.splits)
             for s in sc.splits:
                 print(
-                    f"{case.name} {s.fit}/{s.val}: {s.found} {s.errors} {s.validation} "
+                    f"{case.name} {s.fit}/{s.val}: {s.found} {s.detail} {s.validation} "
                     f"ls {s.baseline:.2f} {s.seconds:.0f}s",
                     flush=True,
                 )

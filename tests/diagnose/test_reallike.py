@@ -148,6 +148,14 @@ def test_scores_round_trip_and_the_table_names_what_was_not_run() -> None:
     assert "2+3 / 1" in text and "1+3 / 2" in text
 
 
+def test_a_missed_parameter_is_named_with_its_truth_and_tolerance() -> None:
+    truth = {"viscous": {"c_ns_m": 200.0}, "offset": {"c_n": -8.0}}
+    finding = {"effect": "viscous", "parameters": {"c_ns_m": [150.0, 290.0]}}
+    assert rc._param_misses(truth, finding) == ["viscous c_ns_m 150..290 (200 +- 60)"]
+    assert rc._param_misses(truth, {"effect": "offset", "parameters": {"c_n": [-7.0]}}) == []
+    assert rc._param_misses(truth, {"effect": "spring", "parameters": {}}) == []
+
+
 @pytest.mark.long
 @pytest.mark.parametrize(
     "name",
