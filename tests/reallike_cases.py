@@ -3,9 +3,10 @@ their table.
 
 Each case is a machine of :mod:`tests.reallike` (its truth: catalogue effect names from
 :func:`tests.reallike.truth_effects`) with three recordings of different motions. A split
-fits one recording and validates on the next (``cdpr-gateway diagnose FIT --validate VAL
---model M --json OUT``; when ``diagnose --help`` shows that it takes several recordings, every
-recording but the validation one is passed). A case passes only if on every split run:
+leaves one recording out: the other two are diagnosed together (``cdpr-gateway diagnose FIT
+FIT --validate VAL --model M --json OUT``) and the left-out one validates, so a case is three
+splits (a ``diagnose`` whose --help shows one RECORDING only would fit the next recording
+alone: :func:`multi_recording`). A case passes only if on every split run:
 
 - the exact set of effects (an extra finding fails), each on every cable (the friction and
   the drive are shared by all winches), every parameter within tolerance;
@@ -438,8 +439,8 @@ def table(
     run = (
         f"Run {time.strftime('%Y-%m-%d', time.gmtime())}: {len(done)} cases, {nsplits} "
         f"diagnoses of {' or '.join(str(f) for f in fits)} fit recording(s) each; "
-        f"{wall / 60:.0f} min wall, {cpu / 60:.0f} min CPU (the cases' sum, the diagnoses' "
-        "processes included; 2 shared cores). "
+        f"the cases' wall times add up to {wall / 60:.0f} min, their CPU times (the "
+        f"diagnoses' processes included) to {cpu / 60:.0f} min. "
         + (f"Not run: {', '.join(missing)}." if missing else "Every case was run.")
     )
     return (
