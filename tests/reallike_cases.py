@@ -3,9 +3,10 @@ their table.
 
 Each case is a machine of :mod:`tests.reallike` (its truth: catalogue effect names from
 :func:`tests.reallike.truth_effects`) with three recordings of different motions. A split
-fits one recording and validates on the next (``cdpr-gateway diagnose FIT --validate VAL
---model M --json OUT``; when ``diagnose --help`` shows that it takes several recordings, every
-recording but the validation one is passed). A case passes only if on every split run:
+leaves one recording out: the other two are diagnosed together (``cdpr-gateway diagnose FIT
+FIT --validate VAL --model M --json OUT``) and the left-out one validates, so a case is three
+splits (a ``diagnose`` whose --help shows one RECORDING only would fit the next recording
+alone: :func:`multi_recording`). A case passes only if on every split run:
 
 - the exact set of effects (an extra finding fails), each on every cable (the friction and
   the drive are shared by all winches), every parameter within tolerance;
@@ -14,8 +15,12 @@ recording but the validation one is passed). A case passes only if on every spli
 - the same set whichever recording is left out (the splits agree).
 
 ``python -m tests.reallike_cases --table docs/diagnose-suite.md [--set tuning|sealed|both]
-[-k NAME] [--splits N]`` runs and writes the section; ``--seal SEED`` draws the sealed file,
-``--reseal REASON`` records its hash (docs/diagnose-suite.md, ## Seals).
+[-k NAME] [--splits N] [--results FILE] [--load FILE ...]`` runs and writes the section (after
+every case, so a run cut short still publishes what was run and names what was not);
+``--results`` appends each case's score as a JSON line, ``--load`` takes cases already scored
+from such files instead of running them (two processes can score the two sets and one writes
+the table); ``--seal SEED`` draws the sealed file, ``--reseal REASON`` records its hash
+(docs/diagnose-suite.md, ## Seals).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import resource
 import subprocess
 import sys
 import tempfile
@@ -235,12 +241,26 @@ class Split:
     validation: tuple[float, float]
     baseline: float
     seconds: float
+    detail: list[str] = field(default_factory=list)  # which effect, cable, parameter missed
 
 
 @dataclass
 class Score:
     case: Case
     splits: list[Split] = field(default_factory=list)
+    wall: float = 0.0  # the case's wall time (s): recordings, diagnoses, baseline
+    cpu: float = 0.0  # its CPU time (s), the diagnoses' processes included
+
+    def to_json(self) -> str:
+        d = {"case": self.case.name, "wall": self.wall, "cpu": self.cpu}
+        d["splits"] = [vars(s) for s in self.splits]
+        return json.dumps(d)
+
+    @classmethod
+    def from_json(cls, line: str, cases: dict[str, Case]) -> Score:
+        d = json.loads(line)
+        splits = [Split(**{**s, "validation": tuple(s["validation"])}) for s in d["splits"]]
+        return cls(cases[d["case"]], splits, d["wall"], d["cpu"])
 
     @property
     def same_set(self) -> bool:
@@ -272,6 +292,26 @@ def _param_errors(truth: dict, finding: dict) -> float:
     return worst
 
 
+def _g(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def _param_misses(truth: dict, finding: dict) -> list[str]:
+    """The parameters of ``finding`` out of tolerance: 'effect name got (truth +- tol)'."""
+    out = []
+    for name, value in truth.get(finding["effect"], {}).items():
+        rel, ab = TOL[name]
+        tol = max(rel * abs(value), ab)
+        got = finding["parameters"].get(name)
+        if not got:
+            out.append(f"{finding['effect']} {name} not reported ({_g(value)})")
+        elif max(abs(x - value) for x in got) > tol:
+            lo, hi = min(got), max(got)
+            span = _g(lo) if lo == hi else f"{_g(lo)}..{_g(hi)}"
+            out.append(f"{finding['effect']} {name} {span} ({_g(value)} +- {_g(tol)})")
+    return out
+
+
 def score_split(case: Case, paths: list[Path], model: Path, fit: list[int], val: int) -> Split:
     """One diagnosis through the command line, scored strictly."""
     out = model.with_name(f"{case.name}_{val}.json")
@@ -285,23 +325,40 @@ def score_split(case: Case, paths: list[Path], model: Path, fit: list[int], val:
     rep = json.loads(out.read_text(encoding="utf-8"))
     truth, every = case.truth, list(range(1, case.machine.cables + 1))
     found = {f["effect"]: f["cables"] for f in rep["findings"]}
-    errors = []
+    errors, detail = [], []
     if set(found) != set(truth):
         errors.append("effects")
+        detail += [f"missing {e}" for e in sorted(set(truth) - set(found))]
+        detail += [f"extra {e} {found[e]}" for e in found if e not in truth]
     if any(found[e] != every for e in found if e in truth):
         errors.append("cables")
+        detail += [f"{e} on {found[e]} only" for e in found if e in truth and found[e] != every]
     if max([0.0, *(_param_errors(truth, f) for f in rep["findings"])]) > 1.0:
         errors.append("parameters")
+        for f in rep["findings"]:
+            detail += _param_misses(truth, f)
     fin = rep["final"]
     vrmse = (fin["validation_rmse_before_n"], fin["validation_rmse_after_n"])
     base = baseline_rmse([paths[k] for k in fit], paths[val])
     if vrmse[1] > base:
         errors.append(LOSES)
-    return Split(fit, val, found, errors, vrmse, base, seconds)
+        detail.append(f"{LOSES} by {_g(vrmse[1] - base)} N")
+    return Split(fit, val, found, errors, vrmse, base, seconds, detail)
+
+
+def _cpu() -> float:
+    return sum(
+        r.ru_utime + r.ru_stime
+        for r in (
+            resource.getrusage(resource.RUSAGE_SELF),
+            resource.getrusage(resource.RUSAGE_CHILDREN),
+        )
+    )
 
 
 def score(case: Case, splits: int = RECORDINGS, workdir: Path | None = None) -> Score:
     """Generate the case's recordings and score ``splits`` of its leave-one-out splits."""
+    wall, cpu = time.perf_counter(), _cpu()
     with tempfile.TemporaryDirectory() as tmp:
         d = workdir or Path(tmp)
         paths = [
@@ -316,6 +373,7 @@ def score(case: Case, splits: int = RECORDINGS, workdir: Path | None = None) -> 
             fit = [k for k in range(RECORDINGS) if k != val]
             fit = fit if multi else [(val + 1) % RECORDINGS]
             sc.splits.append(score_split(case, paths, model, fit, val))
+        sc.wall, sc.cpu = time.perf_counter() - wall, _cpu() - cpu
         return sc
 
 
@@ -337,33 +395,53 @@ def rows(scores: list[Score]) -> list[str]:
     lines = []
     for sc in scores:
         for s in sc.splits:
-            outcome = "yes" if not s.errors else "**no** (" + ", ".join(s.errors) + ")"
+            outcome = "yes" if not s.errors else "**no** (" + "; ".join(s.detail or s.errors) + ")"
             lines.append(
                 f"| {sc.case.name} | {_machine(sc.case)} "
                 f"| {', '.join(sorted(sc.case.truth)) or 'none'} "
-                f"| {'+'.join(str(k + 1) for k in s.fit)} / {s.val + 1} | {_found(s)} "
+                f"| {'+'.join(str(k + 1) for k in s.fit)} / {s.val + 1} | {_found(s)}"
+                f"{'' if sc.same_set else ' (set differs between splits)'} "
                 f"| {outcome} | {s.validation[0]:.2f} -> {s.validation[1]:.2f} "
                 f"| {s.baseline:.2f} | {s.seconds:.0f} |"
             )
     return lines
 
 
-def table(tuning: list[Score], sealed: list[Score], digest: str, note: str) -> str:
+def table(
+    tuning: list[Score], sealed: list[Score], digest: str, note: str, missing: list[str]
+) -> str:
     def tally(scores: list[Score]) -> str:
         clean = [s for s in scores if not s.case.truth]
         false = sum(len(sp.found) for s in clean for sp in s.splits)
+        split = [s for s in scores if len(s.splits) > 1]
+        same = (
+            f"{sum(s.same_set for s in split)}/{len(split)}"
+            if split
+            else "not tested (one split per case)"
+        )
         return (
             f"{sum(s.passed for s in scores)}/{len(scores)} cases passed; "
             f"false findings on {len(clean)} clean machines: {false}; "
             f"validation <= least squares on "
             f"{sum(LOSES not in sp.errors for s in scores for sp in s.splits)}/"
-            f"{sum(len(s.splits) for s in scores)} runs; same set on every split: "
-            f"{sum(s.same_set for s in scores)}/{len(scores)}"
+            f"{sum(len(s.splits) for s in scores)} runs; the same set whichever recording is "
+            f"left out: {same}"
         )
 
+    done = [*tuning, *sealed]
+    wall, cpu = sum(s.wall for s in done), sum(s.cpu for s in done)
+    nsplits = sum(len(s.splits) for s in done)
+    fits = sorted({len(sp.fit) for s in done for sp in s.splits})
     head = (
         "| case | machine | truth | fit / validation | found [cables] | pass | validation "
         "before -> after (N) | least squares (N) | s |\n|---|---|---|---|---|---|---|---|---|"
+    )
+    run = (
+        f"Run {time.strftime('%Y-%m-%d', time.gmtime())}: {len(done)} cases, {nsplits} "
+        f"diagnoses of {' or '.join(str(f) for f in fits)} fit recording(s) each; "
+        f"the cases' wall times add up to {wall / 60:.0f} min, their CPU times (the "
+        f"diagnoses' processes included) to {cpu / 60:.0f} min. "
+        + (f"Not run: {', '.join(missing)}." if missing else "Every case was run.")
     )
     return (
         "\n".join(
@@ -379,14 +457,20 @@ def table(tuning: list[Score], sealed: list[Score], digest: str, note: str) -> s
                 "load. Nominal model: the datasheet loss (one 180-degree pulley, mu 0.01, "
                 "Coulomb). Truth in catalogue names: `coulomb` (f0, mu), `coulomb_directional` "
                 "(mu_out != mu_in), `viscous`, `presliding` (Dahl state held at rest), `gain`, "
-                "`offset`, every one on all cables. Strict: exact set, all cables, parameters "
-                "in tolerance (`tests/reallike_cases.py: TOL`), validation RMSE <= the "
-                "engineer's least squares (Coulomb + viscous + offset per cable, linear, on the "
-                "same fit data), the same set on every split. Today's `diagnose` takes one fit "
-                "recording, so a split fits recording k+1 and validates on k; the scorer passes "
-                "all other recordings once `diagnose --help` shows it takes several.",
+                "`offset`, every one on all cables. Each case has three recordings of different "
+                "motions; leave-one-recording-out: a split diagnoses the other two together "
+                "(`cdpr-gateway diagnose REC REC --validate VAL`: one set of findings for both) "
+                "and validates on the one left out, so a case is three splits (`fit / "
+                "validation` numbers the recordings). A split passes only with the exact set "
+                "(an extra finding fails), every effect on all cables, every parameter in "
+                "tolerance (`tests/reallike_cases.py: TOL`) and the validation RMSE at or "
+                "below the engineer's least squares (Coulomb + viscous + offset per cable, "
+                "linear, fitted on the same two recordings, scored on the same left-out one); "
+                "a case passes only if all its splits pass and find the same set of effects. "
+                "`s`: the diagnosis' wall time.",
                 "",
-                note,
+                run,
+                *(["", note] if note else []),
                 "",
                 f"**Tuning: {tally(tuning)}.**",
                 "",
@@ -408,7 +492,9 @@ def main() -> None:
     ap.add_argument("--set", choices=("tuning", "sealed", "both"), default="both")
     ap.add_argument("-k", default="", help="only these cases (comma-separated names)")
     ap.add_argument("--splits", type=int, default=RECORDINGS, help="leave-one-out splits run")
-    ap.add_argument("--note", default="", help="a sentence for the section (e.g. what was run)")
+    ap.add_argument("--note", default="", help="a paragraph for the section (e.g. the failures)")
+    ap.add_argument("--results", type=Path, help="append each case's score here (JSON lines)")
+    ap.add_argument("--load", type=Path, nargs="*", default=[], help="cases already scored")
     ap.add_argument("--seal", type=int, metavar="SEED", help="draw the sealed file anew")
     ap.add_argument("--reseal", metavar="REASON", help="record the sealed file's hash")
     args = ap.parse_args()
@@ -421,23 +507,48 @@ def main() -> None:
         sealing.add(doc, SEALED_FILE, args.reseal)
         return
     digest = sealing.check(doc, SEALED_FILE)
+    sets = {"tuning": CASES, "sealed": sealed_cases()}
+    by_name = {c.name: c for cases in sets.values() for c in cases}
+    loaded: dict[str, Score] = {}
+    for path in args.load:
+        for line in path.read_text(encoding="utf-8").splitlines():
+            if line.strip():
+                sc = Score.from_json(line, by_name)
+                loaded[sc.case.name] = sc
     result: dict[str, list[Score]] = {"tuning": [], "sealed": []}
-    for which, cases in (("tuning", CASES), ("sealed", sealed_cases())):
-        if args.set not in (which, "both"):
-            continue
+
+    def publish() -> None:
+        if not args.table:
+            return
+        done = {s.case.name for v in result.values() for s in v}
+        missing = [n for n in by_name if n not in done]
+        replace_section(
+            args.table, table(result["tuning"], result["sealed"], digest, args.note, missing)
+        )
+
+    for which, cases in sets.items():
         for case in cases:
+            if case.name in loaded:
+                result[which].append(loaded[case.name])
+                continue
+            if args.set not in (which, "both"):
+                continue
             if args.k and case.name not in args.k.split(","):
                 continue
             sc = score(case, args.splits)
             for s in sc.splits:
                 print(
-                    f"{case.name} {s.fit}/{s.val}: {s.found} {s.errors} {s.validation} "
+                    f"{case.name} {s.fit}/{s.val}: {s.found} {s.detail} {s.validation} "
                     f"ls {s.baseline:.2f} {s.seconds:.0f}s",
                     flush=True,
                 )
+            print(f"{case.name}: passed {sc.passed}, {sc.wall:.0f} s wall, {sc.cpu:.0f} s CPU")
+            if args.results:
+                with args.results.open("a", encoding="utf-8") as fh:
+                    fh.write(sc.to_json() + "\n")
             result[which].append(sc)
-    if args.table:
-        replace_section(args.table, table(result["tuning"], result["sealed"], digest, args.note))
+            publish()
+    publish()
 
 
 if __name__ == "__main__":

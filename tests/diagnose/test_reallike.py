@@ -131,6 +131,31 @@ def test_truth_names_are_catalogue_effects() -> None:
             assert set(params) <= {p.name for p in REGISTRY[name].params}
 
 
+def test_scores_round_trip_and_the_table_names_what_was_not_run() -> None:
+    """A case scored by one process (``--results``) is the same score when another loads it
+    (``--load``); the table counts only what was run and names the rest."""
+    case = rc.CASES[1]
+    splits = [
+        rc.Split([1, 2], 0, {"viscous": [1, 2, 3, 4]}, [], (21.5, 17.9), 17.9, 30.0),
+        rc.Split([0, 2], 1, {"viscous": [1, 2, 3, 4]}, [rc.LOSES], (20.0, 18.0), 17.5, 31.0),
+    ]
+    sc = rc.Score(case, splits, wall=70.0, cpu=65.0)
+    again = rc.Score.from_json(sc.to_json(), {case.name: case})
+    assert again == sc and not again.passed and again.same_set
+    text = rc.table([again], [], "0" * 64, "", ["clean_4", "sealed_1"])
+    assert "Not run: clean_4, sealed_1." in text
+    assert "0/1 cases passed" in text and "least squares on 1/2 runs" in text
+    assert "2+3 / 1" in text and "1+3 / 2" in text
+
+
+def test_a_missed_parameter_is_named_with_its_truth_and_tolerance() -> None:
+    truth = {"viscous": {"c_ns_m": 200.0}, "offset": {"c_n": -8.0}}
+    finding = {"effect": "viscous", "parameters": {"c_ns_m": [150.0, 290.0]}}
+    assert rc._param_misses(truth, finding) == ["viscous c_ns_m 150..290 (200 +- 60)"]
+    assert rc._param_misses(truth, {"effect": "offset", "parameters": {"c_n": [-7.0]}}) == []
+    assert rc._param_misses(truth, {"effect": "spring", "parameters": {}}) == []
+
+
 @pytest.mark.long
 @pytest.mark.parametrize(
     "name",
