@@ -412,19 +412,20 @@ def real_time(step: Any, period_s: float, clock: Any = time.monotonic) -> Any:
     samples by its own clock (docs/security.md), integrated 2-3 periods of travel for each
     (a loaded machine: corrected 5.44 N against raw 4.32 N). A stall over
     :data:`CATCH_UP_MAX` periods is skipped, not replayed."""
-    state = {"t0": -1.0, "steps": 0}
+    t0 = [-1.0]  # the first call's time (moved on by skipped stalls)
+    done = [0]  # periods stepped
 
     def stepped() -> None:
         now = clock()
-        if state["t0"] < 0:
-            state["t0"] = now
-        due = int((now - state["t0"]) / period_s) + 1 - state["steps"]
+        if t0[0] < 0:
+            t0[0] = now
+        due = int((now - t0[0]) / period_s) + 1 - done[0]
         n = min(max(due, 1), CATCH_UP_MAX)
         if due > CATCH_UP_MAX:
-            state["t0"] += (due - n) * period_s
+            t0[0] += (due - n) * period_s
         for _ in range(n):
             step()
-        state["steps"] += n
+        done[0] += n
 
     return stepped
 
