@@ -213,30 +213,11 @@ def gateway_rows(rec: Recording) -> Recording:
     keep[1:] &= np.any(np.diff(rec.tension_sensor, axis=0) != 0, axis=1)
     if keep.sum() < 10:
         raise GatewayError(f"{rec.source}: fewer than 10 rows with new, good readings")
-    kept = _rows(rec, keep)
+    kept = rec.take(keep)
     return dataclasses.replace(
         kept,
         tension_platform=None,  # what a real robot has: no platform tensions
         skipped_rows=rec.skipped_rows + int(rec.samples - keep.sum()),
-    )
-
-
-def _rows(rec: Recording, keep: np.ndarray) -> Recording:
-    """``rec`` with only the rows ``keep`` (bool or index array) selects."""
-
-    def rows(a: np.ndarray | None) -> np.ndarray | None:
-        return None if a is None else a[keep]
-
-    return dataclasses.replace(
-        rec,
-        t=rec.t[keep],
-        velocity=rec.velocity[keep],
-        tension_sensor=rec.tension_sensor[keep],
-        tension_platform=rows(rec.tension_platform),
-        length=rows(rec.length),
-        pose=rows(rec.pose),
-        mass=rows(rec.mass),
-        extra={k: v[keep] for k, v in rec.extra.items()},
     )
 
 
@@ -247,7 +228,7 @@ def split_validation(rec: Recording) -> tuple[Recording, Recording]:
     """(the first 75 % of the rows to fit, the last 25 % to validate on): the model is
     judged on motion it was not fitted on (:mod:`gateway.diagnose.heldout`)."""
     cut = round(rec.samples * (1.0 - VALIDATION_SHARE))
-    return _rows(rec, np.arange(cut)), _rows(rec, np.arange(cut, rec.samples))
+    return rec.take(np.arange(cut)), rec.take(np.arange(cut, rec.samples))
 
 
 def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path, say) -> dict:
@@ -256,26 +237,41 @@ def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path,
     from gateway.diagnose.wrench_select import diagnose_wrench
 
     cfg = load_config(model)
-    rec = gateway_rows(read_recording(recording))
-    say(f"{recording}: {rec.samples} rows with new, good readings ({rec.skipped_rows} left out)")
-    if reference_mode(rec) != "wrench":
-        raise GatewayError(f"{recording}: no pose and mass columns: no wrench reference")
     model_friction = load_friction(model)
-    rec, friction = relative_to_model(rec, model_friction, cfg)
-    fit, check = split_validation(rec)
+    fit, check, friction = _split_run(recording, model_friction, cfg, say)
     say(f"fit on the first {fit.samples} rows, validate on the last {check.samples}")
     diag = diagnose_wrench(fit, friction, cfg, check, progress=say)
     transient.annotate(diag.report, fit, friction)  # the start-up transient, said as such
+    where = "the recording's last quarter, not fitted"
+    _write(diag.report, fit, where, report, fitted, model, model_friction)
+    return diag.report
+
+
+def _split_run(path: Path, model_friction, cfg, say) -> tuple[Recording, Recording, Any]:
+    """One run read for the wrench reference: its rows with new, good readings, relative
+    to the model, split into (fit, validation, the friction they are relative to)."""
+    rec = gateway_rows(read_recording(path))
+    say(f"{path}: {rec.samples} rows with new, good readings ({rec.skipped_rows} left out)")
+    if reference_mode(rec) != "wrench":
+        raise GatewayError(f"{path}: no pose and mass columns: no wrench reference")
+    rec, friction = relative_to_model(rec, model_friction, cfg)
+    fit, check = split_validation(rec)
+    return fit, check, friction
+
+
+def _write(
+    rep: dict, fit: Recording, where: str, report: Path, fitted: Path, model: Path, model_friction
+) -> None:
+    """The report, then the fitted model unless the held-out check refuses it (no 'after'
+    run with a model that fits the noise)."""
     try:
-        report.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
+        report.write_text(json.dumps(rep, indent=1), encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{report}: cannot write: {exc.strerror or exc}") from exc
-    moved = heldout.motion(fit.t, fit.velocity)
-    refused = heldout.refusal(diag.report, moved, "the recording's last quarter, not fitted")
-    if refused is not None:  # no 'after' run with a model that fits the noise
+    refused = heldout.refusal(rep, heldout.motion(fit.t, fit.velocity), where)
+    if refused is not None:
         raise GatewayError(f"{fitted}: {refused}")
-    write_model(fitted, model, model_friction, diag.report, fit)
-    return diag.report
+    write_model(fitted, model, model_friction, rep, fit)
 
 
 def diagnose_runs(recordings: list[Path], model: Path, report: Path, fitted: Path, say) -> dict:
@@ -293,12 +289,7 @@ def diagnose_runs(recordings: list[Path], model: Path, report: Path, fitted: Pat
     fits, checks = [], []
     friction = None
     for path in recordings:
-        rec = gateway_rows(read_recording(path))
-        say(f"{path}: {rec.samples} rows with new, good readings ({rec.skipped_rows} left out)")
-        if reference_mode(rec) != "wrench":
-            raise GatewayError(f"{path}: no pose and mass columns: no wrench reference")
-        rec, friction = relative_to_model(rec, model_friction, cfg)
-        fit, check = split_validation(rec)
+        fit, check, friction = _split_run(path, model_friction, cfg, say)
         fits.append(fit)
         checks.append(check)
     say(
@@ -308,15 +299,8 @@ def diagnose_runs(recordings: list[Path], model: Path, report: Path, fitted: Pat
     names = [str(p) for p in recordings]
     diag, joined = diagnose_joined_wrench(fits, names, friction, cfg, checks, progress=say)  # type: ignore[arg-type]
     transient.annotate(diag.report, joined, friction)  # type: ignore[arg-type]
-    try:
-        report.write_text(json.dumps(diag.report, indent=1), encoding="utf-8")
-    except OSError as exc:
-        raise GatewayError(f"{report}: cannot write: {exc.strerror or exc}") from exc
-    moved = heldout.motion(joined.t, joined.velocity)
-    refused = heldout.refusal(diag.report, moved, "the runs' last quarters, not fitted")
-    if refused is not None:
-        raise GatewayError(f"{fitted}: {refused}")
-    write_model(fitted, model, model_friction, diag.report, joined)
+    where = "the runs' last quarters, not fitted"
+    _write(diag.report, joined, where, report, fitted, model, model_friction)
     return diag.report
 
 

@@ -139,18 +139,8 @@ def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity):
         return rec, tp, dtp_dm
     if not ok.any():
         raise RecordingError(f"{rec.source}: no sample has every required value")
-    sub = replace(
-        rec,
-        t=rec.t[ok],
-        velocity=rec.velocity[ok],
-        tension_sensor=rec.tension_sensor[ok],
-        tension_platform=None if rec.tension_platform is None else rec.tension_platform[ok],
-        length=None,
-        pose=None if rec.pose is None else rec.pose[ok],
-        mass=None if rec.mass is None else rec.mass[ok],
-        extra={},
-        skipped_rows=rec.skipped_rows + int((~ok).sum()),
-    )
+    kept = replace(rec, length=None, extra={}).take(ok)
+    sub = replace(kept, skipped_rows=rec.skipped_rows + int((~ok).sum()))
     return sub, tp[ok], dtp_dm[ok] if isinstance(dtp_dm, np.ndarray) else dtp_dm
 
 

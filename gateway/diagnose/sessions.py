@@ -206,21 +206,7 @@ def join_wrench(recs: list[Recording], names: list[str]) -> tuple[Recording, Ses
 
 def _rows(rec: Recording, ok: np.ndarray) -> Recording:
     """``rec`` with the rows ``ok`` only (the others counted in ``skipped_rows``)."""
-
-    def sub(a: np.ndarray | None) -> np.ndarray | None:
-        return None if a is None else a[ok]
-
-    return replace(
-        rec,
-        t=rec.t[ok],
-        velocity=rec.velocity[ok],
-        tension_sensor=rec.tension_sensor[ok],
-        length=sub(rec.length),
-        pose=sub(rec.pose),
-        mass=sub(rec.mass),
-        extra={k: v[ok] for k, v in (rec.extra or {}).items()},
-        skipped_rows=rec.skipped_rows + int((~ok).sum()),
-    )
+    return replace(rec.take(ok), skipped_rows=rec.skipped_rows + int((~ok).sum()))
 
 
 def time_blocks(t: np.ndarray, sessions: Sessions | None) -> tuple[np.ndarray, int]:

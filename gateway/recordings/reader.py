@@ -37,7 +37,7 @@ import logging
 import re
 import zlib
 from collections.abc import Collection, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -107,6 +107,25 @@ class Recording:
     @property
     def samples(self) -> int:
         return int(self.t.shape[0])
+
+    def take(self, rows: np.ndarray) -> Recording:
+        """This recording at ``rows`` only (a bool mask or indices) in every per-sample
+        array; metadata, source and ``skipped_rows`` as they are."""
+
+        def sub(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[rows]
+
+        return replace(
+            self,
+            t=self.t[rows],
+            velocity=self.velocity[rows],
+            tension_sensor=self.tension_sensor[rows],
+            tension_platform=sub(self.tension_platform),
+            length=sub(self.length),
+            pose=sub(self.pose),
+            mass=sub(self.mass),
+            extra={k: v[rows] for k, v in (self.extra or {}).items()},
+        )
 
 
 # --- reading ------------------------------------------------------------------------------

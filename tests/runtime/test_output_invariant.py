@@ -581,19 +581,21 @@ def _correctness(kind: str, ratio: int, sigma: float, effects: dict, events, see
     return good_values, svc.comp.clock.resyncs
 
 
-@settings(max_examples=40, **SETTINGS)
-@given(
-    st.sampled_from(["counter", "toggle", "none"]).flatmap(
-        lambda kind: st.tuples(
-            st.just(kind),
-            st.sampled_from([1, 2]) if kind != "toggle" else st.just(1),
-            st.sampled_from([500.0, 5e3, 5e4]),
-            CORRECT_EFFECTS,
-            _clock_events(kind),
-            st.integers(0, 2**32 - 1),
-        )
+# (heartbeat kind, PLC samples per gateway period, sigma, effects, clock events, seed)
+CLOCK_CASES = st.sampled_from(["counter", "toggle", "none"]).flatmap(
+    lambda kind: st.tuples(
+        st.just(kind),
+        st.sampled_from([1, 2]) if kind != "toggle" else st.just(1),
+        st.sampled_from([500.0, 5e3, 5e4]),
+        CORRECT_EFFECTS,
+        _clock_events(kind),
+        st.integers(0, 2**32 - 1),
     )
 )
+
+
+@settings(max_examples=40, **SETTINGS)
+@given(CLOCK_CASES)
 def test_every_good_tension_is_the_model_on_the_true_time_base(case):
     kind, ratio, sigma, effects, events, seed = case
     good, _ = _correctness(kind, ratio, sigma, effects, events, seed)
@@ -602,18 +604,7 @@ def test_every_good_tension_is_the_model_on_the_true_time_base(case):
 
 @pytest.mark.long
 @settings(max_examples=400, **SETTINGS)
-@given(
-    st.sampled_from(["counter", "toggle", "none"]).flatmap(
-        lambda kind: st.tuples(
-            st.just(kind),
-            st.sampled_from([1, 2]) if kind != "toggle" else st.just(1),
-            st.sampled_from([500.0, 5e3, 5e4]),
-            CORRECT_EFFECTS,
-            _clock_events(kind),
-            st.integers(0, 2**32 - 1),
-        )
-    )
-)
+@given(CLOCK_CASES)
 def test_every_good_tension_is_the_model_on_the_true_time_base_long(case):
     kind, ratio, sigma, effects, events, seed = case
     _correctness(kind, ratio, sigma, effects, events, seed)
