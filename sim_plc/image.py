@@ -41,6 +41,7 @@ class ProcessImage:
         self.length_m = np.zeros(m)
         self.pose = np.zeros(6)
         self.true_tension_n = np.zeros(m)
-        self.corrected_n = np.zeros(m)
+        # nothing written by a gateway yet: every channel invalid, as the gateway writes it
+        self.corrected_n = np.full(m, np.nan)
         self.channel_status = np.full(m, 2, dtype=np.uint16)
-        self.wrench = np.zeros(6)
+        self.wrench = np.full(6, np.nan)

@@ -50,7 +50,7 @@ class Witness:
         self._thread = threading.Thread(target=self._run, daemon=True, name="witness")
 
     def _run(self) -> None:
-        with connect(self.port, timeout_s=1.0) as sock:
+        with connect(self.port, timeout_s=5.0) as sock:  # a loaded machine stalls the server
             tid = 0
             while not self._stop.wait(self.period_s):
                 tid = (tid + 1) & 0xFFFF

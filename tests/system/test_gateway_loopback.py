@@ -136,27 +136,32 @@ def test_soft_plc_stopped_and_restarted_the_gateway_resumes():
         assert np.all(service.comp.status == 2)  # 1 s > substitute_max_s: every channel invalid
         plc = SoftPlc(str(cfg.source), "modbus_tcp", port=port)
         # the restarted PLC's heartbeat starts again: the one sample clock cannot vouch for
-        # that step, so the chain re-warms (clock.warm_travel_m of cable travel, seconds at
-        # the soft PLC's speeds) before a channel is written good again
-        deadline = time.monotonic() + 40
-        while time.monotonic() < deadline and not (
-            service.bus_up
-            and service.stats.written > written_before + 500
-            and np.all(service.comp.status == 0)
-        ):
-            time.sleep(0.1)
-        assert service.reconnects >= 1
-        assert np.all(service.comp.status == 0), service.comp.status
+        # that step, so the chain re-warms (clock.warm_travel_m of cable travel in the PLC's
+        # time: seconds at the soft PLC's speeds when it keeps real time, minutes when a
+        # loaded machine slows it) before a channel is written good again. Watched from
+        # outside, as the PLC sees it: service.comp.status is the loop thread's scratch
+        # buffer and reads all good mid-cycle (CI saw that and then 50 invalid frames).
         with ModbusTcpClient("127.0.0.1", port=port, timeout=2) as client:
             assert client.connect()
-            assert uint16s(client, 125, 1)[0] == Lifecycle.ACTIVE
-            finite_frames = 0
-            for _ in range(50):  # a frame the output gate stopped (a late cycle) is NaN
-                words = struct.pack(">24H", *client.read_holding_registers(100, count=24).registers)
+
+            def frame() -> tuple[np.ndarray, np.ndarray]:
+                reply = client.read_holding_registers(100, count=24)
+                assert not reply.isError(), reply
+                words = struct.pack(">24H", *reply.registers)
                 tension = np.array(struct.unpack(">8f", words[:32]))
                 status = np.array(struct.unpack(">8H", words[32:]))
                 assert np.array_equal(np.isnan(tension), status == 2), (tension, status)
-                finite_frames += bool(np.all(np.isfinite(tension)))
+                return tension, status
+
+            deadline = time.monotonic() + 180
+            while time.monotonic() < deadline and not np.all(frame()[1] == 0):
+                time.sleep(0.02)
+            assert np.all(frame()[1] == 0), "no good frame within 180 s of the restart"
+            assert service.reconnects >= 1
+            assert uint16s(client, 125, 1)[0] == Lifecycle.ACTIVE
+            finite_frames = 0
+            for _ in range(50):  # a frame the output gate stopped (a late cycle) is NaN
+                finite_frames += bool(np.all(np.isfinite(frame()[0])))
                 time.sleep(0.005)
             assert finite_frames >= 10
             hb = uint16s(client, 124, 1)[0]
