@@ -319,10 +319,15 @@ Newton's next correction is at most this times step^2, so a pass whose correctio
 step^2 * bound <= tol leaves an error below tol: no confirming pass is needed."""
 
 
+POS, NEG = 0, 1
+"""The planes of :attr:`KernelParams.lam`."""
+
+
 class KernelParams(NamedTuple):
     """What the compiled kernels read, as one numba-compatible structure.
 
-    ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0; ``cable``
+    ``lam`` (m, n, 2): per pulley the Coulomb coefficients for v > 0 and v < 0 (planes
+    :data:`POS`, :data:`NEG`; read by :func:`_level` only); ``cable``
     (m, C): the ``cable`` columns of :data:`COLUMNS` (:data:`CABLE_COLUMNS`, read at
     :data:`F0` .. :data:`PLAY`; one array: every array of the structure costs unboxing
     time per call);
@@ -331,8 +336,7 @@ class KernelParams(NamedTuple):
     and ``max_iter``.
     """
 
-    lam_pos: np.ndarray
-    lam_neg: np.ndarray
+    lam: np.ndarray
     cable: np.ndarray
     slip: np.ndarray
     beta: float
@@ -343,15 +347,14 @@ class KernelParams(NamedTuple):
 
 def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20) -> KernelParams:
     """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
-    lam_pos, lam_neg = coulomb_coefficients(params)
+    lam = np.stack(coulomb_coefficients(params), axis=2)
     cable = np.column_stack([params.columns[n] for n in CABLE_COLUMNS])
     if params.elements > 1 or LAWS[params.model] == LAW_SLIP:
         slip = np.stack([params.slip_w, params.slip_sigma], axis=2)
     else:  # one element: the Dahl state (w = 1, sigma)
         slip = np.stack([np.ones(params.cables), params.sigma_n_m], axis=1)[:, None, :]
     return KernelParams(
-        lam_pos=lam_pos,
-        lam_neg=lam_neg,
+        lam=np.ascontiguousarray(lam),
         cable=np.ascontiguousarray(cable),
         slip=np.ascontiguousarray(slip),
         beta=float(params.beta),
@@ -394,6 +397,16 @@ class ChainState(NamedTuple):
 
 
 @njit(cache=True, inline="always")
+def _level(p, i, j, t_b, dx, strib):
+    """The Coulomb level ``F_R`` of pulley ``j`` of cable ``i`` whose platform-side tension
+    is ``t_b``, moving in the direction of ``dx`` (not 0), and ``dF_R / dt_b``: the chain's
+    law of the level, written once (module docstring)."""
+    lam = p.lam[i, j, POS] if dx > 0.0 else p.lam[i, j, NEG]
+    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam.shape[1]) * strib
+    return fr, lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+
+
+@njit(cache=True, inline="always")
 def _pulley(p, i, j, t_b, f_old, dx, strib):
     """Friction force of pulley ``j`` of cable ``i`` whose platform-side tension is
     ``t_b``, and dF/dt_b, by the chain's law (:data:`LAWS`; ``maxwell_slip``:
@@ -405,9 +418,7 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
     if dx == 0.0:
         return (0.0 if law == LAW_COULOMB else f_old), 0.0
     s = 1.0 if dx > 0.0 else -1.0
-    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
-    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
-    dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    fr, dfr = _level(p, i, j, t_b, dx, strib)
     if law == LAW_COULOMB:
         return s * fr, s * dfr
     # LAW_DAHL
@@ -459,9 +470,7 @@ def _elements(p, i, j, t_b, f, dx, strib, store):
             total += p.slip[i, q, 0] * f[i, j, q]
         return total, 0.0, 0.0
     s = 1.0 if dx > 0.0 else -1.0
-    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
-    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
-    dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    fr, dfr = _level(p, i, j, t_b, dx, strib)
     if fr <= FR_FLOOR_N:
         if store:
             for q in range(k_el):
@@ -550,7 +559,7 @@ def _through(p, st, i, forward, t_known, v, strib, d_raw, store):
     trial), go back there (:func:`_elements`). Returns the other end's tension, the
     pulleys' friction ``F = sum_j F_j``, ``dF / d(d_raw)`` at fixed tensions, and the most
     Newton passes."""
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     d = d_raw
     moving = 1.0
     if p.cable[i, PLAY] != 0.0:
@@ -692,7 +701,7 @@ def _simulate_rigid(p, t_in, vel, dx_all, st, out):
     """:func:`simulate_kernel` for a :func:`_rigid` chain (the general path's explicit
     case, without its per-sample solve)."""
     n_samples, m = t_in.shape
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     f_state = st.f
     for k in range(n_samples):
         for i in range(m):
@@ -725,7 +734,7 @@ def _plain(p):
 def _compensate_plain(p, t_in, vel, dx_all, f_state, out):
     """:func:`compensate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     worst = 0
     for k in range(n_samples):
         for i in range(m):
@@ -779,7 +788,7 @@ def compensate_kernel(p, t_in, vel, dx_all, st, out):
 def _simulate_plain(p, t_in, vel, dx_all, f_state, out):
     """:func:`simulate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]
