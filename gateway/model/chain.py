@@ -14,7 +14,9 @@ Per pulley ``T_j = T_{j-1} + F_j`` where ``F_j`` is
   step is homogeneous in level and stiffness), so ``F_j`` is linear in the fractions,
 * ``none``: 0,
 
-with the Coulomb level ``F_Rj = (lambda_ij(s) |T_j| + f0_i / n) S_i(v)`` (physics.md:
+with the Coulomb level ``F_Rj = ((lambda_ij(s) + g_j mu1_i |T_j|) |T_j| + f0_i / n) S_i(v)``
+(:func:`_level`; ``g_j mu1_i``: the coefficient's growth with the load, ``coulomb_load``;
+physics.md:
 ``F_Rj = lambda_j T_j``, the level the Dahl state tends to): ``lambda_ij(s)`` is taken at
 the exact per-direction Coulomb ratio ``n_j(s)`` (eq. 11, 12 solved as a quadratic, see
 :func:`coulomb_coefficients`), so at steady sliding Dahl equals Coulomb exactly; ``f0`` is
@@ -111,6 +113,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("sigma_n_m", "cable", "N/m", 500.0, "nominal", "presliding stiffness"),
     Column("viscous_ns_m", "cable", "N s/m", 0.0, "nominal", "viscous coefficient"),
     Column("f0_n", "cable", "N", 0.0, "coulomb", "load-independent Coulomb level of the chain"),
+    Column("mu_load", "cable", "1/N", 0.0, "coulomb_load", "growth of mu with the tension", 0.0),
     Column("stribeck_k", "cable", "1", 0.0, "stribeck", "Stribeck excess at standstill"),
     Column("stribeck_v_m_s", "cable", "m/s", 0.01, "stribeck", "Stribeck speed", 0.0, True),
     Column("slip_w", "element", "1", 1.0, "maxwell_slip", "element fractions of the level"),
@@ -319,15 +322,16 @@ Newton's next correction is at most this times step^2, so a pass whose correctio
 step^2 * bound <= tol leaves an error below tol: no confirming pass is needed."""
 
 
-POS, NEG = 0, 1
+POS, NEG, LOAD = 0, 1, 2
 """The planes of :attr:`KernelParams.lam`."""
 
 
 class KernelParams(NamedTuple):
     """What the compiled kernels read, as one numba-compatible structure.
 
-    ``lam`` (m, n, 2): per pulley the Coulomb coefficients for v > 0 and v < 0 (planes
-    :data:`POS`, :data:`NEG`; read by :func:`_level` only); ``cable``
+    ``lam`` (m, n, 3): per pulley the Coulomb coefficients for v > 0 and v < 0 and their
+    growth with the tension ``2 sin(wrap / 2) mu_load`` (1/N) (planes :data:`POS`,
+    :data:`NEG`, :data:`LOAD`; read by :func:`_level` only); ``cable``
     (m, C): the ``cable`` columns of :data:`COLUMNS` (:data:`CABLE_COLUMNS`, read at
     :data:`F0` .. :data:`PLAY`; one array: every array of the structure costs unboxing
     time per call);
@@ -347,7 +351,8 @@ class KernelParams(NamedTuple):
 
 def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20) -> KernelParams:
     """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
-    lam = np.stack(coulomb_coefficients(params), axis=2)
+    load = params.mu_load[:, None] * 2.0 * np.sin(0.5 * params.wrap_rad)  # d lambda / d mu
+    lam = np.stack([*coulomb_coefficients(params), load], axis=2)
     cable = np.column_stack([params.columns[n] for n in CABLE_COLUMNS])
     if params.elements > 1 or LAWS[params.model] == LAW_SLIP:
         slip = np.stack([params.slip_w, params.slip_sigma], axis=2)
@@ -402,8 +407,9 @@ def _level(p, i, j, t_b, dx, strib):
     is ``t_b``, moving in the direction of ``dx`` (not 0), and ``dF_R / dt_b``: the chain's
     law of the level, written once (module docstring)."""
     lam = p.lam[i, j, POS] if dx > 0.0 else p.lam[i, j, NEG]
-    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam.shape[1]) * strib
-    return fr, lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    growth = p.lam[i, j, LOAD] * abs(t_b)  # coulomb_load: mu + mu1 |T|, to first order
+    fr = ((lam + growth) * abs(t_b) + p.cable[i, F0] / p.lam.shape[1]) * strib
+    return fr, (lam + 2.0 * growth) * strib * (1.0 if t_b >= 0.0 else -1.0)
 
 
 @njit(cache=True, inline="always")

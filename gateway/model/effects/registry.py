@@ -30,6 +30,7 @@ from gateway.model.effects import (
     cable_stretch,
     coulomb,
     coulomb_directional,
+    coulomb_load,
     delay,
     drift,
     eccentricity,
@@ -60,6 +61,7 @@ from gateway.model.effects.forms import causal_acceleration
 MODULES = (
     coulomb,
     coulomb_directional,
+    coulomb_load,
     presliding,
     viscous,
     stribeck,
