@@ -146,19 +146,28 @@ def test_the_example_is_admissible_and_present(name: str) -> None:
             assert np.all(values[prm.name] >= low)
 
 
-def test_the_report_schema_names_every_registered_effect() -> None:
-    """The report's schema (docs/diagnose-report.schema.json, a contract) lists exactly the
-    registered effects: a new effect module is not done until its name is in it."""
+def test_the_hand_kept_lists_name_the_registry() -> None:
+    """The one check of every list outside the registry that names effects: the report's
+    schema (docs/diagnose-report.schema.json, a contract) lists exactly the registered
+    effects, in the catalogue's order; the scenario suite (evaluation/scenarios.yaml) has a
+    tolerance for every parameter of every effect; each calibrate example
+    (config/calibrate/*.yaml) hides registered effects by their parameters' names. A new
+    effect module is not done until these name it."""
     import json
+
+    from evaluation.scenarios import tolerance
+    from gateway.core.configtypes import read_yaml
 
     schema = json.loads((ROOT / "docs/diagnose-report.schema.json").read_text())
     enum = schema["properties"]["findings"]["items"]["properties"]["effect"]["enum"]
     assert enum == list(fx.EFFECT_NAMES)
-
-
-def test_the_scenario_suite_has_a_tolerance_for_every_parameter() -> None:
-    from evaluation.scenarios import tolerance
-
     for name, e in fx.REGISTRY.items():
         for p in e.param_names:
             assert tolerance(name, p) is not None, (name, p)
+    examples = sorted((ROOT / "config/calibrate").glob("*.yaml"))
+    assert examples
+    for path in examples:
+        hidden = read_yaml(path)["sim_plc"]["effects"]
+        for name, params in hidden.items():
+            assert name in fx.REGISTRY, (path.name, name)
+            assert set(params) <= set(fx.REGISTRY[name].param_names), (path.name, name)
