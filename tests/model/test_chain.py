@@ -484,9 +484,13 @@ def test_every_declared_column_reaches_the_kernels_where_they_read_it(cables, se
         ),
         backlash_m=chain.PLAY,
     )
-    assert sorted(read_at.values()) == list(range(len(chain.CABLE_COLUMNS)))
+    assert len(set(read_at.values())) == len(read_at)
     for name, col in read_at.items():
+        assert chain.CABLE_COLUMNS[col] == name
         assert_allclose(kp.cable[:, col], values[name], rtol=0, atol=0)
+    # the coefficient's growth with the load: per pulley 2 sin(wrap / 2) mu_load
+    growth = values["mu_load"][:, None] * 2.0 * np.sin(WRAPS / 2.0)
+    assert_allclose(kp.lam[:, :, chain.LOAD], growth, rtol=1e-15, atol=0)
 
 
 def test_a_column_follows_the_one_it_defaults_to_until_set() -> None:

@@ -131,6 +131,7 @@ from gateway.runtime.compensator import Compensator  # noqa: E402
 REPORT_NAMES = {
     "coulomb": {"mu": "1", "f0_n": "N"},
     "coulomb_directional": {"mu_out": "1", "mu_in": "1", "f0_n": "N"},
+    "coulomb_load": {"mu1_per_n": "1/N"},
     "presliding": {"sigma_n_m": "N/m"},
     "viscous": {"c_ns_m": "N s/m"},
     "stribeck": {"k": "1", "v_s_m_s": "m/s"},
@@ -157,6 +158,7 @@ def test_registry_holds_the_catalogue_with_report_names_and_units() -> None:
     assert set(fx.ONLINE_EFFECTS) == {
         "coulomb",
         "coulomb_directional",
+        "coulomb_load",
         "presliding",
         "viscous",
         "stribeck",
