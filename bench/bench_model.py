@@ -78,6 +78,7 @@ ALL_ONLINE: dict[str, EffectParams] = {
     "offset": {"c_n": (-0.7, 0.1, 0.2, 0.3, 0.0, 0.0, 0.1, 0.2)},
     "eccentricity": {"a_n": 0.4, "r_m": 0.03, "phi_rad": 0.7},
     "coulomb_directional": {"mu_out": 0.018, "mu_in": 0.022, "f0_n": 0.5},
+    "coulomb_load": {"mu1_per_n": 2e-5},
     "maxwell_slip": {"sigma_n_m": 4000.0, "w": 0.7},
     "cable_stretch": {"k_n_m": 3000.0},
     "backlash": {"width_m": 0.002},

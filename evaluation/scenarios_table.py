@@ -1,6 +1,7 @@
 """The scenario suites' tables in docs/diagnose-suite.md (``make suite-table``), and the
 sealed set's draw and seal: ``python -m evaluation.scenarios_table --table FILE``,
-``--seal SEED`` (draw the sealed file anew), ``--reseal REASON`` (record its hash).
+``--seal SEED`` (draw the sealed file anew), ``--twin NAME --seal SEED`` (append one
+tuning scenario's twin drawn alone), ``--reseal REASON`` (record its hash).
 
 Apart from :mod:`evaluation.scenarios` so that the suite does not import its own sealed
 draw (:mod:`evaluation.sealed_draw` builds on the suite).
@@ -34,8 +35,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", nargs="*", help="scenario names to run")
     parser.add_argument("--seal", type=int, metavar="SEED", help="draw SEALED_FILE anew")
     parser.add_argument("--reseal", metavar="REASON", help="record the sealed file's hash")
+    parser.add_argument(
+        "--twin",
+        metavar="NAME",
+        help="with --seal SEED: append the twin of tuning scenario NAME drawn alone from SEED",
+    )
     args = parser.parse_args(argv)
     doc = args.table or Path("docs/diagnose-suite.md")
+    if args.twin:
+        if args.seal is None:
+            parser.error("--twin needs --seal SEED")
+        case = sealed_draw.append(SEALED_FILE, args.twin, args.seal)
+        print(f"{SEALED_FILE}: appended {case['name']}; record it with --reseal REASON")
+        return 0
     if args.seal is not None:
         sealed_draw.write(SEALED_FILE, args.seal)
         print(f"{SEALED_FILE}: drawn from seed {args.seal}; record it with --reseal REASON")

@@ -13,7 +13,10 @@ the soft PLC's plant keeps the plant and draws its sizes and seed. Code that ser
 effect: no effect is named here.
 
 ``python -m evaluation.scenarios_table --seal SEED`` writes the file; a new draw is a reseal
-(:mod:`evaluation.sealing`): the doc records the new hash and why.
+(:mod:`evaluation.sealing`): the doc records the new hash and why. A scenario that joins the
+tuning suite later gets its twin alone (``--twin NAME --seal SEED``, :func:`append`): drawn
+by the same code from its own seed and appended, the other twins (and their published
+results) untouched; the reseal records it.
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ from gateway.diagnose.prepare import nominal_from
 from gateway.model import effects as fx
 
 Draw = dict[str, Any]
+APPENDED: tuple[tuple[str, int], ...] = (("coulomb_load", 2026112901),)
+"""The twins appended to the sealed file after its draw, in order: (tuning scenario, seed
+of :func:`twin`)."""
 
 
 def _value(
@@ -105,19 +111,33 @@ def _settings(sc: Scenario, rng: np.random.Generator, seed: int) -> Draw:
     return out
 
 
+def _twin(sc: Scenario, rng: np.random.Generator, seed: int) -> Draw:
+    """``sc``'s sealed twin with recording seed ``seed`` (module docstring)."""
+    settings = _settings(sc, rng, seed)
+    cables = 1 if settings.get("rig") else int(settings.get("cables", sc.cables))
+    case: Draw = {"name": f"sealed_{sc.name}"}
+    if sc.effects:
+        case["effects"] = effects_draw(sc, cables, rng)
+    return {**case, **settings}
+
+
+def _base(seed: int) -> int:
+    return seed % 997 * 10 + 1000  # far from the tuning seeds (and their +500, +1000)
+
+
 def draw(seed: int) -> list[Draw]:
     """The sealed twins of the tuning scenarios for ``seed`` (module docstring)."""
     rng = np.random.default_rng(seed)
-    base = seed % 997 * 10 + 1000  # far from the tuning seeds (and their +500, +1000)
-    cases = []
+    return [_twin(sc, rng, _base(seed) + k) for k, sc in enumerate(suite())]
+
+
+def twin(name: str, seed: int) -> Draw:
+    """The twin of the tuning scenario ``name`` drawn alone from ``seed`` (:func:`draw`'s
+    code; its recording seed is the one :func:`draw` of ``seed`` would give it)."""
     for k, sc in enumerate(suite()):
-        settings = _settings(sc, rng, base + k)
-        cables = 1 if settings.get("rig") else int(settings.get("cables", sc.cables))
-        case: Draw = {"name": f"sealed_{sc.name}"}
-        if sc.effects:
-            case["effects"] = effects_draw(sc, cables, rng)
-        cases.append({**case, **settings})
-    return cases
+        if sc.name == name:
+            return _twin(sc, np.random.default_rng(seed), _base(seed) + k)
+    raise KeyError(f"{SUITE_FILE.name}: no scenario {name!r}")
 
 
 def write(path: Path, seed: int) -> None:
@@ -130,8 +150,27 @@ def write(path: Path, seed: int) -> None:
         "quietly: docs/diagnose-suite.md records this file's SHA-256 (## Seals).\n"
         "scenarios:\n"
     )
-    body = "".join(
-        "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
-        for case in draw(seed)
-    )
+    body = "".join(_line(case) for case in draw(seed))
     path.write_text(header + body, encoding="utf-8")
+
+
+def _line(case: Draw) -> str:
+    return "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
+
+
+def append(path: Path, name: str, seed: int) -> Draw:
+    """Append the twin of the tuning scenario ``name`` drawn alone from ``seed``
+    (:func:`twin`) to the sealed file, the twins before it untouched; refused if the file
+    has it already."""
+    case = twin(name, seed)
+    with open(path, encoding="utf-8") as fh:
+        names = {c["name"] for c in yaml.safe_load(fh)["scenarios"]}
+    if case["name"] in names:
+        raise ValueError(f"{path}: already has {case['name']}")
+    note = (
+        f"# appended: the twin of {name} by `python -m evaluation.scenarios_table --twin "
+        f"{name} --seal {seed}`\n"
+    )
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(note + _line(case))
+    return case

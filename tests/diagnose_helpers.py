@@ -97,13 +97,15 @@ class Foreign:
 
 
 @njit(cache=True)
-def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01):  # pragma: no cover
+def _chain(tp, v, dt, wrap, mu, f0, sigma, dahl, sk=0.0, svs=0.01, mu1=0.0):  # pragma: no cover
     """:func:`_chain_directional` with the same coefficients in both directions."""
-    return _chain_directional(tp, v, dt, wrap, mu, mu, f0, sigma, dahl, sk, svs)
+    return _chain_directional(tp, v, dt, wrap, mu, mu, f0, sigma, dahl, sk, svs, mu1)
 
 
 @njit(cache=True)
-def _chain_directional(tp, v, dt, wrap, mu, mu_in, f0, sigma, dahl, sk, svs):  # pragma: no cover
+def _chain_directional(  # pragma: no cover
+    tp, v, dt, wrap, mu, mu_in, f0, sigma, dahl, sk, svs, mu1
+):
     """Sensor tension (N,) from platform tension and velocity; explicit Euler on x.
 
     ``mu`` are the pulleys' coefficients paying out (``v > 0``) and at rest, ``mu_in``
@@ -119,7 +121,12 @@ def _chain_directional(tp, v, dt, wrap, mu, mu_in, f0, sigma, dahl, sk, svs):  #
     per pulley (the load-independent ``f0`` is the cable's, shared by its ``p`` pulleys;
     its own tension drop raises ``F_N`` a little, which the model's ``lambda T + f0``
     leaves out: ~1 % of ``f0``, docs/physics.md);
-    without pulleys ``f0`` acts alone: ``- sgn(v) f0`` (a rig's seals and guides)."""
+    without pulleys ``f0`` acts alone: ``- sgn(v) f0`` (a rig's seals and guides).
+
+    ``mu1``: each pulley's coefficient grows with the load it carries, ``mu + mu1 |T|``
+    (``coulomb_load``, docs/physics.md sec. 4; ``T`` the pulley's platform-side tension),
+    that coefficient times the normal force as it stands, not the model's first order in
+    ``mu`` (so the two differ by O(mu), a few per cent of the growth)."""
     n, p = tp.size, wrap.size
     out = np.empty(n)
     if p == 0:
@@ -137,7 +144,7 @@ def _chain_directional(tp, v, dt, wrap, mu, mu_in, f0, sigma, dahl, sk, svs):  #
         for j in range(p - 1, -1, -1):
             tb = prev[j]
             fn = math.sqrt(max(tb * tb - 2.0 * tb * tj * math.cos(wrap[j]) + tj * tj, 0.0))
-            mu_j = mu_in[j] if s < 0 else mu[j]
+            mu_j = (mu_in[j] if s < 0 else mu[j]) + mu1 * abs(tj)
             fr = (mu_j * fn + f0) * (1.0 + sk * math.exp(-((v[k] / svs) ** 2)))
             if dahl:
                 if fr > 0:
@@ -162,7 +169,9 @@ DRIVE_EFFECTS = ("maxwell_slip", "cable_stretch", "backlash")
 
 
 @njit(cache=True)
-def _chain_drive(tp, v, dt, wrap, mu, f0, sigma, w1, k_inv, width, sk, svs):  # pragma: no cover
+def _chain_drive(  # pragma: no cover
+    tp, v, dt, wrap, mu, f0, sigma, w1, k_inv, width, sk, svs, mu1
+):
     """Sensor tension (N,) of a presliding chain whose state may have two elements
     (Maxwell-slip), a stretching cable and a dead zone in its drive, written from
     docs/physics.md sec. 3 and 4 (not from :mod:`gateway.model`), explicit Euler like
@@ -177,7 +186,8 @@ def _chain_drive(tp, v, dt, wrap, mu, f0, sigma, w1, k_inv, width, sk, svs):  # 
       travel while ``|g + dx| <= b / 2`` and the drive stands; beyond, the drive is
       ``(g + dx - b/2) / (1 + S / k)`` (or ``+ b/2``) and ``g`` sits at the edge.
 
-    Levels ``(mu F_N + f0 / p) (1 + sk exp(-(v/svs)^2))`` from the law of cosines on the
+    Levels ``((mu + mu1 |T|) F_N + f0 / p) (1 + sk exp(-(v/svs)^2))`` (as :func:`_chain`'s)
+    from the law of cosines on the
     previous step's sensor-side tension of each pulley and its platform side this step
     (the friction of the pulleys nearer the platform from the previous step)."""
     n, p = tp.size, wrap.size
@@ -196,7 +206,7 @@ def _chain_drive(tp, v, dt, wrap, mu, f0, sigma, w1, k_inv, width, sk, svs):  # 
         for j in range(p - 1, -1, -1):  # levels, platform to sensor
             tb = prev[j]
             fn = math.sqrt(max(tb * tb - 2.0 * tb * tj * math.cos(wrap[j]) + tj * tj, 0.0))
-            fr[j] = (mu[j] * fn + f0) * strib
+            fr[j] = ((mu[j] + mu1 * abs(tj)) * fn + f0) * strib
             tj = tj - (f[j, 0] + f[j, 1])
         dx = v[k] * dt
         big = 0.0
@@ -252,6 +262,7 @@ def _drive_chain(fo: Foreign, tn, v, wrap, mu, f0, sigma, st) -> np.ndarray:
         e.get("backlash", {}).get("width_m", 0.0),
         st["k"],
         st["v_s_m_s"],
+        fo.effects.get("coulomb_load", {}).get("mu1_per_n", 0.0),
     )
 
 
@@ -401,6 +412,7 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
         mu, mu_in = (
             mu * directional.get(name, mu.mean()) / mu.mean() for name in ("mu_out", "mu_in")
         )
+    mu1 = fo.effects.get("coulomb_load", {}).get("mu1_per_n", 0.0)
     sigma = fo.effects.get("presliding", {}).get("sigma_n_m", fo.sigma_n_m)
     dahl = fo.model == "dahl" or "presliding" in fo.effects
     for i in range(1, fo.cables + 1):
@@ -413,7 +425,18 @@ def generate(fo: Foreign) -> dict[str, np.ndarray]:
             ts = _drive_chain(fo, tn, v, wrap, mu, f0, sigma, st)
         else:
             ts = _chain_directional(
-                tn, v, 1.0 / fo.fine_hz, wrap, mu, mu_in, f0, sigma, dahl, st["k"], st["v_s_m_s"]
+                tn,
+                v,
+                1.0 / fo.fine_hz,
+                wrap,
+                mu,
+                mu_in,
+                f0,
+                sigma,
+                dahl,
+                st["k"],
+                st["v_s_m_s"],
+                mu1,
             )
         ts = _effects(fo, fine, v, x, ts)
         sens = np.interp(ts_out, fine, ts) + _noise(fo, ts_out, rng)

@@ -376,8 +376,19 @@ def main() -> None:
     ap.add_argument("-k", default="", help="only cases whose name contains this")
     ap.add_argument("--seal", type=int, metavar="SEED", help="draw the sealed file anew")
     ap.add_argument("--reseal", metavar="REASON", help="record the sealed file's hash")
+    ap.add_argument(
+        "--append",
+        metavar="EFFECT",
+        help="with --seal SEED: append one case of EFFECT drawn alone from SEED",
+    )
     args = ap.parse_args()
     doc = args.table or Path("docs/diagnose-suite.md")
+    if args.append:
+        if args.seal is None:
+            ap.error("--append needs --seal SEED")
+        case = foreign_sealed.append(foreign_sealed.SEALED_FILE, args.append, args.seal)
+        print(f"{foreign_sealed.SEALED_FILE}: appended {case['name']}; --reseal REASON")
+        return
     if args.seal is not None:
         foreign_sealed.write(foreign_sealed.SEALED_FILE, args.seal)
         print(f"{foreign_sealed.SEALED_FILE}: drawn from seed {args.seal}; --reseal REASON")

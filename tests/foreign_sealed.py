@@ -14,7 +14,10 @@ so a phase or a length has another zero. Maxwell-slip, backlash and cable stretc
 drawn on the Dahl chain (they act on its presliding state).
 
 ``python -m tests.foreign_cases --seal SEED`` writes the file; a new draw is a reseal
-(:mod:`evaluation.sealing`).
+(:mod:`evaluation.sealing`). An effect that joins the catalogue later gets one case of its
+own, appended (``--append EFFECT --seal SEED``, :func:`append`) from its own seed by the
+same draw code, so the cases drawn before, and their published results, stay as they were:
+the file is :func:`draw` of :data:`FIRST_SEED` followed by :data:`APPENDED`.
 """
 
 from __future__ import annotations
@@ -52,6 +55,10 @@ TRAVEL_DRIVEN = ("maxwell_slip", "backlash", "cable_stretch")
 """Effects on the presliding state the travel drives: drawn on a Dahl chain (the nominal
 a Coulomb chain has no such state for them to act on, docs/physics.md sec. 4)."""
 PAIRS = (("viscous", "offset"), ("coulomb", "gain"), ("lowpass", "drift"), ("inertia", "viscous"))
+FIRST_SEED = 20261127
+"""The seed of :func:`draw` the file's first cases come from."""
+APPENDED: tuple[tuple[tuple[str, ...], int], ...] = ((("coulomb_load",), 2026112901),)
+"""The cases appended after the first draw, in order: (effects, seed of :func:`draw_case`)."""
 
 
 def _size(rng: np.random.Generator) -> float:
@@ -92,6 +99,7 @@ def _effect(name: str, rng: np.random.Generator, mu_mean: float) -> dict[str, fl
             "tau_s": r(0.4 * _size(rng)),
         },
         "spring": lambda: {"k_n_m": r(4.0 * _size(rng)), "l0_m": r(rng.uniform(-0.3, 0.3))},
+        "coulomb_load": lambda: {"mu1_per_n": r(2e-5 * _size(rng))},
     }
     return draws[name]()
 
@@ -147,27 +155,52 @@ def _truth(effects: dict[str, dict[str, float]], mu_mean: float) -> dict[str, di
     return out
 
 
+def _case(rng: np.random.Generator, seed: int, combo: tuple[str, ...], name: str) -> dict:
+    """One case: a machine of recording seed ``seed`` with ``combo``'s effects."""
+    fo = _machine(rng, seed)
+    mu_mean = float(np.mean([p[1] for p in fo["pulleys"]]))
+    effects = {e: _effect(e, rng, mu_mean) for e in combo}
+    if "presliding" in effects:
+        fo["model"] = "coulomb"  # the nominal model knows no pre-sliding state
+    if any(e in effects for e in TRAVEL_DRIVEN):
+        fo["model"] = "dahl"
+    if effects:
+        fo["effects"] = effects
+    return {"name": name, "foreign": fo, "truth": _truth(effects, mu_mean)}
+
+
+def _seeds(seed: int) -> range:
+    return range(seed % 991 * 10 + 3000, seed % 991 * 10 + 4000)
+
+
 def draw(seed: int) -> list[dict[str, Any]]:
     """The sealed foreign cases of ``seed`` (module docstring)."""
     rng = np.random.default_rng(seed)
-    seeds = iter(range(seed % 991 * 10 + 3000, seed % 991 * 10 + 4000))
+    seeds = iter(_seeds(seed))
     combos = [(e,) for e in SINGLE] + list(PAIRS) + [()] * 4
     cases = []
     for k, combo in enumerate(combos):
-        fo = _machine(rng, next(seeds))
-        mu_mean = float(np.mean([p[1] for p in fo["pulleys"]]))
-        effects = {e: _effect(e, rng, mu_mean) for e in combo}
-        if "presliding" in effects:
-            fo["model"] = "coulomb"  # the nominal model knows no pre-sliding state
-        if any(e in effects for e in TRAVEL_DRIVEN):
-            fo["model"] = "dahl"
-        if effects:
-            fo["effects"] = effects
         name = "sealed_" + (
             "+".join(combo) if combo else f"clean_{k - len(SINGLE) - len(PAIRS) + 1}"
         )
-        cases.append({"name": name, "foreign": fo, "truth": _truth(effects, mu_mean)})
+        cases.append(_case(rng, next(seeds), combo, name))
     return cases
+
+
+def draw_case(combo: tuple[str, ...], seed: int) -> dict[str, Any]:
+    """One case of ``combo``'s effects drawn alone from ``seed`` (:func:`draw`'s code: the
+    machine, the sizes, the truth), for an effect that joins the catalogue later."""
+    rng = np.random.default_rng(seed)
+    return _case(rng, _seeds(seed)[0], combo, "sealed_" + "+".join(combo))
+
+
+def expected(first_seed: int = FIRST_SEED) -> list[dict[str, Any]]:
+    """The file's cases as the draw code gives them: the first draw, then the appended."""
+    return draw(first_seed) + [draw_case(combo, seed) for combo, seed in APPENDED]
+
+
+def _line(case: dict[str, Any]) -> str:
+    return "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
 
 
 def write(path: Path, seed: int) -> None:
@@ -177,11 +210,24 @@ def write(path: Path, seed: int) -> None:
         "be edited or redrawn\n# quietly: docs/diagnose-suite.md records this file's SHA-256 "
         "(## Seals).\ncases:\n"
     )
-    body = "".join(
-        "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
-        for case in draw(seed)
-    )
+    body = "".join(_line(case) for case in draw(seed))
     path.write_text(header + body, encoding="utf-8")
+
+
+def append(path: Path, effect: str, seed: int) -> dict[str, Any]:
+    """Append one case of ``effect`` drawn alone from ``seed`` (:func:`draw_case`), the
+    cases before it untouched; refused if the file has a case of that name. List
+    ``((effect,), seed)`` in :data:`APPENDED` so that :func:`expected` gives the file."""
+    case = draw_case((effect,), seed)
+    if case["name"] in {c["name"] for c in load(path)}:
+        raise ValueError(f"{path}: already has a case {case['name']}")
+    note = (
+        f"# appended: one case of {effect} by `python -m tests.foreign_cases --append "
+        f"{effect} --seal {seed}`\n"
+    )
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(note + _line(case))
+    return case
 
 
 def load(path: Path = SEALED_FILE) -> list[dict[str, Any]]:

@@ -14,7 +14,9 @@ Per pulley ``T_j = T_{j-1} + F_j`` where ``F_j`` is
   step is homogeneous in level and stiffness), so ``F_j`` is linear in the fractions,
 * ``none``: 0,
 
-with the Coulomb level ``F_Rj = (lambda_ij(s) |T_j| + f0_i / n) S_i(v)`` (physics.md:
+with the Coulomb level ``F_Rj = ((lambda_ij(s) + g_j mu1_i |T_j|) |T_j| + f0_i / n) S_i(v)``
+(:func:`_level`; ``g_j mu1_i``: the coefficient's growth with the load, ``coulomb_load``;
+physics.md:
 ``F_Rj = lambda_j T_j``, the level the Dahl state tends to): ``lambda_ij(s)`` is taken at
 the exact per-direction Coulomb ratio ``n_j(s)`` (eq. 11, 12 solved as a quadratic, see
 :func:`coulomb_coefficients`), so at steady sliding Dahl equals Coulomb exactly; ``f0`` is
@@ -57,7 +59,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -76,127 +78,160 @@ LAW_SLIP = LAWS["maxwell_slip"]
 ModelName = Literal["none", "coulomb", "dahl", "maxwell_slip"]
 
 
-def _per_cable(value: float | np.ndarray, cables: int, name: str) -> np.ndarray:
+Shape = Literal["cable", "pulley", "element"]
+"""A column's values per cable: one number (``cable``, (m,)), one per pulley (``pulley``,
+(m, n)) or one per Maxwell-slip element (``element``, (m, K))."""
+
+
+@dataclass(frozen=True)
+class Column:
+    """One per-cable parameter of the chain, declared once (:data:`COLUMNS`).
+
+    ``default``: its value on a chain without the effect that sets it (the neutral value), or
+    the name of the column whose value it takes then (``mu_in`` is ``mu``); ``owner``: the
+    effect that sets it (its module), or ``nominal`` when the configured friction gives it
+    (an attribute of the same name; effects may still change it); ``low`` / ``low_open``:
+    what the chain admits."""
+
+    name: str
+    shape: Shape
+    unit: str
+    default: float | str
+    owner: str
+    doc: str
+    low: float = -math.inf
+    low_open: bool = False
+
+    def check(self, value: np.ndarray) -> None:
+        if (self.low_open and np.any(value <= self.low)) or np.any(value < self.low):
+            raise ValueError(f"{self.name} must be {'>' if self.low_open else '>='} {self.low:g}")
+
+
+COLUMNS: tuple[Column, ...] = (
+    Column("mu", "pulley", "1", math.nan, "nominal", "bearing coefficient paying out (v > 0)"),
+    Column("mu_in", "pulley", "1", "mu", "coulomb_directional", "bearing coefficient hauling in"),
+    Column("sigma_n_m", "cable", "N/m", 500.0, "nominal", "presliding stiffness"),
+    Column("viscous_ns_m", "cable", "N s/m", 0.0, "nominal", "viscous coefficient"),
+    Column("f0_n", "cable", "N", 0.0, "coulomb", "load-independent Coulomb level of the chain"),
+    Column("mu_load", "cable", "1/N", 0.0, "coulomb_load", "growth of mu with the tension", 0.0),
+    Column("stribeck_k", "cable", "1", 0.0, "stribeck", "Stribeck excess at standstill"),
+    Column("stribeck_v_m_s", "cable", "m/s", 0.01, "stribeck", "Stribeck speed", 0.0, True),
+    Column("slip_w", "element", "1", 1.0, "maxwell_slip", "element fractions of the level"),
+    Column(
+        "slip_sigma", "element", "N/m", "sigma_n_m", "maxwell_slip", "element stiffness", 0.0, True
+    ),
+    Column("stretch_c", "cable", "m/N", 0.0, "cable_stretch", "compliance winch-pulleys", 0.0),
+    Column("backlash_m", "cable", "m", 0.0, "backlash", "dead zone of the travel", 0.0),
+)
+"""The chain's per-cable parameters: :class:`ChainParams`' columns, :class:`ChainDraft`'s,
+the keywords of :meth:`ChainParams.build` and (``cable`` ones) the columns of
+:attr:`KernelParams.cable` are these, in this order."""
+COLUMN = {c.name: c for c in COLUMNS}
+CABLE_COLUMNS = tuple(c.name for c in COLUMNS if c.shape == "cable")
+"""The columns of :attr:`KernelParams.cable`, in order."""
+F0, STRIB_K, STRIB_V, VISCOUS, SIGMA, STRETCH, PLAY = (
+    CABLE_COLUMNS.index(n)
+    for n in (
+        "f0_n",
+        "stribeck_k",
+        "stribeck_v_m_s",
+        "viscous_ns_m",
+        "sigma_n_m",
+        "stretch_c",
+        "backlash_m",
+    )
+)
+"""Where the kernels read each ``cable`` column (numba takes them as constants)."""
+
+ArrayLike = float | np.ndarray | tuple[float, ...]
+
+
+def _shaped(col: Column, value: ArrayLike, cables: int, width: int) -> np.ndarray:
+    """``value`` as ``col``'s (m,) or (m, width) array: a scalar, one value per pulley or
+    element (width,), or the whole array; a (m,) column's value stands for every pulley or
+    element of its cable when it is another column's default."""
     arr = np.asarray(value, dtype=float)
-    if arr.ndim == 0:
-        return np.full(cables, float(arr))
-    if arr.shape != (cables,):
-        raise ValueError(f"{name}: expected a scalar or shape ({cables},), got {arr.shape}")
-    return arr.copy()
+    if col.shape == "cable":
+        if arr.ndim == 0:
+            return np.full(cables, float(arr))
+        if arr.shape != (cables,):
+            raise ValueError(f"{col.name}: expected a scalar or shape ({cables},), got {arr.shape}")
+        return arr.copy()
+    shape = (cables, width)
+    try:
+        return np.broadcast_to(arr, shape).copy()
+    except ValueError:
+        raise ValueError(
+            f"{col.name}: expected a scalar, ({width},) or {shape}, got {arr.shape}"
+        ) from None
 
 
 @dataclass(frozen=True, eq=False)
 class ChainParams:
     """Friction parameters of ``m`` cable chains of ``n`` pulleys each.
 
-    ``model``: the friction law (a key of :data:`LAWS`). Arrays: ``wrap_rad`` (n,);
-    ``mu`` (m, n) the bearing coefficient paying out (v > 0), ``mu_in`` (m, n) hauling in
-    (v < 0; the same as ``mu`` unless a direction-dependent effect sets it);
-    ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,).
-    ``beta``: Dahl shape exponent. ``slip_w``, ``slip_sigma`` (m, K): the Maxwell-slip
-    elements' fractions of the level (summing to 1 per cable; a fraction outside [0, 1]
-    is the linear extension a fit's finite difference may step to) and stiffnesses per
-    unit fraction (N/m; read by ``maxwell_slip`` only; default one element, ``w = 1``,
-    ``sigma_n_m``).
-    ``stretch_c`` (m,): compliance (m/N) of the cable between winch and sensor pulley (0:
-    rigid); ``backlash_m`` (m,): width of the dead zone in the travel (0: none).
+    ``model``: the friction law (a key of :data:`LAWS`); ``wrap_rad`` (n,); ``beta``: Dahl
+    shape exponent; ``columns``: every :data:`COLUMNS` entry by name, read as attributes
+    (``params.mu``): ``mu``, ``mu_in`` (m, n) the bearing coefficients paying out (v > 0) and
+    hauling in (v < 0); ``slip_w``, ``slip_sigma`` (m, K) the Maxwell-slip elements'
+    fractions of the level (summing to 1 per cable; a fraction outside [0, 1] is the linear
+    extension a fit's finite difference may step to) and stiffnesses per unit fraction
+    (read by ``maxwell_slip`` only; default one element, ``w = 1``, ``sigma_n_m``); the
+    others (m,) (:data:`COLUMNS` says what each is).
     """
 
     model: ModelName
     wrap_rad: np.ndarray
-    mu: np.ndarray
-    sigma_n_m: np.ndarray
-    beta: float = 1.0
-    f0_n: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    stribeck_k: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    stribeck_v_m_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    viscous_ns_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    mu_in: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    slip_w: np.ndarray = field(default_factory=lambda: np.ones((0, 1)))
-    slip_sigma: np.ndarray = field(default_factory=lambda: np.ones((0, 1)))
-    stretch_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    backlash_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    beta: float
+    columns: dict[str, np.ndarray]
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        if name in COLUMN:
+            return self.columns[name]
+        raise AttributeError(name)
 
     @staticmethod
     def build(
         model: ModelName,
         cables: int,
         wrap_rad: np.ndarray | tuple[float, ...],
-        mu: float | np.ndarray | tuple[float, ...],
+        mu: ArrayLike,
         *,
-        mu_in: float | np.ndarray | tuple[float, ...] | None = None,
-        sigma_n_m: float | np.ndarray = 500.0,
         beta: float = 1.0,
-        f0_n: float | np.ndarray = 0.0,
-        stribeck_k: float | np.ndarray = 0.0,
-        stribeck_v_m_s: float | np.ndarray = 0.01,
-        viscous_ns_m: float | np.ndarray = 0.0,
-        slip_w: np.ndarray | None = None,
-        slip_sigma: np.ndarray | None = None,
-        stretch_c: float | np.ndarray = 0.0,
-        backlash_m: float | np.ndarray = 0.0,
+        **columns: ArrayLike | None,
     ) -> ChainParams:
-        """Broadcast scalars and per-pulley (n,) or per-cable-per-pulley (m, n) ``mu``
-        (``mu_in`` None: the same as ``mu``); ``slip_w``, ``slip_sigma`` (K,) or (m, K)
-        (None: one element, ``w = 1`` at ``sigma_n_m``)."""
+        """Each column of :data:`COLUMNS` from ``mu`` and ``columns`` (None or absent: its
+        default): a scalar, per pulley (n,) or per element (K,), or the whole array."""
         if model not in LAWS:
             raise ValueError(f"model must be one of {sorted(LAWS)}, got {model!r}")
+        unknown = sorted(set(columns) - set(COLUMN))
+        if unknown:
+            raise ValueError(f"unknown chain parameter(s) {unknown} (known: {sorted(COLUMN)})")
+        given = {**columns, "mu": mu}
         wrap = np.asarray(wrap_rad, dtype=float).reshape(-1)
-        shape = (cables, wrap.size)
-        mu_arr = np.broadcast_to(np.asarray(mu, dtype=float), shape).copy()
-        mu_in_arr = (
-            mu_arr.copy()
-            if mu_in is None
-            else np.broadcast_to(np.asarray(mu_in, dtype=float), shape).copy()
-        )
-        vs = _per_cable(stribeck_v_m_s, cables, "stribeck_v_m_s")
-        if np.any(vs <= 0):
-            raise ValueError("stribeck_v_m_s must be > 0")
-        sigma = _per_cable(sigma_n_m, cables, "sigma_n_m")
-        w = np.ones((cables, 1)) if slip_w is None else np.asarray(slip_w, dtype=float)
-        w = np.broadcast_to(w, (cables, w.shape[-1])).copy()
-        ks = (
-            sigma[:, None].copy()
-            if slip_sigma is None
-            else np.broadcast_to(np.asarray(slip_sigma, dtype=float), w.shape).copy()
-        )
-        if np.any(np.abs(w.sum(axis=1) - 1.0) > 1e-9) or np.any(ks <= 0):
-            raise ValueError("slip_w: fractions summing to 1; slip_sigma: > 0")
-        stretch = _per_cable(stretch_c, cables, "stretch_c")
-        play = _per_cable(backlash_m, cables, "backlash_m")
-        if np.any(stretch < 0) or np.any(play < 0):
-            raise ValueError("stretch_c and backlash_m must be >= 0")
-        return ChainParams(
-            model=model,
-            wrap_rad=wrap,
-            mu=mu_arr,
-            mu_in=mu_in_arr,
-            sigma_n_m=sigma,
-            beta=float(beta),
-            f0_n=_per_cable(f0_n, cables, "f0_n"),
-            stribeck_k=_per_cable(stribeck_k, cables, "stribeck_k"),
-            stribeck_v_m_s=vs,
-            viscous_ns_m=_per_cable(viscous_ns_m, cables, "viscous_ns_m"),
-            slip_w=w,
-            slip_sigma=ks,
-            stretch_c=stretch,
-            backlash_m=play,
-        )
+        slip_w = np.asarray(1.0 if given.get("slip_w") is None else given["slip_w"], dtype=float)
+        width = {"pulley": wrap.size, "element": slip_w.shape[-1] if slip_w.ndim else 1}
+        out: dict[str, np.ndarray] = {}
+        for col in COLUMNS:
+            raw = given.get(col.name)
+            if raw is None and isinstance(col.default, str):
+                source = out[col.default]
+                raw = source[:, None] if source.ndim == 1 and col.shape != "cable" else source
+            elif raw is None:
+                raw = float(col.default)
+            value = _shaped(col, raw, cables, width.get(col.shape, 0))
+            col.check(value)
+            out[col.name] = value
+        if np.any(np.abs(out["slip_w"].sum(axis=1) - 1.0) > 1e-9):
+            raise ValueError("slip_w: fractions summing to 1")
+        return ChainParams(model=model, wrap_rad=wrap, beta=float(beta), columns=out)
 
     @staticmethod
     def from_friction(friction: object, cables: int) -> ChainParams:
         """The nominal chain of a :class:`gateway.core.config.FrictionConfig` (same for every
         cable), without its fitted ``effects``: for those use
         :func:`gateway.model.effects.chain_params`."""
-        return ChainParams.build(
-            model=friction.model,  # type: ignore[attr-defined]
-            cables=cables,
-            wrap_rad=np.asarray(friction.wrap_rad),  # type: ignore[attr-defined]
-            mu=np.asarray(friction.mu),  # type: ignore[attr-defined]
-            sigma_n_m=friction.sigma_n_m,  # type: ignore[attr-defined]
-            beta=friction.beta,  # type: ignore[attr-defined]
-            viscous_ns_m=friction.viscous_ns_m,  # type: ignore[attr-defined]
-        )
+        return ChainDraft.nominal(friction, cables).params()
 
     def with_model(self, model: ModelName) -> ChainParams:
         return replace(self, model=model)
@@ -215,6 +250,70 @@ class ChainParams:
         return int(self.slip_w.shape[1]) if LAWS[self.model] == LAW_SLIP else 1
 
 
+class ChainDraft:
+    """The friction chain of ``m`` cables while the chain-side effects edit it
+    (:meth:`gateway.model.effects.base.Effect.apply_chain`), then :meth:`params`.
+
+    ``law`` (a key of :data:`LAWS`), ``wrap_rad``, ``beta`` and every column of
+    :data:`COLUMNS` as an attribute (``draft.stribeck_k``), each a whole array. A column
+    whose default is another column's (``slip_sigma``: ``sigma_n_m``) follows that column
+    until it is set itself.
+    """
+
+    law: str
+    wrap_rad: np.ndarray
+    beta: float
+    _columns: dict[str, np.ndarray]
+    _set: set[str]
+
+    def __init__(self, law: str, wrap_rad: np.ndarray, beta: float, columns: dict[str, np.ndarray]):
+        object.__setattr__(self, "_columns", columns)
+        object.__setattr__(self, "_set", set())
+        self.law, self.wrap_rad, self.beta = law, wrap_rad, beta
+
+    @staticmethod
+    def nominal(nom: object, cables: int) -> ChainDraft:
+        """The nominal chain (a :class:`gateway.model.effects.base.NominalChain`: the
+        ``nominal`` columns its attributes of the same names), every other column at its
+        default."""
+        given = {c.name: getattr(nom, c.name) for c in COLUMNS if c.owner == "nominal"}
+        model = nom.model  # type: ignore[attr-defined]
+        p = ChainParams.build(model, cables, nom.wrap_rad, **given)  # type: ignore[attr-defined]
+        return ChainDraft(model, p.wrap_rad, float(nom.beta), dict(p.columns))  # type: ignore[attr-defined]
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        if name in COLUMN:
+            return self._columns[name]
+        raise AttributeError(name)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if name not in COLUMN:
+            object.__setattr__(self, name, value)
+            return
+        self._set.add(name)
+        arr = np.asarray(value, dtype=float)
+        self._columns[name] = arr
+        for col in COLUMNS:  # a column that follows this one, unless set itself
+            if col.default == name and col.name not in self._set:
+                self._columns[col.name] = arr[:, None].copy() if arr.ndim == 1 else arr.copy()
+
+    def needs_friction(self) -> None:
+        """A friction effect on a frictionless nominal chain switches it to Coulomb."""
+        if self.law == "none":
+            self.law = "coulomb"
+
+    def params(self) -> ChainParams:
+        """The chain's parameters (validated)."""
+        cables = int(self._columns["mu"].shape[0])
+        return ChainParams.build(
+            self.law,  # type: ignore[arg-type]
+            cables,
+            self.wrap_rad,
+            beta=self.beta,
+            **self._columns,
+        )
+
+
 _NEWTON_CURVATURE = 1.0
 """Bound, in 1/N, on |g''/(2 g')| for the pulley equation g(T) = T - T_a - F(T): F depends on
 T only through F_R = lambda S |T| (+ f0), so g'' carries (lambda S)^2 ~ 1e-3 times the
@@ -223,24 +322,25 @@ Newton's next correction is at most this times step^2, so a pass whose correctio
 step^2 * bound <= tol leaves an error below tol: no confirming pass is needed."""
 
 
-F0, STRIB_K, STRIB_V, VISCOUS, SIGMA, STRETCH, PLAY = range(7)
-"""Columns of :attr:`KernelParams.cable`."""
+POS, NEG, LOAD = 0, 1, 2
+"""The planes of :attr:`KernelParams.lam`."""
 
 
 class KernelParams(NamedTuple):
     """What the compiled kernels read, as one numba-compatible structure.
 
-    ``lam_pos``, ``lam_neg`` (m, n): Coulomb coefficients for v > 0 and v < 0; ``cable``
-    (m, 7): per cable ``f0``, the Stribeck ``k`` and ``v_s``, ``viscous``, ``sigma``, the
-    stretch compliance ``c`` (m/N) and the backlash width (m) (columns :data:`F0` ..
-    :data:`PLAY`; one array: every array of the structure costs unboxing time per call);
+    ``lam`` (m, n, 3): per pulley the Coulomb coefficients for v > 0 and v < 0 and their
+    growth with the tension ``2 sin(wrap / 2) mu_load`` (1/N) (planes :data:`POS`,
+    :data:`NEG`, :data:`LOAD`; read by :func:`_level` only); ``cable``
+    (m, C): the ``cable`` columns of :data:`COLUMNS` (:data:`CABLE_COLUMNS`, read at
+    :data:`F0` .. :data:`PLAY`; one array: every array of the structure costs unboxing
+    time per call);
     ``slip`` (m, K, 2): per Maxwell-slip element its fraction ``w`` and stiffness per unit
     fraction; ``beta``; ``law`` (:data:`LAWS`); Newton's ``tol`` (N^2 on the squared step)
     and ``max_iter``.
     """
 
-    lam_pos: np.ndarray
-    lam_neg: np.ndarray
+    lam: np.ndarray
     cable: np.ndarray
     slip: np.ndarray
     beta: float
@@ -251,25 +351,15 @@ class KernelParams(NamedTuple):
 
 def kernel_params(params: ChainParams, tol_n: float = 1e-10, max_iter: int = 20) -> KernelParams:
     """The kernels' view of ``params`` (Coulomb coefficients solved once here)."""
-    lam_pos, lam_neg = coulomb_coefficients(params)
-    cable = np.column_stack(
-        [
-            params.f0_n,
-            params.stribeck_k,
-            params.stribeck_v_m_s,
-            params.viscous_ns_m,
-            params.sigma_n_m,
-            params.stretch_c,
-            params.backlash_m,
-        ]
-    )
+    load = params.mu_load[:, None] * 2.0 * np.sin(0.5 * params.wrap_rad)  # d lambda / d mu
+    lam = np.stack([*coulomb_coefficients(params), load], axis=2)
+    cable = np.column_stack([params.columns[n] for n in CABLE_COLUMNS])
     if params.elements > 1 or LAWS[params.model] == LAW_SLIP:
         slip = np.stack([params.slip_w, params.slip_sigma], axis=2)
     else:  # one element: the Dahl state (w = 1, sigma)
         slip = np.stack([np.ones(params.cables), params.sigma_n_m], axis=1)[:, None, :]
     return KernelParams(
-        lam_pos=lam_pos,
-        lam_neg=lam_neg,
+        lam=np.ascontiguousarray(lam),
         cable=np.ascontiguousarray(cable),
         slip=np.ascontiguousarray(slip),
         beta=float(params.beta),
@@ -312,6 +402,17 @@ class ChainState(NamedTuple):
 
 
 @njit(cache=True, inline="always")
+def _level(p, i, j, t_b, dx, strib):
+    """The Coulomb level ``F_R`` of pulley ``j`` of cable ``i`` whose platform-side tension
+    is ``t_b``, moving in the direction of ``dx`` (not 0), and ``dF_R / dt_b``: the chain's
+    law of the level, written once (module docstring)."""
+    lam = p.lam[i, j, POS] if dx > 0.0 else p.lam[i, j, NEG]
+    growth = p.lam[i, j, LOAD] * abs(t_b)  # coulomb_load: mu + mu1 |T|, to first order
+    fr = ((lam + growth) * abs(t_b) + p.cable[i, F0] / p.lam.shape[1]) * strib
+    return fr, (lam + 2.0 * growth) * strib * (1.0 if t_b >= 0.0 else -1.0)
+
+
+@njit(cache=True, inline="always")
 def _pulley(p, i, j, t_b, f_old, dx, strib):
     """Friction force of pulley ``j`` of cable ``i`` whose platform-side tension is
     ``t_b``, and dF/dt_b, by the chain's law (:data:`LAWS`; ``maxwell_slip``:
@@ -323,9 +424,7 @@ def _pulley(p, i, j, t_b, f_old, dx, strib):
     if dx == 0.0:
         return (0.0 if law == LAW_COULOMB else f_old), 0.0
     s = 1.0 if dx > 0.0 else -1.0
-    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
-    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
-    dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    fr, dfr = _level(p, i, j, t_b, dx, strib)
     if law == LAW_COULOMB:
         return s * fr, s * dfr
     # LAW_DAHL
@@ -377,9 +476,7 @@ def _elements(p, i, j, t_b, f, dx, strib, store):
             total += p.slip[i, q, 0] * f[i, j, q]
         return total, 0.0, 0.0
     s = 1.0 if dx > 0.0 else -1.0
-    lam = p.lam_pos[i, j] if dx > 0.0 else p.lam_neg[i, j]
-    fr = (lam * abs(t_b) + p.cable[i, F0] / p.lam_pos.shape[1]) * strib
-    dfr = lam * strib * (1.0 if t_b >= 0.0 else -1.0)
+    fr, dfr = _level(p, i, j, t_b, dx, strib)
     if fr <= FR_FLOOR_N:
         if store:
             for q in range(k_el):
@@ -468,7 +565,7 @@ def _through(p, st, i, forward, t_known, v, strib, d_raw, store):
     trial), go back there (:func:`_elements`). Returns the other end's tension, the
     pulleys' friction ``F = sum_j F_j``, ``dF / d(d_raw)`` at fixed tensions, and the most
     Newton passes."""
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     d = d_raw
     moving = 1.0
     if p.cable[i, PLAY] != 0.0:
@@ -610,7 +707,7 @@ def _simulate_rigid(p, t_in, vel, dx_all, st, out):
     """:func:`simulate_kernel` for a :func:`_rigid` chain (the general path's explicit
     case, without its per-sample solve)."""
     n_samples, m = t_in.shape
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     f_state = st.f
     for k in range(n_samples):
         for i in range(m):
@@ -643,7 +740,7 @@ def _plain(p):
 def _compensate_plain(p, t_in, vel, dx_all, f_state, out):
     """:func:`compensate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     worst = 0
     for k in range(n_samples):
         for i in range(m):
@@ -697,7 +794,7 @@ def compensate_kernel(p, t_in, vel, dx_all, st, out):
 def _simulate_plain(p, t_in, vel, dx_all, f_state, out):
     """:func:`simulate_kernel` for a :func:`_plain` chain, ``f_state`` (m, n)."""
     n_samples, m = t_in.shape
-    n = p.lam_pos.shape[1]
+    n = p.lam.shape[1]
     for k in range(n_samples):
         for i in range(m):
             v = vel[k, i]

@@ -70,7 +70,7 @@ import math
 import numpy as np
 
 from gateway.core.config import SPACING_TOLERANCE
-from gateway.model.chain import ChainParams, coulomb_coefficients
+from gateway.model.chain import LOAD, ChainParams, coulomb_coefficients, kernel_params
 
 PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples
 SPACING_OUTLIER = 3.0  # a spacing this far off the average is a hold or a stall, not data
@@ -260,8 +260,9 @@ def warm_travel_m(params: ChainParams, range_n: float, tol_n: float = WARM_TOL_N
     """Cable travel (m) after which a resynchronised chain's state is within ``tol_n`` of
     any other start, per cable: ``X = (F_R / sigma) g`` with ``F_R`` the largest Coulomb
     level a pulley can reach (sensor range, the platform side of every pulley, Stribeck
-    peak, ``f0``) and ``sigma`` the least stiffness (of a Maxwell-slip element too). Two
-    Dahl states stepped over the same travel ``dx`` approach each other by the factor
+    peak, ``f0``, a coefficient that grows with the tension: ``coulomb_load``) and
+    ``sigma`` the least stiffness (of a Maxwell-slip element too). Two Dahl states
+    stepped over the same travel ``dx`` approach each other by the factor
     ``exp(-sigma |dx| / F_R)`` (beta = 1, docs/physics.md), from at most ``2 F_R`` apart,
     so ``g = ln(2 / eps)`` with ``eps = tol / (n F_R)`` for ``n`` pulleys; for beta != 1
     the closed-form step takes the relative state ``z`` from 2 to ``eps`` in
@@ -270,9 +271,16 @@ def warm_travel_m(params: ChainParams, range_n: float, tol_n: float = WARM_TOL_N
     if params.model not in ("dahl", "maxwell_slip") or params.pulleys == 0:
         return 0.0
     lam_pos, lam_neg = coulomb_coefficients(params)
-    lam = np.maximum(np.abs(lam_pos), np.abs(lam_neg))  # (m, n)
-    lam_sum = float(np.max(np.sum(lam, axis=1)))
-    tension = float(range_n) * (1.0 + lam_sum) / max(1.0 - lam_sum, 1e-3)
+    lam0 = np.maximum(np.abs(lam_pos), np.abs(lam_neg))  # (m, n)
+    growth = np.abs(kernel_params(params).lam[:, :, LOAD])  # the coefficient's, per N
+    lam, tension = lam0, float(range_n)
+    for _ in range(50):  # lambda + growth T at the largest T, which grows with it
+        lam_sum = float(np.max(np.sum(lam, axis=1)))
+        bound = float(range_n) * (1.0 + lam_sum) / max(1.0 - lam_sum, 1e-3)
+        lam = lam0 + growth * bound
+        if bound <= tension * (1.0 + 1e-9):
+            break
+        tension = bound
     strib = 1.0 + float(np.max(np.abs(params.stribeck_k), initial=0.0))
     f0 = float(np.max(np.abs(params.f0_n), initial=0.0))
     level = float(np.max(lam)) * tension * strib + f0

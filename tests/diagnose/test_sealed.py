@@ -7,8 +7,9 @@ import shutil
 from pathlib import Path
 
 import pytest
+import yaml
 
-from evaluation import sealing
+from evaluation import sealed_draw, sealing
 from evaluation.scenarios import SEALED_FILE, Scenario, sealed, suite
 from evaluation.suitedoc import replace_section, section
 from gateway.errors import GatewayError
@@ -118,3 +119,41 @@ def test_every_effect_is_hidden_in_the_tuning_and_in_both_sealed_suites():
     assert every <= {e for sc in sealed() for e in sc.effects}
     foreign = {e for case in sealed_cases() for e in case.truth}
     assert every - set(fx.stage_of("statics")) <= foreign
+
+
+def test_the_sealed_foreign_file_is_its_draw_code_output():
+    """Every case of ``tests/foreign_sealed.yaml`` is what the draw code gives: the first
+    draw untouched, then each appended case drawn alone from its own seed."""
+    assert foreign_sealed.load() == foreign_sealed.expected()
+
+
+def test_the_appended_sealed_twins_are_their_draw_code_output():
+    """The twins appended after the sealed scenarios' draw are ``sealed_draw.twin`` of their
+    seed, at the end of the file, each once."""
+    with open(SEALED_FILE, encoding="utf-8") as fh:
+        cases = yaml.safe_load(fh)["scenarios"]
+    tail = cases[len(cases) - len(sealed_draw.APPENDED) :]
+    assert tail == [sealed_draw.twin(name, seed) for name, seed in sealed_draw.APPENDED]
+    assert len({c["name"] for c in cases}) == len(cases)
+
+
+def test_appending_draws_one_case_and_refuses_a_second(tmp_path):
+    """Appending to the first draw keeps every byte of it, gives the draw code's case (the
+    checked-in file's last), and refuses a case the file already has."""
+    copy = tmp_path / "foreign.yaml"
+    foreign_sealed.write(copy, foreign_sealed.FIRST_SEED)
+    before = copy.read_bytes()
+    (combo, seed), *_ = foreign_sealed.APPENDED
+    case = foreign_sealed.append(copy, combo[0], seed)
+    assert copy.read_bytes().startswith(before)
+    assert foreign_sealed.load(copy)[-1] == case == foreign_sealed.draw_case(combo, seed)
+    assert foreign_sealed.load(copy) == foreign_sealed.load()[: len(foreign_sealed.load(copy))]
+    after = copy.read_bytes()
+    with pytest.raises(ValueError, match="already"):
+        foreign_sealed.append(copy, combo[0], seed + 1)
+    assert copy.read_bytes() == after
+    scen = tmp_path / "scen.yaml"
+    shutil.copy(SEALED_FILE, scen)
+    with pytest.raises(ValueError, match="already"):
+        sealed_draw.append(scen, sealed_draw.APPENDED[0][0], 1)
+    assert scen.read_bytes() == SEALED_FILE.read_bytes()

@@ -455,3 +455,59 @@ def test_simulate_rows_is_simulate_batch_by_batch() -> None:
     done = list(simulate_rows(p, tp, v, t, out))
     assert done == [BATCH_ROWS, 2 * BATCH_ROWS, n]
     np.testing.assert_array_equal(out, simulate(p, tp, v, t))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(1, 4), st.integers(0, 2**32 - 1))
+def test_every_declared_column_reaches_the_kernels_where_they_read_it(cables, seed) -> None:
+    """:data:`COLUMNS` is the one declaration: a chain built from it (directly, or as the
+    effects' draft) holds every column at its shape, and the kernels' ``cable`` array holds
+    each ``cable`` column where the kernels read it (:data:`F0` .. :data:`PLAY`)."""
+    from gateway.model import chain
+
+    rng = np.random.default_rng(seed)
+    values = {c: rng.uniform(0.01, 0.1, cables) for c in chain.CABLE_COLUMNS}
+    p = params("dahl", cables, **values)
+    draft = chain.ChainDraft("dahl", WRAPS, 1.0, dict(p.columns))
+    for built in (p, draft.params()):
+        assert list(built.columns) == [c.name for c in chain.COLUMNS]
+        for c in chain.COLUMNS:
+            want = {"cable": (cables,), "pulley": (cables, WRAPS.size), "element": (cables, 1)}
+            assert built.columns[c.name].shape == want[c.shape], c.name
+    kp = chain.kernel_params(p)
+    assert kp.cable.shape == (cables, len(chain.CABLE_COLUMNS))
+    read_at = dict(
+        zip(
+            ("f0_n", "stribeck_k", "stribeck_v_m_s", "viscous_ns_m", "sigma_n_m", "stretch_c"),
+            (chain.F0, chain.STRIB_K, chain.STRIB_V, chain.VISCOUS, chain.SIGMA, chain.STRETCH),
+            strict=True,
+        ),
+        backlash_m=chain.PLAY,
+    )
+    assert len(set(read_at.values())) == len(read_at)
+    for name, col in read_at.items():
+        assert chain.CABLE_COLUMNS[col] == name
+        assert_allclose(kp.cable[:, col], values[name], rtol=0, atol=0)
+    # the coefficient's growth with the load: per pulley 2 sin(wrap / 2) mu_load
+    growth = values["mu_load"][:, None] * 2.0 * np.sin(WRAPS / 2.0)
+    assert_allclose(kp.lam[:, :, chain.LOAD], growth, rtol=1e-15, atol=0)
+
+
+def test_a_column_follows_the_one_it_defaults_to_until_set() -> None:
+    """``slip_sigma`` defaults to ``sigma_n_m`` and ``mu_in`` to ``mu`` in the builder and
+    in the draft (a changed stiffness carries its elements along), unless set."""
+    from gateway.model import chain
+
+    p = params("dahl", 2, sigma_n_m=300.0)
+    assert_allclose(p.slip_sigma, 300.0)
+    assert_allclose(p.mu_in, p.mu)
+    draft = chain.ChainDraft("dahl", WRAPS, 1.0, dict(p.columns))
+    draft.sigma_n_m = np.array([100.0, 200.0])
+    assert_allclose(draft.params().slip_sigma[:, 0], [100.0, 200.0])
+    draft.slip_sigma = np.array([[7.0], [8.0]])
+    draft.sigma_n_m = np.array([1.0, 2.0])
+    assert_allclose(draft.params().slip_sigma[:, 0], [7.0, 8.0])
+    with pytest.raises(ValueError, match="unknown chain parameter"):
+        params("dahl", 2, stretch=1.0)
+    with pytest.raises(ValueError, match="backlash_m must be >= 0"):
+        params("dahl", 2, backlash_m=-1.0)

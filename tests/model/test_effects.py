@@ -131,6 +131,7 @@ from gateway.runtime.compensator import Compensator  # noqa: E402
 REPORT_NAMES = {
     "coulomb": {"mu": "1", "f0_n": "N"},
     "coulomb_directional": {"mu_out": "1", "mu_in": "1", "f0_n": "N"},
+    "coulomb_load": {"mu1_per_n": "1/N"},
     "presliding": {"sigma_n_m": "N/m"},
     "viscous": {"c_ns_m": "N s/m"},
     "stribeck": {"k": "1", "v_s_m_s": "m/s"},
@@ -157,6 +158,7 @@ def test_registry_holds_the_catalogue_with_report_names_and_units() -> None:
     assert set(fx.ONLINE_EFFECTS) == {
         "coulomb",
         "coulomb_directional",
+        "coulomb_load",
         "presliding",
         "viscous",
         "stribeck",
@@ -295,6 +297,46 @@ def test_dahl_level_falls_over_travel_not_at_once() -> None:
     x = displacement(dt * k, v[:, 0])  # travel (trapezoid) since the level fell
     x = x[k1:] - x[k1 - 1]
     assert_allclose(force[k1:], low + (high - low) * np.exp(-sigma * x / low), rtol=0, atol=1e-9)
+
+
+def test_coulomb_load_grows_the_coefficient_with_the_tension() -> None:
+    """``coulomb_load``: at steady sliding the level is ``(lambda + 2 sin(a/2) mu1 T) T``
+    (docs/physics.md sec. 3), the same to first order as ``coulomb`` with the coefficient
+    ``mu + mu1 T`` at that tension, and the excess over the nominal grows with ``T^2``."""
+    mu, mu1, wrap = 0.02, 1e-4, 90.0
+    fr = FrictionConfig(model="coulomb", pulleys=(PulleyConfig(wrap, mu),))
+    load = fx.chain_params(fr, fx.effect_values({"coulomb_load": {"mu1_per_n": mu1}}, 1), 1)
+    nominal = fx.chain_params(fr, {}, 1)
+    lam_pos, lam_neg = (float(c[0, 0]) for c in coulomb_coefficients(load))
+    g = 2.0 * math.sin(math.radians(wrap) / 2.0)
+    excess = []
+    for tp in (100.0, 200.0, 300.0):
+        for v, lam in ((0.1, lam_pos), (-0.1, lam_neg)):
+            args = (np.full((50, 1), tp), np.full((50, 1), v), 1e-3)
+            force = tp - simulate(load, *args)[-1, 0]
+            assert force == pytest.approx(math.copysign((lam + g * mu1 * tp) * tp, v), abs=1e-9)
+            plain = tp - simulate(nominal, *args)[-1, 0]
+            moved = fx.effect_values({"coulomb": {"mu": mu + mu1 * tp}}, 1)
+            first_order = tp - simulate(fx.chain_params(fr, moved, 1), *args)[-1, 0]
+            assert abs(force - first_order) < 0.05 * abs(first_order - plain), (tp, v)
+            if v > 0:
+                excess.append(force - plain)
+    assert excess[2] / excess[0] == pytest.approx(9.0, rel=1e-9)  # T^2
+
+
+def test_coulomb_load_compensation_inverts_the_plant() -> None:
+    """Under Dahl, a reversing motion and a varying load: the gateway's chain undoes the
+    plant's (compensate(simulate(T)) = T) with the coefficient growing with the load."""
+    from gateway.model.chain import compensate
+
+    fr = FrictionConfig(model="dahl", pulleys=(PulleyConfig(90.0, 0.02), PulleyConfig(45.0, 0.03)))
+    params = fx.chain_params(fr, fx.effect_values({"coulomb_load": {"mu1_per_n": 2e-4}}, 2), 2)
+    t = np.arange(6000) * 1e-3
+    v = 0.05 * np.sin(2 * np.pi * 0.7 * t)[:, None] * np.array([1.0, -1.0])
+    tp = 200.0 + 80.0 * np.sin(2 * np.pi * 0.3 * t)[:, None] * np.ones(2)
+    ts = simulate(params, tp, v, t)
+    assert np.max(np.abs(tp - ts)) > 1.0  # the friction is there
+    assert_allclose(compensate(params, ts, v, t), tp, rtol=0, atol=1e-6)
 
 
 def test_eccentricity_phase_from_travel_to_length() -> None:

@@ -101,6 +101,7 @@ EFFECT_DRAWS: dict[str, st.SearchStrategy[dict[str, float]]] = {
     ),
     "gain": st.fixed_dictionaries({"g": st.floats(-0.05, 0.05)}),
     "offset": st.fixed_dictionaries({"c_n": st.floats(-5.0, 5.0)}),
+    "coulomb_load": st.fixed_dictionaries({"mu1_per_n": st.floats(0.0, 1e-4)}),
     "coulomb_directional": st.fixed_dictionaries(
         {"mu_out": st.floats(0.0, 0.5), "mu_in": st.floats(0.0, 0.5), "f0_n": st.floats(0, 3)}
     ),

@@ -266,10 +266,15 @@ def test_an_outage_the_count_agrees_with_is_a_gap_not_a_jump():
     assert clock.vouched and clock.dt == pytest.approx(2.0, rel=1e-6)
 
 
-def test_the_warm_travel_is_where_two_dahl_states_agree_to_the_tolerance():
+@pytest.mark.parametrize("effects", [{}, {"coulomb_load": {"mu1_per_n": 2e-5}}])
+def test_the_warm_travel_is_where_two_dahl_states_agree_to_the_tolerance(effects):
     """Two chains started 2 F_R apart (either saturated) and stepped over the same travel
-    agree to 0.05 N after warm_travel_m, not long before."""
+    agree to 0.05 N after warm_travel_m, not long before; also where the coefficient
+    grows with the tension (a level well above the constant coefficient's)."""
+    import dataclasses
+
     cfg = config(period_s=T)
+    cfg = dataclasses.replace(cfg, friction=dataclasses.replace(cfg.friction, effects=effects))
     comp = Compensator(cfg)
     x_warm = warm_travel_m(comp.params, cfg.sensor.range_n)
     a, b = ChainStepper(comp.params, T), ChainStepper(comp.params, T)

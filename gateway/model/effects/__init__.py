@@ -1,15 +1,16 @@
 """The effects of the catalogue (docs/physics.md sec. 4): one module per effect.
 
-Each module (``coulomb``, ``coulomb_directional``, ``presliding``, ``viscous``, ``stribeck``,
-``inertia``, ``eccentricity``, ``gain``, ``offset``, ``drift``, ``lowpass``, ``delay``,
-``mass_change``, ``maxwell_slip``, ``cable_stretch``, ``backlash``, ``sensor_creep``,
-``spring``) defines one :class:`~.base.Effect` object carrying every behaviour the
-project needs of that effect (:mod:`.base` lists them); :mod:`.registry` collects them, and
-everything that serves all effects loops over it. (The signal helpers ``delay`` and
-``lowpass`` are in :mod:`.forms`: the package's names ``delay`` and ``lowpass`` are the
-effect modules.) Adding an effect: write its module, list
-it in :data:`.registry.MODULES`, add its section to docs/physics.md and its tests (a new
-chain-side friction law also gets a row in :data:`gateway.model.chain.LAWS`).
+Each module (:data:`.registry.MODULES` lists them in the catalogue's order) defines one
+:class:`~.base.Effect` object carrying every behaviour the project needs of that effect
+(:mod:`.base` lists them); :mod:`.registry` collects them, and everything that serves all
+effects loops over it. (The signal helpers ``delay`` and ``lowpass`` are in :mod:`.forms`:
+the package's names ``delay`` and ``lowpass`` are the effect modules.) Adding an effect:
+write its module, list it in :data:`.registry.MODULES`, add its section to
+docs/physics.md and its tests. A chain-side effect that needs a parameter the chain does
+not have yet declares it once, a row of :data:`gateway.model.chain.COLUMNS` (the draft it
+edits, the chain's parameters and the kernels' columns follow from it), and puts its term
+in the chain's law (:func:`gateway.model.chain._level` for the Coulomb level); a new
+friction law gets a row in :data:`gateway.model.chain.LAWS`.
 """
 
 from __future__ import annotations

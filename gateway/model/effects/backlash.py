@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gateway.model.chain import ChainDraft
 from gateway.model.effects.base import (
-    ChainDraft,
     Effect,
     FitData,
     NominalChain,

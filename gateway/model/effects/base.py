@@ -11,8 +11,10 @@ An :class:`Effect` has
   - ``statics``: the platform mass the truth has beyond the recorded one
     (:meth:`Effect.mass_delta`);
   - ``chain``: how it changes the friction chain (:meth:`Effect.apply_chain` edits a
-    :class:`ChainDraft`; the compiled pulley step dispatches the friction *law* from the
-    chain's law table, :data:`gateway.model.chain.LAWS`);
+    :class:`gateway.model.chain.ChainDraft`, whose columns
+    :data:`gateway.model.chain.COLUMNS` declares once; the compiled pulley step
+    dispatches the friction *law* from the chain's law table,
+    :data:`gateway.model.chain.LAWS`);
   - ``path`` and ``sensor``: the batch forward form (truth -> reading,
     :meth:`Effect.forward`), its batch inverse (:meth:`Effect.inverse`), the plant's
     per-sample form (:meth:`Effect.stepper`) and, when the gateway removes it each cycle,
@@ -45,6 +47,8 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
+
+from gateway.model.chain import ChainDraft
 
 Stage = Literal["statics", "chain", "path", "sensor"]
 STAGES: tuple[Stage, ...] = ("statics", "chain", "path", "sensor")
@@ -253,41 +257,6 @@ def speeds(d: FitData) -> tuple[float, float]:
     v95 = float(np.percentile(np.abs(d.v), 95)) or 1e-3
     dt = float(np.median(np.diff(d.t))) if d.t.size > 1 else 1e-3
     return v95, dt
-
-
-@dataclass
-class ChainDraft:
-    """The friction chain of ``m`` cables while the chain-side effects edit it (then
-    :func:`gateway.model.effects.registry.chain_params` builds the parameters from it).
-
-    ``law``: a key of :data:`gateway.model.chain.LAWS`; ``mu_out`` / ``mu_in`` (m, n): the
-    bearing coefficient of each pulley paying out (v > 0) and hauling in (v < 0);
-    ``sigma_n_m``, ``f0_n``, ``stribeck_k``, ``stribeck_v_m_s``, ``viscous_ns_m`` (m,);
-    ``slip_w``, ``slip_sigma`` (m, K) the elements of a multi-element presliding law (None:
-    one, the Dahl state); ``stretch_c`` (m,) the compliance (m/N) and ``backlash_m`` (m,)
-    the dead zone of the travel that drives the friction state
-    (:class:`gateway.model.chain.ChainParams` says what each means).
-    """
-
-    law: str
-    wrap_rad: np.ndarray
-    mu_out: np.ndarray
-    mu_in: np.ndarray
-    sigma_n_m: np.ndarray
-    beta: float
-    f0_n: np.ndarray
-    stribeck_k: np.ndarray
-    stribeck_v_m_s: np.ndarray
-    viscous_ns_m: np.ndarray
-    slip_w: np.ndarray | None = None
-    slip_sigma: np.ndarray | None = None
-    stretch_c: np.ndarray | float = 0.0
-    backlash_m: np.ndarray | float = 0.0
-
-    def needs_friction(self) -> None:
-        """A friction effect on a frictionless nominal chain switches it to Coulomb."""
-        if self.law == "none":
-            self.law = "coulomb"
 
 
 @dataclass(frozen=True)

@@ -28,10 +28,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from gateway.model.chain import ChainDraft
 from gateway.model.effects.backlash import travel_driven
 from gateway.model.effects.base import (
     INF,
-    ChainDraft,
     Compose,
     Effect,
     FitData,

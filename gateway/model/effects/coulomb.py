@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from gateway.model.chain import ChainDraft
 from gateway.model.effects.base import (
     INF,
-    ChainDraft,
     Compose,
     Effect,
     FitData,
@@ -117,7 +117,7 @@ class Coulomb(Effect):
     def apply_chain(self, draft: ChainDraft, p: Values) -> None:
         mu = p["mu"]
         given = np.isfinite(mu)
-        draft.mu_out[given] = np.maximum(mu[given], 0.0)[:, None]
+        draft.mu[given] = np.maximum(mu[given], 0.0)[:, None]
         draft.mu_in[given] = np.maximum(mu[given], 0.0)[:, None]
         draft.f0_n = draft.f0_n + p["f0_n"]
         draft.needs_friction()

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from gateway.model.chain import ChainDraft
 from gateway.model.effects import coulomb
 from gateway.model.effects.base import (
-    ChainDraft,
     Compose,
     Effect,
     FitData,
@@ -78,7 +78,7 @@ class CoulombDirectional(Effect):
     example = {"mu_out": 0.024, "mu_in": 0.012}
 
     def apply_chain(self, draft: ChainDraft, p: Values) -> None:
-        for name, target in zip(MU_NAMES, (draft.mu_out, draft.mu_in), strict=True):
+        for name, target in zip(MU_NAMES, (draft.mu, draft.mu_in), strict=True):
             mu = p[name]
             given = np.isfinite(mu)
             target[given] = np.maximum(mu[given], 0.0)[:, None]

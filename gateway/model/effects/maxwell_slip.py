@@ -31,9 +31,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from gateway.model.chain import ChainDraft
 from gateway.model.effects import presliding
 from gateway.model.effects.base import (
-    ChainDraft,
     Effect,
     FitData,
     NominalChain,

@@ -11,8 +11,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from gateway.model.chain import ChainDraft
 from gateway.model.effects.base import (
-    ChainDraft,
     Effect,
     FitData,
     NominalChain,

@@ -24,12 +24,13 @@ from typing import Any
 import numpy as np
 
 from gateway.fastcall import entry_point
-from gateway.model.chain import ChainParams, ModelName, compensate
+from gateway.model.chain import ChainDraft, ChainParams, compensate
 from gateway.model.effects import (
     backlash,
     cable_stretch,
     coulomb,
     coulomb_directional,
+    coulomb_load,
     delay,
     drift,
     eccentricity,
@@ -47,7 +48,6 @@ from gateway.model.effects import (
 )
 from gateway.model.effects.base import (
     STAGES,
-    ChainDraft,
     Effect,
     Effects,
     NominalChain,
@@ -61,6 +61,7 @@ from gateway.model.effects.forms import causal_acceleration
 MODULES = (
     coulomb,
     coulomb_directional,
+    coulomb_load,
     presliding,
     viscous,
     stribeck,
@@ -194,47 +195,16 @@ def chain_params(
     (only the ones the gateway compensates online with ``online_only``: the gateway's
     chain).
 
-    ``nominal.mu``: per pulley (n,) or (m, n); each chain-side effect edits the chain in
-    the catalogue's order (:meth:`~.base.Effect.apply_chain`).
+    ``nominal.mu``: per pulley (n,) or (m, n); each chain-side effect edits the chain's
+    draft (:class:`gateway.model.chain.ChainDraft`) in the catalogue's order
+    (:meth:`~.base.Effect.apply_chain`).
     """
-    wrap = np.asarray(nominal.wrap_rad, dtype=float).reshape(-1)
-    mu = np.broadcast_to(np.asarray(nominal.mu, dtype=float), (cables, wrap.size)).copy()
-    draft = ChainDraft(
-        law=nominal.model,
-        wrap_rad=wrap,
-        mu_out=mu,
-        mu_in=mu.copy(),
-        sigma_n_m=np.broadcast_to(np.asarray(nominal.sigma_n_m, dtype=float), (cables,)).copy(),
-        beta=float(nominal.beta),
-        f0_n=np.zeros(cables),
-        stribeck_k=np.zeros(cables),
-        stribeck_v_m_s=np.full(cables, 0.01),
-        viscous_ns_m=np.broadcast_to(
-            np.asarray(nominal.viscous_ns_m, dtype=float), (cables,)
-        ).copy(),
-    )
+    draft = ChainDraft.nominal(nominal, cables)
     for e in ordered(eff, "chain"):
         if online_only and not e.online.compensable:
             continue
         e.apply_chain(draft, eff[e.name])
-    law: ModelName = draft.law  # type: ignore[assignment]
-    return ChainParams.build(
-        law,
-        cables,
-        wrap,
-        draft.mu_out,
-        mu_in=draft.mu_in,
-        sigma_n_m=draft.sigma_n_m,
-        beta=draft.beta,
-        f0_n=draft.f0_n,
-        stribeck_k=draft.stribeck_k,
-        stribeck_v_m_s=draft.stribeck_v_m_s,
-        viscous_ns_m=draft.viscous_ns_m,
-        slip_w=draft.slip_w,
-        slip_sigma=draft.slip_sigma,
-        stretch_c=draft.stretch_c,
-        backlash_m=draft.backlash_m,
-    )
+    return draft.params()
 
 
 def mass_delta(eff: Effects, t: np.ndarray, t0: float) -> np.ndarray | None:
