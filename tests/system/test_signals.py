@@ -48,12 +48,20 @@ def interrupt(args: list[str], after_s: float, sig: int, cwd: Path) -> tuple[int
         text=True,
     )
     start = time.monotonic()
-    # not before the child catches the signal (gateway/cli.py installs its handler first
+    # not before the child catches the signal (gateway/cli.py installs its handlers first
     # thing in main()): the interpreter's own start-up, before any line of the project
     # runs, is a window no Python program can cover. Idle it is long over at 0.4 s; with
-    # both cores busy it was not (the child died of the SIGTERM, status -15)
+    # both cores busy it was not (the child died of the SIGTERM, status -15). SIGTERM's
+    # handler is the mark for both signals: main() installs the two together, while the
+    # interpreter catches SIGINT itself from its start (KeyboardInterrupt), so SIGINT's
+    # mark was there before main() and a loaded run sent it during `import gateway.cli`
+    # (a KeyboardInterrupt traceback, load 5-7)
     deadline = start + 60.0
-    while time.monotonic() < deadline and proc.poll() is None and not _catches(proc.pid, sig):
+    while (
+        time.monotonic() < deadline
+        and proc.poll() is None
+        and not _catches(proc.pid, signal.SIGTERM)
+    ):
         time.sleep(0.01)
     time.sleep(max(0.0, after_s - (time.monotonic() - start)))
     proc.send_signal(sig)
