@@ -36,7 +36,7 @@ import numpy as np
 
 from gateway.core.config import Config, FrictionConfig
 from gateway.core.heap import trim_heap
-from gateway.diagnose import locate, wrench_lsq
+from gateway.diagnose import locate, wrench, wrench_lsq
 from gateway.diagnose.engine import Diagnosis
 from gateway.diagnose.report import rmse_pairs
 from gateway.diagnose.selection import Model, Selector, Thresholds
@@ -44,7 +44,6 @@ from gateway.diagnose.sessions import Sessions, join_wrench
 from gateway.diagnose.significance import Tested, combined_stderr, decide
 from gateway.diagnose.stats import white_noise_columns
 from gateway.diagnose.wrench import (
-    FIT_BUDGET,
     PER_CABLE,
     SUBPARAMS,
     VIF_MAX,
@@ -658,7 +657,7 @@ def screening_step(rec: Recording) -> int:
     and tests the same samples); only the chain and the derivatives run at the lower rate
     (the chain over a 10-min 1 kHz recording was most of the diagnosis' CPU)."""
     n = rec.samples
-    stride = math.ceil(n / FIT_BUDGET) if n > 0 else 1
+    stride = math.ceil(n / wrench.FIT_BUDGET) if n > 0 else 1
     if stride < 2:
         return 1
     dt = float(np.median(np.diff(rec.t)))
