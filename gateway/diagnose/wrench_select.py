@@ -663,9 +663,8 @@ def screening_step(rec: Recording) -> int:
     dt = float(np.median(np.diff(rec.t)))
     if not dt > 0.0:
         return 1
-    return max(
-        d for d in range(1, stride + 1) if stride % d == 0 and d * dt * SCREEN_HZ <= 1.0 + 1e-9
-    )
+    fits = [d for d in range(2, stride + 1) if stride % d == 0 and d * dt * SCREEN_HZ <= 1 + 1e-9]
+    return max(fits, default=1)
 
 
 def _select(prep: Prepared, th: Thresholds, say):
