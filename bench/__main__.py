@@ -2,7 +2,8 @@
 
 The 600-s soak, the calibrate table (~30 min) and the real recordings (~6 min, data read
 from outside the checkout) run only when named (``python -m bench soak``, ``make soak``,
-``python -m bench calibrate``, ``python -m bench real``).
+``python -m bench calibrate``, ``python -m bench real``), and so do the wrench reference's
+(``python -m bench wrench``: two 10-min diagnoses, minutes each) and ``wrench_lsq``.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import time
 from pathlib import Path
 
 # minutes each: only when named, not in `make bench`
-ONLY_BY_NAME = {"soak", "calibrate", "real", "wrench_lsq"}
+ONLY_BY_NAME = {"soak", "calibrate", "real", "wrench_lsq", "wrench"}
 
 
 def main(argv: list[str]) -> int:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
@@ -100,6 +100,9 @@ class WrenchData:
     com: np.ndarray
     speed: np.ndarray
     source: str = ""
+    kept: dict[str, np.ndarray] = field(default_factory=dict)
+    """A :meth:`thinned` copy's ``a``, ``ts_smooth`` and ``x`` (the travel), made at the
+    full rate and thinned (empty: made from this data where asked for)."""
 
     @property
     def cables(self) -> int:
@@ -108,12 +111,46 @@ class WrenchData:
     @property
     def a(self) -> np.ndarray:
         """Cable acceleration (N, m): the first of :func:`_smooth_derivatives` of ``v``."""
+        if "a" in self.kept:
+            return self.kept["a"].copy()  # an effect may write into it (`_Series.fresh`)
         return _smooth_derivative(self.t, self.v)
 
     @property
     def ts_smooth(self) -> np.ndarray:
         """The reading's moving average over :data:`INSTRUMENT_S` (N, m)."""
+        if "ts_smooth" in self.kept:
+            return self.kept["ts_smooth"]
         return uniform_filter1d(self.ts, _window(self.t), axis=0, mode="nearest")
+
+    @property
+    def x(self) -> np.ndarray:
+        """Cable travel (N, m) from the setpoint velocity."""
+        if "x" in self.kept:
+            return self.kept["x"].copy()
+        return fx.displacement(self.t, self.v)
+
+    def thinned(self, step: int) -> WrenchData:
+        """Every ``step``-th sample, each array a copy (the full ones may go): what is
+        derived over time (the platform's acceleration and speed, the cable acceleration,
+        the readings' moving average, the travel) made at the full rate and thinned, so
+        that the thinned copy holds the same values at its samples; only the chain runs
+        at the lower rate. The moving average thinned keeps the instruments' noise that
+        of :data:`INSTRUMENT_S` at the full rate (made at 42 Hz it averaged 2 samples)."""
+
+        def sub(x: np.ndarray) -> np.ndarray:
+            return np.ascontiguousarray(x[::step])
+
+        return replace(
+            self,
+            t=sub(self.t),
+            v=sub(self.v),
+            ts=sub(self.ts),
+            pose=sub(self.pose),
+            mass=sub(self.mass),
+            acc=sub(self.acc),
+            speed=sub(self.speed),
+            kept={"a": sub(self.a), "ts_smooth": sub(self.ts_smooth), "x": sub(self.x)},
+        )
 
     @property
     def w0(self) -> np.ndarray:
@@ -330,7 +367,7 @@ class _Series:
 
     @property
     def x(self) -> np.ndarray:
-        return fx.displacement(self.data.t, self.data.v)
+        return self.data.x
 
     @property
     def a(self) -> np.ndarray:
@@ -542,14 +579,22 @@ class Prepared:
     blocks: np.ndarray
     n_blocks: int
     warm: np.ndarray
+    nominal: np.ndarray | None = None
+    """The nominal model's residual (n, 6) at ``rows`` (unwhitened), made once."""
+
+    def __post_init__(self) -> None:
+        # ``L^-1 / s`` once: a whitening is then one batched product, where a batched
+        # ``solve`` factored every 6 x 6 ``L`` again on each call (a fifth of the
+        # diagnosis' CPU on a 2-min recording); the same values to rounding
+        self._scale = np.linalg.inv(self.chol) / self.sigma
 
     def whiten(self, x: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
         """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` (or at
         ``rows[among]``, ``among`` a bool mask of ``rows``) -> whitened."""
-        chol = self.chol if among is None else self.chol[among]
+        scale = self._scale if among is None else self._scale[among]
         if x.ndim == 2:
-            return np.linalg.solve(chol, x[:, :, None])[:, :, 0] / self.sigma
-        return np.linalg.solve(chol, x) / self.sigma
+            return np.einsum("nij,nj->ni", scale, x)
+        return np.matmul(scale, x)
 
 
 def load_inverse_kernels(cables: int) -> None:
@@ -568,20 +613,28 @@ def load_inverse_kernels(cables: int) -> None:
 
 
 def prepare(
-    rec: Recording, cfg: Config | None, friction: FrictionConfig, sessions: Sessions | None = None
+    rec: Recording,
+    cfg: Config | None,
+    friction: FrictionConfig,
+    sessions: Sessions | None = None,
+    step: int = 1,
 ) -> Prepared:
     """Data, nominal model, whitening (from the nominal residual), time blocks, warm-up.
     ``sessions``: ``rec`` is several recordings joined (:func:`.sessions.join_wrench`):
     the time blocks are drawn within each (:func:`.sessions.time_blocks`), the pose
-    differentiated within each; the warm-up after each join is the one after any gap."""
+    differentiated within each; the warm-up after each join is the one after any gap.
+    ``step`` > 1: on every ``step``-th sample (:meth:`WrenchData.thinned`)."""
     data = wrench_data(rec, cfg, None if sessions is None else sessions.index)
+    if step > 1:
+        data = data.thinned(step)
     load_inverse_kernels(data.cables)
     nom = nominal_from(friction)
     model = WrenchModel(data, nom)
     rows = np.arange(0, data.t.size, max(1, math.ceil(data.t.size / FIT_BUDGET)))
     a_rows = model.structure_at(rows)
     chol = np.linalg.cholesky(np.einsum("nim,njm->nij", a_rows, a_rows))
-    unit = np.linalg.solve(chol, model.residual({}, rows=rows)[:, :, None])[:, :, 0]
+    nominal = model.residual({}, rows=rows)
+    unit = np.linalg.solve(chol, nominal[:, :, None])[:, :, 0]
     sigma = float(math.sqrt(np.mean(noise_scale(unit) ** 2)))
     blocks, nb = time_blocks(data.t) if sessions is None else session_blocks(data.t, sessions)
     warm = np.ones(data.t.size, bool)
@@ -589,4 +642,4 @@ def prepare(
         warm &= warmup_mask(
             CableData(data.t, data.v[:, i], data.ts[:, i], data.ts[:, i], float(data.t[0])), nom
         )
-    return Prepared(model, rows, chol, max(sigma, 1e-12), blocks, nb, warm)
+    return Prepared(model, rows, chol, max(sigma, 1e-12), blocks, nb, warm, nominal)

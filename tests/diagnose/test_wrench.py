@@ -15,6 +15,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 from scipy.optimize import minimize
 
@@ -432,3 +434,64 @@ def sweep(seeds: tuple[int, ...] = (4, 6, 7)) -> str:
 
 if __name__ == "__main__":
     print(sweep())
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(10, 400_000),
+    rate=st.sampled_from([40.0, 100.0, 250.0, 500.0, 1000.0, 2000.0]),
+    budget=st.integers(10, 30_000),
+)
+def test_the_selection_thins_to_its_own_fit_rows_and_no_lower_than_screen_hz(n, rate, budget):
+    """``screening_step``: every d-th sample keeps the fit rows (every stride-th sample,
+    the stride a multiple of d), at SCREEN_HZ or more; d 1 when nothing is thinned."""
+    from gateway.diagnose import wrench, wrench_select
+
+    rec = Recording(
+        t=np.arange(n) / rate, velocity=np.zeros((n, 1)), tension_sensor=np.zeros((n, 1))
+    )
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(wrench, "FIT_BUDGET", budget)
+        d = wrench_select.screening_step(rec)
+    stride = math.ceil(n / budget)
+    assert d >= 1 and stride % d == 0
+    assert d == 1 or rate / d >= wrench_select.SCREEN_HZ * (1 - 1e-9)
+    full_rows = np.arange(0, n, stride)
+    thinned_rows = np.arange(0, n, d)[:: math.ceil(math.ceil(n / d) / budget)]  # prepare's
+    assert np.array_equal(full_rows, thinned_rows)
+
+
+def test_a_thinned_copy_holds_the_full_rates_values_at_its_samples():
+    """``WrenchData.thinned``: what is derived over time (acceleration, moving average,
+    travel) is the full rate's at the kept samples, not made again at the lower rate."""
+    rec, _, cfg = recording("viscous")
+    data = wrench_data(rec, cfg)
+    thin = data.thinned(5)
+    for name in ("t", "v", "ts", "pose", "mass", "acc", "speed", "a", "ts_smooth", "x"):
+        assert np.array_equal(getattr(thin, name), getattr(data, name)[::5]), name
+    thin.a[:] = 0.0  # an effect may write into what it reads: the copy's own stays
+    assert np.array_equal(thin.a, data.a[::5])
+
+
+@pytest.mark.long
+def test_selecting_on_a_thinned_copy_finds_what_every_sample_finds(monkeypatch):
+    """The selection on every d-th sample (a long recording's path, here by a smaller
+    FIT_BUDGET) and on every sample: the same findings on the same cables, parameters
+    within two combined standard errors."""
+    from gateway.diagnose import wrench, wrench_select
+
+    monkeypatch.setattr(wrench, "FIT_BUDGET", 1200)
+    rec, _, cfg = recording("viscous")
+    assert wrench_select.screening_step(rec) == 5
+    thinned = diagnose_wrench(rec, cfg.friction, cfg).report
+    monkeypatch.setattr(wrench_select, "SCREEN_HZ", math.inf)
+    assert wrench_select.screening_step(rec) == 1
+    full = diagnose_wrench(rec, cfg.friction, cfg).report
+    assert [(f["effect"], f["cables"]) for f in thinned["findings"]] == [
+        (f["effect"], f["cables"]) for f in full["findings"]
+    ]
+    for a, b in zip(thinned["findings"], full["findings"], strict=True):
+        for name, values in a["parameters"].items():
+            se = np.hypot(a["stderr"][name], b["stderr"][name])
+            assert np.all(np.abs(np.subtract(values, b["parameters"][name])) <= 2 * se), name
+    assert thinned["final"]["rmse_n"] == pytest.approx(full["final"]["rmse_n"], rel=0.01)
