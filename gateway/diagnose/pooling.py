@@ -29,8 +29,11 @@ together (of two that nest each other, the one of the larger pooled Z):
   cables that kept them, on top of the base, not refitted) must not make the cable's
   held-out blocks worse by ``Thresholds.z_screen`` standard errors, jointly (a gain and an
   offset fitted together on the other cables are judged together); where they do, each
-  is judged alone, and one the cable's data refuse stays off it (a fault on one cable
-  among eight: the clean cables' data refuse the faulty cable's value);
+  is judged alone, and then fitted with the cable's other effects (:func:`agrees`: it
+  lowers the cable's held-out error by ``z_screen`` standard errors, or its fitted
+  parameters lie within ``z_screen`` standard errors of the common value); one the
+  cable's data refuse both ways stays off it (a fault on one cable among eight: the
+  clean cables' data refuse the faulty cable's value);
 * the rest are fitted on the cable jointly with its other effects (its own parameters);
   where a cable-specific effect gave way, the cable keeps its own model only if that
   beats the common one on the cable's held-out blocks by ``Thresholds.z_holdout`` (the
@@ -220,9 +223,9 @@ def on_cable(
     )
     if sel.z(base, at) <= -th.z_screen:
         keep = []
-        for e in missing:
+        for e, s in zip(missing, screened, strict=True):
             one = sel.unit.evaluate({**base.kept, e: values[e]}, {**base.specs, e: specs[e]})
-            if sel.z(base, one) > -th.z_screen:
+            if sel.z(base, one) > -th.z_screen or agrees(sel, base, s, e, values[e], th):
                 keep.append(e)
         missing = keep
     if not missing:
@@ -235,6 +238,28 @@ def on_cable(
     if gone and sel.z(fitted, model) >= th.z_holdout:
         return model  # the cable's own effects beat the common ones on its data
     return fitted
+
+
+def agrees(
+    sel: Selector, base: Model, screened: Model, effect: str, value: np.ndarray, th: Thresholds
+) -> bool:
+    """Whether the cable's data take ``effect`` once it is fitted on the cable jointly with
+    its other effects (from ``screened``'s start): it lowers the cable's held-out error by
+    ``Thresholds.z_screen`` standard errors, or its parameters lie within ``z_screen``
+    standard errors of the common ``value``. The common value on top of the cable's
+    model, not refitted, can be refused for reasons that are not the cable's: the cables
+    that kept the effect fitted it beside a stand-in (an offset beside a plain Coulomb
+    where the machine's friction is directional: 5.7 N for 3 N), or the cable's other
+    effects hold part of it and the common value on top counts that part twice. A clean
+    cable among faulty ones fits the effect near its neutral value: no held-out gain,
+    many standard errors from the faulty cables' value, refused."""
+    fitted = sel.fit({**base.kept, effect: screened.kept[effect]}, screened.specs)
+    if sel.z(base, fitted) >= th.z_screen:
+        return True
+    got, se = fitted.kept[effect], fitted.stderr[effect]
+    if got.shape != np.shape(value) or not np.all(np.isfinite(se) & (se > 0)):
+        return False
+    return bool(np.max(np.abs(got - value) / se) <= th.z_screen)
 
 
 def against(tests: dict[str, float], th: Thresholds) -> bool:
