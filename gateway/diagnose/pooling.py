@@ -17,15 +17,34 @@ evidence (the per-cable tests
 of its parameters guard against a stand-in for a model-form error; pooling extends a
 finding, it does not invent one).
 
-**Where the data says a cable differs** (:func:`differs`). A cable that did not keep a
-common effect is tested with the effect at the common value (the median of the internal
-parameters of the cables that kept it, on top of the cable's kept effects, not refitted)
-against the cable without it, on its held-out blocks: when the model with the common
-value is worse by ``Thresholds.z_screen`` standard errors the cable differs and stays
-without (a fault on one cable among eight: the clean cables' data refuse the faulty
-cable's value); otherwise the effect is fitted on it (its own parameters). A cable that
-kept a common effect drops it only when its own held-out z is below ``-z_screen`` (not for
-a q-value or a parameter test that a weak share of a common effect fails alone).
+**The common effects on every cable** (:func:`extend`, :func:`on_cable`). A common effect is
+the default hypothesis on every cable of the machine: a cable that did not keep it gets it,
+unless its own data say otherwise. Per cable, the common effects it lacks are taken
+together (of two that nest each other, the one of the larger pooled Z):
+
+* a cable-specific effect the cable kept that nests or is nested by one of them (a
+  ``spring``, whose ``k l0`` holds an offset, for a common ``offset``) gives way to it: the
+  cable's model without it is the base;
+* the common effects at the common value (the median of the internal parameters of the
+  cables that kept them, on top of the base, not refitted) must not make the cable's
+  held-out blocks worse by ``Thresholds.z_screen`` standard errors, jointly (a gain and an
+  offset fitted together on the other cables are judged together); where they do, each
+  is judged alone, and then fitted with the cable's other effects (:func:`agrees`: it
+  lowers the cable's held-out error by ``z_screen`` standard errors, or its fitted
+  parameters lie within ``z_screen`` standard errors of the common value); one the
+  cable's data refuse both ways stays off it (a fault on one cable among eight: the
+  clean cables' data refuse the faulty cable's value);
+* the rest are fitted on the cable jointly with its other effects (its own parameters);
+  where a cable-specific effect gave way, the cable keeps its own model only if that
+  beats the common one on the cable's held-out blocks by ``Thresholds.z_holdout`` (the
+  strict test a kept effect passes): the rival is compared against the common effect on
+  this cable, not against nothing, so a stand-in that won the cable's own forward
+  selection by a little no longer decides.
+
+Cables whose data refused a common effect, or kept their own effects against it, are its
+``differs``. A cable that kept a common effect drops it only when its own held-out z is
+below ``-z_screen`` (not for a q-value or a parameter test that a weak share of a common
+effect fails alone).
 
 **Partial pooling of the parameters** (:func:`shrink`): per reported parameter, the
 cables' estimates ``y_i`` with standard errors ``s_i`` are shrunk toward the common value
@@ -48,7 +67,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
-from gateway.diagnose.selection import Model, Selector, Thresholds, overlaps, rivals
+from gateway.diagnose.selection import Model, Selector, Thresholds, overlaps
 from gateway.diagnose.significance import Tested, retire, score
 from gateway.diagnose.stats import bh_qvalues
 
@@ -118,50 +137,129 @@ def common_value(units: list[Tested], effect: str) -> np.ndarray:
     return np.median(np.stack([u.model.kept[effect] for u in units if effect in u.model.kept]), 0)
 
 
-def differs(sel: Selector, model: Model, effect: str, value: np.ndarray, th: Thresholds):
-    """``(differs, fitted)``: whether the cable's held-out data refuses ``effect`` at the
-    common ``value`` (the model with it, not refitted, worse than ``model`` by
-    ``z_screen`` standard errors), and else the model with the effect fitted jointly on
-    the cable."""
-    s = sel.unit.screen(model, effect)
-    specs = {**model.specs, effect: s.specs[effect]}
-    at_common = sel.unit.evaluate({**model.kept, effect: value}, specs)
-    if sel.z(model, at_common) <= -th.z_screen:
-        return True, None
-    return False, sel.fit({**model.kept, effect: s.kept[effect]}, specs)
-
-
 def extend(
     units: list[Tested],
     th: Thresholds,
     rebuild: Callable[[Tested], tuple[Selector, Model]],
     say=lambda _m: None,
 ) -> dict[str, Pooled]:
-    """The pooled tests (:func:`pooled_tests`), and each common effect fitted on the cables
-    without it whose data does not refuse it (:func:`differs`), in place; those cables are
-    scored again. Returns the pooled tests (their ``differs`` filled)."""
+    """The pooled tests (:func:`pooled_tests`), and the common effects made the default
+    hypothesis on every cable (module docstring, "The common effects on every cable"), in
+    place; the cables that changed are scored again. Returns the pooled tests (their
+    ``differs`` filled)."""
     pooled = pooled_tests(units, th)
-    for e, r in sorted(pooled.items(), key=lambda kv: -kv[1].statistic):
-        if not r.common:
+    order = sorted(pooled.items(), key=lambda kv: -kv[1].statistic)
+    common = [e for e, r in order if r.common]
+    if not common:
+        return pooled
+    values = {e: common_value(units, e) for e in common}
+    for k, u in enumerate(units):
+        kept = u.model.kept
+        missing: list[str] = []
+        for e in common:  # the strongest first; of two that overlap, the stronger
+            if e in kept or overlaps(e, [c for c in kept if c in pooled and pooled[c].common]):
+                continue
+            if not overlaps(e, missing):
+                missing.append(e)
+        if not missing:
             continue
-        value = common_value(units, e)
-        for k, u in enumerate(units):
-            kept = u.model.kept
-            if e in kept or overlaps(e, kept) or any(x in kept for x in rivals(e)):
-                continue
-            if e not in u.outcome.tests or len(kept) >= th.max_effects:
-                continue
-            sel, model = rebuild(u) if u.selector is None else (u.selector, u.model)
-            no, fitted = differs(sel, model, e, value, th)
-            if no or fitted is None:
-                r.differs.append(k)
-                continue
-            say(f"cable {k + 1}: {e} common to the cables (pooled z {r.statistic:.1f})")
-            u.selector, u.model = sel, fitted
-            u.outcome.kept = [*u.outcome.kept, e]
-            score(u)
-            retire(u)
+        sel, model = rebuild(u) if u.selector is None else (u.selector, u.model)
+        missing = [e for e in missing if e in sel.candidates]
+        if not missing:
+            continue
+        adopted = on_cable(sel, model, missing, values, common, th)
+        for e in missing:
+            if adopted is None or e not in adopted.kept:
+                pooled[e].differs.append(k)
+        if adopted is None or adopted is model:
+            continue
+        gone = [e for e in kept if e not in adopted.kept]
+        added = [e for e in adopted.kept if e not in kept]
+        say(
+            f"cable {k + 1}: {', '.join(added)} common to the cables"
+            + (f" in place of {', '.join(gone)}" if gone else "")
+            + " (pooled z "
+            + ", ".join(f"{pooled[e].statistic:.1f}" for e in added)
+            + ")"
+        )
+        u.selector, u.model = sel, adopted
+        u.outcome.kept = [e for e in u.outcome.kept if e in adopted.kept] + added
+        score(u)
+        retire(u)
     return pooled
+
+
+def on_cable(
+    sel: Selector,
+    model: Model,
+    missing: list[str],
+    values: dict[str, np.ndarray],
+    common: list[str],
+    th: Thresholds,
+) -> Model | None:
+    """The cable's model with the common effects it lacks (``missing``) as its default
+    (module docstring): the cable's kept effects that nest or are nested by one of them
+    (a ``spring`` for an ``offset``) give way; the effects its data refuse at the common
+    ``values`` (worse by ``z_screen`` on its held-out blocks) are left out; the rest are
+    fitted jointly with the kept effects. The cable's own model stays only if it beats
+    that one on its held-out blocks by ``Thresholds.z_holdout`` (significant evidence of
+    its own, against the common effects on this cable, not against nothing). Returns the
+    model adopted (``model`` itself when the cable keeps its own), None when every
+    missing effect was refused."""
+    kept = model.kept
+    gone = [x for x in kept if x not in common and overlaps(x, missing)]
+    if len(kept) - len(gone) + len(missing) > th.max_effects:
+        return None
+    base = model
+    if gone:
+        rest = {x: v for x, v in kept.items() if x not in gone}
+        base = sel.fit(rest, {x: model.specs[x] for x in rest})
+    # the common values jointly on top of the cable's other effects (not refitted); where
+    # the cable's data refuse them together, each on its own
+    screened = [sel.unit.screen(base, e) for e in missing]
+    specs = {e: s.specs[e] for e, s in zip(missing, screened, strict=True)}
+    at = sel.unit.evaluate(
+        {**base.kept, **{e: values[e] for e in missing}}, {**base.specs, **specs}
+    )
+    if sel.z(base, at) <= -th.z_screen:
+        keep = []
+        for e, s in zip(missing, screened, strict=True):
+            one = sel.unit.evaluate({**base.kept, e: values[e]}, {**base.specs, e: specs[e]})
+            if sel.z(base, one) > -th.z_screen or agrees(sel, base, s, e, values[e], th):
+                keep.append(e)
+        missing = keep
+    if not missing:
+        return None if not gone else model
+    theta = {**base.kept}
+    for e, s in zip(specs, screened, strict=True):
+        if e in missing:
+            theta[e] = s.kept[e]
+    fitted = sel.fit(theta, {**base.specs, **{e: specs[e] for e in missing}})
+    if gone and sel.z(fitted, model) >= th.z_holdout:
+        return model  # the cable's own effects beat the common ones on its data
+    return fitted
+
+
+def agrees(
+    sel: Selector, base: Model, screened: Model, effect: str, value: np.ndarray, th: Thresholds
+) -> bool:
+    """Whether the cable's data take ``effect`` once it is fitted on the cable jointly with
+    its other effects (from ``screened``'s start): it lowers the cable's held-out error by
+    ``Thresholds.z_screen`` standard errors, or its parameters lie within ``z_screen``
+    standard errors of the common ``value``. The common value on top of the cable's
+    model, not refitted, can be refused for reasons that are not the cable's: the cables
+    that kept the effect fitted it beside a stand-in (an offset beside a plain Coulomb
+    where the machine's friction is directional: 5.7 N for 3 N), or the cable's other
+    effects hold part of it and the common value on top counts that part twice. A clean
+    cable among faulty ones fits the effect near its neutral value: no held-out gain,
+    many standard errors from the faulty cables' value, refused."""
+    fitted = sel.fit({**base.kept, effect: screened.kept[effect]}, screened.specs)
+    if sel.z(base, fitted) >= th.z_screen:
+        return True
+    got, se = fitted.kept[effect], fitted.stderr[effect]
+    if got.shape != np.shape(value) or not np.all(np.isfinite(se) & (se > 0)):
+        return False
+    return bool(np.max(np.abs(got - value) / se) <= th.z_screen)
 
 
 def against(tests: dict[str, float], th: Thresholds) -> bool:

@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 
 from gateway.core.config import FrictionConfig, PulleyConfig
 from gateway.diagnose.engine import diagnose
-from gateway.diagnose.pooling import normal_score, shrink, stouffer
+from gateway.diagnose.pooling import normal_score, on_cable, shrink, stouffer
+from gateway.diagnose.selection import Model, Selector, Thresholds
 from tests.diagnose_helpers import Foreign, check_report, generate, recording_of
 
 estimates = st.lists(
@@ -132,3 +133,119 @@ def test_clean_four_cables_give_no_finding() -> None:
     rep = diagnose(recording_of(generate(FOUR)), _friction(FOUR)).report
     check_report(rep)
     assert rep["findings"] == []
+
+
+class _Linear:
+    """A cable whose effects are linear columns (the selector's :class:`Unit`): ``offset``
+    a constant, ``spring`` the length and a constant (it nests the offset), ``gain`` the
+    tension; fitted by least squares on the training blocks."""
+
+    def __init__(self, y: np.ndarray, x: np.ndarray, tension: np.ndarray) -> None:
+        n = y.size
+        self.y = y
+        self.cols = {
+            "offset": np.ones((n, 1)),
+            "spring": np.column_stack([x, -np.ones(n)]),
+            "gain": tension[:, None],
+        }
+        self.candidates = list(self.cols)
+        self.n_blocks = 40
+        self.blocks = np.arange(n) * self.n_blocks // n
+        self.train = self.blocks % 2 == 0
+        self.test = self.blocks % 2 == 1
+
+    def _model(self, theta: dict[str, np.ndarray], stderr=None) -> Model:
+        pred = sum((self.cols[e] @ v for e, v in theta.items()), np.zeros(self.y.size))
+        se = stderr or {e: np.full(v.size, np.nan) for e, v in theta.items()}
+        return Model(dict(theta), {e: None for e in theta}, se, self.y - pred)
+
+    def empty(self) -> Model:
+        return self._model({})
+
+    def evaluate(self, theta, specs) -> Model:
+        return self._model(theta)
+
+    def fit(self, theta, specs, nfev: int = 60) -> Model:
+        names = list(theta)
+        a = np.column_stack([self.cols[e] for e in names])
+        at, yt = a[self.train], self.y[self.train]
+        coef, *_ = np.linalg.lstsq(at, yt, rcond=None)
+        var = float(np.mean((yt - at @ coef) ** 2)) * np.diag(np.linalg.pinv(at.T @ at))
+        out, se, j = {}, {}, 0
+        for e in names:
+            w = self.cols[e].shape[1]
+            out[e], se[e], j = coef[j : j + w], np.sqrt(var[j : j + w]), j + w
+        return self._model(out, se)
+
+    def screen(self, model: Model, effect: str) -> Model:
+        return self.fit({**model.kept, effect: np.zeros(self.cols[effect].shape[1])}, None)
+
+    def significance(self, model: Model, effect: str) -> float:
+        return 10.0
+
+
+def _cable(spring_k: float, seed: int, offset: float = 5.0) -> _Linear:
+    """A cable with an ``offset`` and a 4 % gain (and a spring of ``spring_k`` N/m), its
+    length and tension varying together (so a spring stands in for part of the offset and
+    gain), 2 N of noise."""
+    rng = np.random.default_rng(seed)
+    n = 4000
+    x = 2.0 + 0.5 * np.sin(np.linspace(0.0, 12.0, n))
+    tension = 100.0 + 40.0 * (x - 2.0) + 5.0 * np.sin(np.linspace(0.0, 31.0, n))
+    y = offset + 0.04 * tension + spring_k * (x - 2.0) + rng.normal(0.0, 2.0, n)
+    return _Linear(y, x, tension)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_stand_in_gives_way_to_the_common_effects(seed) -> None:
+    """A cable that kept a spring (it holds the offset and part of the gain) gets the
+    machine's common offset and gain in its place: the spring does not beat them on the
+    cable's own held-out blocks by the strict test."""
+    unit = _cable(0.0, seed)
+    sel = Selector(unit, Thresholds())
+    own = sel.fit({"spring": np.zeros(2)}, {"spring": None})
+    values = {"offset": np.array([5.0]), "gain": np.array([0.04])}
+    got = on_cable(sel, own, ["offset", "gain"], values, ["offset", "gain"], Thresholds())
+    assert got is not None and set(got.kept) == {"offset", "gain"}
+    assert got.kept["offset"][0] == pytest.approx(5.0, abs=1.5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_cable_specific_effect_that_beats_the_common_ones_stays(seed) -> None:
+    """A true spring of 30 N/m on the cable (beside the offset and gain): its own model
+    beats the common effects on its held-out blocks, and the cable keeps it."""
+    unit = _cable(30.0, seed)
+    sel = Selector(unit, Thresholds())
+    own = sel.fit({"spring": np.zeros(2), "gain": np.zeros(1)}, {"spring": None, "gain": None})
+    values = {"offset": np.array([5.0])}
+    got = on_cable(sel, own, ["offset"], values, ["offset", "gain"], Thresholds())
+    assert got is own
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("common", [5.0, 9.0])
+def test_a_common_value_an_other_effect_absorbed_is_not_refused(seed, common) -> None:
+    """The cable kept a gain alone, which took part of its 5 N offset: the common offset
+    on top of it, not refitted, counts that part twice (or is off: 9 N, fitted beside a
+    stand-in on the other cables) and is worse on held-out blocks, but fitted with the
+    gain it lowers the cable's held-out error: the cable gets it, at its own value."""
+    unit = _cable(0.0, seed)
+    sel = Selector(unit, Thresholds())
+    own = sel.fit({"gain": np.zeros(1)}, {"gain": None})
+    value = {"offset": np.array([common])}
+    at = unit.evaluate({**own.kept, **value}, {})
+    assert sel.z(own, at) <= -Thresholds().z_screen  # the un-refitted check refuses
+    got = on_cable(sel, own, ["offset"], value, ["offset"], Thresholds())
+    assert got is not None and set(got.kept) == {"offset", "gain"}
+    assert got.kept["offset"][0] == pytest.approx(5.0, abs=1.5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_clean_cable_refuses_the_common_value(seed) -> None:
+    """No offset on this cable: the others' 5 N is refused on its data both ways (on top
+    of its model, and fitted with it), and it stays without."""
+    unit = _cable(0.0, seed, offset=0.0)
+    sel = Selector(unit, Thresholds())
+    own = sel.fit({"gain": np.zeros(1)}, {"gain": None})
+    got = on_cable(sel, own, ["offset"], {"offset": np.array([5.0])}, ["offset"], Thresholds())
+    assert got is None
