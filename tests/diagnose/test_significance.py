@@ -145,11 +145,31 @@ def _dahl_with_load_level(t, v, tp, c0: float, k: float, sigma: float) -> np.nda
     return f
 
 
+# Since coulomb_load (mu = mu0 + mu1 |T|, a Coulomb level growing with T^2) is in the
+# catalogue, this friction is no longer beyond it: the catalogue takes part of it as
+# coulomb_load and what it leaves is ranked with sgn(v)*T^2 no longer first (2026-11-29,
+# measured: seed 1, 30 s: coulomb_load on cable 2 only, mu1 5.3e-6 1/N, unexplained 'v'
+# 44 % then sgn(v)*T^2 40 %; 0.3 N + 3e-5 T^2, 120 s: coulomb_load on both cables beside
+# maxwell_slip / presliding, unexplained sgn(v)*T 6.1 % then sgn(v)*T^2 5.9 %). Open: the
+# test becomes a catalogue test (coulomb_load on every cable, in tolerance, nothing left).
+IN_CATALOGUE = (
+    "coulomb_load is in the catalogue since 2026-11-29: the T^2 friction is partly found as "
+    "coulomb_load (not on every cable) and the rest is not ranked sgn(v)*T^2 first"
+)
+
+
 @pytest.mark.long
 @pytest.mark.parametrize(
     ("seed", "c0", "k", "seconds", "share"),
     [
-        (1, 0.0, 2e-5, 30.0, 0.3),
+        pytest.param(
+            1,
+            0.0,
+            2e-5,
+            30.0,
+            0.3,
+            marks=pytest.mark.xfail(strict=True, reason=IN_CATALOGUE),
+        ),
         pytest.param(
             3,
             0.0,
@@ -163,7 +183,14 @@ def _dahl_with_load_level(t, v, tp, c0: float, k: float, sigma: float) -> np.nda
                 "'unexplained' (KeyError); the T^2 friction is absorbed, not named",
             ),
         ),
-        (1, 0.3, 3e-5, 120.0, 0.1),
+        pytest.param(
+            1,
+            0.3,
+            3e-5,
+            120.0,
+            0.1,
+            marks=pytest.mark.xfail(strict=True, reason=IN_CATALOGUE),
+        ),
     ],
 )
 def test_unexplained_names_a_friction_growing_with_the_square_of_the_tension(
