@@ -29,6 +29,7 @@ import numpy as np
 import yaml
 
 from evaluation.scenarios import SUITE_FILE, Scenario, suite, tolerance
+from evaluation.sealing import append_case, case_line
 from gateway.diagnose.prepare import nominal_from
 from gateway.model import effects as fx
 
@@ -150,12 +151,8 @@ def write(path: Path, seed: int) -> None:
         "quietly: docs/diagnose-suite.md records this file's SHA-256 (## Seals).\n"
         "scenarios:\n"
     )
-    body = "".join(_line(case) for case in draw(seed))
+    body = "".join(case_line(case) for case in draw(seed))
     path.write_text(header + body, encoding="utf-8")
-
-
-def _line(case: Draw) -> str:
-    return "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
 
 
 def append(path: Path, name: str, seed: int) -> Draw:
@@ -165,12 +162,7 @@ def append(path: Path, name: str, seed: int) -> Draw:
     case = twin(name, seed)
     with open(path, encoding="utf-8") as fh:
         names = {c["name"] for c in yaml.safe_load(fh)["scenarios"]}
-    if case["name"] in names:
-        raise ValueError(f"{path}: already has {case['name']}")
-    note = (
-        f"# appended: the twin of {name} by `python -m evaluation.scenarios_table --twin "
-        f"{name} --seal {seed}`\n"
-    )
-    with open(path, "a", encoding="utf-8") as fh:
-        fh.write(note + _line(case))
+    cmd = f"python -m evaluation.scenarios_table --twin {name} --seal {seed}"
+    how = f"the twin of {name} by `{cmd}`"
+    append_case(path, case, names, how)
     return case

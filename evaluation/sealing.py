@@ -13,6 +13,9 @@ import datetime as _dt
 import hashlib
 import re
 from pathlib import Path
+from typing import Any
+
+import yaml
 
 from evaluation.suitedoc import replace_section, section
 from gateway.errors import GatewayError
@@ -75,3 +78,19 @@ def add(doc: Path, path: Path, reason: str) -> str:
     lines.append(f"- `{relative(path)}` SHA-256 `{digest}` ({today}: {reason})")
     replace_section(doc, "\n".join(lines) + "\n")
     return digest
+
+
+def case_line(case: dict[str, Any]) -> str:
+    """One case as the sealed files hold it: a flow-style list item on one line (the
+    files are written and appended line by line, so a case's bytes never move)."""
+    return "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
+
+
+def append_case(path: Path, case: dict[str, Any], names: set[str], how: str) -> None:
+    """Append ``case`` to the sealed file ``path`` (whose cases are named ``names``) after a
+    comment saying ``how`` it was drawn; the cases before it untouched; refused if the file
+    has a case of its name."""
+    if case["name"] in names:
+        raise ValueError(f"{path}: already has a case {case['name']}")
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(f"# appended: {how}\n" + case_line(case))

@@ -30,6 +30,7 @@ import numpy as np
 import yaml
 
 from evaluation.scenarios import tolerance
+from evaluation.sealing import append_case, case_line
 
 SEALED_FILE = Path(__file__).with_name("foreign_sealed.yaml")
 SINGLE = (
@@ -199,10 +200,6 @@ def expected(first_seed: int = FIRST_SEED) -> list[dict[str, Any]]:
     return draw(first_seed) + [draw_case(combo, seed) for combo, seed in APPENDED]
 
 
-def _line(case: dict[str, Any]) -> str:
-    return "  - " + yaml.safe_dump(case, default_flow_style=True, sort_keys=False, width=10**6)
-
-
 def write(path: Path, seed: int) -> None:
     header = (
         f"# The sealed foreign cases: drawn once by `python -m tests.foreign_cases --seal {seed}`"
@@ -210,7 +207,7 @@ def write(path: Path, seed: int) -> None:
         "be edited or redrawn\n# quietly: docs/diagnose-suite.md records this file's SHA-256 "
         "(## Seals).\ncases:\n"
     )
-    body = "".join(_line(case) for case in draw(seed))
+    body = "".join(case_line(case) for case in draw(seed))
     path.write_text(header + body, encoding="utf-8")
 
 
@@ -219,14 +216,8 @@ def append(path: Path, effect: str, seed: int) -> dict[str, Any]:
     cases before it untouched; refused if the file has a case of that name. List
     ``((effect,), seed)`` in :data:`APPENDED` so that :func:`expected` gives the file."""
     case = draw_case((effect,), seed)
-    if case["name"] in {c["name"] for c in load(path)}:
-        raise ValueError(f"{path}: already has a case {case['name']}")
-    note = (
-        f"# appended: one case of {effect} by `python -m tests.foreign_cases --append "
-        f"{effect} --seal {seed}`\n"
-    )
-    with open(path, "a", encoding="utf-8") as fh:
-        fh.write(note + _line(case))
+    how = f"one case of {effect} by `python -m tests.foreign_cases --append {effect} --seal {seed}`"
+    append_case(path, case, {c["name"] for c in load(path)}, how)
     return case
 
 

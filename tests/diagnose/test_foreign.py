@@ -259,6 +259,20 @@ def test_screen_frees_the_kept_linear_parameters():
     assert out["drift"][0] == pytest.approx(0.02, abs=1e-8)
 
 
+def _fine_grid(fo: Foreign) -> tuple[np.ndarray, ...]:
+    """The generator's fine grid for ``fo`` as it draws it (the sample times first, from
+    the same generator): times, setpoint velocity, platform tension, wrap (rad), mu."""
+    from tests.diagnose_helpers import _motion, sample_times
+
+    rng = np.random.default_rng(fo.seed)
+    fine = np.arange(0.0, fo.seconds, 1.0 / fo.fine_hz)
+    sample_times(fo, rng)
+    v, tp, _ = _motion(fo, fine, rng)
+    wrap = np.radians([p[0] for p in fo.pulleys])
+    mu = np.array([p[1] for p in fo.pulleys])
+    return fine, v, tp, wrap, mu
+
+
 def test_generator_dahl_with_f0_agrees_with_the_model_chain():
     """The independent generator's Dahl chain with f0 (explicit Euler, normal force from the
     actual tensions) and the model's (exact step, F_R = lambda T + f0 / n) on the same fine
@@ -266,15 +280,10 @@ def test_generator_dahl_with_f0_agrees_with_the_model_chain():
     a non-Dahl clamp |F| <= F_R (which made them differ by 0.3 N RMS, 0.45 N at standstill
     on this motion and biased the fitted f0 by -10 %)."""
     from gateway.model.chain import ChainParams, simulate
-    from tests.diagnose_helpers import _chain, _motion, sample_times
+    from tests.diagnose_helpers import _chain
 
     fo = Foreign(seconds=15.0, effects={"coulomb": {"f0_n": 3.0}})
-    rng = np.random.default_rng(fo.seed)
-    fine = np.arange(0.0, fo.seconds, 1.0 / fo.fine_hz)
-    sample_times(fo, rng)
-    v, tp, _ = _motion(fo, fine, rng)
-    wrap = np.radians([p[0] for p in fo.pulleys])
-    mu = np.array([p[1] for p in fo.pulleys])
+    fine, v, tp, wrap, mu = _fine_grid(fo)
     gen = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, 3.0, fo.sigma_n_m, True)
     params = ChainParams.build("dahl", 1, wrap, mu, sigma_n_m=fo.sigma_n_m, f0_n=3.0)
     diff = gen - simulate(params, tp[:, None], v[:, None], fine)[:, 0]
@@ -294,15 +303,10 @@ def test_generator_coulomb_load_agrees_with_the_model_chain():
     of it per direction (measured: the generator's growth 0.967x the model's paying out,
     1.036x hauling in, 3.4 % RMS, whether mu1 is 1e-5 or 2e-5)."""
     from gateway.model.chain import ChainParams, simulate
-    from tests.diagnose_helpers import _chain, _motion, sample_times
+    from tests.diagnose_helpers import _chain
 
     fo = Foreign(seconds=15.0, model="coulomb", tension=300.0)
-    rng = np.random.default_rng(fo.seed)
-    fine = np.arange(0.0, fo.seconds, 1.0 / fo.fine_hz)
-    sample_times(fo, rng)
-    v, tp, _ = _motion(fo, fine, rng)
-    wrap = np.radians([p[0] for p in fo.pulleys])
-    mu = np.array([p[1] for p in fo.pulleys])
+    fine, v, tp, wrap, mu = _fine_grid(fo)
     mu1 = 2e-5
 
     def gen(m1: float) -> np.ndarray:
