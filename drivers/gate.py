@@ -38,11 +38,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from drivers.codes import DATA_AT, HEARTBEAT_AT, NOW, REASONS
 from gateway.fastcall import entry_point
-
-REASONS = ("heartbeat", "age", "non_finite", "range")
-_HEARTBEAT, _AGE, _NON_FINITE, _RANGE = range(4)
-INVALID = 2  # drivers.base.ChannelStatus.INVALID (base imports this module)
 
 
 class GateLimits(NamedTuple):
@@ -54,9 +51,6 @@ class GateLimits(NamedTuple):
     wrench_hi: float
     max_input_age_s: float
     heartbeat_timeout_s: float
-
-
-NOW, DATA_AT, HEARTBEAT_AT = range(3)  # the stamp: the frame's three times (driver clock)
 
 
 class Gate:

@@ -15,9 +15,20 @@ import numpy as np
 from numba import literal_unroll, njit, types
 from numba.extending import overload
 
-from drivers.gate import _AGE, _HEARTBEAT, _NON_FINITE, _RANGE, DATA_AT, HEARTBEAT_AT, INVALID, NOW
-from drivers.registers import MODE_SCALED, MODE_WRAP
-from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW
+from drivers.codes import (
+    AGE,
+    DATA_AT,
+    HEARTBEAT,
+    HEARTBEAT_AT,
+    INVALID,
+    MODE_SCALED,
+    MODE_WRAP,
+    NON_FINITE,
+    NOW,
+    RANGE,
+    S7_OVERFLOW,
+    S7_UNDERFLOW,
+)
 
 
 # --- the output gate (drivers.gate) -------------------------------------------------------
@@ -28,9 +39,9 @@ def gate(lim, stamp, tension, status, wrench, counts):
     now = stamp[NOW]
     frame = -1  # a reason that stops the whole frame
     if not 0.0 <= now - stamp[HEARTBEAT_AT] <= lim.heartbeat_timeout_s:  # NaN, -inf
-        frame = _HEARTBEAT
+        frame = HEARTBEAT
     elif not 0.0 <= now - stamp[DATA_AT] <= lim.max_input_age_s:  # no time to come
-        frame = _AGE
+        frame = AGE
     every_channel = True
     stopped = 0
     for i in range(tension.size):
@@ -43,9 +54,9 @@ def gate(lim, stamp, tension, status, wrench, counts):
         reason = frame
         if reason < 0:
             if not math.isfinite(x):
-                reason = _NON_FINITE
+                reason = NON_FINITE
             elif x < lim.tension_lo or x > lim.tension_hi:
-                reason = _RANGE
+                reason = RANGE
         if reason >= 0:
             counts[reason] += 1
             stopped += 1
@@ -59,10 +70,10 @@ def gate(lim, stamp, tension, status, wrench, counts):
     for k in range(wrench.size):
         w = wrench[k]
         if not math.isfinite(w):
-            reason = _NON_FINITE
+            reason = NON_FINITE
             break
         if w < lim.wrench_lo or w > lim.wrench_hi:
-            reason = _RANGE
+            reason = RANGE
     if reason >= 0:
         counts[reason] += 1
         stopped += 1

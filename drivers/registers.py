@@ -41,7 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.s7 import S7_OVERFLOW, S7_UNDERFLOW, S7Analog  # noqa: F401 - re-exported
+from drivers.codes import MODE_RAW, MODE_SCALED, MODE_WRAP
+from drivers.s7 import S7Analog
 from gateway.core.config import RegisterField, RegisterMap, SensorConfig
 from gateway.errors import ConfigError
 
@@ -51,7 +52,6 @@ MAX_WRITE_REGISTERS_FC23 = 121
 RANGE_MARGIN = 0.05  # the compensator's: readings down to -5 % of the range are plausible
 
 # --- the one codec: a plan row per field, one compiled kernel each way ------------------
-MODE_SCALED, MODE_RAW, MODE_WRAP = 0, 1, 2
 _KINDS = {"int16": 0, "uint16": 1, "int32": 2, "uint32": 3, "float32": 4}
 _TYPE_RANGE = {0: (-32768, 32767), 1: (0, 65535), 2: (-(2**31), 2**31 - 1), 3: (0, 2**32 - 1)}
 _DEFAULT_INVALID = {0: -32768, 1: 65535, 2: -(2**31), 3: 2**32 - 1}

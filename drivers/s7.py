@@ -41,9 +41,9 @@ from typing import Any
 
 import numpy as np
 
+from drivers.codes import S7_OVERFLOW, S7_UNDERFLOW
+
 S7_NOMINAL = 27648
-S7_OVERFLOW = 32767
-S7_UNDERFLOW = -32768
 S7_OVERRANGE_MAX = 32511  # 117.589 % of nominal
 S7_UNDERRANGE_MIN = -4864  # -17.593 % of nominal
 

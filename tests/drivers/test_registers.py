@@ -12,9 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
+from drivers.codes import S7_OVERFLOW, S7_UNDERFLOW
 from drivers.registers import (
-    S7_OVERFLOW,
-    S7_UNDERFLOW,
     FieldCodec,
     FieldGroup,
     Span,
