@@ -6,7 +6,6 @@ show, a subset of a long recording, the validation recording's forwards."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from functools import partial
 
 import numpy as np
@@ -15,7 +14,7 @@ from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate, stats
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.pose_statics import MassSensitivity
-from gateway.diagnose.sessions import Sessions
+from gateway.diagnose.sessions import Sessions, finite_rows
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
 from gateway.model.chain import coulomb_coefficients
@@ -128,20 +127,6 @@ def cable_data(
             )
         )
     return out
-
-
-def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: Sensitivity):
-    """Drop the samples where any cable lacks a finite value (counted in skipped_rows);
-    a :class:`MassSensitivity` stays as it is (read at the kept samples' times)."""
-    ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
-    ok &= np.isfinite(tp).all(1)
-    if ok.all():
-        return rec, tp, dtp_dm
-    if not ok.any():
-        raise RecordingError(f"{rec.source}: no sample has every required value")
-    kept = replace(rec, length=None, extra={}).take(ok)
-    sub = replace(kept, skipped_rows=rec.skipped_rows + int((~ok).sum()))
-    return sub, tp[ok], dtp_dm[ok] if isinstance(dtp_dm, np.ndarray) else dtp_dm
 
 
 CLIP_MIN_SHARE = 0.002

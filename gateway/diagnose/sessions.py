@@ -102,6 +102,20 @@ def check_alike(parts: list[tuple[Recording, np.ndarray, Any]], names: list[str]
                 )
 
 
+def finite_rows(rec: Recording, tp: np.ndarray, dtp_dm: np.ndarray | MassSensitivity | None):
+    """Drop the samples where any cable lacks a finite value (counted in skipped_rows);
+    a :class:`MassSensitivity` stays as it is (read at the kept samples' times)."""
+    ok = np.isfinite(rec.velocity).all(1) & np.isfinite(rec.tension_sensor).all(1)
+    ok &= np.isfinite(tp).all(1)
+    if ok.all():
+        return rec, tp, dtp_dm
+    if not ok.any():
+        raise RecordingError(f"{rec.source}: no sample has every required value")
+    kept = replace(rec, length=None, extra={}).take(ok)
+    sub = replace(kept, skipped_rows=rec.skipped_rows + int((~ok).sum()))
+    return sub, tp[ok], dtp_dm[ok] if isinstance(dtp_dm, np.ndarray) else dtp_dm
+
+
 def join(
     parts: list[tuple[Recording, np.ndarray, Any]], names: list[str]
 ) -> tuple[Recording, np.ndarray, np.ndarray | None, Sessions]:
@@ -109,8 +123,6 @@ def join(
     without a required value dropped per recording, times shifted so that each starts
     ``JOIN_SPACINGS`` sample spacings after the previous one ends; dT_p/dm as an (N, m)
     array (None when the recordings have none)."""
-    from gateway.diagnose.prepare import finite_rows
-
     check_alike(parts, names)
     clean = []
     for rec, tp, dm in parts:
