@@ -8,9 +8,12 @@ its own values in ``__post_init__`` by raising ``ValueError`` and the message is
 prefixed with the file and the dotted key path.
 
 Every numeric key has a range, stated once: a dataclass' ``RANGES`` maps each of its
-``int`` / ``float`` fields (plain, optional or in a tuple) to ``(low, high)``, inclusive,
-and :func:`convert` refuses a value outside it naming the file and the key (a test walks
-the whole config and checks that no numeric field lacks one).
+``int`` / ``float`` fields (plain, optional or in a tuple) to ``(low, high)``, inclusive.
+:func:`convert` refuses a value outside it naming the file and the key; a dataclass built
+in code refuses it too, when it derives from :class:`Ranged` (its ``__post_init__``), so
+no ``__post_init__`` restates a range: it checks only what relates two keys (a test walks
+the whole config and checks that no numeric field lacks a range, and that both ways of
+building refuse a value beyond each bound).
 
 Files are read by :func:`read_yaml` through :func:`gateway.core.files.read_regular`:
 regular files under a size limit only (a device or a FIFO is refused at once). It is the
@@ -319,6 +322,35 @@ def load_yaml_text(text: str, source: str) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: top level must be a mapping")
     return data
+
+
+def _numbers(value: Any) -> typing.Iterator[float]:
+    """The numbers of a field's value: itself, or those of a (nested) tuple; None: none."""
+    if isinstance(value, tuple | list):
+        for v in value:
+            yield from _numbers(v)
+    elif isinstance(value, int | float) and not isinstance(value, bool):
+        yield value
+
+
+def check_ranges(obj: Any) -> None:
+    """Raise ``ValueError("<field> must be in low..high, got v")`` for the first number of
+    ``obj``'s fields outside its class' ``RANGES`` (NaN included)."""
+    for name, (low, high) in getattr(type(obj), "RANGES", {}).items():
+        for v in _numbers(getattr(obj, name)):
+            if not low <= v <= high:
+                raise ValueError(f"{name} must be in {low:g}..{high:g}, got {_short(v)}")
+
+
+class Ranged:
+    """Base of a config dataclass with ``RANGES``: every construction, from a file or in
+    code, checks them. A subclass' own ``__post_init__`` calls ``super().__post_init__()``
+    first and checks only what relates its keys."""
+
+    RANGES: typing.ClassVar[dict[str, Range]] = {}
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 def require(condition: bool, message: str) -> None:

@@ -151,3 +151,37 @@ def test_the_values_the_hostile_round_slipped_through(section, key, value) -> No
     node[key] = value
     with pytest.raises(ConfigError, match=rf"cfg.yaml: {section}.{key}: must be in"):
         config_from_mapping(data, "cfg.yaml")
+
+
+def _to_leaf(current: Any, value: float) -> Any:
+    """``current`` with its first number replaced by ``value``, as the field's own type."""
+    if isinstance(current, tuple):
+        return (_to_leaf(current[0], value), *current[1:]) if current else (value,)
+    return value
+
+
+@pytest.mark.parametrize(("path", "cls", "name", "tp"), CASES)
+def test_a_config_built_in_code_refuses_the_same_values(path, cls, name, tp) -> None:
+    """The range is stated once (``RANGES``) and holds for a section built in code too
+    (``dataclasses.replace``, as the model writer and the tests build them), not only for
+    one read from a file: no ``__post_init__`` has to restate it."""
+    cfg = load_config()
+    owner = _current(cfg, path[:-1])
+    if owner is None:  # an optional section the default config leaves out: build it bare
+        owner = cls(**{})
+    low, high = cls.RANGES[name]
+    integer = int in (tp, *get_args(tp)) or any(int in get_args(a) for a in get_args(tp))
+    for bad in [*_beyond(low, high, integer), *([] if integer else [float("nan")])]:
+        leaf = _to_leaf(getattr(owner, name), bad)
+        with pytest.raises(ValueError, match=rf"^{name} must be in "):
+            dataclasses.replace(owner, **{name: leaf})
+    dataclasses.replace(owner, **{name: getattr(owner, name)})  # the value it has is fine
+
+
+def test_every_section_with_ranges_checks_them_when_built() -> None:
+    from gateway.core.configtypes import Ranged
+
+    owners = {cls for _, cls, _, _ in FIELDS}
+    assert owners and all(issubclass(c, Ranged) for c in owners), [
+        c.__name__ for c in owners if not issubclass(c, Ranged)
+    ]
