@@ -72,18 +72,15 @@ import can
 import canopen
 
 from drivers.base import Driver, Inputs, Outputs
-from drivers.canopen_pdo import (  # noqa: F401 - re-exported: drivers.canopen is their old home
+from drivers.canopen_pdo import (
     ANGLE_RAD_PER_COUNT,
     LENGTH_M_PER_COUNT,
     POSITION_M_PER_COUNT,
-    STATUS_BITS,
     TENSION_MAX_N,
     TENSION_MIN_N,
     TENSION_N_PER_COUNT,
-    TENSION_NO_VALUE,
     VELOCITY_M_S_PER_COUNT,
     PdoLayout,
-    decode_tension,
     encode_tension,
     import_eds,
     load_pdo_layouts,
@@ -91,9 +88,7 @@ from drivers.canopen_pdo import (  # noqa: F401 - re-exported: drivers.canopen i
     pack_pdo,
     pack_status,
     resolve_path,
-    to_int16,
     unpack_pdo,
-    unpack_status,
 )
 from drivers.s7 import S7Analog
 from gateway.errors import ConfigError, DriverInitError, DriverIOError, DriverTimeoutError

@@ -43,7 +43,8 @@ import numpy as np
 
 from drivers.codes import MODE_RAW, MODE_SCALED, MODE_WRAP
 from drivers.s7 import S7Analog
-from gateway.core.config import RegisterField, RegisterMap, SensorConfig
+from gateway.core.config import SensorConfig
+from gateway.core.registermap import RegisterField, RegisterMap
 from gateway.errors import ConfigError
 
 MAX_READ_REGISTERS = 125  # functions 3, 4, 23 (read part)

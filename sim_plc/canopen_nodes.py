@@ -27,9 +27,7 @@ from typing import Any
 import can
 
 from drivers.canopen import (
-    ANGLE_RAD_PER_COUNT,
     DRAIN_LIMIT,
-    LENGTH_M_PER_COUNT,
     OBJ_ANALOG_IN,
     OBJ_CORRECTED,
     OBJ_GW_HEARTBEAT,
@@ -39,15 +37,19 @@ from drivers.canopen import (
     OBJ_POSE,
     OBJ_STATUS,
     OBJ_VELOCITY,
-    POSITION_M_PER_COUNT,
     SLOW_PERIOD_CYCLES,
     SYNC_COB_ID,
+    open_bus,
+)
+from drivers.canopen_pdo import (
+    ANGLE_RAD_PER_COUNT,
+    LENGTH_M_PER_COUNT,
+    POSITION_M_PER_COUNT,
     VELOCITY_M_S_PER_COUNT,
     PdoLayout,
     decode_tension,
     load_pdo_layouts,
     new_slots,
-    open_bus,
     pack_pdo,
     to_int16,
     unpack_pdo,

@@ -19,7 +19,7 @@ with real time: below the loop, but not preempted while it holds the GIL) reads 
 and scores the cycle that read the same plant step.
 
 * Over Modbus the soft PLC serves a side channel that is in no gateway register map
-  (:data:`sim_plc.modbus_server.TRUTH_ADDRESS`: the true tensions and the PLC heartbeat
+  (:data:`sim_plc.modbus_image.TRUTH_ADDRESS`: the true tensions and the PLC heartbeat
   of the same plant step); the matcher reads it on its own connection
   (:class:`TruthChannel`) every ``TRUTH_INTERVAL_S`` and scores only the cycle whose PLC
   heartbeat is that one, so truth and reading are of one step.
@@ -60,7 +60,7 @@ from gateway.runtime.loop import CyclicService
 from gateway.runtime.realtime import RealtimeReport
 from gateway.service.daemon import build_driver
 from sim_plc.image import ProcessImage
-from sim_plc.modbus_server import TRUTH_ADDRESS
+from sim_plc.modbus_image import TRUTH_ADDRESS
 from sim_plc.truth import (
     SCORE_AFTER_S,
     TRUTH_EVERY_CYCLES,

@@ -23,7 +23,8 @@ from drivers.registers import (
     Span,
     layout_map,
 )
-from gateway.core.config import Config, RegisterField
+from gateway.core.config import Config
+from gateway.core.registermap import RegisterField
 from sim_plc.image import ProcessImage
 
 INPUT_AREA_ALIGN = 8

@@ -55,13 +55,9 @@ from typing import Any
 from gateway.core.config import Config, TlsConfig
 from gateway.errors import GatewayError
 from sim_plc.image import ProcessImage
-from sim_plc.modbus_image import (  # noqa: F401 - re-exported: modbus_server is their old home
-    INPUT_AREA_ALIGN,
-    REGISTER_FUNCTIONS,
-    TRUTH_ADDRESS,
+from sim_plc.modbus_image import (
     ImageRegisters,
     RequestHandler,
-    truth_fields,
 )
 
 # The spec's largest ADU is 260 bytes (MBAP length 254); a request up to the largest its own

@@ -7,7 +7,7 @@
   I/O, no logging in the cycle; a thread of its own reads the truth (the side channel,
   :class:`TruthChannel`) and scores the cycle that read the same plant step.
 * :class:`TruthChannel`: the demo's own Modbus connection to the soft PLC's side channel
-  (:data:`sim_plc.modbus_server.TRUTH_ADDRESS`: the true tensions and the PLC heartbeat of
+  (:data:`sim_plc.modbus_image.TRUTH_ADDRESS`: the true tensions and the PLC heartbeat of
   one plant step, in no gateway register map).
 * :class:`ChainWarmup`: which cables' friction state has forgotten its relaxed start, so
   that a score measures the model, not where the plant happened to be when the gateway
@@ -31,7 +31,7 @@ from gateway.core.config import Config
 from gateway.model import effects as fx
 from gateway.model.chain import coulomb_coefficients
 from gateway.runtime.compensator import Compensator
-from sim_plc.modbus_server import TRUTH_ADDRESS
+from sim_plc.modbus_image import TRUTH_ADDRESS
 
 SCORE_AFTER_S = 0.5  # scoring skips the loop's start, and each cable's chain warm-up
 WARMUP_LENGTHS = 4.0

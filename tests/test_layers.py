@@ -1,6 +1,6 @@
 """The drivers layer depends only on the bottom layer (gateway.fastcall, gateway.errors,
-gateway.core's config, files, resources, ring) and on itself: never on the physics, the
-soft PLC, the loop or the tools."""
+gateway.core's config, register map, files, resources, ring) and on itself: never on the
+physics, the soft PLC, the loop or the tools."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ ALLOWED_PROJECT_IMPORTS = (
     "gateway.fastcall",
     "gateway.errors",
     "gateway.core.config",
+    "gateway.core.registermap",
     "gateway.core.resources",
     "gateway.core.files",
     "gateway.core.ring",

@@ -19,10 +19,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from gateway.core.configtypes import Ranged, convert, read_yaml, require
-from gateway.core.registermap import (  # noqa: F401 - re-exported: gateway.core.config is their old home
-    RegisterField,
+from gateway.core.registermap import (
     RegisterMap,
-    RegisterType,
 )
 from gateway.core.resources import data_file, resolve_beside
 from gateway.errors import ConfigError

@@ -46,9 +46,7 @@ import numpy as np
 from gateway.core.heap import return_large_frees
 from gateway.errors import RecordingError
 from gateway.recordings.columns import MAX_CABLES, found_and_expected, rename
-from gateway.recordings.writer import (  # noqa: F401 - re-exported
-    RecordingWriter,
-    format_rows,
+from gateway.recordings.writer import (
     open_writer,
 )
 

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from gateway.core.cliopts import add_config_option, setup_logging
 from gateway.core.config import (
     Config,
     config_warnings,
@@ -34,7 +35,7 @@ from gateway.core.config import (
     load_config,
 )
 from gateway.errors import DriverError, DriverTimeoutError, GatewayError
-from gateway.service.daemon import add_config_option, build_driver, setup_logging
+from gateway.service.daemon import build_driver
 from gateway.service.exporter import FD_RESERVE, MAX_CONNECTIONS, NOFILE_NEEDED, PROCESS_FDS
 
 # the drivers and the loop load numba: imported where they are used, never for --help
@@ -85,7 +86,7 @@ def file_problems(cfg: Config) -> list[str]:
 def _eds_problems(cfg: Config) -> list[str]:
     where = f"{cfg.source}: " if cfg.source else ""
     try:
-        from drivers.canopen import load_pdo_layouts
+        from drivers.canopen_pdo import load_pdo_layouts
     except ImportError as exc:
         return [f"{where}bus.driver: canopen is not available: {exc}"]
     c = cfg.bus.canopen

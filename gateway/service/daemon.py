@@ -33,12 +33,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from gateway import __version__
-from gateway.core.cliopts import (  # noqa: F401 - re-exported: their old home
-    FOREIGN_LOGGERS,
+from gateway.core.cliopts import (
     LOG_FORMAT,
-    LOG_LEVELS,
     add_config_option,
-    log_level,
     setup_logging,
 )
 from gateway.core.config import (

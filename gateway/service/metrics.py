@@ -34,7 +34,7 @@ writing), 2 active, 3 fault. The two ages are NaN until the first reading.
 
 Serving (HTTP/TLS, basic auth, bounded connections) is :mod:`gateway.service.exporter`, in
 the process :mod:`gateway.service.exporter_proc` starts; ``process_*`` are the gateway's
-process (read from /proc/PID). ``MetricsServer`` is re-exported here.
+process (read from /proc/PID).
 
 Cables are labelled 1..m. The tension and friction gauges of a channel whose status is 2
 (invalid; every channel during a PLC heartbeat fault) are NaN, never its last good value:
@@ -62,13 +62,12 @@ from prometheus_client.registry import Collector
 
 from gateway import __version__
 from gateway.runtime.loopstats import Histogram
-from gateway.service.exporter import MetricsServer
 from gateway.service.metrics_shm import MetricsBlock, Snapshot
 
 if TYPE_CHECKING:
     from gateway.runtime.loop import CyclicService
 
-__all__ = ["GatewayCollector", "MetricsServer", "exporter_registry", "make_registry"]
+__all__ = ["GatewayCollector", "exporter_registry", "make_registry"]
 
 PREFIX = "cdpr_gateway"
 # drivers.base.ChannelStatus.INVALID (a test holds them equal): drivers.base imports numba,

@@ -46,7 +46,7 @@ def test_eds_paths_resolve_beside_the_config_file(tmp_path):
 
 
 def test_a_config_copied_elsewhere_still_finds_the_shipped_eds(tmp_path):
-    from drivers.canopen import load_pdo_layouts
+    from drivers.canopen_pdo import load_pdo_layouts
 
     copy = tmp_path / "gateway.yaml"
     copy.write_text(DEFAULT_CONFIG_PATH.read_text())

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import drivers.canopen as co
+import drivers.canopen_pdo as pdo
 from drivers.base import ChannelStatus, DriverState, make_driver
 from drivers.s7 import S7Analog
 from gateway.errors import DriverInitError, DriverTimeoutError
@@ -24,7 +25,7 @@ EDS_FILES = {
 
 @pytest.mark.parametrize("path", sorted(EDS_FILES))
 def test_eds_loads_with_byte_aligned_pdos(path: str) -> None:
-    tpdos, rpdos = co.load_pdo_layouts(path, EDS_FILES[path])
+    tpdos, rpdos = pdo.load_pdo_layouts(path, EDS_FILES[path])
     assert tpdos, f"{path}: no TPDO"
     for layout in [*tpdos.values(), *rpdos.values()]:
         assert 1 <= layout.codec.size <= 8
@@ -33,12 +34,12 @@ def test_eds_loads_with_byte_aligned_pdos(path: str) -> None:
 def test_analog_module_is_cia401() -> None:
     import canopen
 
-    od = canopen.import_od(str(co.resolve_path("config/analog_in_401.eds")), 0x10)
+    od = canopen.import_od(str(pdo.resolve_path("config/analog_in_401.eds")), 0x10)
     assert od[0x1000].default & 0xFFFF == 401
     assert [od[0x6401][s].data_type for s in range(1, 9)] == [
         canopen.objectdictionary.INTEGER16
     ] * 8
-    tpdos, _ = co.load_pdo_layouts("config/analog_in_401.eds", 0x10)
+    tpdos, _ = pdo.load_pdo_layouts("config/analog_in_401.eds", 0x10)
     assert [(t.cob_id, t.trans_type) for t in tpdos.values()] == [(0x190, 1), (0x290, 1)]
     assert tpdos[1].entries == tuple((0x6401, s) for s in range(1, 5))
     assert tpdos[2].entries == tuple((0x6401, s) for s in range(5, 9))
@@ -47,9 +48,9 @@ def test_analog_module_is_cia401() -> None:
 def test_producers_and_consumers_agree() -> None:
     """Every TPDO of the master and the gateway is consumed by an RPDO with the same
     COB-ID and the same mapping; the analog TPDOs match the gateway's RPDO1/2 formats."""
-    gw_tx, gw_rx = co.load_pdo_layouts("config/gateway.eds", 0x20)
-    plc_tx, plc_rx = co.load_pdo_layouts("config/plc_master.eds", co.PLC_NODE_ID)
-    analog_tx, _ = co.load_pdo_layouts("config/analog_in_401.eds", 0x10)
+    gw_tx, gw_rx = pdo.load_pdo_layouts("config/gateway.eds", 0x20)
+    plc_tx, plc_rx = pdo.load_pdo_layouts("config/plc_master.eds", co.PLC_NODE_ID)
+    analog_tx, _ = pdo.load_pdo_layouts("config/analog_in_401.eds", 0x10)
     consumers = {lay.cob_id: lay for lay in [*gw_rx.values(), *plc_rx.values()]}
     for producer in [*gw_tx.values(), *plc_tx.values()]:
         consumer = consumers[producer.cob_id]
@@ -62,13 +63,13 @@ def test_producers_and_consumers_agree() -> None:
 
 def test_scaling_round_trip_within_resolution() -> None:
     for value in (-655.0, -1.234, 0.0, 0.01, 123.456, 655.3):
-        assert abs(co.decode_tension(co.encode_tension(value)) - value) <= 0.01 + 1e-12
-    assert math.isnan(co.decode_tension(co.encode_tension(math.nan)))
-    assert co.decode_tension(co.encode_tension(1e6)) == pytest.approx(655.32)
-    assert co.to_int16(1.0, co.VELOCITY_M_S_PER_COUNT) == 32767  # clamped
+        assert abs(pdo.decode_tension(pdo.encode_tension(value)) - value) <= 0.01 + 1e-12
+    assert math.isnan(pdo.decode_tension(pdo.encode_tension(math.nan)))
+    assert pdo.decode_tension(pdo.encode_tension(1e6)) == pytest.approx(655.32)
+    assert pdo.to_int16(1.0, pdo.VELOCITY_M_S_PER_COUNT) == 32767  # clamped
     status = np.array([0, 1, 2, 0, 2, 2, 1, 0], dtype=np.uint16)
     out = np.zeros(8, dtype=np.uint16)
-    co.unpack_status(co.pack_status(status), out)
+    pdo.unpack_status(pdo.pack_status(status), out)
     np.testing.assert_array_equal(out, status)
     analog = S7Analog(500.0)  # the one S7 codec the driver decodes with
     assert math.isnan(analog.decode_count(32767))
@@ -90,12 +91,14 @@ def test_stepped_cycles_deliver_the_image(rig: CanopenRig) -> None:  # noqa: F81
     k = rig.cfg.sensor.range_n / rig.cfg.sensor.adc_full_scale
     np.testing.assert_allclose(inp.tension_raw_n, img.raw_counts * k, rtol=0, atol=1e-12)
     np.testing.assert_allclose(
-        inp.velocity_m_s, img.velocity_m_s, rtol=0, atol=co.VELOCITY_M_S_PER_COUNT / 2 + 1e-15
+        inp.velocity_m_s, img.velocity_m_s, rtol=0, atol=pdo.VELOCITY_M_S_PER_COUNT / 2 + 1e-15
     )
     np.testing.assert_allclose(
-        inp.length_m, img.length_m, rtol=0, atol=co.LENGTH_M_PER_COUNT / 2 + 1e-12
+        inp.length_m, img.length_m, rtol=0, atol=pdo.LENGTH_M_PER_COUNT / 2 + 1e-12
     )
-    np.testing.assert_allclose(inp.pose, img.pose, rtol=0, atol=co.POSITION_M_PER_COUNT / 2 + 1e-12)
+    np.testing.assert_allclose(
+        inp.pose, img.pose, rtol=0, atol=pdo.POSITION_M_PER_COUNT / 2 + 1e-12
+    )
     assert inp.plc_heartbeat == img.plc_heartbeat
     assert rig.driver.syncs == syncs + co.SLOW_PERIOD_CYCLES
 
@@ -124,7 +127,7 @@ def test_driver_writes_land_in_the_image(rig: CanopenRig) -> None:  # noqa: F811
     assert rig.plc.poll() == 3
     img = rig.image
     np.testing.assert_allclose(
-        img.corrected_n, out.tension_corrected_n, atol=co.TENSION_N_PER_COUNT / 2 + 1e-9
+        img.corrected_n, out.tension_corrected_n, atol=pdo.TENSION_N_PER_COUNT / 2 + 1e-9
     )
     assert math.isnan(img.corrected_n[6])
     np.testing.assert_array_equal(img.channel_status, out.channel_status)

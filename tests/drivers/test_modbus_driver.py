@@ -13,7 +13,8 @@ from numpy.testing import assert_allclose, assert_array_equal
 
 from drivers.base import DriverState, Inputs, Outputs, make_driver
 from drivers.modbus_tcp import ModbusTcpDriver
-from gateway.core.config import RegisterField, load_config
+from gateway.core.config import load_config
+from gateway.core.registermap import RegisterField
 from gateway.errors import (
     ConfigError,
     DriverError,

@@ -16,7 +16,8 @@ import pytest
 
 from drivers.base import ChannelStatus, Inputs, Outputs
 from drivers.modbus_tcp import MBAP, ModbusTcpDriver
-from gateway.core.config import Config, RegisterField, load_config
+from gateway.core.config import Config, load_config
+from gateway.core.registermap import RegisterField
 from gateway.errors import ConfigError, DriverTimeoutError
 from gateway.service.daemon import build_driver
 from tests.modbus_helpers import FakeServer, config_for, fc3_reply

@@ -21,7 +21,8 @@ from drivers.registers import (
     layout_map,
 )
 from drivers.s7 import S7Analog, window
-from gateway.core.config import RegisterField, RegisterMap, SensorConfig
+from gateway.core.config import SensorConfig
+from gateway.core.registermap import RegisterField, RegisterMap
 from gateway.errors import ConfigError
 
 SENSOR = SensorConfig(range_n=500.0, adc_full_scale=27648)

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 from drivers.virtual import VirtualDriver, VirtualFaults
+from gateway.core.cliopts import FOREIGN_LOGGERS, setup_logging
 from gateway.runtime.loop import CyclicService
 from gateway.runtime.sdnotify import Notifier
-from gateway.service.daemon import FOREIGN_LOGGERS, setup_logging
 from tests.loop_helpers import FakeClock, config, live_image
 
 

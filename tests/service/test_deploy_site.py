@@ -16,7 +16,8 @@ import pytest
 import yaml
 
 from gateway.core.config import MetricsConfig
-from gateway.service.metrics import MetricsServer, make_registry
+from gateway.service.exporter import MetricsServer
+from gateway.service.metrics import make_registry
 from tests.loop_helpers import free_port
 from tests.service.test_deploy import _require
 from tests.service.test_metrics import ran_service

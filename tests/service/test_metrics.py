@@ -12,7 +12,8 @@ from gateway import __version__
 from gateway.core.config import MetricsConfig
 from gateway.errors import ConfigError, TemporaryError
 from gateway.runtime.loop import CyclicService
-from gateway.service.metrics import MetricsServer, make_registry
+from gateway.service.exporter import MetricsServer
+from gateway.service.metrics import make_registry
 from tests.loop_helpers import FakeClock, config, live_image
 from tests.tls_helpers import self_signed
 

@@ -17,7 +17,8 @@ import pytest
 from drivers.virtual import VirtualDriver
 from gateway.core.config import MetricsConfig
 from gateway.runtime.loop import CyclicService
-from gateway.service.metrics import MetricsServer, make_registry
+from gateway.service.exporter import MetricsServer
+from gateway.service.metrics import make_registry
 from tests.loop_helpers import Wobble, config, free_port, live_image
 
 pytestmark = [pytest.mark.external, pytest.mark.loopback, pytest.mark.long]  # ~6 s

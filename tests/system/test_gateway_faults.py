@@ -186,7 +186,7 @@ def test_plc_refusing_the_map_is_never_written() -> None:
     answers exception 2): it keeps cycling, counts io errors, the PLC receives nothing."""
     import dataclasses
 
-    from gateway.core.config import RegisterField, RegisterMap
+    from gateway.core.registermap import RegisterField, RegisterMap
 
     shifted = RegisterMap(
         corrected_tensions=RegisterField(1100, 8, "float32"),

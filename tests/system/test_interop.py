@@ -24,7 +24,8 @@ from numpy.testing import assert_allclose, assert_array_equal
 
 from drivers.base import Inputs, Lifecycle, Outputs
 from drivers.modbus_tcp import ModbusTcpDriver
-from gateway.core.config import Config, RegisterField, load_config
+from gateway.core.config import Config, load_config
+from gateway.core.registermap import RegisterField
 from gateway.runtime.loop import CyclicService
 from tests.loop_helpers import free_port, fresh
 
