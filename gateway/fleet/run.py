@@ -76,7 +76,9 @@ def _client(distributed: Any, scheduler: str | None, workers: int) -> tuple[Any,
         processes=True,
         host="127.0.0.1",
         dashboard_address=None,
-        scheduler_kwargs={"dashboard": False},  # no HTTP server: two fleets never clash on 8787
+        # no dashboard; the scheduler's HTTP server (its /metrics, which it always starts,
+        # on 8787 unless told) on a free loopback port: two fleets at once never clash
+        scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
         memory_limit=WORKER_MEMORY_BYTES,
         silence_logs=40,
     )
