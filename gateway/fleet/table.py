@@ -2,7 +2,9 @@
 finding, or that failed), written as Parquet and CSV.
 
 Columns: ``recording``, ``report`` (the report's file under ``reports/``), ``robot``,
-``start`` (ISO 8601), ``status`` (``ok`` / ``failed``), ``error``, ``reference``,
+``start`` (ISO 8601), ``status`` (``ok`` / ``failed``), ``error``, ``worker`` (the Dask
+worker that ran it, ``tcp://HOST:PORT``; empty for a recording refused before it was
+sent), ``reference``,
 ``samples``, ``effect`` (``none`` for a recording without finding), ``rank`` (the
 finding's place in the report, 1 = most important; 0 without finding), ``cable`` (0: the
 platform, or no finding), then per parameter name of any finding the value and
@@ -31,6 +33,7 @@ FIXED = [
     "start",
     "status",
     "error",
+    "worker",
     "reference",
     "samples",
     "effect",
@@ -40,7 +43,7 @@ FIXED = [
 RMSE = ["rmse_before_n", "rmse_after_n", "holdout_rmse_before_n", "holdout_rmse_after_n"]
 RECORDING = ["baseline_rmse_n", "final_rmse_n", "final_holdout_rmse_n", "lsq_holdout_rmse_n"]
 """The recording's RMSE columns (the same on each of its rows)."""
-TEXT = {"recording", "report", "robot", "start", "status", "error", "reference", "effect"}
+TEXT = {"recording", "report", "robot", "start", "status", "error", "worker", "reference", "effect"}
 INTEGER = {"samples", "rank", "cable"}
 
 
@@ -86,6 +89,7 @@ def table_rows(results: list[tuple[TaskResult, str]]) -> list[dict[str, Any]]:
             "start": res.start,
             "status": "failed" if res.error else "ok",
             "error": res.error or "",
+            "worker": res.worker,
         }
         if res.report_json is None:
             rows.append({**base, "effect": "", "rank": 0, "cable": 0})

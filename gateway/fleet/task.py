@@ -37,7 +37,7 @@ class TaskResult:
     report_json: str | None
     error: str | None
     seconds: float  # wall time of the diagnosis
-    worker: str  # host:pid
+    worker: str  # the Dask worker's address (tcp://HOST:PORT), or host:pid outside one
     peak_rss_mb: float  # the worker process's peak RSS so far
     recordings: tuple[str, ...] = ()
     """A joined task's recordings (``fleet --per-robot``; ``recording`` is then their names
@@ -68,6 +68,17 @@ def group_identity(paths: list[Path], metas: list[dict[str, str]]) -> tuple[str,
     """(robot, start) of recordings diagnosed as one: the first's robot, the earliest start."""
     ids = [recording_identity(p, m) for p, m in zip(paths, metas, strict=True)]
     return ids[0][0], min(start for _, start in ids)
+
+
+def _worker() -> str:
+    """The address of the Dask worker running this task (which host of a fleet spread over
+    several ran it), or ``host:pid`` when no worker runs it."""
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):  # ValueError: not in a worker
+        return f"{socket.gethostname()}:{os.getpid()}"
 
 
 def diagnose_task(
@@ -101,7 +112,7 @@ def diagnose_task(
         report_json=report,
         error=error,
         seconds=time.perf_counter() - t0,
-        worker=f"{socket.gethostname()}:{os.getpid()}",
+        worker=_worker(),
         peak_rss_mb=peak,
         recordings=tuple(recording) if isinstance(recording, list) else (),
     )

@@ -12,7 +12,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pyarrow.parquet as pq
 import pytest
 
 from gateway.cli import main
@@ -21,102 +20,7 @@ from gateway.fleet.cli import expand
 from gateway.fleet.table import RECORDING, columns_of, table_rows
 from gateway.fleet.task import TaskResult
 from tests.dask_helpers import dask_cluster
-
-ROOT = Path(__file__).resolve().parents[2]
-MODEL = ROOT / "config" / "default.yaml"
-HIDDEN = ("gain", "offset", "viscous")  # config/calibrate/*.yaml
-
-
-@pytest.fixture(scope="module")
-def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
-    """Three short recordings of robots hiding different effects (Parquet and CSV.gz, one
-    in a Hive tree) and one broken file."""
-    d = tmp_path_factory.mktemp("fleet-recordings")
-    out = []
-    for i, effect in enumerate(HIDDEN):
-        name = f"{effect}.parquet" if i != 1 else f"{effect}.csv.gz"
-        path = d / ("robot=r-offset/date=2026-01-02" if i == 1 else "") / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        assert (
-            main(
-                [
-                    "record",
-                    "--config",
-                    str(ROOT / "config" / "calibrate" / f"{effect}.yaml"),
-                    "--seconds",
-                    "6",
-                    "--out",
-                    str(path),
-                    "--quiet",
-                    "--robot",
-                    f"r-{effect}",
-                ]
-            )
-            == 0
-        )
-        out.append(path)
-    (d / "broken.csv").write_text("t,velocity_1\n0,1\n")
-    return [*out, d / "broken.csv"]
-
-
-def single_reports(recs: list[Path], tmp: Path) -> dict[str, bytes]:
-    """``diagnose REC --json`` of each good recording alone, the file's bytes."""
-    out = {}
-    for i, rec in enumerate(recs[:-1]):
-        assert (
-            main(
-                [
-                    "diagnose",
-                    str(rec),
-                    "--model",
-                    str(MODEL),
-                    "--json",
-                    str(tmp / f"{i}.json"),
-                    "--quiet",
-                ]
-            )
-            == 0
-        )
-        out[str(rec.resolve())] = (tmp / f"{i}.json").read_bytes()
-    return out
-
-
-def check_fleet_output(out: Path, recs: list[Path], singles: dict[str, bytes]) -> None:
-    table = pq.read_table(out / "fleet.parquet").to_pylist()
-    by_rec: dict[str, list[dict]] = {}
-    for row in table:
-        by_rec.setdefault(row["recording"], []).append(row)
-    assert set(by_rec) == {str(r.resolve()) for r in recs}
-    broken = by_rec.pop(str(recs[-1].resolve()))
-    assert broken[0]["status"] == "failed" and "has no column" in broken[0]["error"]
-    for rec, rows in by_rec.items():
-        report_bytes = (out / "reports" / rows[0]["report"]).read_bytes()
-        assert report_bytes == singles[rec]  # the same bytes as diagnose alone
-        report = json.loads(report_bytes)
-        expect = [(f["effect"], c) for f in report["findings"] for c in f["cables"]]
-        assert [(r["effect"], r["cable"]) for r in rows] == (expect or [("none", 0)])
-        for r in rows:
-            if r["effect"] == "none":
-                continue
-            f = next(f for f in report["findings"] if f["effect"] == r["effect"])
-            k = f["cables"].index(r["cable"])
-            for name, values in f["parameters"].items():
-                assert r[name] == values[k] and r[f"{name}_stderr"] == f["stderr"][name][k]
-            assert r["rmse_after_n"] == f["rmse_after_n"]
-            assert r["baseline_rmse_n"] == report["baseline"]["rmse_n"]
-            fits = report["baseline"]["least_squares"]["fits"].values()
-            assert r["lsq_holdout_rmse_n"] == min(f["holdout_rmse_n"] for f in fits)
-            assert r["final_holdout_rmse_n"] == report["final"]["holdout_rmse_n"]
-    robots = {r["robot"] for rows in by_rec.values() for r in rows}
-    assert robots == {f"r-{e}" for e in HIDDEN}
-    hive = next(rows for rec, rows in by_rec.items() if "robot=r-offset" in rec)
-    assert hive[0]["start"].startswith("20")  # the metadata's start, not the folder's date
-    text = (out / "fleet.md").read_text()
-    assert "1 failed" in text and "broken.csv" in text
-    plots = sorted(p.name for p in (out / "plots").iterdir())  # the broken file's robot too
-    assert plots == sorted([f"robot-r-{e}.png" for e in HIDDEN] + ["robot-fleet-recordings0.png"])
-    csv_lines = (out / "fleet.csv").read_text().splitlines()
-    assert len(csv_lines) == len(table) + 1
+from tests.fleet.fleet_helpers import MODEL, ROOT, check_fleet_output, single_reports
 
 
 @pytest.mark.long
@@ -272,3 +176,26 @@ def test_dask_log_lines_go_to_the_file_and_only_warnings_to_the_terminal_while_r
         assert line in text
     assert text.count("Traceback") == 2
     assert (logger.handlers, logger.level, logger.propagate) == before
+
+
+def test_two_fleets_on_one_machine_never_clash_on_a_port() -> None:
+    """Each LocalCluster's scheduler serves its HTTP routes (``/metrics``) even without a
+    dashboard, on 8787 unless told: a second fleet at once warned "Port 8787 is already in
+    use" (an error under this suite's warning filter, seen when two fleet tests overlapped).
+    Both now take a free loopback port."""
+    import distributed
+
+    from gateway.fleet.run import _client
+
+    first = _client(distributed, None, 1)
+    try:
+        second = _client(distributed, None, 1)  # a warning here fails the test
+        try:
+            ports = [c.scheduler_info()["services"]["dashboard"] for c in (first[0], second[0])]
+            assert 8787 not in ports and ports[0] != ports[1]
+        finally:
+            second[0].close()
+            second[1].close()
+    finally:
+        first[0].close()
+        first[1].close()
