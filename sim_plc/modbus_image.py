@@ -107,6 +107,13 @@ class ImageRegisters:
             truth, heartbeat = truth_fields(cfg.cables)
             self._truth = (codec(truth), codec(heartbeat))
         self._scratch = {c.field.address: np.zeros(c.count) for c, _ in self._out}
+        # encoded and decoded once now: the codecs' compiled kernels load here, while the
+        # server starts, not on the first request (at a load of 8 that took over 2 s, a
+        # client's whole timeout; a PLC client would lose its first exchange)
+        with image.lock:
+            self.refresh()
+        for c, _ in self._out:
+            c.decode(self._scratch[c.field.address])
 
     def areas(self) -> list[tuple[Span, bool]]:
         """The served areas as (span, writable): only the outputs are writable."""
