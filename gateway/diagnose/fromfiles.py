@@ -13,9 +13,9 @@ reference follows from the first recording's columns (:func:`.engine.reference_m
   (:func:`.sessions.join`), the platform-tension reference;
 - **wrench balance** (none of them has platform tensions): several joined
   (:func:`.sessions.join_wrench`), the wrench reference
-  (:func:`.wrench_select.diagnose_wrench`);
+  (:class:`.wrench_reference.WrenchReference`);
 
-then the diagnosis, and the start-up transient said as such
+then :func:`.engine.diagnose`, and the start-up transient said as such
 (:func:`.transient.annotate`). A single recording is diagnosed as itself, never as a
 join of one.
 """
@@ -32,7 +32,7 @@ from gateway.diagnose import heldout, pose_statics, transient
 from gateway.diagnose.engine import diagnose, load_kernels, reference_mode
 from gateway.diagnose.report import Diagnosis
 from gateway.diagnose.sessions import join, join_wrench
-from gateway.diagnose.wrench_select import diagnose_wrench
+from gateway.diagnose.wrench_reference import WrenchReference
 from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
 from gateway.recordings.reader import Recording, read_recording
@@ -251,9 +251,8 @@ def _wrench(files: _Files, paths: list[Path], validate: Path | None, cfg: Config
     del vrecs
     nominal = files.nominal
     assert nominal is not None  # every recording read sets it
-    diag = diagnose_wrench(
-        rec, nominal, cfg, vrec, progress=say, sessions=sessions, validation_sessions=vsessions
-    )
+    reference = WrenchReference(cfg, sessions, vsessions)
+    diag = diagnose(rec, nominal, reference, validation=vrec, progress=say)
     return diag, rec, rec, nominal
 
 

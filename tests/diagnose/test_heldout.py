@@ -119,7 +119,8 @@ def test_calibrate_refuses_and_runs_no_after(tmp_path, capsys, monkeypatch):
             write_recording(record, rec)
         return calibrate.RunScore(0.5, 1.0, [0.5] * 8, 100, 100, 0)
 
-    def fake_wrench(rec, friction, cfg, validation, progress=None, **kwargs):
+    def fake_wrench(rec, friction, reference, validation=None, progress=None):
+        assert reference.name == "wrench"
         assert validation is not None and validation.samples < rec.samples
         return types.SimpleNamespace(report=report(0.707, 0.907, True) | {"reference": "wrench"})
 
@@ -142,7 +143,7 @@ def test_calibrate_refuses_and_runs_no_after(tmp_path, capsys, monkeypatch):
         )
 
     monkeypatch.setattr(calibrate, "run_scored", fake_run)
-    monkeypatch.setattr(fromfiles, "diagnose_wrench", fake_wrench)
+    monkeypatch.setattr(fromfiles, "diagnose", fake_wrench)
     out = tmp_path / "cal"
     rc = main(
         [
