@@ -19,7 +19,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from gateway.diagnose import wrench, wrench_lsq, wrench_select
+from gateway.diagnose import wrench, wrench_lsq, wrench_report
+from gateway.diagnose.engine import diagnose
+from gateway.diagnose.wrench_reference import WrenchReference
 from sim_plc.plant import make_recording
 from tests.diagnose.test_wrench import plant_config
 
@@ -52,11 +54,11 @@ def run() -> None:
     cpu: dict[str, list[float]] = {"without": [], "with": []}
     for _ in range(REPEATS):
         for name, fn in (("without", stub), ("with", timed)):
-            wrench_select.wrench_lsq.block = fn  # type: ignore[attr-defined]
+            wrench_report.wrench_lsq.block = fn  # type: ignore[attr-defined]
             t0 = time.process_time()
-            wrench_select.diagnose_wrench(rec, cfg.friction, cfg, val)
+            diagnose(rec, cfg.friction, WrenchReference(cfg), validation=val)
             cpu[name].append(time.process_time() - t0)
-    wrench_select.wrench_lsq.block = real  # type: ignore[attr-defined]
+    wrench_report.wrench_lsq.block = real  # type: ignore[attr-defined]
     print(f"   {rec.samples} samples x 8 cables, validation {val.samples} samples")
     for name, xs in cpu.items():
         print(f"   diagnosis {name:7s} the block: CPU " + ", ".join(f"{x:.1f}" for x in xs) + " s")

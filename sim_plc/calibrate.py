@@ -32,7 +32,7 @@ plant -- run 1 SIM.yaml itself, run k ``DIR/plant-run-K.yaml``, SIM.yaml with
 --seed`` draws another recording of a machine; the motion differs with a ``random``
 trajectory, the other kinds repeat theirs and only the noise differs) -- into
 ``DIR/before-K.csv.gz``; step 3 diagnoses them **jointly**, one set of findings for the
-machine (:func:`gateway.diagnose.wrench_select.diagnose_joined_wrench`, the path of
+machine (:func:`gateway.diagnose.fromfiles.diagnose_file`, the path of
 ``diagnose REC REC ...`` for recordings without platform tensions): the first 75 % of every
 run fitted, the last quarters of all runs joined as the validation; the report lists the
 runs in ``recordings``. ``before`` in ``calibration.json`` is run 1 (the motion ``after``
@@ -53,13 +53,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from gateway.core.config import Config, load_config, load_friction
+from gateway.core.config import Config, load_config
 from gateway.core.configtypes import read_yaml
-from gateway.diagnose import heldout, transient
-from gateway.diagnose.engine import reference_mode
-from gateway.diagnose.writemodel import relative_to_model, write_model
 from gateway.errors import GatewayError
-from gateway.recordings.reader import Recording, read_recording
+from gateway.recordings.reader import Recording
 from gateway.runtime.loop import CyclicService
 from gateway.service.daemon import build_driver, start_recorder
 from sim_plc import demo
@@ -231,77 +228,26 @@ def split_validation(rec: Recording) -> tuple[Recording, Recording]:
     return rec.take(np.arange(cut)), rec.take(np.arange(cut, rec.samples))
 
 
-def diagnose_recording(recording: Path, model: Path, report: Path, fitted: Path, say) -> dict:
-    """Diagnose ``recording`` against the wrench balance (no platform tensions), write the
-    report and the fitted model; returns the report."""
-    from gateway.diagnose.wrench_select import diagnose_wrench
+def diagnose_runs(recordings: list[Path], model: Path, report: Path, fitted: Path, say) -> dict:
+    """Diagnose the runs of one plant against the wrench balance, jointly when several
+    (:func:`gateway.diagnose.fromfiles.diagnose_file`): each run's rows with new, good
+    readings (:func:`gateway_rows`), the first 75 % of every run fitted and the last
+    quarters the validation (:func:`split_validation`); write the report, then the fitted
+    model unless the held-out check refuses it (no 'after' run with a model that fits the
+    noise); returns the report."""
+    from gateway.diagnose.fromfiles import diagnose_file
 
-    cfg = load_config(model)
-    model_friction = load_friction(model)
-    fit, check, friction = _split_run(recording, model_friction, cfg, say)
-    say(f"fit on the first {fit.samples} rows, validate on the last {check.samples}")
-    diag = diagnose_wrench(fit, friction, cfg, check, progress=say)
-    transient.annotate(diag.report, fit, friction)  # the start-up transient, said as such
-    where = "the recording's last quarter, not fitted"
-    _write(diag.report, fit, where, report, fitted, model, model_friction)
-    return diag.report
-
-
-def _split_run(path: Path, model_friction, cfg, say) -> tuple[Recording, Recording, Any]:
-    """One run read for the wrench reference: its rows with new, good readings, relative
-    to the model, split into (fit, validation, the friction they are relative to)."""
-    rec = gateway_rows(read_recording(path))
-    say(f"{path}: {rec.samples} rows with new, good readings ({rec.skipped_rows} left out)")
-    if reference_mode(rec) != "wrench":
-        raise GatewayError(f"{path}: no pose and mass columns: no wrench reference")
-    rec, friction = relative_to_model(rec, model_friction, cfg)
-    fit, check = split_validation(rec)
-    return fit, check, friction
-
-
-def _write(
-    rep: dict, fit: Recording, where: str, report: Path, fitted: Path, model: Path, model_friction
-) -> None:
-    """The report, then the fitted model unless the held-out check refuses it (no 'after'
-    run with a model that fits the noise)."""
+    if len(recordings) > 1:
+        say(f"fit on the first 75 % of {len(recordings)} runs, validate on their last quarters")
+    run = diagnose_file(recordings, model, rows=gateway_rows, split=split_validation, progress=say)
+    rep = run.report
     try:
         report.write_text(json.dumps(rep, indent=1), encoding="utf-8")
     except OSError as exc:
         raise GatewayError(f"{report}: cannot write: {exc.strerror or exc}") from exc
-    refused = heldout.refusal(rep, heldout.motion(fit.t, fit.velocity), where)
-    if refused is not None:
-        raise GatewayError(f"{fitted}: {refused}")
-    write_model(fitted, model, model_friction, rep, fit)
-
-
-def diagnose_runs(recordings: list[Path], model: Path, report: Path, fitted: Path, say) -> dict:
-    """:func:`diagnose_recording` of several runs of one plant, jointly: each run's rows
-    with new, good readings (:func:`gateway_rows`), the first 75 % of every run fitted and
-    their last quarters the validation, joined and diagnosed as one against the wrench
-    balance (:func:`gateway.diagnose.wrench_select.diagnose_joined_wrench`); writes the
-    report and the fitted model, returns the report."""
-    from gateway.diagnose.wrench_select import diagnose_joined_wrench
-
-    if len(recordings) == 1:
-        return diagnose_recording(recordings[0], model, report, fitted, say)
-    cfg = load_config(model)
-    model_friction = load_friction(model)
-    fits, checks = [], []
-    friction = None
-    for path in recordings:
-        fit, check, friction = _split_run(path, model_friction, cfg, say)
-        fits.append(fit)
-        checks.append(check)
-    say(
-        f"fit on the first 75 % of {len(fits)} runs ({sum(f.samples for f in fits)} rows), "
-        f"validate on their last quarters ({sum(c.samples for c in checks)} rows)"
-    )
-    names = [str(p) for p in recordings]
-    diag, joined = diagnose_joined_wrench(fits, names, friction, cfg, checks, progress=say)  # type: ignore[arg-type]
-    transient.annotate(diag.report, joined, friction)  # type: ignore[arg-type]
-    where = "the runs' last quarters, not fitted"
-    _write(diag.report, joined, where, report, fitted, model, model_friction)
-    return diag.report
+    where = "the recording's last quarter" if len(recordings) == 1 else "the runs' last quarters"
+    run.write_model(fitted, where=f"{where}, not fitted")
+    return rep
 
 
 def _finding_text(f: dict) -> str:

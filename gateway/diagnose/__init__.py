@@ -2,8 +2,9 @@
 
 ``cdpr-gateway diagnose RECORDING --model MODEL.yaml --json REPORT.json [--report DIR]
 [--validate OTHER] [--write-model FITTED.yaml]`` (docs/recording-format.md). Python API:
-:func:`engine.diagnose` (the platform-tension reference),
-:func:`wrench_select.diagnose_wrench` (the wrench balance).
+:func:`fromfiles.diagnose_file` (files: read, reference, statics, one or several
+recordings), :func:`engine.diagnose` (a recording in memory, with either reference:
+:class:`reference.PlatformReference`, :class:`wrench_reference.WrenchReference`).
 
 One way through, five stages (:mod:`.engine` reads as them):
 
@@ -19,7 +20,7 @@ One way through, five stages (:mod:`.engine` reads as them):
 3. **Select** (:mod:`.selection`): one selector over the reference's units, a strategy it is
    given: one :class:`.reference.CableUnit` per cable (the reading against the nominal chain
    run from the platform tension, :mod:`.forward`, :mod:`.fit`), or one
-   :class:`.wrench_select.WrenchUnit` for the platform's wrench balance (every cable at once
+   :class:`.wrench_unit.WrenchUnit` for the platform's wrench balance (every cable at once
    through the moving structure matrix; no tension distribution assumed). Forward steps,
    pairs, swaps, a strict backward check, a best-subset search while the held-out residual
    holds more than noise, nested and rival checks.

@@ -2,8 +2,8 @@
 cable, the cable's sensor reading against the nominal chain run from its platform tension
 (:class:`gateway.diagnose.forward.Forward`), fitted by :mod:`gateway.diagnose.fit`.
 
-(The other reference, the platform's wrench balance, is :class:`gateway.diagnose.wrench.
-WrenchUnit`: every cable at once.)
+(The other reference, the platform's wrench balance, is :class:`gateway.diagnose.
+wrench_reference.WrenchReference`, with one unit: every cable at once.)
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from gateway.diagnose.prepare import (
     validation_forwards,
     warmup_mask,
 )
+from gateway.diagnose.report import Diagnosis, build_report
 from gateway.diagnose.selection import Model, Selector, Thresholds
 from gateway.diagnose.sessions import Sessions
 from gateway.diagnose.sessions import time_blocks as session_blocks
@@ -331,6 +332,22 @@ class PlatformReference:
 
     def release(self, unit: CableUnit) -> None:
         unit.fw.clear_cache()
+
+    def select(self, prep: PlatformPrepared, th: Thresholds, say) -> list[Tested]:
+        """:func:`select_units`."""
+        return select_units(self, prep, th, say)
+
+    def fit(
+        self, prep: PlatformPrepared, tested: list[Tested], th: Thresholds, say
+    ) -> list[Tested]:
+        """:func:`fit_units`."""
+        return fit_units(self, prep, tested, th, say)
+
+    def report(
+        self, prep: PlatformPrepared, located: Located, fitted: list[Tested], th: Thresholds
+    ) -> Diagnosis:
+        """:func:`gateway.diagnose.report.build_report`."""
+        return build_report(prep, located, fitted, th)
 
 
 @dataclass

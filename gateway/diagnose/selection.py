@@ -3,7 +3,7 @@ time blocks, over a :class:`Unit` the reference gives it.
 
 A unit is what is selected on as one: a cable against its platform tension
 (:class:`gateway.diagnose.reference.CableUnit`), or every cable at once against the
-platform's wrench balance (:class:`gateway.diagnose.wrench_select.WrenchUnit`). The unit knows its
+platform's wrench balance (:class:`gateway.diagnose.wrench_unit.WrenchUnit`). The unit knows its
 candidates, how to fit effects (a quick screen on top of a model, a joint refit) and its
 residual (per sample, or per wrench component); the selector knows only residuals, held-out
 blocks and the tests of :mod:`.stats`.

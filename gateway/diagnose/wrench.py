@@ -18,7 +18,8 @@ observable from pose and mass, and nothing here invents it.
 This module holds the data (:class:`WrenchData`), the model ``T_p(theta)`` and the
 residual (:class:`WrenchModel`), the sensitivity Jacobian of the residual with respect
 to every candidate's per-cable parameters and the identifiability read from it
-(:func:`identifiability`). Selection and report: :mod:`.wrench_select`.
+(:func:`identifiability`). The unit of selection: :mod:`.wrench_unit`; the reference's
+stages: :mod:`.wrench_reference`; the report: :mod:`.wrench_report`.
 
 Candidates: the effects whose module says the wrench balance identifies them
 (``Effect.wrench``), each with its parameters per cable (a platform effect: one value),
@@ -39,9 +40,9 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 
 from gateway.core.config import Config, FrictionConfig
-from gateway.diagnose.engine import deadband, nominal_from, time_blocks, warmup_mask
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.pose_statics import require_geometry
+from gateway.diagnose.prepare import deadband, nominal_from, time_blocks, warmup_mask
 from gateway.diagnose.sessions import Sessions
 from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.stats import white_noise_columns
@@ -473,7 +474,7 @@ class WrenchModel:
         """Per sub-parameter of ``effect`` what its Jacobian is made of at ``rows``
         (:meth:`expand`): d T_p / d parameter (n, m), or, for a statics effect, d mass /
         d parameter (n,); 1/6 of the Jacobian's size for 8 cables, what a linearisation
-        keeps (:class:`gateway.diagnose.wrench_select.WrenchUnit`).
+        keeps (:class:`gateway.diagnose.wrench_unit.WrenchUnit`).
 
         The chains of the cables are independent, so one perturbed run of all cables at
         once gives every cable's column. It is computed on the smoothed readings

@@ -24,7 +24,7 @@ from gateway.diagnose.plots import (
     thin,
     write_files,
 )
-from gateway.diagnose.wrench_select import WrenchDiagnosis
+from gateway.diagnose.wrench_report import WrenchDiagnosis
 
 AXES = ("x", "y", "z")
 

@@ -86,7 +86,8 @@ def diagnose_task(
 ) -> TaskResult:
     """Diagnose ``recording`` against ``model`` as ``diagnose [--columns]`` does (a list:
     one robot's recordings jointly, as ``diagnose REC REC ...``); never raises."""
-    from gateway.diagnose.cli import diagnose_report, report_json
+    from gateway.diagnose.cli import report_json
+    from gateway.diagnose.fromfiles import diagnose_file
     from gateway.recordings.reader import read_metadata
 
     several = isinstance(recording, list)
@@ -98,7 +99,7 @@ def diagnose_task(
     try:
         robot, start = group_identity(paths, [read_metadata(p) for p in paths])
         what: Path | list[Path] = paths if several else paths[0]
-        report = report_json(diagnose_report(what, Path(model), columns=columns))
+        report = report_json(diagnose_file(what, Path(model), columns=columns).report)
     except GatewayError as exc:
         error = str(exc)
     except Exception as exc:  # a bug shows its place, but one recording never ends the job

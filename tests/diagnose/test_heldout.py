@@ -75,16 +75,16 @@ def recording(tmp_path):
 def test_diagnose_refuses_to_write_a_model_worse_on_unseen_data(
     recording, tmp_path, capsys, monkeypatch
 ):
-    from gateway.diagnose import engine  # the CLI takes diagnose from it when it runs
+    from gateway.diagnose import fromfiles  # the CLI diagnoses files through it
 
-    real = engine.diagnose
+    real = fromfiles.diagnose
 
     def worse(*args, **kwargs):
         diag = real(*args, **kwargs)
         rep = {**diag.report, **report(0.7, 0.9, False)}
         return dataclasses.replace(diag, report=rep)
 
-    monkeypatch.setattr(engine, "diagnose", worse)
+    monkeypatch.setattr(fromfiles, "diagnose", worse)
     fitted = tmp_path / "fitted.yaml"
     rc = main(
         [
@@ -104,7 +104,7 @@ def test_diagnose_refuses_to_write_a_model_worse_on_unseen_data(
 
 
 def test_calibrate_refuses_and_runs_no_after(tmp_path, capsys, monkeypatch):
-    from gateway.diagnose import wrench_select
+    from gateway.diagnose import fromfiles
     from sim_plc import calibrate
 
     runs: list[str] = []
@@ -119,7 +119,8 @@ def test_calibrate_refuses_and_runs_no_after(tmp_path, capsys, monkeypatch):
             write_recording(record, rec)
         return calibrate.RunScore(0.5, 1.0, [0.5] * 8, 100, 100, 0)
 
-    def fake_wrench(rec, friction, cfg, validation, progress=None):
+    def fake_wrench(rec, friction, reference, validation=None, progress=None):
+        assert reference.name == "wrench"
         assert validation is not None and validation.samples < rec.samples
         return types.SimpleNamespace(report=report(0.707, 0.907, True) | {"reference": "wrench"})
 
@@ -142,7 +143,7 @@ def test_calibrate_refuses_and_runs_no_after(tmp_path, capsys, monkeypatch):
         )
 
     monkeypatch.setattr(calibrate, "run_scored", fake_run)
-    monkeypatch.setattr(wrench_select, "diagnose_wrench", fake_wrench)
+    monkeypatch.setattr(fromfiles, "diagnose", fake_wrench)
     out = tmp_path / "cal"
     rc = main(
         [

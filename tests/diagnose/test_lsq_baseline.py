@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from evaluation.scenarios import Scenario, _truth_chain, motion
 from gateway.diagnose import lsq
-from gateway.diagnose.cli import diagnose_report
 from gateway.diagnose.engine import diagnose
+from gateway.diagnose.fromfiles import diagnose_file
 from gateway.diagnose.plots import summary
 from gateway.diagnose.signals import DISGUISE_R, disguised_readings
 from gateway.model.chain import simulate
@@ -132,7 +132,7 @@ def test_every_report_carries_the_least_squares_baseline(tmp_path) -> None:
     sc = Scenario("lsq", {"viscous": {"c_ns_m": 8.0}}, cables=2, seconds=20.0)
     rec, model = write_scenario(tmp_path, sc)
     val, _ = write_scenario(tmp_path, replace(sc, seed=7), "val.csv.gz")
-    rep = diagnose_report(rec, model, val)
+    rep = diagnose_file(rec, model, val).report
     check_report(rep)
     ls = rep["baseline"]["least_squares"]
     assert "rmse_n" in rep["baseline"]  # the nominal model's RMSE is kept

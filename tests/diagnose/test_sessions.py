@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 from gateway.cli import main
 from gateway.core.config import load_friction
 from gateway.diagnose import sessions as ss
-from gateway.diagnose.cli import diagnose_report
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
+from gateway.diagnose.fromfiles import diagnose_file
 from gateway.diagnose.prepare import GAP_SPACINGS, gap_starts, nominal_from
 from gateway.diagnose.prepare import time_blocks as one_blocks
 from gateway.model import effects as fx
@@ -137,8 +137,8 @@ def test_one_recording_in_a_list_is_the_one_recording_report(tmp_path: Path) -> 
     """A single recording takes the path it always took: the same report given alone or as
     a list of one, without ``recordings`` or ``per_recording``."""
     paths, model = _three(tmp_path, rl.Machine(cables=4, offset_n=-8.0), 60.0)
-    alone = diagnose_report(paths[0], model, paths[1])
-    listed = diagnose_report([paths[0]], model, paths[1])
+    alone = diagnose_file(paths[0], model, paths[1]).report
+    listed = diagnose_file([paths[0]], model, paths[1]).report
     assert json.dumps(alone) == json.dumps(listed)
     assert "recordings" not in alone
     assert all("per_recording" not in f for f in alone["findings"])
@@ -166,7 +166,7 @@ def test_one_answer_whichever_recording_is_validated_and_in_either_order(tmp_pat
     for val in range(3):
         fit = [paths[k] for k in range(3) if k != val]
         for order in (fit, fit[::-1]):
-            rep = diagnose_report(order, model, paths[val])
+            rep = diagnose_file(order, model, paths[val]).report
             check_report(rep)
             assert _found(rep) == ALL_CABLES, (val, [p.name for p in order], _found(rep))
             assert [r["name"] for r in rep["recordings"]] == [p.name for p in order]
@@ -184,5 +184,5 @@ def test_one_answer_in_every_order_of_three_recordings(tmp_path: Path) -> None:
     """All three recordings fitted together, in each of the six orders: the same findings,
     the truth on every cable."""
     paths, model = _three(tmp_path, ROBOT, 150.0)
-    answers = [_found(diagnose_report(list(o), model)) for o in itertools.permutations(paths)]
+    answers = [_found(diagnose_file(list(o), model).report) for o in itertools.permutations(paths)]
     assert all(a == ALL_CABLES for a in answers), answers

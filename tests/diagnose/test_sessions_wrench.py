@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from gateway.core.config import load_config
 from gateway.diagnose import sessions as ss
-from gateway.diagnose.cli import diagnose_report
+from gateway.diagnose.fromfiles import diagnose_file
 from gateway.diagnose.prepare import gap_starts
 from gateway.diagnose.wrench import wrench_data
 from gateway.errors import GatewayError
@@ -99,7 +99,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
 def test_several_recordings_without_platform_tensions_are_diagnosed_jointly(runs) -> None:
     """One wrench report for both: ``recordings`` lists them, viscous found on every
     cable near the hidden 25 N s/m, the same findings in either order."""
-    rep = diagnose_report(runs, MODEL)
+    rep = diagnose_file(runs, MODEL).report
     check_report(rep)
     assert rep["reference"] == "wrench"
     assert [r["name"] for r in rep["recordings"]] == [p.name for p in runs]
@@ -109,7 +109,7 @@ def test_several_recordings_without_platform_tensions_are_diagnosed_jointly(runs
     (visc,) = rep["findings"]
     assert visc["cables"] == list(range(1, 9))
     assert np.allclose(visc["parameters"]["c_ns_m"], 25.0, rtol=0.1)
-    back = diagnose_report(runs[::-1], MODEL)
+    back = diagnose_file(runs[::-1], MODEL).report
     assert [(f["effect"], f["cables"]) for f in back["findings"]] == [("viscous", visc["cables"])]
 
 
@@ -120,5 +120,5 @@ def test_mixing_platform_tensions_and_none_is_refused_in_one_line(runs, tmp_path
     with_tp = dataclasses.replace(rec, tension_platform=rec.tension_sensor.copy())
     write_recording(tmp_path / "tp.csv", with_tp)
     with pytest.raises(GatewayError, match="platform tensions or none") as err:
-        diagnose_report([runs[0], tmp_path / "tp.csv"], MODEL)
+        diagnose_file([runs[0], tmp_path / "tp.csv"], MODEL)
     assert "\n" not in str(err.value) and "tp.csv" in str(err.value)

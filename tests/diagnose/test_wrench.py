@@ -26,7 +26,7 @@ from gateway.core.configtypes import read_yaml
 from gateway.diagnose import pose_statics
 from gateway.diagnose.engine import diagnose, reference_mode
 from gateway.diagnose.wrench import WrenchModel, nominal_from, wrench_data
-from gateway.diagnose.wrench_select import diagnose_wrench
+from gateway.diagnose.wrench_reference import WrenchReference
 from gateway.errors import ConfigError, InfeasiblePoseError
 from gateway.model import kinematics, statics
 from gateway.recordings.reader import Recording
@@ -79,7 +79,7 @@ def recording(case: str, seed: int = 3) -> tuple[Recording, Recording, Config]:
 @functools.cache
 def wrench_report(case: str) -> dict:
     rec, _, cfg = recording(case)
-    return diagnose_wrench(rec, cfg.friction, cfg).report
+    return diagnose(rec, cfg.friction, WrenchReference(cfg)).report
 
 
 def truth(case: str, name: str) -> np.ndarray:
@@ -257,7 +257,7 @@ def test_wrench_identifies_the_cable_transmission_effects(name):
     truth = TRANSMISSION[name]
     cfg = plant_config({name: truth})
     full = make_recording(cfg, None, TRANSMISSION_SECONDS)
-    rep = diagnose_wrench(replace(full, tension_platform=None), cfg.friction, cfg).report
+    rep = diagnose(replace(full, tension_platform=None), cfg.friction, WrenchReference(cfg)).report
     check_report(rep)
     assert [f["effect"] for f in rep["findings"]] == [name]
     f = rep["findings"][0]
@@ -284,7 +284,7 @@ def test_wrench_route_holds_under_a_qp_controller_with_another_target():
     cfg = plant_config(CASES["viscous"], seed=5, distribution=dist)
     full = make_recording(cfg, None, SECONDS)
     assert np.mean(np.abs(pose_statics.platform_tensions(full, cfg) - full.tension_platform)) > 30
-    rep = diagnose_wrench(replace(full, tension_platform=None), cfg.friction, cfg).report
+    rep = diagnose(replace(full, tension_platform=None), cfg.friction, WrenchReference(cfg)).report
     assert [f["effect"] for f in rep["findings"]] == ["viscous"]
     assert_parameters("viscous", rep["findings"][0])
 
@@ -305,7 +305,7 @@ def test_wrench_clean_recording_gives_no_finding():
 def test_wrench_validation_recording_is_scored_not_fitted():
     rec, _, cfg = recording("viscous")
     vrec, _, _ = recording("viscous", seed=4)
-    rep = diagnose_wrench(rec, cfg.friction, cfg, validation=vrec).report
+    rep = diagnose(rec, cfg.friction, WrenchReference(cfg), validation=vrec).report
     check_report(rep)
     f = rep["findings"][0]
     assert f["validation_rmse_after_n"] < 0.5 * f["validation_rmse_before_n"]
@@ -331,7 +331,7 @@ def test_standing_platform_leaves_per_cable_effects_unidentifiable():
         source="still.csv",
     )
     assert reference_mode(rec) == "wrench"
-    rep = diagnose_wrench(rec, cfg.friction, cfg).report
+    rep = diagnose(rec, cfg.friction, WrenchReference(cfg)).report
     check_report(rep)
     ident = rep["identifiability"]
     for effect in ("offset", "gain"):
@@ -401,7 +401,7 @@ def test_long_recordings_are_fitted_on_thinned_samples(monkeypatch):
     rec, _, cfg = recording("viscous")
     prep = wrench.prepare(rec, cfg, cfg.friction)
     assert 1200 >= prep.rows.size >= 1000 and prep.chol.shape[0] == prep.rows.size
-    rep = diagnose_wrench(rec, cfg.friction, cfg).report
+    rep = diagnose(rec, cfg.friction, WrenchReference(cfg)).report
     assert rep["samples"] == rec.samples
     assert [f["effect"] for f in rep["findings"]] == ["viscous"]
     assert_parameters("viscous", rep["findings"][0])
@@ -414,7 +414,7 @@ def sweep(seeds: tuple[int, ...] = (4, 6, 7)) -> str:
     for seed in seeds:
         for case in CASES:
             rec, _, cfg = recording(case, seed)
-            rep = diagnose_wrench(rec, cfg.friction, cfg).report
+            rep = diagnose(rec, cfg.friction, WrenchReference(cfg)).report
             found = [f["effect"] for f in rep["findings"]]
             if case == "clean":
                 false += len(found)
@@ -445,17 +445,17 @@ if __name__ == "__main__":
 def test_the_selection_thins_to_its_own_fit_rows_and_no_lower_than_screen_hz(n, rate, budget):
     """``screening_step``: every d-th sample keeps the fit rows (every stride-th sample,
     the stride a multiple of d), at SCREEN_HZ or more; d 1 when nothing is thinned."""
-    from gateway.diagnose import wrench, wrench_select
+    from gateway.diagnose import wrench, wrench_reference
 
     rec = Recording(
         t=np.arange(n) / rate, velocity=np.zeros((n, 1)), tension_sensor=np.zeros((n, 1))
     )
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(wrench, "FIT_BUDGET", budget)
-        d = wrench_select.screening_step(rec)
+        d = wrench_reference.screening_step(rec)
     stride = math.ceil(n / budget)
     assert d >= 1 and stride % d == 0
-    assert d == 1 or rate / d >= wrench_select.SCREEN_HZ * (1 - 1e-9)
+    assert d == 1 or rate / d >= wrench_reference.SCREEN_HZ * (1 - 1e-9)
     full_rows = np.arange(0, n, stride)
     thinned_rows = np.arange(0, n, d)[:: math.ceil(math.ceil(n / d) / budget)]  # prepare's
     assert np.array_equal(full_rows, thinned_rows)
@@ -478,15 +478,15 @@ def test_selecting_on_a_thinned_copy_finds_what_every_sample_finds(monkeypatch):
     """The selection on every d-th sample (a long recording's path, here by a smaller
     FIT_BUDGET) and on every sample: the same findings on the same cables, parameters
     within two combined standard errors."""
-    from gateway.diagnose import wrench, wrench_select
+    from gateway.diagnose import wrench, wrench_reference
 
     monkeypatch.setattr(wrench, "FIT_BUDGET", 1200)
     rec, _, cfg = recording("viscous")
-    assert wrench_select.screening_step(rec) == 5
-    thinned = diagnose_wrench(rec, cfg.friction, cfg).report
-    monkeypatch.setattr(wrench_select, "SCREEN_HZ", math.inf)
-    assert wrench_select.screening_step(rec) == 1
-    full = diagnose_wrench(rec, cfg.friction, cfg).report
+    assert wrench_reference.screening_step(rec) == 5
+    thinned = diagnose(rec, cfg.friction, WrenchReference(cfg)).report
+    monkeypatch.setattr(wrench_reference, "SCREEN_HZ", math.inf)
+    assert wrench_reference.screening_step(rec) == 1
+    full = diagnose(rec, cfg.friction, WrenchReference(cfg)).report
     assert [(f["effect"], f["cables"]) for f in thinned["findings"]] == [
         (f["effect"], f["cables"]) for f in full["findings"]
     ]

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from gateway.diagnose import wrench, wrench_lsq
 from gateway.diagnose.plots import summary
-from gateway.diagnose.wrench_select import WrenchDiagnosis
+from gateway.diagnose.wrench_report import WrenchDiagnosis
 from sim_plc.plant import make_recording
 from tests.diagnose.test_wrench import plant_config, wrench_report
 from tests.diagnose_helpers import check_report
@@ -33,7 +33,7 @@ COULOMB_OFFSET = {
 @functools.cache
 def prepared(effects: str, noise_seed: int = 3) -> wrench.Prepared:
     """A short pose-and-mass recording of ``effects`` (``"clean"`` or ``"coulomb_offset"``)
-    prepared as :func:`diagnose_wrench` prepares it; the motion of seed 3, the sensor noise
+    prepared as :class:`WrenchReference` prepares it; the motion of seed 3, the sensor noise
     of ``noise_seed``."""
     cfg = plant_config(COULOMB_OFFSET if effects == "coulomb_offset" else {}, 3)
     cfg = replace(cfg, sim_plc=cfg.sim_plc | {"seed": noise_seed})
@@ -43,7 +43,7 @@ def prepared(effects: str, noise_seed: int = 3) -> wrench.Prepared:
 
 def masks(prep: wrench.Prepared) -> tuple[np.ndarray, np.ndarray]:
     """The diagnosis' training samples among its rows and its held-out samples (every
-    sample), as :class:`WrenchUnit` and :func:`diagnose_wrench` make them."""
+    sample), as :class:`WrenchUnit` and :class:`WrenchReference` make them."""
     train = (prep.blocks[prep.rows] % 2 == 0) & prep.warm[prep.rows]
     return train, (prep.blocks % 2 == 1) & prep.warm
 

@@ -1,6 +1,6 @@
 """``cdpr-gateway fleet --per-robot`` (issue 29 item 1): each robot's recordings diagnosed
 jointly as one task -- one report per robot, the report ``diagnose REC REC ...`` gives for
-those recordings (:func:`gateway.diagnose.cli.diagnose_report` of the list), one row per
+those recordings (:func:`gateway.diagnose.fromfiles.diagnose_file` of the list), one row per
 robot x finding x cable, the task sized as its recordings joined."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from gateway.cli import main
-from gateway.diagnose.cli import diagnose_report, report_json
+from gateway.diagnose.cli import report_json
+from gateway.diagnose.fromfiles import diagnose_file
 from gateway.fleet import sizing
 from gateway.fleet.cli import by_robot, expand
 from gateway.fleet.task import JOIN, diagnose_task
@@ -102,7 +103,7 @@ def test_a_robot_task_is_sized_as_its_recordings_joined(tmp_path) -> None:
 
 
 def test_a_robot_task_is_the_joined_diagnosis_of_its_recordings(fleet_dir) -> None:
-    """The task of one robot gives the bytes of ``diagnose_report`` of its recordings as a
+    """The task of one robot gives the bytes of ``diagnose_file`` of its recordings as a
     list, one set of findings with a ``recordings`` entry per recording."""
     tree, model = fleet_dir
     group = by_robot(expand([str(tree)]))[0]
@@ -110,7 +111,7 @@ def test_a_robot_task_is_the_joined_diagnosis_of_its_recordings(fleet_dir) -> No
     assert res.error is None, res.error
     assert res.robot == "a" and res.recordings == tuple(group)
     assert res.recording == JOIN.join(group) and res.start == "2026-01-01"
-    want = diagnose_report([Path(p) for p in group], model)
+    want = diagnose_file([Path(p) for p in group], model).report
     assert res.report_json == report_json(want)
     rep = json.loads(res.report_json)
     assert [r["name"] for r in rep["recordings"]] == [Path(p).name for p in group]
@@ -122,7 +123,7 @@ def test_fleet_per_robot_writes_one_report_and_one_row_set_per_robot(
     fleet_dir, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """End to end on a LocalCluster of one worker: a report per robot equal to
-    ``diagnose_report`` of its recordings, the table's rows per robot x finding x cable."""
+    ``diagnose_file`` of its recordings, the table's rows per robot x finding x cable."""
     tree, model = fleet_dir
     out = tmp_path / "fleet"
     code = main(
@@ -147,7 +148,7 @@ def test_fleet_per_robot_writes_one_report_and_one_row_set_per_robot(
     assert reports == ["000-robot-a.json", "001-robot-b.json"]
     for group, name in zip(by_robot(expand([str(tree)])), reports, strict=True):
         rep = json.loads((out / "reports" / name).read_text())
-        want = diagnose_report([Path(p) for p in group], model)
+        want = diagnose_file([Path(p) for p in group], model).report
         assert rep["findings"] == want["findings"] and rep == want
         rows = [r for r in table if r["report"] == name]
         assert {r["recording"] for r in rows} == {JOIN.join(group)}

@@ -1,66 +1,39 @@
-"""The wrench reference (:mod:`.wrench`) as a unit of the one selector, and its report.
+"""The wrench balance (:mod:`.wrench`) as one unit of the one selector
+(:class:`gateway.diagnose.selection.Unit`): every candidate's per-cable parameters
+identified jointly across cables through the varying structure matrix, on the residual
+whitened by the noise the sensors put on the wrench (:class:`wrench.Prepared`):
+generalised least squares.
 
-Every candidate's per-cable parameters are identified jointly across cables through the
-varying structure matrix. The residual is whitened by the noise the sensors put on the
-wrench (:class:`wrench.Prepared`): generalised least squares.
+- **Sensitivities**: the Jacobian of the weighted residual with respect to every
+  candidate's internal parameters (its own fit coordinates, :meth:`Effect.internal`) at
+  its anchor: the nominal model, or the start its module declares (``Spec.starts``) that
+  fits best, refined by Gauss-Newton steps; per candidate and cable its variance inflation
+  decides identifiability (:func:`wrench.identifiability`): unidentifiable cables are not
+  fitted and the report says so (``identifiability``).
+- **Linear model**: the linearised residual fitted by linear least squares on the training
+  samples (normal equations formed once), what the selector screens and tests.
+- **Refit** of the kept effects by Gauss-Newton on the nonlinear residual (the Jacobian
+  recomputed at the estimate), and their confirmation on it (:meth:`WrenchUnit.confirm`).
 
-1. **Sensitivities**: the Jacobian of the weighted residual with respect to every
-   candidate's internal parameters (its own fit coordinates, :meth:`Effect.internal`) at
-   its anchor: the nominal model, or the start its module declares (``Spec.starts``) that
-   fits best, refined by Gauss-Newton steps (:class:`WrenchUnit`); per candidate and cable
-   its variance inflation decides identifiability (:func:`wrench.identifiability`):
-   unidentifiable cables are not fitted and the report says so (``identifiability``).
-2. **Selection**: :class:`WrenchUnit` (the linearised residual, linear least squares) given
-   to :class:`gateway.diagnose.selection.Selector`, the same selector and the same held-out
-   tests as the per-cable reference; then the significance stage
-   (:mod:`gateway.diagnose.significance`: BH over every candidate, parameters against
-   their spread across time blocks).
-3. **Refit** of the kept effects by Gauss-Newton on the nonlinear residual (the Jacobian
-   recomputed at the estimate), on the training blocks. Where an anchor was away from the
-   nominal model, steps 1-3 once more with the kept effects linearised at their refit
-   (:data:`PASSES`).
-4. **Report**: every ``*_rmse_n`` is the RMS of the force part of the unweighted wrench
-   residual (N, over the three components and the samples); moments in ``wrench``. The
-   balance is one unit: a finding's ``statistic``, ``p`` and ``q`` are one joint test,
-   repeated for each of its cables. ``baseline.least_squares``: the engineer's Coulomb +
-   viscous + offset per cable fitted on the same balance (:mod:`.wrench_lsq`).
+The stages that use it: :class:`gateway.diagnose.wrench_reference.WrenchReference`.
 """
 
 from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from gateway.core.config import Config, FrictionConfig
-from gateway.core.heap import trim_heap
-from gateway.diagnose import locate, wrench, wrench_lsq
-from gateway.diagnose.engine import Diagnosis
-from gateway.diagnose.report import rmse_pairs
-from gateway.diagnose.selection import Model, Selector, Thresholds
-from gateway.diagnose.sessions import Sessions, join_wrench
-from gateway.diagnose.significance import Tested, combined_stderr, decide
-from gateway.diagnose.stats import white_noise_columns
+from gateway.diagnose.selection import Model, Selector
 from gateway.diagnose.wrench import (
-    PER_CABLE,
-    SUBPARAMS,
-    VIF_MAX,
-    WRENCH_EFFECTS,
     Prepared,
-    WrenchModel,
     identifiability,
     identifiable_cables,
     neutral,
-    prepare,
-    report_columns,
-    wrench_data,
 )
 from gateway.model import effects as fx
-from gateway.recordings.reader import Recording
 
-ROUNDS = 3
 GN_ITERATIONS = 3
 ANCHOR_STEPS = 5
 """Linearisations after the best anchor, each at the previous one's fit alone (kept where
@@ -68,38 +41,10 @@ the training error there is below the previous anchor's)."""
 ANCHOR_GAIN = 1e-3
 """A step is not taken where the linear fit predicts less than this share of the training
 error from it (a finding must lower the held-out error by ``Thresholds.rel_min``, 0.3 %)."""
-PASSES = 2
-"""Selections: where the first kept an effect linearised away from the nominal model, a
-second with the kept effects linearised at their refit and every other candidate's anchor
-chosen on top of it (a candidate anchored on the nominal residual alone may have taken
-what a kept effect explains, a linearisation far from where it is then screened)."""
-NOT_CANDIDATES = tuple(n for n in fx.EFFECT_NAMES if n not in WRENCH_EFFECTS)
 
 Col = tuple[int, int]  # (sub-parameter index, cable)
-SIGNATURE_POINTS = 20000
 MATRICES_KEPT = 3
 """Designs :meth:`WrenchUnit.matrix` keeps made (each ~9 MiB per 8 columns)."""
-SCREEN_HZ = 40.0
-"""The lowest rate the selection runs at on a long recording (:func:`screening_step`);
-the kept effects are refitted and every score computed on every sample. The thinned
-copy's derived series are the full rate's (:meth:`wrench.WrenchData.thinned`); only the
-chain runs at the lower rate. On a 2-min 1 kHz soft-PLC recording (0.5 N sensor noise,
-force residual 0.8 N RMS) the nominal model's platform tensions at the fit rows run at
-42 Hz differ from those at 1 kHz by 0.011 N RMS (0.06 N at most), the force residual
-by 0.018 N RMS; at 250 Hz by 0.003 and 0.005 N."""
-
-
-@dataclass
-class WrenchDiagnosis(Diagnosis):
-    """A :class:`Diagnosis` of the wrench reference. ``measured`` is zero (the balance),
-    ``nominal_pred`` and ``final_pred`` minus the force residuals (N, 3) of the nominal and
-    the final model (held: the balance is not per cable); ``signatures``: per finding,
-    its contribution to the force residual and the residual the final model leaves
-    without it (both flattened, thinned), for :mod:`.wrench_plots`."""
-
-    signatures: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    nominal_pred: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    final_pred: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 class WrenchUnit:
@@ -556,357 +501,3 @@ def force_rms(resid: np.ndarray, mask: np.ndarray | None = None) -> float:
     """RMS (N) of the force part of a wrench residual (N, 6) over components and samples."""
     f = resid[:, :3] if mask is None else resid[mask, :3]
     return float(math.sqrt(np.mean(f**2))) if f.size else 0.0
-
-
-def _per_cable(effect: str) -> bool:
-    return fx.REGISTRY[effect].per_cable
-
-
-def _report_values(effect: str, theta: np.ndarray, cables: list[int]) -> dict[str, list[float]]:
-    """Internal parameters (k, m) -> report values on ``cables``."""
-    values = report_columns(effect, theta)
-    return {
-        name: [float(v[i if _per_cable(effect) else 0]) for i in cables]
-        for name, v in values.items()
-    }
-
-
-def _fitted_cables(sel: WrenchUnit, effect: str) -> list[int]:
-    if not _per_cable(effect):
-        return list(range(sel.model.data.cables))
-    return sorted({i for _, i in sel.cols[effect]})
-
-
-def _stderr_values(
-    sel: WrenchUnit, effect: str, theta: np.ndarray, se: np.ndarray, cables: list[int]
-) -> dict:
-    """Standard errors of the internal columns -> of the report values
-    (:meth:`Effect.report_stderr`); -1 for a parameter not fitted on the cable."""
-    e = fx.REGISTRY[effect]
-    table = {(j, i): float(s) for (j, i), s in zip(sel.cols[effect], se, strict=True)}
-    out: dict[str, list[float]] = {name: [] for name in SUBPARAMS[effect]}
-    for i in cables:
-        col = i if _per_cable(effect) else 0
-        internal = np.array([table.get((j, col), np.nan) for j in range(len(SUBPARAMS[effect]))])
-        known = np.array([(j, col) in table for j in range(internal.size)])
-        rep = e.report_stderr(theta[:, col], np.where(known, internal, 0.0))
-        for j, name in enumerate(SUBPARAMS[effect]):
-            out[name].append(float(rep[name]) if known[j] else -1.0)
-    return out
-
-
-def _identifiability(sel: WrenchUnit) -> dict:
-    """Per candidate: the cables the motion identifies (variance inflation <= VIF_MAX for
-    every sub-parameter), the others, the inflations and the block's condition number."""
-    out: dict[str, dict] = {}
-    for e, blocks in sel.ident.items():
-        if not _per_cable(e):
-            out[e] = {"identifiable": bool(blocks[0]["live"][0]), "platform": True}
-            continue
-        ok = sorted(set.intersection(*(set(identifiable_cables(b)) for b in blocks)))
-        vif = np.max(np.column_stack([b["vif"] for b in blocks]), axis=1)
-        out[e] = {
-            "identifiable_cables": [i + 1 for i in ok],
-            "unidentifiable_cables": [i + 1 for i in range(vif.size) if i not in ok],
-            "max_variance_inflation": [float(v) if math.isfinite(v) else -1.0 for v in vif],
-            "condition": max(
-                float(b["condition"]) if math.isfinite(b["condition"]) else -1.0 for b in blocks
-            ),
-        }
-    return out
-
-
-def _order(model: WrenchModel, theta: dict, mask: np.ndarray) -> list[str]:
-    """Kept effects by the force residual energy each explains in the final model."""
-    full = force_rms(model.residual(theta), mask) ** 2
-    worth = {
-        e: force_rms(model.residual({k: v for k, v in theta.items() if k != e}), mask) ** 2 - full
-        for e in theta
-    }
-    return sorted(theta, key=lambda e: worth[e], reverse=True)
-
-
-def _missing(cables: list[int]) -> str:
-    if not cables:
-        return ""
-    return f" Not identifiable from this motion on cables {cables} (not fitted there)."
-
-
-def _evidence(effect: str, cables: list[int], values: dict, before: float, after: float) -> str:
-    pct = 100.0 * (1.0 - after / before) if before > 0 else 0.0
-    vals = ", ".join(
-        f"{k} = {min(v):.4g}..{max(v):.4g}" if len(set(v)) > 1 else f"{k} = {v[0]:.4g}"
-        for k, v in values.items()
-    )
-    where = (
-        "the platform (one value for the whole recording)"
-        if not _per_cable(effect)
-        else f"cable{'s' if len(cables) > 1 else ''} {', '.join(str(c + 1) for c in cables)}"
-    )
-    return (
-        f"Wrench balance (no platform tensions): {effect} on {where}, identified jointly "
-        f"across cables through the varying structure matrix; fitted {vals}; it lowers the "
-        f"held-out RMS of the force residual from {before:.3g} N to {after:.3g} N ({pct:.1f} %)."
-    )
-
-
-def screening_step(rec: Recording) -> int:
-    """Every how many samples :func:`diagnose_wrench` selects on (1: every sample): the
-    largest divisor of the fit rows' stride (:data:`wrench.FIT_BUDGET`) that leaves at
-    least :data:`SCREEN_HZ`. The thinned copy holds the same fit rows (the selection fits
-    and tests the same samples); only the chain and the derivatives run at the lower rate
-    (the chain over a 10-min 1 kHz recording was most of the diagnosis' CPU)."""
-    n = rec.samples
-    stride = math.ceil(n / wrench.FIT_BUDGET) if n > 0 else 1
-    if stride < 2:
-        return 1
-    dt = float(np.median(np.diff(rec.t)))
-    if not dt > 0.0:
-        return 1
-    fits = [d for d in range(2, stride + 1) if stride % d == 0 and d * dt * SCREEN_HZ <= 1 + 1e-9]
-    return max(fits, default=1)
-
-
-def _select(prep: Prepared, th: Thresholds, say):
-    """Selection, significance and confirmation on ``prep`` (steps 1-3 of the module
-    docstring, :data:`PASSES` times at most): the unit, the selector's outcome, the kept
-    effects, their fit and standard errors."""
-    at: dict[str, np.ndarray] = {}
-    for k in range(PASSES):
-        unit = WrenchUnit(prep, WRENCH_EFFECTS, at)
-        selector = Selector(unit, th)  # 3. select (2. locate: with the report, on the balance)
-        outcome = selector.run()
-        say(f"wrench reference: selected {', '.join(outcome.kept) or 'nothing'}")
-        tested = Tested(selector, selector.final, outcome)  # 4. fit: significance, refit
-        decide([tested], th, lambda msg: say(f"significance: {msg}"))
-        kept, theta, se = unit.confirm(selector, outcome.kept, say)
-        say(f"wrench reference: kept {', '.join(kept) or 'nothing'}")
-        if at or not any(e in unit.shift for e in kept):
-            break  # every kept effect linearised at the nominal model, or already at the fit
-        at = theta  # again, every candidate linearised on top of this fit
-        say(f"wrench reference: again, linearised at the fit of {', '.join(kept)}")
-        if k + 1 < PASSES:  # this pass's designs go before the next's are made (peak memory)
-            del unit, selector, tested, outcome
-            trim_heap()
-    return unit, outcome, kept, theta, se
-
-
-def diagnose_wrench(
-    rec: Recording,
-    friction: FrictionConfig,
-    cfg: Config | None,
-    validation: Recording | None = None,
-    thresholds: Thresholds | None = None,
-    progress=None,
-    sessions: Sessions | None = None,
-    validation_sessions: Sessions | None = None,
-) -> WrenchDiagnosis:
-    """Diagnose ``rec`` against the platform's wrench balance: the pipeline of
-    :mod:`gateway.diagnose.engine` with one unit, every cable at once (module docstring).
-    ``sessions`` (``validation_sessions``): ``rec`` (``validation``) is several recordings
-    of one machine joined (:func:`.sessions.join_wrench`), diagnosed for one set of
-    findings: time blocks within each recording, the pose differentiated within each, the
-    report's ``recordings`` (:func:`diagnose_joined_wrench`)."""
-    say = progress or (lambda _msg: None)
-    th = thresholds or Thresholds()
-    step = screening_step(rec) if sessions is None else 1
-    if step > 1:  # the selection on a thinned copy, the kept effects refitted on every sample
-        screen = prepare(rec, cfg, friction, step=step)
-        trim_heap()
-        say(
-            f"{rec.source}: wrench reference, selection on every {step}th sample "
-            f"({screen.model.data.t.size} samples), sensitivities of "
-            f"{len(WRENCH_EFFECTS)} candidate effects"
-        )
-        screened, outcome, kept, theta, se = _select(screen, th, say)
-        ident = screened.ident
-        del screen, screened
-        trim_heap()
-        prep = prepare(rec, cfg, friction)
-        trim_heap()  # as after the selection's preparation: LLVM's pages go again
-        sel = WrenchUnit(prep, tuple(kept), {e: theta[e] for e in kept})
-        kept = [e for e in kept if e in sel.cols]  # none unidentifiable here so far
-        theta, se = {e: theta[e] for e in kept}, {e: se[e] for e in kept}
-        if kept:
-            theta, se = sel.refit(kept)
-            say(f"wrench reference: {', '.join(kept)} refitted on every sample")
-        sel.ident = {**ident, **sel.ident}
-    else:
-        prep = prepare(rec, cfg, friction, sessions)  # 1. prepare
-        trim_heap()  # the preparation's temporaries and LLVM's pages leave the process
-        say(
-            f"{rec.source}: wrench reference, {prep.model.data.t.size} samples, "
-            f"sensitivities of {len(WRENCH_EFFECTS)} candidate effects"
-        )
-        sel, outcome, kept, theta, se = _select(prep, th, say)
-    data, model = prep.model.data, prep.model
-    sel.drop_designs()  # the report reads the columns and the identifiability only
-    test = (prep.blocks % 2 == 1) & prep.warm  # held-out samples, all of them
-    order = _order(model, theta, test) if len(theta) > 1 else list(theta)
-    vmodel = None
-    if validation is not None:
-        vsession = None if validation_sessions is None else validation_sessions.index
-        vmodel = WrenchModel(wrench_data(validation, cfg, vsession), model.nom)
-
-    def scores(effects: list[str]) -> tuple[float, float, float | None, np.ndarray, float]:
-        """RMS of the force residual (all, held out, validation), the force residual
-        (N, 3) and the moment's RMS: the residual (N, 6) itself is not kept."""
-        th = {e: theta[e] for e in effects}
-        r = model.residual(th)
-        v = None if vmodel is None else force_rms(vmodel.residual(th))
-        moment = float(math.sqrt(np.mean(r[:, 3:] ** 2)))
-        return force_rms(r), force_rms(r, test), v, np.ascontiguousarray(r[:, :3]), moment
-
-    before = scores([])
-    nominal = before  # the nominal model's scores (before moves on with each finding)
-    findings = []
-    for k, e in enumerate(order):
-        after = scores(order[: k + 1])
-        cables = _fitted_cables(sel, e)
-        values = _report_values(e, theta[e], cables)
-        missing = [i + 1 for i in range(data.cables) if i not in cables]
-        test_e = outcome.tests.get(e, {})
-        se_blk = outcome.stderr_blocks.get(e, np.full(se[e].size, np.nan))
-        f = {
-            "effect": e,
-            "cables": [c + 1 for c in cables],
-            "parameters": values,
-            "stderr": _stderr_values(sel, e, theta[e], combined_stderr(se[e], se_blk), cables),
-            "stderr_jacobian": _stderr_values(sel, e, theta[e], se[e], cables),
-            "stderr_blocks": _stderr_values(sel, e, theta[e], se_blk, cables),
-            # one joint test over every cable (the balance is one unit)
-            "statistic": [float(test_e.get("z", -1.0))] * len(cables),
-            "p": [float(test_e.get("p", -1.0))] * len(cables),
-            "q": [float(test_e.get("q", -1.0))] * len(cables),
-            "evidence": _evidence(e, cables, values, before[1], after[1]) + _missing(missing),
-            **rmse_pairs(before, after, vmodel is not None),
-        }
-        findings.append(f)
-        before = after
-    # the signatures before the diagnosis, which takes the force residuals over (negated
-    # in place); thinned copies, not views of two (N, 3) series each (27 MiB for 10 min)
-    step = max(1, data.t.size * 3 // SIGNATURE_POINTS)
-    signatures = {}
-    for e in order:
-        if len(order) == 1:  # without it, the nominal model: its scores' force residual
-            without = nominal[3]
-        else:
-            without = model.residual({k: v for k, v in theta.items() if k != e})[:, :3]
-        contrib = (without - before[3]).reshape(-1)[::step].copy()
-        signatures[e] = (contrib, without.reshape(-1)[::step].copy())
-        del without, contrib
-    least_squares = wrench_lsq.block(
-        prep,
-        sel.r0,
-        sel.train_samples,
-        test,
-        nominal[3],
-        before[3],
-        None if vmodel is None else (vmodel, float(before[2] or 0.0)),
-    )
-    diag = _build(rec, prep, sel, findings, order, nominal, before, vmodel)
-    diag.report["baseline"]["least_squares"] = least_squares
-    diag.signatures.update(signatures)
-    if sessions is not None:  # after samples and skipped_rows, as the platform report
-        rep = diag.report
-        where = list(rep).index("skipped_rows") + 1
-        items = list(rep.items())
-        rep.clear()
-        rep.update([*items[:where], ("recordings", sessions.report()), *items[where:]])
-    return diag
-
-
-def diagnose_joined_wrench(
-    recs: list[Recording],
-    names: list[str],
-    friction: FrictionConfig,
-    cfg: Config | None,
-    validation: list[Recording] | None = None,
-    progress=None,
-) -> tuple[WrenchDiagnosis, Recording]:
-    """Several recordings of one machine without platform tensions, joined
-    (:func:`.sessions.join_wrench`) and diagnosed as one against the wrench balance; the
-    validation recordings (several: joined too) scored, never fitted. Returns the
-    diagnosis and the joined recording (for the model writer and the held-out check).
-    ``diagnose REC REC ...`` on such recordings and ``calibrate --runs N`` take this path.
-    """
-    say = progress or (lambda _msg: None)
-    joined, sessions = join_wrench(recs, names)
-    vrec = vsess = None
-    if validation:
-        vnames = [v.source or f"validation {k + 1}" for k, v in enumerate(validation)]
-        vrec, vsess = (
-            join_wrench(validation, vnames) if len(validation) > 1 else (validation[0], None)
-        )
-    say(f"{sessions.count} recordings joined: {joined.samples} samples (wrench reference)")
-    diag = diagnose_wrench(
-        joined, friction, cfg, vrec, progress=say, sessions=sessions, validation_sessions=vsess
-    )
-    return diag, joined
-
-
-def _build(rec, prep, sel, findings, order, nominal, final, vmodel) -> WrenchDiagnosis:
-    """The diagnosis from the nominal and the final :func:`diagnose_wrench` scores (each
-    with the force residual (N, 3) and the moment's RMS). The force residuals are taken
-    over: negated in place into ``nominal_pred`` and ``final_pred`` (not copied: 14 MiB
-    each for 10 min), the scores' caller reads them no more."""
-    data = prep.model.data
-    r_nominal, r_final = nominal[3], final[3]
-    fs = white_noise_columns(r_final)
-    noise = float(math.sqrt(np.mean(fs**2)))
-    fin = {
-        "rmse_n": final[0],
-        "holdout_rmse_n": final[1],
-        "noise_n": noise,
-        "unexplained_n": math.sqrt(max(final[1] ** 2 - noise**2, 0.0)),
-        "moment_rmse_nm": final[4],
-    }
-    if vmodel is not None:
-        fin["validation_rmse_before_n"] = force_rms(vmodel.residual({}))
-        fin["validation_rmse_after_n"] = float(final[2] or 0.0)
-    norm0 = np.linalg.norm(r_nominal, axis=1)[:, None]
-    norm1 = np.linalg.norm(r_final, axis=1)[:, None]
-    regime = locate.regimes(data.speed, np.gradient(data.speed, data.t))[:, None]
-
-    def located(norm: np.ndarray) -> list[locate.Region]:
-        return [
-            locate.Region(0, r.start_s, r.end_s, r.regime, r.share)
-            for r in locate.regions(data.t, norm, regime)
-        ]
-
-    regions, regions_final = located(norm0), located(norm1)
-    report = {
-        "reference": "wrench",
-        "cables": rec.cables,
-        "samples": int(data.t.size),
-        "skipped_rows": rec.skipped_rows + (rec.samples - int(data.t.size)),
-        "baseline": {
-            "rmse_n": nominal[0],
-            "per_cable_rmse_n": [],
-            **locate.report_fields(regions, norm0, regime),
-        },
-        **locate.report_fields(regions_final, norm1, regime),
-        "findings": findings,
-        "final": fin,
-        "identifiability": _identifiability(sel),
-        "wrench": {
-            "candidates": list(WRENCH_EFFECTS),
-            "not_candidates": list(NOT_CANDIDATES),
-            "variance_inflation_max": VIF_MAX,
-            "baseline_moment_rmse_nm": nominal[4],
-            "per_cable_effects": list(PER_CABLE),
-        },
-    }
-    return WrenchDiagnosis(
-        report,
-        data.t,
-        np.broadcast_to(0.0, (data.t.size, 3)),  # views, read only: 14 MiB each for 10 min
-        np.broadcast_to(regime, (data.t.size, 3)),
-        regions_final,
-        [],
-        order,
-        [],
-        regions_nominal=regions,
-        nominal_pred=np.negative(r_nominal, out=r_nominal),
-        final_pred=r_nominal if r_final is r_nominal else np.negative(r_final, out=r_final),
-    )
