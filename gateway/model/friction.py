@@ -4,7 +4,7 @@ Sign convention (eq. 8): ``T_j = T_{j-1} + sgn(v) F_Rj``, pulleys numbered from 
 (j = 0 side) towards the platform; ``v > 0`` pays the cable out, so the platform side
 carries more tension than the sensor.
 
-Scalar kernels are compiled with numba so that the chain (``chain.py``) can call them
+Scalar kernels are compiled with numba so that the chain (``chain_kernels.py``) can call them
 inside its loops; they are ordinary Python-callable functions as well.
 """
 
@@ -77,7 +77,7 @@ def dahl_step_power(f: float, f_r: float, dx: float, sigma: float, beta: float) 
     """:func:`dahl_step` for ``beta != 1``, ``dx != 0`` and ``F_R`` above the floor: the
     kernels call it where they have checked those, so that each inlined copy carries
     neither the checks nor the ``beta = 1`` step again (numba inlines at its IR level,
-    and the copies cost compile time: see :func:`gateway.model.chain._elements`)."""
+    and the copies cost compile time: see :func:`gateway.model.chain_kernels._elements`)."""
     s = 1.0 if dx > 0.0 else -1.0
     k = sigma * abs(dx) / f_r
     z = 1.0 - s * f / f_r

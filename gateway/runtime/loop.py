@@ -90,10 +90,10 @@ Observer = Callable[[Inputs, Compensator, float], None]
 def cycle_kernels() -> list[Any]:
     """A kernel of each source file the cycle compiles (:func:`gateway.core.firstrun.compiling`)."""
     from drivers import kernels
-    from gateway.model import chain
+    from gateway.model import chain_kernels
     from gateway.runtime import compensator, plausibility
 
-    return [compensator._finish, plausibility._check, chain.compensate_kernel, kernels.gate]
+    return [compensator._finish, plausibility._check, chain_kernels.compensate_kernel, kernels.gate]
 
 
 def describe_bus(cfg: Config) -> str:
