@@ -5,7 +5,8 @@ Sign convention (eq. 8): ``T_j = T_{j-1} + sgn(v) F_Rj``, pulleys numbered from 
 carries more tension than the sensor.
 
 Scalar kernels are compiled with numba so that the chain (``chain_kernels.py``) can call them
-inside its loops; they are ordinary Python-callable functions as well.
+inside its loops; they are ordinary Python-callable functions as well. :func:`dahl_step`,
+the whole step the tests check, is plain Python over them.
 """
 
 from __future__ import annotations
@@ -51,9 +52,10 @@ def dahl_step_slope(f: float, f_r: float, dx: float, sigma: float) -> tuple[floa
     return s * f_r + rest * e, s * (1.0 - e) + rest * e * k / f_r
 
 
-@njit(cache=True, inline="always")
 def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> float:
-    """One exact step of the Dahl model (eq. 14) over cable travel ``dx`` (m).
+    """One exact step of the Dahl model (eq. 14) over cable travel ``dx`` (m): the whole
+    law, plain Python over the compiled steps the kernels inline (:func:`dahl_step_slope`,
+    :func:`dahl_step_power`); no command calls it, so nothing compiles it.
 
     ``dF/dx = sigma (1 - F / F_R sgn(dx))^beta`` with ``F_R`` held over the step.
     With ``z = 1 - s F / F_R`` (s = sgn dx) it reads ``dz/d|x| = -(sigma/F_R) z^beta``,
