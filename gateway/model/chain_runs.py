@@ -126,8 +126,7 @@ def run(
     updated in place; relaxed if None). The first sample has no travel, unless
     ``previous`` (:data:`Previous`) gives the sample before it: a run continued block by
     block with the state and the previous sample carried is the whole run's, value for
-    value. What is kept of the output (the same values bit
-    for bit either way):
+    value. What is kept of the output (the same values bit for bit either way):
 
     * by default the (N, m) output, written into ``out`` when given;
     * ``rows`` (increasing sample indices): the output at those samples only, (n, m),
