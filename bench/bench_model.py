@@ -16,7 +16,9 @@ import numpy as np
 
 from drivers.base import Inputs, Outputs
 from gateway.core.config import Config, EffectParams, load_config
-from gateway.model.chain import ChainParams, ChainStepper, compensate, simulate
+from gateway.model import chain_runs
+from gateway.model.chain_runs import ChainStepper
+from gateway.model.chain_schema import ChainParams
 from gateway.model.effects.registry import ONLINE_EFFECTS
 from gateway.runtime.compensator import Compensator
 
@@ -33,7 +35,7 @@ def _signals(n: int, m: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray, np.
 def _step_figures(params: ChainParams) -> None:
     cycles = 20000
     t, v, tp = _signals(cycles, params.cables)
-    ts = simulate(params, tp, v, t)
+    ts = chain_runs.run(params, "simulate", tp, v, t)
     stepper = ChainStepper(params, 1e-3)
     out = np.zeros(params.cables)
     stepper.step(ts[0], v[0], out)  # compile before timing
@@ -53,13 +55,13 @@ def _step_figures(params: ChainParams) -> None:
 def _batch_figures(params: ChainParams) -> None:
     n = 600_000  # 10 minutes at 1 kHz
     t, v, tp = _signals(n, params.cables)
-    simulate(params, tp[:10], v[:10], t[:10])
-    compensate(params, tp[:10], v[:10], t[:10])
-    for name, fn in (("simulate", simulate), ("compensate", compensate)):
+    chain_runs.run(params, "simulate", tp[:10], v[:10], t[:10])
+    chain_runs.run(params, "compensate", tp[:10], v[:10], t[:10])
+    for name in ("simulate", "compensate"):
         runs = []
         for _ in range(3):
             t0 = time.perf_counter()
-            fn(params, tp, v, t)
+            chain_runs.run(params, name, tp, v, t)  # type: ignore[arg-type]
             runs.append(time.perf_counter() - t0)
         rate = n * params.cables / float(np.median(runs))
         print(

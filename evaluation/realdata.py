@@ -42,7 +42,7 @@ from gateway.core.config import FrictionConfig, PulleyConfig
 from gateway.diagnose.prepare import nominal_from
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
-from gateway.model.chain import simulate
+from gateway.model.chain_runs import run
 from gateway.recordings.reader import Recording
 
 EMPS_FIT = "emps/DATA_EMPS.mat"
@@ -190,7 +190,7 @@ def predict(rec: Recording, friction: FrictionConfig) -> np.ndarray:
     out = np.empty_like(rec.tension_sensor)
     for seg in segments(rec.t):
         t, v = rec.t[seg], rec.velocity[seg]
-        ts = simulate(params, rec.tension_platform[seg], v, t)
+        ts = run(params, "simulate", rec.tension_platform[seg], v, t)
         x = rec.length[seg] if rec.length is not None else fx.displacement(t, v)
 
         def acc(t: np.ndarray = t, v: np.ndarray = v) -> np.ndarray:

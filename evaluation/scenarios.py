@@ -5,7 +5,7 @@ Each :class:`Scenario` names the effects the "real" machine has beyond the nomin
 below the sensor noise in the raw residual and smaller than the friction the nominal
 model already holds, or confined to a narrow regime (reversals, low speed). The
 recording is made by :func:`make_recording` (one function, so that the generator can be
-swapped for the soft PLC's plant): truth chain (:func:`gateway.model.chain.simulate`)
+swapped for the soft PLC's plant): truth chain (:func:`gateway.model.chain_runs.run`)
 -> path and sensor effects (:mod:`gateway.model.effects`) -> Gaussian noise -> S7
 quantisation (27648 counts = sensor range).
 
@@ -33,7 +33,8 @@ from gateway.core.config import (
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose.prepare import nominal_from
 from gateway.model import effects as fx
-from gateway.model.chain import ChainParams, simulate
+from gateway.model.chain_runs import run
+from gateway.model.chain_schema import ChainParams
 from gateway.model.effects.base import ModelFile
 from gateway.recordings.reader import Recording
 
@@ -189,7 +190,7 @@ def make_recording(sc: Scenario) -> Recording:
         return plant_recording(plant_config(sc), None, sc.seconds)
     t, v, tp = motion(sc)
     m = v.shape[1]
-    ts = simulate(_truth_chain(sc, m), tp, v, t)
+    ts = run(_truth_chain(sc, m), "simulate", tp, v, t)
     series = fx.SeriesData(
         t, v, lambda: fx.displacement(t, v), lambda: fx.acceleration(t, v), float(t[0])
     )

@@ -54,7 +54,8 @@ import numpy as np
 from drivers.s7 import S7Analog
 from gateway.core.config import Config, RealtimeConfig, load_config
 from gateway.errors import GatewayError
-from gateway.model.chain import ChainParams, ChainStepper
+from gateway.model.chain_runs import ChainStepper
+from gateway.model.chain_schema import ChainParams
 from gateway.runtime import realtime
 from gateway.runtime.loop import CyclicService
 from gateway.runtime.realtime import RealtimeReport

@@ -9,7 +9,7 @@ One pipeline, written once with :mod:`gateway.model` (run the other way round):
    d'Alembert term ``-m a`` (``statics``); platform tensions by the tension
    distribution (eq. 18, 19) with the plant's limits, or the controller's own
    (``sim_plc.distribution``: :mod:`sim_plc.distribution`).
-3. the pulley chain run backwards, platform -> sensor (``chain.simulate``; Dahl by
+3. the pulley chain run backwards, platform -> sensor (``chain_runs.run``; Dahl by
    default, with the hidden chain-side effects in its :class:`ChainParams`), then the
    hidden path and sensor effects in their order (:func:`gateway.model.effects.forward`).
 4. Gaussian noise (std per cable), the sensor's analog output limit ``saturation_n``,
@@ -43,7 +43,7 @@ from drivers.s7 import s7_codec
 from gateway.core.config import Config
 from gateway.core.firstrun import compiling
 from gateway.errors import InfeasiblePoseError
-from gateway.model import chain, effects, kinematics, statics
+from gateway.model import chain_kernels, chain_runs, chain_schema, effects, kinematics, statics
 from gateway.recordings.reader import Recording
 from sim_plc.config import SimPlcConfig, load_sim_config, per_cable
 from sim_plc.distribution import Distributor
@@ -84,7 +84,7 @@ class Setpoints:
     tension_recorded: np.ndarray
 
 
-def chain_params(sim: SimPlcConfig, cables: int) -> chain.ChainParams:
+def chain_params(sim: SimPlcConfig, cables: int) -> chain_schema.ChainParams:
     """Truth friction of every cable with the chain-side effects applied (the registry's
     :func:`gateway.model.effects.chain_params`)."""
     return effects.chain_params(sim.friction, sim.effects.values, cables)
@@ -193,7 +193,7 @@ def _series(sp: Setpoints, cols: slice = slice(None)) -> effects.SeriesData:
 
 def sensor_batch(model: PlantModel, sp: Setpoints, noise: np.ndarray) -> np.ndarray:
     """Analog sensor output (N, m) before the A/D: chain, path/sensor effects, noise."""
-    ts = chain.simulate(model.params, sp.tension_true, sp.velocity, sp.t)
+    ts = chain_runs.run(model.params, "simulate", sp.tension_true, sp.velocity, sp.t)
     ts = effects.forward(_series(sp), ts, model.effects)
     return ts + noise * model.noise_std
 
@@ -212,7 +212,7 @@ def reading_batch(model: PlantModel, sp: Setpoints, rng: np.random.Generator) ->
     path and sensor effects run cable by cable (each is per cable), the noise is drawn and
     the A/D applied ``RECORD_CHUNK`` rows at a time (a 10-min run: 40 MB of temporaries
     instead of 300 MB)."""
-    ts = chain.simulate(model.params, sp.tension_true, sp.velocity, sp.t)
+    ts = chain_runs.run(model.params, "simulate", sp.tension_true, sp.velocity, sp.t)
     m = ts.shape[1]
     for i in range(m):
         col = slice(i, i + 1)
@@ -289,7 +289,9 @@ def make_recording(
     model = PlantModel(cfg, sim)
     n = max(round(seconds / model.sim.period_s), 2)
     t = np.arange(n) * model.sim.period_s
-    with compiling("the soft PLC's plant", [chain.simulate_kernel, statics.wrench_into], log.info):
+    with compiling(
+        "the soft PLC's plant", [chain_kernels.simulate_kernel, statics.wrench_into], log.info
+    ):
         sp = _recording_setpoints(model, t, progress)
         reading = reading_batch(model, sp, np.random.default_rng(model.sim.seed))
     return Recording(
@@ -334,7 +336,7 @@ class Plant:
         m = self.model
         self.k = 0
         self.rng = np.random.default_rng(m.sim.seed)
-        self.stepper = chain.ChainStepper(m.params, self.period_s, forward=False)
+        self.stepper = chain_runs.ChainStepper(m.params, self.period_s, forward=False)
         self.fx = effects.ForwardStepper(m.effects, m.cables, self.period_s)
         if self.chunks is not None:  # the worker's plant runs; this one replays it
             self._cur, self._nxt = self.chunks.get(0), self.chunks.get(1)
@@ -446,28 +448,31 @@ def stream_recording(
     t = np.arange(n + 1) * period  # one sample past the end: the effects' look-ahead
     meta = _metadata(model, seconds)
     rng = np.random.default_rng(model.sim.seed)
-    kp = chain.kernel_params(model.params)
-    state = chain.new_state(model.params)
+    state = chain_runs.new_state(model.params)
     fx = effects.ForwardStepper(model.effects, m, period)
     t3, v3 = np.zeros(3), np.zeros((3, m))
-    dt = np.concatenate(([0.0], np.diff(t)))  # as the batch form: no travel at t = 0
-    v_prev: np.ndarray | None = None
+    previous: chain_runs.Previous | None = None  # as the batch form: no travel at t = 0
     chunk = max(int(chunk), 1)
-    with compiling("the soft PLC's plant", [chain.simulate_kernel, statics.wrench_into], log.info):
+    with compiling(
+        "the soft PLC's plant", [chain_kernels.simulate_kernel, statics.wrench_into], log.info
+    ):
         for a in range(0, n, chunk):
             b = min(a + chunk, n)
             sp = model.prepare(t[a : b + 1])
             for k in range(sp.t.size):
                 model.solve_tensions(sp, k)
             rows = b - a
-            vel = np.ascontiguousarray(sp.velocity[:rows])
-            if v_prev is None:
-                v_prev = vel[0].copy()
-            dx = np.empty_like(vel)
-            chain.travel_into(vel, dt[a:b], v_prev, dx)
-            ts = np.empty((rows, m))
-            tension = np.ascontiguousarray(sp.tension_true[:rows])
-            chain.simulate_kernel(kp, tension, vel, dx, state, ts)
+            vel = sp.velocity[:rows]
+            ts = chain_runs.run(
+                model.params,
+                "simulate",
+                sp.tension_true[:rows],
+                vel,
+                sp.t[:rows],
+                state=state,
+                previous=previous,
+            )
+            previous = (float(sp.t[rows - 1]), vel[-1].copy())
             if fx.steppers:
                 for i in range(rows):
                     t3[:2], v3[:2] = t3[1:], v3[1:]

@@ -5,7 +5,7 @@ the truth and the same friction as the gateway's model (a matched model):
 
 1. the eq. 20 path in two layers at 0.04 m/s with extrusion (changing load): the error of
    the platform tension estimated from the digitised sensor reading, uncompensated,
-   Coulomb-compensated and Dahl-compensated (``chain.compensate`` driven by the setpoint
+   Coulomb-compensated and Dahl-compensated (``chain_runs.run`` compensating, driven by the setpoint
    velocity), as MAE, std of the absolute error and RMSE, per cable and overall;
 2. the same path at constant mass (no extrusion);
 3. the cyclic 6-DOF motion through one point (paper Fig. 9): the wrench ``w = -A tau``
@@ -34,7 +34,8 @@ from gateway.core.cliopts import output_dir
 from gateway.core.config import Config, load_config
 from gateway.core.resources import data_file
 from gateway.errors import ConfigError
-from gateway.model import chain
+from gateway.model import chain_runs
+from gateway.model.chain_schema import ChainParams
 from sim_plc.config import SimPlcConfig, load_sim_config
 from sim_plc.plant import PlantModel, Setpoints, sensor_batch
 
@@ -82,10 +83,12 @@ def run_plant(cfg: Config, sim: SimPlcConfig, seconds: float, label: str) -> Run
     clean = sensor_batch(model, sp, np.zeros_like(noise))
     reading = model.reading(model.adc(sensor_batch(model, sp, noise)))
     floor = float(np.sqrt(np.nanmean((reading - clean) ** 2)))
-    nominal = chain.ChainParams.from_friction(cfg.friction, cfg.cables)
+    nominal = ChainParams.from_friction(cfg.friction, cfg.cables)
     est = {"uncompensated": reading}
     for name in ("coulomb", "dahl"):
-        est[name] = chain.compensate(nominal.with_model(name), reading, sp.velocity, sp.t)
+        est[name] = chain_runs.run(
+            nominal.with_model(name), "compensate", reading, sp.velocity, sp.t
+        )
     return Run(sp, reading, floor, est)
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from drivers.base import Inputs
 from gateway.core.config import Config
 from gateway.model import effects as fx
-from gateway.model.chain import coulomb_coefficients
+from gateway.model.chain_schema import coulomb_coefficients
 from gateway.runtime.compensator import Compensator
 from sim_plc.modbus_image import TRUTH_ADDRESS
 

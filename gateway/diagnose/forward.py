@@ -2,8 +2,8 @@
 
 Every candidate is a set of parameters acting on the nominal model, by its stage: a
 statics effect changes the platform tension through the statics (``dTp_dm`` below), a
-chain-side one the :class:`gateway.model.chain.ChainParams` that
-:func:`gateway.model.chain.simulate` runs, the path and sensor ones act on the chain's
+chain-side one the :class:`gateway.model.chain_schema.ChainParams` that
+:func:`gateway.model.chain_runs.run` simulates, the path and sensor ones act on the chain's
 output in their order (:func:`gateway.model.effects.forward`).
 
 Internal parameter vectors (what the fit varies) and reported parameters
@@ -22,7 +22,8 @@ import numpy as np
 
 from gateway.diagnose.sessions import mean_stderr, mean_theta, per_recording, session_values
 from gateway.model import effects as fx
-from gateway.model.chain import ChainParams, simulate, simulate_rows
+from gateway.model.chain_runs import run
+from gateway.model.chain_schema import ChainParams
 
 CHAIN_EFFECTS = (*fx.stage_of("statics"), *fx.stage_of("chain"))
 """Effects that change the chain simulation (the cache key of :class:`Forward`)."""
@@ -226,7 +227,7 @@ class Forward:
             return hit
         params, tp = self._chain_input(eff)
         d = self.data
-        out = simulate(params, tp[:, None], d.v[:, None], d.t)[:, 0]
+        out = run(params, "simulate", tp[:, None], d.v[:, None], d.t)[:, 0]
         self._store(key, out)
         return out
 
@@ -255,7 +256,7 @@ class Forward:
     ) -> np.ndarray | None:
         """:meth:`predict`, or None once its squared error on the samples ``mask`` is
         certain to exceed ``bound``: the chain simulated batch by batch
-        (:func:`gateway.model.chain.simulate_rows`) and stopped when the error of the rows
+        (:func:`gateway.model.chain_runs.run`'s ``pieces``) and stopped when the error of the rows
         done already does (by a margin far above rounding). Only without path and sensor
         effects (the reading is then the chain's output, row by row); else, or with the
         simulation cached, :meth:`predict`. A prediction returned is :meth:`predict`'s,
@@ -268,7 +269,8 @@ class Forward:
         out2 = np.empty((d.t.size, 1))
         limit = bound * (1.0 + PRUNE_MARGIN)
         done, sse = 0, 0.0
-        for rows in simulate_rows(params, tp[:, None], d.v[:, None], d.t, out2):
+        pieces = run(params, "simulate", tp[:, None], d.v[:, None], d.t, out=out2, pieces=True)
+        for _, rows, _ in pieces:
             r = (d.ts[done:rows] - out2[done:rows, 0])[mask[done:rows]]
             sse += float(r @ r)
             done = rows

@@ -17,7 +17,7 @@ from gateway.diagnose.pose_statics import MassSensitivity
 from gateway.diagnose.sessions import Sessions, finite_rows
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
-from gateway.model.chain import coulomb_coefficients
+from gateway.model.chain_schema import coulomb_coefficients
 from gateway.recordings.reader import Recording
 
 

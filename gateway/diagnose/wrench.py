@@ -47,7 +47,7 @@ from gateway.diagnose.sessions import Sessions
 from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.stats import white_noise_columns
 from gateway.errors import RecordingError
-from gateway.model import chain, kinematics, statics
+from gateway.model import chain_runs, chain_schema, kinematics, statics
 from gateway.model import effects as fx
 from gateway.recordings.reader import Recording
 
@@ -188,7 +188,7 @@ class WrenchData:
         :data:`STRUCTURE_ROWS` rows of ``A``, ``w0`` and ``dw_dm`` at a time (the same
         values as from whole arrays); ``delta`` (N,) a change of the mass (kg). ``tp``
         (N, m), or its pieces ``(a, b, T_p[a:b])`` in order
-        (:func:`gateway.model.chain.compensate_pieces`: no (N, m) array at all)."""
+        (:func:`gateway.model.chain_runs.run`'s ``pieces``: no (N, m) array at all)."""
         pieces = _row_pieces(tp) if isinstance(tp, np.ndarray) else tp
         out = np.empty((self.t.size, 6))
         for a, b, piece in pieces:
@@ -405,7 +405,7 @@ class WrenchModel:
         """The finite-difference step of ``effect``'s internal parameter ``j``."""
         return float(self.spec(effect).step[j])
 
-    def chain_params(self, theta: dict[str, np.ndarray]) -> chain.ChainParams:
+    def chain_params(self, theta: dict[str, np.ndarray]) -> chain_schema.ChainParams:
         return fx.chain_params(self.nom, values_of(theta, "chain"), self.data.cables)
 
     def platform_tension(
@@ -415,14 +415,12 @@ class WrenchModel:
         rows: np.ndarray | None = None,
     ) -> np.ndarray:
         """(N, m), or (n, m) at the samples ``rows`` (the chain runs over every sample
-        either way, :func:`chain.compensate_rows`): the readings (``ts``, default the
+        either way, :func:`gateway.model.chain_runs.run`): the readings (``ts``, default the
         recorded ones) with the sensor and path effects undone, compensated through the
         chain."""
         d = self.data
         y = self._chain_input(theta, ts)
-        if rows is None:
-            return chain.compensate(self.chain_params(theta), y, d.v, d.t)
-        return chain.compensate_rows(self.chain_params(theta), y, d.v, d.t, rows)
+        return chain_runs.run(self.chain_params(theta), "compensate", y, d.v, d.t, rows=rows)
 
     def _chain_input(self, theta: dict[str, np.ndarray], ts: np.ndarray | None) -> np.ndarray:
         """The readings (``ts``, default the recorded ones), sensor and path effects undone."""
@@ -450,7 +448,10 @@ class WrenchModel:
             if tp is not None:
                 return d.balance(tp, delta)
             y = self._chain_input(theta, None)
-            return d.balance(chain.compensate_pieces(self.chain_params(theta), y, d.v, d.t), delta)
+            pieces = chain_runs.run(
+                self.chain_params(theta), "compensate", y, d.v, d.t, pieces=True
+            )
+            return d.balance(pieces, delta)
         tp = self.platform_tension(theta, rows=rows) if tp is None else tp[rows]
         w0, dw = d.external(rows)
         r = np.einsum("nim,nm->ni", self.structure_at(rows), tp) + w0

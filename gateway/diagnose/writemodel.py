@@ -39,7 +39,7 @@ from gateway.core.configtypes import read_yaml
 from gateway.diagnose.modelfile import with_effects
 from gateway.diagnose.pose_statics import mass_sensitivity
 from gateway.errors import ConfigError, GatewayError
-from gateway.model import chain
+from gateway.model import chain_runs
 from gateway.model import effects as fx
 from gateway.model.effects.base import Compose, ModelFile, NominalChain
 from gateway.recordings.reader import Recording
@@ -218,8 +218,8 @@ def relative_to_model(
     # a fitted inertia reads as a negative viscous force (m dt / 2 w^2 v)
     series = fx.SeriesData(t, v, length, lambda: fx.acceleration(t, v), float(t[0]))
     y = fx.inverse(series, y, eff)
-    tp = chain.compensate(fx.chain_params(friction, eff, m), y, v, t)
-    ts = chain.simulate(fx.chain_params(nominal, {}, m), tp, v, t)
+    tp = chain_runs.run(fx.chain_params(friction, eff, m), "compensate", y, v, t)
+    ts = chain_runs.run(fx.chain_params(nominal, {}, m), "simulate", tp, v, t)
     if not np.all(np.isfinite(ts)):
         raise GatewayError(f"{rec.source}: the model's effects give non-finite tensions")
     mass, tp_rec = rec.mass, rec.tension_platform

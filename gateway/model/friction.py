@@ -4,8 +4,9 @@ Sign convention (eq. 8): ``T_j = T_{j-1} + sgn(v) F_Rj``, pulleys numbered from 
 (j = 0 side) towards the platform; ``v > 0`` pays the cable out, so the platform side
 carries more tension than the sensor.
 
-Scalar kernels are compiled with numba so that the chain (``chain.py``) can call them
-inside its loops; they are ordinary Python-callable functions as well.
+Scalar kernels are compiled with numba so that the chain (``chain_kernels.py``) can call them
+inside its loops; they are ordinary Python-callable functions as well. :func:`dahl_step`,
+the whole step the tests check, is plain Python over them.
 """
 
 from __future__ import annotations
@@ -51,9 +52,10 @@ def dahl_step_slope(f: float, f_r: float, dx: float, sigma: float) -> tuple[floa
     return s * f_r + rest * e, s * (1.0 - e) + rest * e * k / f_r
 
 
-@njit(cache=True, inline="always")
 def dahl_step(f: float, f_r: float, dx: float, sigma: float, beta: float) -> float:
-    """One exact step of the Dahl model (eq. 14) over cable travel ``dx`` (m).
+    """One exact step of the Dahl model (eq. 14) over cable travel ``dx`` (m): the whole
+    law, plain Python over the compiled steps the kernels inline (:func:`dahl_step_slope`,
+    :func:`dahl_step_power`); no command calls it, so nothing compiles it.
 
     ``dF/dx = sigma (1 - F / F_R sgn(dx))^beta`` with ``F_R`` held over the step.
     With ``z = 1 - s F / F_R`` (s = sgn dx) it reads ``dz/d|x| = -(sigma/F_R) z^beta``,
@@ -77,7 +79,7 @@ def dahl_step_power(f: float, f_r: float, dx: float, sigma: float, beta: float) 
     """:func:`dahl_step` for ``beta != 1``, ``dx != 0`` and ``F_R`` above the floor: the
     kernels call it where they have checked those, so that each inlined copy carries
     neither the checks nor the ``beta = 1`` step again (numba inlines at its IR level,
-    and the copies cost compile time: see :func:`gateway.model.chain._elements`)."""
+    and the copies cost compile time: see :func:`gateway.model.chain_kernels._elements`)."""
     s = 1.0 if dx > 0.0 else -1.0
     k = sigma * abs(dx) / f_r
     z = 1.0 - s * f / f_r

@@ -70,7 +70,7 @@ import math
 import numpy as np
 
 from gateway.core.config import SPACING_TOLERANCE
-from gateway.model.chain import LOAD, ChainParams, coulomb_coefficients, kernel_params
+from gateway.model.chain_schema import LOAD, ChainParams, coulomb_coefficients, kernel_params
 
 PLC_PERIOD_GAIN = 0.01  # the PLC's sample spacing is averaged over ~100 samples
 SPACING_OUTLIER = 3.0  # a spacing this far off the average is a hold or a stall, not data

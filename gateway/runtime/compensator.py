@@ -56,7 +56,7 @@ from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.core.config import Config
 from gateway.fastcall import entry_point
 from gateway.model import effects as fx
-from gateway.model.chain import ChainStepper
+from gateway.model.chain_runs import ChainStepper
 from gateway.model.statics import wrench_into
 from gateway.runtime.clock import MAX_GAP_PERIODS, SampleClock, warm_travel_m
 
@@ -324,7 +324,7 @@ class Compensator:
         the PLC's time between the samples it compensates; 0 on the first and for a
         sample read again), so the acceleration (inertia) and the cable travel (Dahl, the
         trapezoid ``(v_prev + v) / 2 dt`` with the previous sample's velocity,
-        ``chain.travel_into``) follow the PLC's samples, not the gateway's reads: a
+        ``chain_kernels.travel_into``) follow the PLC's samples, not the gateway's reads: a
         sample read twice adds no travel, samples missed in an overrun or a stall (of
         either side) lose none; the chain's step is bounded to ``MAX_GAP_PERIODS`` periods
         (after an outage). A step the clock cannot vouch for (a counter stepping

@@ -88,12 +88,15 @@ Observer = Callable[[Inputs, Compensator, float], None]
 
 
 def cycle_kernels() -> list[Any]:
-    """A kernel of each source file the cycle compiles (:func:`gateway.core.firstrun.compiling`)."""
+    """A kernel of each source file the cycle compiles (:func:`gateway.core.firstrun.compiling`),
+    one it compiles whatever the model: the chain's travel (the chain's kernel is the plain
+    or the general one by the model; a sentinel the cycle never compiled would say
+    "compiling" on every start)."""
     from drivers import kernels
-    from gateway.model import chain
+    from gateway.model import chain_kernels
     from gateway.runtime import compensator, plausibility
 
-    return [compensator._finish, plausibility._check, chain.compensate_kernel, kernels.gate]
+    return [compensator._finish, plausibility._check, chain_kernels.travel_into, kernels.gate]
 
 
 def describe_bus(cfg: Config) -> str:

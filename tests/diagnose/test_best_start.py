@@ -12,7 +12,7 @@ from gateway.diagnose.fit import _linear_step, best_start, spec_for
 from gateway.diagnose.forward import CableData, Forward
 from gateway.diagnose.prepare import nominal_from
 from gateway.model import effects as fx
-from gateway.model.chain import BATCH_ROWS
+from gateway.model.chain_runs import BATCH_ROWS
 
 
 def _cable(seed: int = 3) -> tuple[CableData, Forward]:

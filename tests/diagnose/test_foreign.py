@@ -279,14 +279,15 @@ def test_generator_dahl_with_f0_agrees_with_the_model_chain():
     grid differ only by the law's second-order detail (~1 % of f0, docs/physics.md), not by
     a non-Dahl clamp |F| <= F_R (which made them differ by 0.3 N RMS, 0.45 N at standstill
     on this motion and biased the fitted f0 by -10 %)."""
-    from gateway.model.chain import ChainParams, simulate
+    from gateway.model.chain_runs import run
+    from gateway.model.chain_schema import ChainParams
     from tests.diagnose_helpers import _chain
 
     fo = Foreign(seconds=15.0, effects={"coulomb": {"f0_n": 3.0}})
     fine, v, tp, wrap, mu = _fine_grid(fo)
     gen = _chain(tp, v, 1.0 / fo.fine_hz, wrap, mu, 3.0, fo.sigma_n_m, True)
     params = ChainParams.build("dahl", 1, wrap, mu, sigma_n_m=fo.sigma_n_m, f0_n=3.0)
-    diff = gen - simulate(params, tp[:, None], v[:, None], fine)[:, 0]
+    diff = gen - run(params, "simulate", tp[:, None], v[:, None], fine)[:, 0]
     still = v == 0
     assert still.sum() > 1000 and (~still).sum() > 1000
     assert np.sqrt(np.mean(diff[~still] ** 2)) < 0.08
@@ -302,7 +303,8 @@ def test_generator_coulomb_load_agrees_with_the_model_chain():
     is ``d lambda / d mu`` at mu -> 0; at mu 0.02 the exact one is about ``(1 -+ lambda/2)``
     of it per direction (measured: the generator's growth 0.967x the model's paying out,
     1.036x hauling in, 3.4 % RMS, whether mu1 is 1e-5 or 2e-5)."""
-    from gateway.model.chain import ChainParams, simulate
+    from gateway.model.chain_runs import run
+    from gateway.model.chain_schema import ChainParams
     from tests.diagnose_helpers import _chain
 
     fo = Foreign(seconds=15.0, model="coulomb", tension=300.0)
@@ -314,7 +316,7 @@ def test_generator_coulomb_load_agrees_with_the_model_chain():
 
     def model(m1: float) -> np.ndarray:
         params = ChainParams.build("coulomb", 1, wrap, mu, mu_load=m1)
-        return simulate(params, tp[:, None], v[:, None], fine)[:, 0]
+        return run(params, "simulate", tp[:, None], v[:, None], fine)[:, 0]
 
     moving = v != 0
     assert moving.sum() > 1000

@@ -18,7 +18,7 @@ from gateway.diagnose.engine import diagnose
 from gateway.diagnose.fromfiles import diagnose_file
 from gateway.diagnose.plots import summary
 from gateway.diagnose.signals import DISGUISE_R, disguised_readings
-from gateway.model.chain import simulate
+from gateway.model.chain_runs import run
 from gateway.recordings.reader import Recording
 from tests.diagnose_helpers import check_report, write_scenario
 
@@ -180,7 +180,7 @@ def test_unexplained_ignores_the_motor_torque_beside_the_tension() -> None:
     sc = Scenario("thermal", {}, seed=4, seconds=30.0)
     t, v, tp = motion(sc)
     temp = 25.0 + 4.0 * np.sin(2 * np.pi * t / 17.0) + 2.0 * np.sin(2 * np.pi * t / 5.3)
-    ts = simulate(_truth_chain(sc, 2), tp, v, t) + 0.3 * (temp - 25.0)[:, None]
+    ts = run(_truth_chain(sc, 2), "simulate", tp, v, t) + 0.3 * (temp - 25.0)[:, None]
     ts = ts + np.random.default_rng(5).normal(0.0, 0.4, ts.shape)
     torque = (ts[:, 0] + 0.5 * np.sign(v[:, 0])) / 12.5 + 0.3
     rec = Recording(

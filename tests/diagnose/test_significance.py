@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from evaluation.scenarios import Scenario, _truth_chain, make_recording, motion
 from gateway.diagnose.engine import diagnose
 from gateway.diagnose.stats import bh_qvalues, jackknife_se, p_value, sign_test_p
-from gateway.model.chain import simulate
+from gateway.model.chain_runs import run
 from gateway.recordings.reader import Recording
 from tests.diagnose_helpers import check_report
 
@@ -98,7 +98,7 @@ def test_unexplained_names_a_temperature_column_outside_the_catalogue() -> None:
     sc = Scenario("thermal", {}, seed=4, seconds=30.0)
     t, v, tp = motion(sc)
     temp = 25.0 + 4.0 * np.sin(2 * np.pi * t / 17.0) + 2.0 * np.sin(2 * np.pi * t / 5.3)
-    ts = simulate(_truth_chain(sc, 2), tp, v, t) + 0.3 * (temp - 25.0)[:, None]
+    ts = run(_truth_chain(sc, 2), "simulate", tp, v, t) + 0.3 * (temp - 25.0)[:, None]
     ts = ts + np.random.default_rng(5).normal(0.0, 0.4, ts.shape)
     rec = Recording(
         t=t,
@@ -206,7 +206,9 @@ def test_unexplained_names_a_friction_growing_with_the_square_of_the_tension(
     and 3 by hand: 13 % and 18 %; seed 1 here)."""
     sc = Scenario("t2", {}, seed=seed, seconds=seconds)
     t, v, tp = motion(sc)
-    ts = simulate(_truth_chain(sc, 2), tp, v, t) - _dahl_with_load_level(t, v, tp, c0, k, 2e3)
+    ts = run(_truth_chain(sc, 2), "simulate", tp, v, t) - _dahl_with_load_level(
+        t, v, tp, c0, k, 2e3
+    )
     ts = ts + np.random.default_rng(seed + 100).normal(0.0, 0.4, ts.shape)
     rec = Recording(t=t, velocity=v, tension_sensor=ts, tension_platform=tp, metadata={})
     rep = diagnose(rec, sc.nominal()).report

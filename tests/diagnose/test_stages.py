@@ -14,7 +14,8 @@ from gateway.diagnose.engine import nominal_from, time_blocks
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.stats import holdout_z
 from gateway.model import effects as fx
-from gateway.model.chain import ChainParams, simulate
+from gateway.model.chain_runs import run
+from gateway.model.chain_schema import ChainParams
 
 
 def _data(n=4000, seed=0):
@@ -31,7 +32,7 @@ def test_forward_matches_effects_module():
     fr = FrictionConfig()
     nom = nominal_from(fr)
     params = ChainParams.from_friction(fr, 1)
-    ts = simulate(params, tp[:, None], v[:, None], t)
+    ts = run(params, "simulate", tp[:, None], v[:, None], t)
     eff = fx.effect_values(
         {
             "inertia": {"m_eff_kg": 1.5},
@@ -75,7 +76,7 @@ def test_forward_chain_effects_match_chainparams():
         stribeck_v_m_s=0.01,
         viscous_ns_m=5.0,
     )
-    truth = simulate(params, tp[:, None], v[:, None], t)[:, 0]
+    truth = run(params, "simulate", tp[:, None], v[:, None], t)[:, 0]
     fw = Forward(CableData(t, v, tp, truth, float(t[0])), nom)
     theta = {
         "coulomb": np.array([0.02, 0.4]),

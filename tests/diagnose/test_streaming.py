@@ -190,7 +190,7 @@ def test_mass_sensitivity_knots_read_per_cable_equal_the_whole() -> None:
 def test_chain_batch_in_row_blocks_equals_one_block(monkeypatch) -> None:
     """simulate/compensate run the kernel in row blocks (the travel array stays small);
     the friction state and the previous velocity carried across give the same bits."""
-    from gateway.model import chain
+    from gateway.model import chain_runs
     from sim_plc.plant import PlantModel
     from tests.plant_helpers import make_config
 
@@ -200,8 +200,14 @@ def test_chain_batch_in_row_blocks_equals_one_block(monkeypatch) -> None:
     t = np.cumsum(rng.uniform(0.0008, 0.0012, n))
     v = np.cumsum(rng.normal(0, 0.002, (n, m)), axis=0)
     tp = 300 + np.cumsum(rng.normal(0, 1, (n, m)), axis=0)
-    whole = chain.simulate(params, tp, v, t), chain.compensate(params, tp, v, t)
-    monkeypatch.setattr(chain, "BATCH_ROWS", 97)
-    blocks = chain.simulate(params, tp, v, t), chain.compensate(params, tp, v, t)
+    whole = (
+        chain_runs.run(params, "simulate", tp, v, t),
+        chain_runs.run(params, "compensate", tp, v, t),
+    )
+    monkeypatch.setattr(chain_runs, "BATCH_ROWS", 97)
+    blocks = (
+        chain_runs.run(params, "simulate", tp, v, t),
+        chain_runs.run(params, "compensate", tp, v, t),
+    )
     np.testing.assert_array_equal(blocks[0], whole[0])
     np.testing.assert_array_equal(blocks[1], whole[1])

@@ -28,7 +28,7 @@ from gateway.core.config import (
 )
 from gateway.core.configtypes import read_yaml
 from gateway.diagnose.writemodel import compose, fitted_effects, relative_to_model, write_model
-from gateway.model import chain
+from gateway.model import chain_runs
 from gateway.model import effects as fx
 from gateway.recordings.reader import write_recording
 from sim_plc.plant import make_recording
@@ -140,7 +140,7 @@ def test_model_effects_take_the_recording_back_to_the_nominal_chain():
     out, nominal = relative_to_model(rec, friction)
     assert nominal.effects == {}
     tp = rec.tension_platform
-    expect = chain.simulate(fx.chain_params(nominal, {}, M), tp, rec.velocity, rec.t)
+    expect = chain_runs.run(fx.chain_params(nominal, {}, M), "simulate", tp, rec.velocity, rec.t)
     skip = 250  # the first second: the fitted chain's state settles from rest
     err = out.tension_sensor[skip:] - expect[skip:]
     # inertia: the gateway's backward difference against the truth's central one, and the

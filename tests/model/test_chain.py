@@ -10,18 +10,8 @@ from hypothesis.extra.numpy import arrays
 from numpy.testing import assert_allclose
 
 from gateway.core.config import load_config
-from gateway.model.chain import (
-    BATCH_ROWS,
-    ChainParams,
-    ChainStepper,
-    compensate,
-    compensate_pieces,
-    compensate_rows,
-    coulomb_coefficients,
-    simulate,
-    simulate_rows,
-    travel,
-)
+from gateway.model.chain_runs import BATCH_ROWS, ChainStepper, new_state, run, travel
+from gateway.model.chain_schema import ChainParams, coulomb_coefficients
 from gateway.model.effects import displacement
 from tests.model_reference import coulomb_gain
 
@@ -40,7 +30,7 @@ def steady(v: float, n: int = 4000, cables: int = 2, tension: float = 300.0):
 @pytest.mark.parametrize("v", [0.05, -0.05])
 def test_coulomb_chain_equals_exact_gain(v: float) -> None:
     t, tp, vel = steady(v, n=10)
-    ts = simulate(params("coulomb"), tp, vel, t)
+    ts = run(params("coulomb"), "simulate", tp, vel, t)
     gain = coulomb_gain(np.full(3, 0.015), WRAPS, v)
     assert_allclose(tp[1:] / ts[1:], gain, rtol=1e-12)
     # paying out the sensor reads less than the platform tension, reeling in more
@@ -50,8 +40,8 @@ def test_coulomb_chain_equals_exact_gain(v: float) -> None:
 @pytest.mark.parametrize("v", [0.04, -0.04])
 def test_dahl_steady_state_equals_coulomb(v: float) -> None:
     t, tp, vel = steady(v, n=10_000)  # 0.4 m of travel: >> 30 F_R / sigma for every pulley
-    dahl = simulate(params("dahl"), tp, vel, t)
-    coul = simulate(params("coulomb"), tp, vel, t)
+    dahl = run(params("dahl"), "simulate", tp, vel, t)
+    coul = run(params("coulomb"), "simulate", tp, vel, t)
     assert_allclose(dahl[-1], coul[-1], rtol=1e-10)
     assert abs(dahl[1, 0] - tp[1, 0]) < abs(coul[1, 0] - tp[1, 0])  # pre-sliding starts small
 
@@ -62,7 +52,7 @@ def test_reversal_hysteresis_width() -> None:
     t = np.arange(2 * n) * 1e-3
     vel = np.concatenate([np.full(n, v), np.full(n, -v)])[:, None]
     tp = np.full((2 * n, 1), 300.0)
-    ts = simulate(params("dahl", cables=1), tp, vel, t)
+    ts = run(params("dahl", cables=1), "simulate", tp, vel, t)
     width = ts[n + n // 2, 0] - ts[n // 2, 0]  # same position, reeling in minus paying out
     gains = [coulomb_gain(np.full(3, 0.015), WRAPS, s) for s in (1.0, -1.0)]
     expected = 300.0 / gains[1] - 300.0 / gains[0]
@@ -73,10 +63,10 @@ def test_reversal_hysteresis_width() -> None:
 
 def test_viscous_f0_and_stribeck_signs() -> None:
     t, tp, vel = steady(0.02, n=5, cables=1)
-    ts = simulate(params("none", cables=1, viscous_ns_m=40.0), tp, vel, t)
+    ts = run(params("none", cables=1, viscous_ns_m=40.0), "simulate", tp, vel, t)
     assert_allclose(ts, tp - 40.0 * 0.02)
-    base = simulate(params("coulomb", cables=1), tp, vel, t)
-    with_f0 = simulate(params("coulomb", cables=1, f0_n=3.0), tp, vel, t)
+    base = run(params("coulomb", cables=1), "simulate", tp, vel, t)
+    with_f0 = run(params("coulomb", cables=1, f0_n=3.0), "simulate", tp, vel, t)
     # paying out, sensor side: T_{j-1} = (1 - lam_j) T_j - f0 / n, pulley n first
     lam_pos, _ = coulomb_coefficients(params("coulomb", cables=1))
     expected = 300.0
@@ -84,7 +74,9 @@ def test_viscous_f0_and_stribeck_signs() -> None:
         expected = (1.0 - lam) * expected - 3.0 / 3
     assert_allclose(with_f0, expected, rtol=1e-12)  # the sample's own v: from k = 0 on
     assert 2.9 < float(base[1, 0] - with_f0[1, 0]) < 3.0  # about f0, less the lambda coupling
-    strib = simulate(params("coulomb", cables=1, stribeck_k=0.5, stribeck_v_m_s=0.02), tp, vel, t)
+    strib = run(
+        params("coulomb", cables=1, stribeck_k=0.5, stribeck_v_m_s=0.02), "simulate", tp, vel, t
+    )
     factor = 1 + 0.5 * np.exp(-1.0)  # v = v_s
     expected = 300.0 * np.prod(1.0 - factor * lam_pos[0])
     assert_allclose(strib, expected, rtol=1e-12)
@@ -117,7 +109,7 @@ def test_stepper_matches_batch_on_jittered_samples(forward: bool) -> None:
     vel = 0.2 * np.sin(2 * np.pi * 0.4 * t[:, None] + rng.uniform(0, 6, 3))
     tp = 250 + 80 * np.sin(0.7 * t[:, None]) + rng.normal(0, 1, (t.size, 3))
     p = params("dahl", cables=3, f0_n=1.0, stribeck_k=0.3, viscous_ns_m=20.0)
-    batch = (compensate if forward else simulate)(p, tp, vel, t)
+    batch = run(p, "compensate" if forward else "simulate", tp, vel, t)
     stepper = ChainStepper(p, 5e-3, forward=forward, tol_n=1e-10, max_iter=20)
     out = np.zeros(3)
     for k in range(t.size):
@@ -137,16 +129,16 @@ def test_jittered_samples_match_a_fine_grid() -> None:
         return np.full((tt.size, 1), 300.0), v[:, None]
 
     p = params("dahl", cables=1, sigma_n_m=800.0)
-    ref = np.interp(coarse, fine, simulate(p, *motion(fine), fine)[:, 0])
-    got = simulate(p, *motion(coarse), coarse)[:, 0]
+    ref = np.interp(coarse, fine, run(p, "simulate", *motion(fine), fine)[:, 0])
+    got = run(p, "simulate", *motion(coarse), coarse)[:, 0]
     late = coarse > 1.0
     assert np.sqrt(np.mean((got - ref)[late] ** 2)) < 0.01
 
 
 def test_push_forces_mirror_pull_forces() -> None:
     t, tp, vel = steady(0.03, n=300, cables=1)
-    pull = simulate(params("dahl", cables=1), tp, vel, t)
-    push = simulate(params("dahl", cables=1), -tp, vel, t)
+    pull = run(params("dahl", cables=1), "simulate", tp, vel, t)
+    push = run(params("dahl", cables=1), "simulate", -tp, vel, t)
     # friction opposes the motion whatever the sign of the force: the same direction, and
     # the same size to first order (|T| shrinks towards the sensor pulling, grows pushing)
     f_pull, f_push = tp - pull, (-tp) - push
@@ -165,8 +157,8 @@ def test_push_forces_mirror_pull_forces() -> None:
 def test_compensate_inverts_simulate(tp, vel, model, viscous) -> None:
     p = params(model, cables=3, viscous_ns_m=viscous, f0_n=1.0, stribeck_k=0.3)
     t = np.cumsum(np.full(200, 1e-3))
-    ts = simulate(p, tp, vel, t)
-    assert_allclose(compensate(p, ts, vel, t), tp, rtol=0, atol=1e-9)
+    ts = run(p, "simulate", tp, vel, t)
+    assert_allclose(run(p, "compensate", ts, vel, t), tp, rtol=0, atol=1e-9)
 
 
 def test_compensate_inverts_simulate_where_the_tension_crosses_zero() -> None:
@@ -178,7 +170,9 @@ def test_compensate_inverts_simulate_where_the_tension_crosses_zero() -> None:
     vel = np.full((200, 3), 0.5)
     p = params("dahl", cables=3, viscous_ns_m=0.0, f0_n=1.0, stribeck_k=0.3)
     t = np.cumsum(np.full(200, 1e-3))
-    assert_allclose(compensate(p, simulate(p, tp, vel, t), vel, t), tp, rtol=0, atol=1e-12)
+    assert_allclose(
+        run(p, "compensate", run(p, "simulate", tp, vel, t), vel, t), tp, rtol=0, atol=1e-12
+    )
 
 
 def test_stepper_matches_batch_and_converges_in_two_passes() -> None:
@@ -189,7 +183,7 @@ def test_stepper_matches_batch_and_converges_in_two_passes() -> None:
     rng = np.random.default_rng(3)
     vel = 0.3 * np.sin(2 * np.pi * 0.5 * t[:, None] + rng.uniform(0, 6, cfg.cables))
     tp = 200 + 100 * np.sin(t[:, None]) + rng.normal(0, 1, (n, cfg.cables))
-    ts = simulate(p, tp, vel, t)
+    ts = run(p, "simulate", tp, vel, t)
     stepper = ChainStepper(p, 1e-3, tol_n=1e-9)
     out = np.zeros(cfg.cables)
     got = np.empty_like(ts)
@@ -205,7 +199,7 @@ def test_stepper_matches_batch_and_converges_in_two_passes() -> None:
 
 def test_shape_errors_are_clear() -> None:
     with pytest.raises(ValueError, match=r"shape \(N, 2\)"):
-        simulate(params(), np.zeros((5, 3)), np.zeros((5, 3)), 1e-3)
+        run(params(), "simulate", np.zeros((5, 3)), np.zeros((5, 3)), 1e-3)
     with pytest.raises(ValueError, match="model must be one of"):
         ChainParams.build("lugre", 1, WRAPS, 0.01)  # type: ignore[arg-type]
 
@@ -242,7 +236,7 @@ def test_maxwell_slip_with_one_element_is_dahl(sigma, sigma2, beta) -> None:
     t = np.arange(3000) * 1e-3
     vel = 0.1 * np.sin(2 * np.pi * 0.8 * t)[:, None] * np.ones((1, 2))
     tp = 250 + 40 * np.sin(t)[:, None] * np.ones((1, 2))
-    dahl = simulate(params("dahl", sigma_n_m=sigma, beta=beta), tp, vel, t)
+    dahl = run(params("dahl", sigma_n_m=sigma, beta=beta), "simulate", tp, vel, t)
     slip = params(
         "maxwell_slip",
         sigma_n_m=sigma,
@@ -250,7 +244,7 @@ def test_maxwell_slip_with_one_element_is_dahl(sigma, sigma2, beta) -> None:
         slip_w=np.array([1.0, 0.0]),
         slip_sigma=np.array([sigma, sigma2]),
     )
-    assert_allclose(simulate(slip, tp, vel, t), dahl, rtol=0, atol=1e-12)
+    assert_allclose(run(slip, "simulate", tp, vel, t), dahl, rtol=0, atol=1e-12)
 
 
 def test_maxwell_slip_relaxes_as_two_exponentials_after_a_reversal() -> None:
@@ -259,7 +253,7 @@ def test_maxwell_slip_relaxes_as_two_exponentials_after_a_reversal() -> None:
     w, s1, s2, n = 0.3, 20000.0, 1500.0, 4000
     p = one_pulley("maxwell_slip", slip_w=np.array([w, 1 - w]), slip_sigma=np.array([s1, s2]))
     t, tp, vel = reversal(n)
-    force = tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+    force = tp[:, 0] - run(p, "simulate", tp, vel, t)[:, 0]
     out, back = levels(p, 200.0)
     assert force[n - 1] == pytest.approx(out, abs=1e-9)  # both elements saturated
     x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
@@ -269,7 +263,7 @@ def test_maxwell_slip_relaxes_as_two_exponentials_after_a_reversal() -> None:
     )
     assert_allclose(force[n:], want, rtol=0, atol=1e-9)
     dahl = one_pulley("dahl", sigma_n_m=s2)
-    assert np.max(np.abs(force - (tp[:, 0] - simulate(dahl, tp, vel, t)[:, 0]))) > 1.0
+    assert np.max(np.abs(force - (tp[:, 0] - run(dahl, "simulate", tp, vel, t)[:, 0]))) > 1.0
 
 
 def test_backlash_holds_the_friction_for_its_width_after_a_reversal() -> None:
@@ -278,7 +272,7 @@ def test_backlash_holds_the_friction_for_its_width_after_a_reversal() -> None:
     width, sigma, n = 0.004, 800.0, 4000
     p = one_pulley("dahl", sigma_n_m=sigma, backlash_m=width)
     t, tp, vel = reversal(n)
-    force = tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+    force = tp[:, 0] - run(p, "simulate", tp, vel, t)[:, 0]
     back = levels(p, 200.0)[1]
     x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
     held = x <= width
@@ -298,14 +292,14 @@ def test_cable_stretch_puts_the_cable_in_series_with_the_presliding_state() -> N
     sigma, k, n = 800.0, 400.0, 4000
     p = one_pulley("dahl", sigma_n_m=sigma, stretch_c=1.0 / k)
     t, tp, vel = reversal(n)
-    force = tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+    force = tp[:, 0] - run(p, "simulate", tp, vel, t)[:, 0]
     out, back = levels(p, 200.0)
     assert force[n - 1] == pytest.approx(out, abs=1e-8)
     x = np.abs(displacement(t, vel[:, 0])[n:] - displacement(t, vel[:, 0])[n - 1])
     drive = x - (force[n - 1] - force[n:]) / k  # the reversal lowers F: the drive lags
     want = -back + (force[n - 1] + back) * np.exp(-sigma * drive / back)
     assert_allclose(force[n:], want, rtol=0, atol=1e-8)
-    rigid = tp[:, 0] - simulate(one_pulley("dahl", sigma_n_m=sigma), tp, vel, t)[:, 0]
+    rigid = tp[:, 0] - run(one_pulley("dahl", sigma_n_m=sigma), "simulate", tp, vel, t)[:, 0]
     assert np.all(force[n + 1 : n + 200] > rigid[n + 1 : n + 200])  # softer: F falls later
 
 
@@ -321,8 +315,8 @@ def test_the_stretch_takes_no_difference_of_the_readings() -> None:
     noise = np.random.default_rng(9).normal(0.0, 0.5, (n, m))
     for c in (0.0, 1e-4):
         p = params("dahl", cables=m, stretch_c=c)
-        ts = simulate(p, tp, vel, t)
-        err = compensate(p, ts + noise, vel, t) - tp
+        ts = run(p, "simulate", tp, vel, t)
+        err = run(p, "compensate", ts + noise, vel, t) - tp
         assert abs(float(np.mean(err))) < 0.02, c
 
 
@@ -350,8 +344,8 @@ def test_compensate_inverts_simulate_with_elements_stretch_and_backlash(
         backlash_m=width,
     )
     t = np.cumsum(np.full(200, 1e-3))
-    ts = simulate(p, tp, vel, t)
-    assert_allclose(compensate(p, ts, vel, t), tp, rtol=0, atol=1e-8)
+    ts = run(p, "simulate", tp, vel, t)
+    assert_allclose(run(p, "compensate", ts, vel, t), tp, rtol=0, atol=1e-8)
 
 
 @pytest.mark.parametrize("model", ["dahl", "maxwell_slip"])
@@ -373,7 +367,9 @@ def test_the_general_step_inverts_simulate_where_the_tension_crosses_zero(model:
         stretch_c=1.0 / 500.0,
     )
     t = np.cumsum(np.full(200, 1e-3))
-    assert_allclose(compensate(p, simulate(p, tp, vel, t), vel, t), tp, rtol=0, atol=1e-10)
+    assert_allclose(
+        run(p, "compensate", run(p, "simulate", tp, vel, t), vel, t), tp, rtol=0, atol=1e-10
+    )
 
 
 @pytest.mark.parametrize("forward", [True, False])
@@ -390,7 +386,7 @@ def test_stepper_matches_batch_with_elements_stretch_and_backlash(forward: bool)
         stretch_c=[1e-4, 0.0, 5e-4],
         backlash_m=[0.002, 0.001, 0.0],
     )
-    batch = (compensate if forward else simulate)(p, tp, vel, t)
+    batch = run(p, "compensate" if forward else "simulate", tp, vel, t)
     stepper = ChainStepper(p, 5e-3, forward=forward, tol_n=1e-10, max_iter=20)
     out = np.zeros(3)
     for k in range(t.size):
@@ -412,49 +408,83 @@ def test_maxwell_slip_force_is_linear_in_the_fractions(w, s1, s2) -> None:
         p = one_pulley(
             "maxwell_slip", slip_w=np.array([frac, 1 - frac]), slip_sigma=np.array([s1, s2])
         )
-        return tp[:, 0] - simulate(p, tp, vel, t)[:, 0]
+        return tp[:, 0] - run(p, "simulate", tp, vel, t)[:, 0]
 
     assert_allclose(force(w), w * force(1.0) + (1 - w) * force(0.0), rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("direction", ["compensate", "simulate"])
 @pytest.mark.parametrize("model", ["dahl", "coulomb"])
-def test_compensate_rows_is_compensate_at_the_rows(model: str) -> None:
-    """:func:`compensate_rows` holds :func:`compensate`'s values at the rows bit for bit,
-    rows in every batch, at batch edges and at both ends."""
+def test_every_way_of_keeping_a_run_is_the_whole_run(model: str, direction: str) -> None:
+    """:func:`run`'s options keep the whole run's values bit for bit: ``rows`` (in every
+    batch, at batch edges, at both ends, none), ``pieces`` in the rolling buffer and into
+    ``out``, and ``out``."""
     n = 2 * BATCH_ROWS + 123
     t = np.arange(n) * 1e-3
     v = 0.2 * np.sin(2 * np.pi * 0.5 * t)[:, None] * np.ones((1, 2))
     ts = 300.0 + 20.0 * np.cos(2 * np.pi * 0.2 * t)[:, None] * np.ones((1, 2))
     p = params(model, sigma_n_m=2000.0) if model == "dahl" else params(model)
-    whole = compensate(p, ts, v, t)
+    whole = run(p, direction, ts, v, t)
     for rows in (
         np.arange(0, n, 7),
         np.array([0, BATCH_ROWS - 1, BATCH_ROWS, 2 * BATCH_ROWS, n - 1]),
         np.array([], dtype=int),
     ):
-        np.testing.assert_array_equal(compensate_rows(p, ts, v, t, rows), whole[rows])
+        np.testing.assert_array_equal(run(p, direction, ts, v, t, rows=rows), whole[rows])
     with pytest.raises(ValueError, match="increasing"):
-        compensate_rows(p, ts, v, t, np.array([5, 3]))
-    pieces = [(a, b, part.copy()) for a, b, part in compensate_pieces(p, ts, v, t)]
-    assert [(a, b) for a, b, _ in pieces] == [
-        (0, BATCH_ROWS),
-        (BATCH_ROWS, 2 * BATCH_ROWS),
-        (2 * BATCH_ROWS, n),
-    ]
+        run(p, direction, ts, v, t, rows=np.array([5, 3]))
+    pieces = [(a, b, part.copy()) for a, b, part in run(p, direction, ts, v, t, pieces=True)]
+    edges = [(0, BATCH_ROWS), (BATCH_ROWS, 2 * BATCH_ROWS), (2 * BATCH_ROWS, n)]
+    assert [(a, b) for a, b, _ in pieces] == edges
     np.testing.assert_array_equal(np.concatenate([part for *_, part in pieces]), whole)
+    out = np.full_like(ts, np.nan)
+    for a, b, part in run(p, direction, ts, v, t, out=out, pieces=True):
+        assert np.shares_memory(part, out) and not np.isnan(out[:b]).any()
+        np.testing.assert_array_equal(part, whole[a:b])  # final when yielded
+    np.testing.assert_array_equal(out, whole)
+    into = np.empty_like(ts)
+    assert run(p, direction, ts, v, t, out=into) is into
+    np.testing.assert_array_equal(into, whole)
+    with pytest.raises(ValueError, match="rows and pieces"):
+        run(p, direction, ts, v, t, rows=np.arange(3), pieces=True)  # type: ignore[call-overload]
+    with pytest.raises(ValueError, match="direction"):
+        run(p, "forward", ts, v, t)  # type: ignore[call-overload]
 
 
-def test_simulate_rows_is_simulate_batch_by_batch() -> None:
-    """The batches :func:`simulate_rows` yields hold :func:`simulate`'s values bit for bit."""
-    n = 2 * BATCH_ROWS + 123
-    t = np.arange(n) * 1e-3
-    v = 0.2 * np.sin(2 * np.pi * 0.5 * t)[:, None] * np.ones((1, 2))
-    tp = 300.0 + 20.0 * np.cos(2 * np.pi * 0.2 * t)[:, None] * np.ones((1, 2))
-    p = params("dahl", sigma_n_m=2000.0)
-    out = np.empty_like(tp)
-    done = list(simulate_rows(p, tp, v, t, out))
-    assert done == [BATCH_ROWS, 2 * BATCH_ROWS, n]
-    np.testing.assert_array_equal(out, simulate(p, tp, v, t))
+@settings(max_examples=25, deadline=None)
+@given(
+    st.sampled_from(["coulomb", "dahl", "maxwell_slip"]),
+    st.sampled_from(["compensate", "simulate"]),
+    st.booleans(),
+    st.lists(st.integers(1, 60), min_size=1, max_size=5),
+    st.integers(0, 2**32 - 1),
+)
+def test_a_run_continued_block_by_block_is_the_whole_run(
+    model: str, direction: str, constant_period: bool, blocks: list[int], seed: int
+) -> None:
+    """Blocks run one after another with the state and the previous sample carried
+    (``previous``) give the whole run's values bit for bit, on irregular sample times or a
+    constant period, stretching cables with play included (the general path)."""
+    rng = np.random.default_rng(seed)
+    n = sum(blocks)
+    t_all = np.cumsum(rng.uniform(0.0008, 0.0012, n))
+    t = 1e-3 if constant_period else t_all
+    v = np.cumsum(rng.normal(0.0, 0.01, (n, 2)), axis=0)
+    ts = 300.0 + np.cumsum(rng.normal(0.0, 2.0, (n, 2)), axis=0)
+    extra = {"slip_w": (0.3, 0.7), "slip_sigma": (800.0, 5000.0)} if model == "maxwell_slip" else {}
+    p = params(model, sigma_n_m=2000.0, stretch_c=1e-5, backlash_m=2e-4, **extra)
+    whole = run(p, direction, ts, v, t)
+    state = new_state(p)
+    previous = None
+    got = []
+    a = 0
+    for size in blocks:
+        b = a + size
+        t_blk = t if constant_period else t_all[a:b]
+        got.append(run(p, direction, ts[a:b], v[a:b], t_blk, state=state, previous=previous))
+        previous = (float(t_all[b - 1]), v[b - 1].copy())
+        a = b
+    np.testing.assert_array_equal(np.concatenate(got), whole)
 
 
 @settings(max_examples=30, deadline=None)
@@ -463,7 +493,7 @@ def test_every_declared_column_reaches_the_kernels_where_they_read_it(cables, se
     """:data:`COLUMNS` is the one declaration: a chain built from it (directly, or as the
     effects' draft) holds every column at its shape, and the kernels' ``cable`` array holds
     each ``cable`` column where the kernels read it (:data:`F0` .. :data:`PLAY`)."""
-    from gateway.model import chain
+    from gateway.model import chain_schema as chain
 
     rng = np.random.default_rng(seed)
     values = {c: rng.uniform(0.01, 0.1, cables) for c in chain.CABLE_COLUMNS}
@@ -496,7 +526,7 @@ def test_every_declared_column_reaches_the_kernels_where_they_read_it(cables, se
 def test_a_column_follows_the_one_it_defaults_to_until_set() -> None:
     """``slip_sigma`` defaults to ``sigma_n_m`` and ``mu_in`` to ``mu`` in the builder and
     in the draft (a changed stiffness carries its elements along), unless set."""
-    from gateway.model import chain
+    from gateway.model import chain_schema as chain
 
     p = params("dahl", 2, sigma_n_m=300.0)
     assert_allclose(p.slip_sigma, 300.0)

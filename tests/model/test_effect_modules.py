@@ -5,9 +5,10 @@ an effect's name stands (as a quoted string) in its own module and, at most, the
 and the chain's law table. A fourth file naming it is a formula or a table copied out of
 its module: this test fails on it.
 
-The same for a chain-side effect's parameter columns (:data:`gateway.model.chain.COLUMNS`):
-declared once in the chain's module, edited by the effects that set them, read by a few
-users of the chain; a list of them spelled again (a draft, a builder's keywords) fails.
+The same for a chain-side effect's parameter columns (:data:`gateway.model.chain_schema.COLUMNS`):
+declared once in the chain's schema module, edited by the effects that set them, read by a
+few users of the chain; a list of them spelled again (a draft, a builder's keywords, the
+chain's kernels or runs) fails.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gateway.model import chain_schema
 from gateway.model import effects as fx
-from gateway.model.chain import COLUMNS, LAWS
+from gateway.model.chain_schema import COLUMNS, LAWS
 from gateway.model.effects.base import STAGES, Effect
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -43,7 +45,8 @@ def test_an_effect_is_named_in_at_most_three_source_files(name: str) -> None:
 
 
 EFFECTS_DIR = "gateway/model/effects/"
-CHAIN_MODULE = "gateway/model/chain.py"
+CHAIN_MODULE = "gateway/model/chain_schema.py"
+"""The one module that declares the columns (the chain's kernels and runs are not it)."""
 READERS = 3
 """Files outside the chain's module and the effects package that may read a chain column
 (the clock's warm-up bound, the plant's truth, ...)."""
@@ -61,6 +64,7 @@ def test_a_chain_column_is_spelled_by_its_declaration_its_editors_and_few_reader
     in the draft (``draft.<name>``) spell it, its owner among them; at most
     :data:`READERS` other files beside the chain's module."""
     assert col.owner in fx.REGISTRY and fx.REGISTRY[col.owner].stage == "chain", col
+    assert Path(chain_schema.__file__).resolve() == ROOT / CHAIN_MODULE
     files = files_using_field(col.name)
     editors = {
         f

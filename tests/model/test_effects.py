@@ -124,7 +124,8 @@ from drivers.base import Inputs, Outputs  # noqa: E402
 from gateway.core.config import FrictionConfig, PulleyConfig, load_config, load_friction  # noqa: E402
 from gateway.diagnose import forward  # noqa: E402
 from gateway.model import effects as fx  # noqa: E402
-from gateway.model.chain import ChainParams, coulomb_coefficients, simulate  # noqa: E402
+from gateway.model.chain_runs import run  # noqa: E402
+from gateway.model.chain_schema import ChainParams, coulomb_coefficients  # noqa: E402
 from gateway.model.effects.eccentricity import phase_at_length  # noqa: E402
 from gateway.runtime.compensator import Compensator  # noqa: E402
 
@@ -246,7 +247,7 @@ def test_f0_adds_to_the_coulomb_level_under_dahl() -> None:
     lam_pos, lam_neg = (float(c[0, 0]) for c in coulomb_coefficients(params))
     n, dt = 4000, 1e-3
     v = np.where(np.arange(n) < n // 2, 0.05, -0.05)[:, None]
-    ts = simulate(params, np.full((n, 1), tp), v, dt)[:, 0]
+    ts = run(params, "simulate", np.full((n, 1), tp), v, dt)[:, 0]
     force = tp - ts  # the pulley's friction force F (T_p = T_s + F)
     level_out, level_in = lam_pos * tp + f0, lam_neg * tp + f0
     assert force[n // 2 - 1] == pytest.approx(level_out, abs=1e-9)  # relaxed paying out
@@ -269,7 +270,7 @@ def test_f0_splits_over_the_pulleys_under_dahl() -> None:
     n, dt = 3000, 1e-3
     for speed, lam in ((0.2, lam_pos), (-0.2, lam_neg)):  # 0.6 m: ~40 relaxation lengths
         s = math.copysign(1.0, speed)
-        ts = simulate(params, np.full((n, 1), tp), np.full((n, 1), speed), dt)[-1, 0]
+        ts = run(params, "simulate", np.full((n, 1), tp), np.full((n, 1), speed), dt)[-1, 0]
         t2 = tp
         t1 = t2 - s * (lam[1] * t2 + f0 / 2)
         want = t1 - s * (lam[0] * t1 + f0 / 2)
@@ -287,7 +288,7 @@ def test_dahl_level_falls_over_travel_not_at_once() -> None:
     tp = np.where(np.arange(k3) < k1, 300.0, 100.0)[:, None]
     k = np.arange(k3)
     v = np.where(k < k1, 0.2, np.where(k >= k2, 0.05, 0.0))[:, None]
-    force = tp[:, 0] - simulate(params, tp, v, dt)[:, 0]
+    force = tp[:, 0] - run(params, "simulate", tp, v, dt)[:, 0]
     high, low = lam * 300.0 + f0, lam * 100.0 + f0
     assert force[k1 - 1] == pytest.approx(high, abs=1e-9)
     # the stop's own step still travels (0.2 + 0) / 2 dt = 0.1 mm at the new level: F moves
@@ -313,11 +314,11 @@ def test_coulomb_load_grows_the_coefficient_with_the_tension() -> None:
     for tp in (100.0, 200.0, 300.0):
         for v, lam in ((0.1, lam_pos), (-0.1, lam_neg)):
             args = (np.full((50, 1), tp), np.full((50, 1), v), 1e-3)
-            force = tp - simulate(load, *args)[-1, 0]
+            force = tp - run(load, "simulate", *args)[-1, 0]
             assert force == pytest.approx(math.copysign((lam + g * mu1 * tp) * tp, v), abs=1e-9)
-            plain = tp - simulate(nominal, *args)[-1, 0]
+            plain = tp - run(nominal, "simulate", *args)[-1, 0]
             moved = fx.effect_values({"coulomb": {"mu": mu + mu1 * tp}}, 1)
-            first_order = tp - simulate(fx.chain_params(fr, moved, 1), *args)[-1, 0]
+            first_order = tp - run(fx.chain_params(fr, moved, 1), "simulate", *args)[-1, 0]
             assert abs(force - first_order) < 0.05 * abs(first_order - plain), (tp, v)
             if v > 0:
                 excess.append(force - plain)
@@ -327,16 +328,16 @@ def test_coulomb_load_grows_the_coefficient_with_the_tension() -> None:
 def test_coulomb_load_compensation_inverts_the_plant() -> None:
     """Under Dahl, a reversing motion and a varying load: the gateway's chain undoes the
     plant's (compensate(simulate(T)) = T) with the coefficient growing with the load."""
-    from gateway.model.chain import compensate
+    from gateway.model.chain_runs import run
 
     fr = FrictionConfig(model="dahl", pulleys=(PulleyConfig(90.0, 0.02), PulleyConfig(45.0, 0.03)))
     params = fx.chain_params(fr, fx.effect_values({"coulomb_load": {"mu1_per_n": 2e-4}}, 2), 2)
     t = np.arange(6000) * 1e-3
     v = 0.05 * np.sin(2 * np.pi * 0.7 * t)[:, None] * np.array([1.0, -1.0])
     tp = 200.0 + 80.0 * np.sin(2 * np.pi * 0.3 * t)[:, None] * np.ones(2)
-    ts = simulate(params, tp, v, t)
+    ts = run(params, "simulate", tp, v, t)
     assert np.max(np.abs(tp - ts)) > 1.0  # the friction is there
-    assert_allclose(compensate(params, ts, v, t), tp, rtol=0, atol=1e-6)
+    assert_allclose(run(params, "compensate", ts, v, t), tp, rtol=0, atol=1e-6)
 
 
 def test_eccentricity_phase_from_travel_to_length() -> None:
@@ -480,7 +481,7 @@ def test_compensation_removes_what_the_truth_adds(case: str) -> None:
     fr = load_config().friction
     values = fx.effect_values(ONLINE_CASES[case], m, fr.pulley_radius_m)
     params = fx.chain_params(fr, values, m)
-    ts = simulate(params, tp, v, t)
+    ts = run(params, "simulate", tp, v, t)
     reading = fx.forward(series(t, v, length), ts, values)
     back = fx.compensate_online(params, values, t, reading, v, length)
     tol = 0.05 if "inertia" in values else 1e-8  # central vs backward difference of v

@@ -7,7 +7,8 @@ import pytest
 from numpy.testing import assert_allclose
 
 from drivers.base import ChannelStatus, Inputs, Outputs
-from gateway.model.chain import ChainParams, ChainStepper
+from gateway.model.chain_runs import ChainStepper
+from gateway.model.chain_schema import ChainParams
 from gateway.runtime.compensator import (
     FLAG_NAN,
     FLAG_RANGE,

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.testing import assert_allclose
 
 from drivers.base import ChannelStatus, Inputs, Outputs
-from gateway.model.chain import ChainStepper
+from gateway.model.chain_runs import ChainStepper
 from gateway.runtime.compensator import MAX_GAP_PERIODS, Compensator
 from tests.loop_helpers import config
 

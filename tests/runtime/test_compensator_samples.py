@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from drivers.base import Inputs, Outputs
 from gateway.core.config import Config
 from gateway.model import effects as fx
-from gateway.model.chain import ChainStepper, simulate
+from gateway.model.chain_runs import ChainStepper, run
 from gateway.runtime.compensator import MAX_GAP_PERIODS, Compensator
 from tests.loop_helpers import config
 
@@ -60,7 +60,7 @@ def _plant(effects: dict) -> Plant:
     )
     tp = 200.0 + 60.0 * np.sin(2 * math.pi * 0.4 * tt + ph[2])
     values = cfg.friction.effect_values(CABLES)
-    ts = simulate(fx.chain_params(cfg.friction, values, CABLES), tp, v, t)
+    ts = run(fx.chain_params(cfg.friction, values, CABLES), "simulate", tp, v, t)
     series = fx.SeriesData(t, v, lambda: fx.displacement(t, v), lambda: fx.acceleration(t, v), 0.0)
     return Plant(cfg, t, v, fx.forward(series, ts, values), tp)
 

@@ -31,7 +31,7 @@ from drivers.base import ChannelStatus, Driver, Inputs, Lifecycle, Outputs
 from gateway.core.config import HeartbeatConfig
 from gateway.errors import DriverIOError, DriverTimeoutError
 from gateway.model import effects as fx
-from gateway.model.chain import ChainStepper
+from gateway.model.chain_runs import ChainStepper
 from gateway.runtime.clock import MAX_GAP_PERIODS
 from gateway.runtime.loop import CyclicService
 from tests.loop_helpers import FakeClock, config
@@ -530,7 +530,7 @@ def _tolerance(cfg: Any, comp: Any, drv: TruePlc, eps: float) -> float:
     ``eps`` (the averaged spacing's, up to this read) moves the Dahl state by at most
     ``2 eps F_R`` per pulley (its slope is at most ``2 sigma``, its memory ``F_R / sigma``
     of travel) and the inertia term by ``eps |m a|``; + 1e-6 N of arithmetic."""
-    from gateway.model.chain import coulomb_coefficients
+    from gateway.model.chain_schema import coulomb_coefficients
     from gateway.runtime.clock import WARM_TOL_N
 
     lam_pos, lam_neg = coulomb_coefficients(comp.params)

@@ -20,7 +20,7 @@ from drivers.base import ChannelStatus, Inputs, Outputs
 from gateway.core.config import SPACING_TOLERANCE, HeartbeatConfig, config_from_mapping, load_config
 from gateway.errors import ConfigError
 from gateway.model import effects as fx
-from gateway.model.chain import ChainStepper, simulate
+from gateway.model.chain_runs import ChainStepper, run
 from gateway.runtime.clock import MAX_GAP_PERIODS, SampleClock, warm_travel_m
 from gateway.runtime.compensator import Compensator
 from tests.loop_helpers import config
@@ -40,7 +40,7 @@ def _plant(seconds: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     v = 0.08 * np.sin(2 * math.pi * 0.7 * t[:, None] + ph[0])
     tp = 200.0 + 60.0 * np.sin(2 * math.pi * 0.4 * t[:, None] + ph[1])
     values = cfg.friction.effect_values(CABLES)
-    ts = simulate(fx.chain_params(cfg.friction, values, CABLES), tp, v, t)
+    ts = run(fx.chain_params(cfg.friction, values, CABLES), "simulate", tp, v, t)
     return t, v, ts
 
 

@@ -8,7 +8,7 @@ from numpy.testing import assert_allclose
 
 from gateway import cli
 from gateway.errors import ConfigError, InfeasiblePoseError
-from gateway.model import chain, kinematics, statics
+from gateway.model import chain_runs, chain_schema, kinematics, statics
 from gateway.recordings.reader import read_recording
 from sim_plc.config import load_sim_config
 from sim_plc.image import ProcessImage
@@ -19,6 +19,7 @@ from sim_plc.plant import (
     digitise,
     make_recording,
     sensor_batch,
+    stream_recording,
 )
 from tests.plant_helpers import REPLICATE_YAML, cyclic_config, make_config
 
@@ -47,8 +48,8 @@ def test_noise_off_statics_and_chain_agree_with_model_to_1e_9() -> None:
         assert_allclose(sp.tension_true[k], tau, atol=1e-9)
         assert_allclose(sp.a_mat[k] @ tau + w, 0.0, atol=1e-9)
     analog = sensor_batch(model, sp, np.zeros((t.size, 8)))
-    params = chain.ChainParams.from_friction(cfg.friction, 8)
-    expected = chain.simulate(params, sp.tension_true, sp.velocity, t)
+    params = chain_schema.ChainParams.from_friction(cfg.friction, 8)
+    expected = chain_runs.run(params, "simulate", sp.tension_true, sp.velocity, t)
     assert_allclose(analog, expected, atol=1e-9)
     rec = make_recording(cfg, None, 3.0)
     step = 500.0 / 27648
@@ -176,6 +177,24 @@ def test_step_agrees_with_batch_with_the_transmission_effects() -> None:
     assert_allclose(out, rec.tension_sensor, atol=1e-9)
     clean = make_recording(cyclic_config(None, noise_std_n=0.5), None, n * 0.001)
     assert np.nanmax(np.abs(rec.tension_sensor - clean.tension_sensor)) > 1.0
+
+
+def test_the_streamed_recording_is_the_batch_recording() -> None:
+    """``record``'s block-by-block plant (the chain's state and previous sample carried
+    from block to block, :func:`gateway.model.chain_runs.run`'s ``previous``) gives the
+    batch recording's columns exactly, on the general path (Maxwell-slip, stretch, play)."""
+    effects = {
+        "maxwell_slip": {"sigma_n_m": 5000.0, "w": 0.4},
+        "cable_stretch": {"k_n_m": 5000.0},
+        "backlash": {"width_m": 0.002},
+    }
+    cfg = cyclic_config(effects, noise_std_n=0.5)
+    whole = make_recording(cfg, None, 0.9)
+    blocks = list(stream_recording(cfg, None, 0.9, chunk=130))
+    assert len(blocks) == 7
+    for col in ("t", "velocity", "tension_sensor", "tension_platform"):
+        got = np.concatenate([getattr(r, col) for r in blocks])
+        np.testing.assert_array_equal(got, getattr(whole, col), err_msg=col)
 
 
 def test_heartbeat_wraps_at_16_bits() -> None:

@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 
 from drivers.base import Inputs, Outputs
 from gateway.model import effects as fx
-from gateway.model.chain import coulomb_coefficients, simulate
+from gateway.model.chain_runs import run
+from gateway.model.chain_schema import coulomb_coefficients
 from gateway.runtime.compensator import Compensator
 from sim_plc.truth import WARMUP_LENGTHS, ChainWarmup, CycleRing, TruthScorer
 from tests.loop_helpers import config
@@ -104,7 +105,7 @@ def _moving_plant(cfg, seconds: float, seed: int):
     v = 0.06 * np.sin(2 * math.pi * 0.3 * tt + ph[0])
     tp = 250.0 + 80.0 * np.sin(2 * math.pi * 0.15 * tt + ph[1])
     values = cfg.friction.effect_values(cfg.cables)
-    ts = simulate(fx.chain_params(cfg.friction, values, cfg.cables), tp, v, t)
+    ts = run(fx.chain_params(cfg.friction, values, cfg.cables), "simulate", tp, v, t)
     return t, v, ts + rng.normal(0.0, NOISE_N, ts.shape), tp
 
 

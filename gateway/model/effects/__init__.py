@@ -7,10 +7,10 @@ effects loops over it. (The signal helpers ``delay`` and ``lowpass`` are in :mod
 the package's names ``delay`` and ``lowpass`` are the effect modules.) Adding an effect:
 write its module, list it in :data:`.registry.MODULES`, add its section to
 docs/physics.md and its tests. A chain-side effect that needs a parameter the chain does
-not have yet declares it once, a row of :data:`gateway.model.chain.COLUMNS` (the draft it
+not have yet declares it once, a row of :data:`gateway.model.chain_schema.COLUMNS` (the draft it
 edits, the chain's parameters and the kernels' columns follow from it), and puts its term
-in the chain's law (:func:`gateway.model.chain._level` for the Coulomb level); a new
-friction law gets a row in :data:`gateway.model.chain.LAWS`.
+in the chain's law (:func:`gateway.model.chain_kernels._level` for the Coulomb level); a new
+friction law gets a row in :data:`gateway.model.chain_schema.LAWS`.
 """
 
 from __future__ import annotations

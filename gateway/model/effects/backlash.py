@@ -2,7 +2,7 @@
 sec. 3, 4).
 
 ``width_m``: after a reversal the setpoint travels ``b`` before the pulleys' presliding
-state starts to change (the play operator of :func:`gateway.model.chain._play`: the drive
+state starts to change (the play operator of :func:`gateway.model.chain_kernels._play`: the drive
 stands inside ``[-b/2, b/2]`` of the setpoint and follows it at the edges; it starts
 centred). It acts on the state the travel drives (Dahl, Maxwell-slip); a Coulomb chain's
 friction follows the sign of the velocity and has nothing for it to delay
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 from gateway.model.effects.base import (
     Effect,
     FitData,

@@ -11,10 +11,10 @@ An :class:`Effect` has
   - ``statics``: the platform mass the truth has beyond the recorded one
     (:meth:`Effect.mass_delta`);
   - ``chain``: how it changes the friction chain (:meth:`Effect.apply_chain` edits a
-    :class:`gateway.model.chain.ChainDraft`, whose columns
-    :data:`gateway.model.chain.COLUMNS` declares once; the compiled pulley step
+    :class:`gateway.model.chain_schema.ChainDraft`, whose columns
+    :data:`gateway.model.chain_schema.COLUMNS` declares once; the compiled pulley step
     dispatches the friction *law* from the chain's law table,
-    :data:`gateway.model.chain.LAWS`);
+    :data:`gateway.model.chain_schema.LAWS`);
   - ``path`` and ``sensor``: the batch forward form (truth -> reading,
     :meth:`Effect.forward`), its batch inverse (:meth:`Effect.inverse`), the plant's
     per-sample form (:meth:`Effect.stepper`) and, when the gateway removes it each cycle,
@@ -48,7 +48,7 @@ from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 
 Stage = Literal["statics", "chain", "path", "sensor"]
 STAGES: tuple[Stage, ...] = ("statics", "chain", "path", "sensor")

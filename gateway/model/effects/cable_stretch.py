@@ -5,7 +5,7 @@ The pulleys hold back the tension ``F = sum_j F_j`` (their friction): the cable 
 winch's side of them carries ``F`` less (paying out) or more (hauling in) than the platform
 side, and stretches by ``F / k`` less or more. The travel that drives the pulleys'
 presliding state is the setpoint travel minus that stretch change,
-``d = dx - (F_k - F_{k-1}) / k`` (:func:`gateway.model.chain._step_cable`, solved per
+``d = dx - (F_k - F_{k-1}) / k`` (:func:`gateway.model.chain_kernels._step_cable`, solved per
 sample: ``F_k`` depends on ``d``). The cable's compliance in series with the presliding
 stiffness softens the transition after a reversal: it starts with the slope
 ``2 sigma / (1 + 2 sigma / k)`` per pulley instead of ``2 sigma`` and ends in the same tail.
@@ -28,7 +28,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 from gateway.model.effects.backlash import travel_driven
 from gateway.model.effects.base import (
     INF,

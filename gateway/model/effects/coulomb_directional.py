@@ -6,7 +6,7 @@ coefficient of every pulley of the cable while it pays out (v > 0), ``mu_in`` wh
 hauled in (v < 0), absolute like ``coulomb.mu`` (NaN or absent: keep the nominal);
 ``f0_n`` as in ``coulomb``. The chain's law is unchanged (Coulomb, or Dahl whose level
 then depends on the direction of travel): only its per-direction coefficients
-``lambda(+)``, ``lambda(-)`` differ (:func:`gateway.model.chain.coulomb_coefficients`).
+``lambda(+)``, ``lambda(-)`` differ (:func:`gateway.model.chain_schema.coulomb_coefficients`).
 
 While the cable moves, ``sgn(v) lambda_s T`` is ``sgn(v) (lambda_+ + lambda_-) / 2 T`` plus
 ``(lambda_+ - lambda_-) / 2 T`` of either sign of v: a symmetric Coulomb part and a part
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 from gateway.model.effects import coulomb
 from gateway.model.effects.base import (
     Compose,

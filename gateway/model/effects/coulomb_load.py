@@ -5,7 +5,7 @@
 da Vinci transmissions' residual after a constant ``mu`` is ``sgn(v) T``-shaped and grows
 with the load). The chain takes it in the Coulomb level, to first order in ``mu1 |T|``:
 ``F_R = (lambda_j + 2 sin(wrap_j / 2) mu1 |T|) |T|`` (``2 sin(wrap / 2)`` is
-``d lambda / d mu`` at small ``mu``; :func:`gateway.model.chain._level`), so the excess
+``d lambda / d mu`` at small ``mu``; :func:`gateway.model.chain_kernels._level`), so the excess
 over a constant coefficient grows with ``T^2``. The chain's column is ``mu_load``; under
 Dahl it shares the presliding dynamics. Friction only ever adds: ``mu1 >= 0``; a
 correction found on top of a model adds to it.
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 from gateway.model.effects.base import (
     Compose,
     Effect,

@@ -1,6 +1,6 @@
 """``maxwell_slip``: generalised Maxwell-slip presliding (docs/physics.md sec. 3, 4).
 
-The chain runs the law ``maxwell_slip`` (:data:`gateway.model.chain.LAWS`): each pulley's
+The chain runs the law ``maxwell_slip`` (:data:`gateway.model.chain_schema.LAWS`): each pulley's
 friction is the sum of ``K`` Dahl elements in parallel, element ``q`` with the breakaway
 level ``w_q F_R`` (the levels sum to the Coulomb level ``F_R``) and the stiffness
 ``w_q sigma_q``; each is stepped exactly like the Dahl state (eq. 14) over the same travel.
@@ -31,7 +31,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 from gateway.model.effects import presliding
 from gateway.model.effects.base import (
     Effect,

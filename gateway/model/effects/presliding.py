@@ -11,7 +11,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 from gateway.model.effects.base import (
     Effect,
     FitData,

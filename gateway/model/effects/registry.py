@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from gateway.fastcall import entry_point
-from gateway.model.chain import ChainDraft, ChainParams, compensate
+from gateway.model.chain_runs import run
+from gateway.model.chain_schema import ChainDraft, ChainParams
 from gateway.model.effects import (
     backlash,
     cable_stretch,
@@ -196,7 +197,7 @@ def chain_params(
     chain).
 
     ``nominal.mu``: per pulley (n,) or (m, n); each chain-side effect edits the chain's
-    draft (:class:`gateway.model.chain.ChainDraft`) in the catalogue's order
+    draft (:class:`gateway.model.chain_schema.ChainDraft`) in the catalogue's order
     (:meth:`~.base.Effect.apply_chain`).
     """
     draft = ChainDraft.nominal(nominal, cables)
@@ -340,4 +341,4 @@ def compensate_online(
         float(t[0]) if t.size else 0.0,
     )
     ts = inverse(s, np.asarray(reading, dtype=float), eff, online_only=True)
-    return compensate(params, ts, velocity, t)
+    return run(params, "compensate", ts, velocity, t)

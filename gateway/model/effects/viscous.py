@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gateway.model.chain import ChainDraft
+from gateway.model.chain_schema import ChainDraft
 from gateway.model.effects.base import (
     Compose,
     Effect,
