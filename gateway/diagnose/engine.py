@@ -30,20 +30,7 @@ import numpy as np
 from gateway.core.config import FrictionConfig
 from gateway.core.heap import return_large_frees, trim_heap
 from gateway.diagnose.forward import CableData, Forward
-from gateway.diagnose.prepare import (  # noqa: F401 - the stages' helpers, re-exported
-    Sensitivity,
-    cable_candidates,
-    cable_data,
-    candidates_for,
-    clipped_mask,
-    deadband,
-    finite_rows,
-    nominal_from,
-    selection_subset,
-    time_blocks,
-    velocity_noise,
-    warmup_mask,
-)
+from gateway.diagnose.prepare import Sensitivity, nominal_from
 from gateway.diagnose.reference import PlatformReference
 from gateway.diagnose.report import Diagnosis
 from gateway.diagnose.selection import Thresholds

@@ -15,6 +15,7 @@ from gateway.diagnose import locate, stats
 from gateway.diagnose.forward import ALL_EFFECTS, CableData, Forward, Nominal, chain_params
 from gateway.diagnose.pose_statics import MassSensitivity
 from gateway.diagnose.sessions import Sessions, finite_rows
+from gateway.diagnose.timebase import gap_starts
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
 from gateway.model.chain_schema import coulomb_coefficients
@@ -158,25 +159,10 @@ def clipped_mask(ts: np.ndarray) -> tuple[np.ndarray, list[float]]:
     return out, levels
 
 
-def time_blocks(t: np.ndarray) -> tuple[np.ndarray, int]:
-    """Block index (N,) of interleaved time blocks; even blocks train, odd ones are held out.
-
-    About one block per second of recording, between 10 and 40 blocks (an even number).
-    """
-    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
-    nb = int(np.clip(round(span / 1.0), 10, 40))
-    nb += nb % 2
-    edges = t[0] + span * np.arange(1, nb) / nb
-    return np.searchsorted(edges, t, side="right").astype(np.int64), nb
-
-
 WARMUP_LENGTHS = 4.0
 """Relaxation lengths ``F_R / sigma`` of cable travel after which the chain state has
 forgotten its unknown start (error ``exp(-4)`` ~ 2 %)."""
 WARMUP_MAX_SHARE = 0.1
-GAP_SPACINGS = 10.0
-"""A step longer than this many median sample spacings is a gap (rows missing): how the
-cable moved in it is unknown, so the friction state after it is too, as at the start."""
 GAP_WARMUP_MAX_SHARE = 0.5
 
 
@@ -214,23 +200,6 @@ def warmup_mask(d: CableData, nom: Nominal) -> np.ndarray:
         out[start:end] = False
         budget -= max(end - start, 0)
     return out
-
-
-def gap_starts(t: np.ndarray) -> np.ndarray:
-    """Indices of the samples that follow a gap (a step longer than ``GAP_SPACINGS``
-    median spacings), ascending."""
-    if t.size < 2:
-        return np.zeros(0, np.int64)
-    dt = np.diff(t)
-    return np.nonzero(dt > GAP_SPACINGS * float(np.median(dt)))[0] + 1
-
-
-def gap_segments(t: np.ndarray) -> np.ndarray:
-    """(N,) index of the piece of recording each sample lies in: a new piece after every
-    gap (:func:`gap_starts`; trials joined into one recording)."""
-    seg = np.zeros(t.size, np.int64)
-    seg[gap_starts(t)] = 1
-    return np.cumsum(seg)
 
 
 SELECTION_BUDGET = 150_000

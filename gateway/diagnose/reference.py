@@ -27,10 +27,8 @@ from gateway.diagnose.prepare import (
     candidates_for,
     clipped_mask,
     finite_rows,
-    gap_segments,
     nominal_from,
     selection_subset,
-    time_blocks,
     validation_forwards,
     warmup_mask,
 )
@@ -40,6 +38,7 @@ from gateway.diagnose.sessions import Sessions
 from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.significance import Tested, decide, harmonize, retire, score
 from gateway.diagnose.stats import holdout_z, p_value
+from gateway.diagnose.timebase import gap_segments, time_blocks
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
 from gateway.recordings.reader import Recording
@@ -204,7 +203,7 @@ class PlatformPrepared:
     validation: tuple[list[Forward], np.ndarray] | None
     clipped: dict
     segments: np.ndarray | None = None
-    """(N,) the piece of the recording (trial) of each sample (:func:`.prepare.gap_segments`)."""
+    """(N,) the piece of the recording (trial) of each sample (:func:`.timebase.gap_segments`)."""
     pooled: dict[str, Pooled] = field(default_factory=dict)
     """Per effect, its test pooled over the cables (:mod:`.pooling`), once fitted."""
     sessions: Sessions | None = None

@@ -2,7 +2,7 @@
 diagnosed as one, for one set of findings.
 
 The recordings are joined into one series (:func:`join`), each behind a gap that the
-diagnosis already treats as one (:func:`.prepare.gap_starts`: the friction state warms up
+diagnosis already treats as one (:func:`.timebase.gap_starts`: the friction state warms up
 again after it, as at a start; refits for the standard errors leave whole pieces, here
 whole recordings, out: :func:`.significance.block_refits`). What that gives:
 
@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from gateway.diagnose.pose_statics import MassSensitivity
+from gateway.diagnose.timebase import time_blocks as one
 from gateway.errors import RecordingError
 from gateway.model import effects as fx
 from gateway.model.effects import Spec
@@ -43,7 +44,7 @@ from gateway.recordings.reader import Recording
 
 JOIN_SPACINGS = 40.0
 """The gap put between two joined recordings, in the larger median sample spacing (a gap
-is anything over :data:`.prepare.GAP_SPACINGS` = 10)."""
+is anything over :data:`.timebase.GAP_SPACINGS` = 10)."""
 
 
 @dataclass(frozen=True)
@@ -222,10 +223,8 @@ def _rows(rec: Recording, ok: np.ndarray) -> Recording:
 
 
 def time_blocks(t: np.ndarray, sessions: Sessions | None) -> tuple[np.ndarray, int]:
-    """:func:`.prepare.time_blocks` within each recording (numbered on: every recording's
+    """:func:`.timebase.time_blocks` within each recording (numbered on: every recording's
     count is even, so even blocks train and odd ones are held out in each)."""
-    from gateway.diagnose.prepare import time_blocks as one
-
     if sessions is None or sessions.count == 1:
         return one(t)
     out = np.empty(t.size, np.int64)

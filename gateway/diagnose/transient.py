@@ -3,7 +3,7 @@
 A recording that starts in mid-motion (``run --record``: the gateway joins a machine
 that is already moving) holds pulleys whose friction state is developed, while the
 diagnosis' chain starts relaxed: until the cables have travelled a few relaxation lengths
-(:func:`gateway.diagnose.engine.warmup_mask`), the residual is the diagnosis' own
+(:func:`gateway.diagnose.prepare.warmup_mask`), the residual is the diagnosis' own
 warm-up, not physics. The selection and the fit already leave those samples out (and
 the held-out scores with them); :func:`annotate` says so in the report: ``warmup``
 (``until_s`` on the recording's clock, its length ``seconds``, ``samples``, how it was
@@ -24,9 +24,8 @@ from typing import Any
 import numpy as np
 
 from gateway.core.config import FrictionConfig
-from gateway.diagnose.engine import warmup_mask
 from gateway.diagnose.forward import CableData
-from gateway.diagnose.prepare import nominal_from
+from gateway.diagnose.prepare import nominal_from, warmup_mask
 from gateway.recordings.reader import Recording
 
 TREATMENT = (

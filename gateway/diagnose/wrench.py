@@ -42,10 +42,11 @@ from scipy.ndimage import uniform_filter1d
 from gateway.core.config import Config, FrictionConfig
 from gateway.diagnose.forward import CableData, Nominal
 from gateway.diagnose.pose_statics import require_geometry
-from gateway.diagnose.prepare import deadband, nominal_from, time_blocks, warmup_mask
+from gateway.diagnose.prepare import deadband, nominal_from, warmup_mask
 from gateway.diagnose.sessions import Sessions
 from gateway.diagnose.sessions import time_blocks as session_blocks
 from gateway.diagnose.stats import white_noise_columns
+from gateway.diagnose.timebase import time_blocks
 from gateway.errors import RecordingError
 from gateway.model import chain_runs, chain_schema, kinematics, statics
 from gateway.model import effects as fx

@@ -11,14 +11,9 @@ import pytest
 
 from gateway.cli import main
 from gateway.core.config import FrictionConfig, PulleyConfig
-from gateway.diagnose.engine import (
-    deadband,
-    diagnose,
-    nominal_from,
-    velocity_noise,
-    warmup_mask,
-)
+from gateway.diagnose.engine import diagnose
 from gateway.diagnose.forward import CableData
+from gateway.diagnose.prepare import deadband, nominal_from, velocity_noise, warmup_mask
 from gateway.recordings.reader import Recording
 from tests.diagnose_helpers import Foreign, check_report, generate, model_yaml, write_csv
 

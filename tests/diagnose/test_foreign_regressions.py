@@ -10,18 +10,14 @@ import numpy as np
 import pytest
 
 from gateway.core.config import FrictionConfig, PulleyConfig
-from gateway.diagnose.engine import (
-    cable_data,
-    clipped_mask,
-    diagnose,
-    nominal_from,
-    time_blocks,
-)
+from gateway.diagnose.engine import diagnose
 from gateway.diagnose.fit import spec_for
 from gateway.diagnose.forward import CableData, Forward
+from gateway.diagnose.prepare import cable_data, clipped_mask, nominal_from
 from gateway.diagnose.reference import CableUnit, validation_scores
 from gateway.diagnose.selection import Selector, Thresholds
 from gateway.diagnose.stats import white_noise
+from gateway.diagnose.timebase import time_blocks
 from tests.diagnose_helpers import Foreign, generate, recording_of, run_foreign
 from tests.foreign_cases import P5_MIXED, RIG_AXIS
 
@@ -261,7 +257,7 @@ def test_subset_search_undoes_a_stand_in():
     """Started from the greedy dead end of the issue (inertia and a Coulomb level that
     holds the viscous force at the typical speed), the best-subset search reaches the
     joint optimum of the four terms."""
-    from gateway.diagnose.engine import cable_candidates, candidates_for
+    from gateway.diagnose.prepare import cable_candidates, candidates_for
 
     fo = Foreign(
         rig=True,

@@ -18,8 +18,9 @@ from gateway.core.config import load_friction
 from gateway.diagnose import sessions as ss
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
 from gateway.diagnose.fromfiles import diagnose_file
-from gateway.diagnose.prepare import GAP_SPACINGS, gap_starts, nominal_from
-from gateway.diagnose.prepare import time_blocks as one_blocks
+from gateway.diagnose.prepare import nominal_from
+from gateway.diagnose.timebase import GAP_SPACINGS, gap_starts
+from gateway.diagnose.timebase import time_blocks as one_blocks
 from gateway.model import effects as fx
 from gateway.recordings.reader import Recording
 from tests import reallike as rl

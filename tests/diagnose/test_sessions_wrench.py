@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from gateway.core.config import load_config
 from gateway.diagnose import sessions as ss
 from gateway.diagnose.fromfiles import diagnose_file
-from gateway.diagnose.prepare import gap_starts
+from gateway.diagnose.timebase import gap_starts
 from gateway.diagnose.wrench import wrench_data
 from gateway.errors import GatewayError
 from gateway.recordings.reader import Recording

@@ -10,9 +10,10 @@ from numpy.testing import assert_allclose
 
 from gateway.core.config import FrictionConfig
 from gateway.diagnose import locate
-from gateway.diagnose.engine import nominal_from, time_blocks
 from gateway.diagnose.forward import CableData, Forward, report_stderr, to_report
+from gateway.diagnose.prepare import nominal_from
 from gateway.diagnose.stats import holdout_z
+from gateway.diagnose.timebase import time_blocks
 from gateway.model import effects as fx
 from gateway.model.chain_runs import run
 from gateway.model.chain_schema import ChainParams
@@ -146,7 +147,7 @@ def test_regions_locate_a_burst():
 
 
 def test_selection_subset_uses_training_blocks_only():
-    from gateway.diagnose.engine import selection_subset
+    from gateway.diagnose.prepare import selection_subset
 
     t = np.arange(400_000) * 1e-3
     blocks, nb = time_blocks(t)

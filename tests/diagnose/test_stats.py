@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway.diagnose.prepare import gap_segments, time_blocks
 from gateway.diagnose.stats import block_groups, jackknife_se, white_noise
+from gateway.diagnose.timebase import gap_segments, time_blocks
 
 
 @given(
