@@ -15,7 +15,11 @@ of a kept effect), the smallest Z with one cable left out is at least
 cable's strong fault carry seven clean ones) and at least one cable kept it on its own
 evidence (the per-cable tests
 of its parameters guard against a stand-in for a model-form error; pooling extends a
-finding, it does not invent one).
+finding, it does not invent one). Of two common effects one of which nests the other (a
+``spring`` kept on two cables of eight, an ``offset`` on the other six), the simpler one is
+common and the other is not: the nesting one was tested, on the cables that kept it,
+against nothing (its nested part included), never its extra freedom across the cables; it
+stays a cable-specific rival, judged on each cable against the common effects.
 
 **The common effects on every cable** (:func:`extend`, :func:`on_cable`). A common effect is
 the default hypothesis on every cable of the machine: a cable that did not keep it gets it,
@@ -39,7 +43,11 @@ together (of two that nest each other, the one of the larger pooled Z):
   beats the common one on the cable's held-out blocks by ``Thresholds.z_holdout`` (the
   strict test a kept effect passes): the rival is compared against the common effect on
   this cable, not against nothing, so a stand-in that won the cable's own forward
-  selection by a little no longer decides.
+  selection by a little no longer decides. Both sides hold the common effects that do
+  not conflict with the rival (:func:`rival`: the cable's own model with them fitted): a
+  spring that stood in for an offset and part of a common gain is judged against the
+  offset with the gain on both sides, not against a model that lacks the gain. Where the
+  cable's own model wins, it keeps it with those common effects.
 
 Cables whose data refused a common effect, or kept their own effects against it, are its
 ``differs``. A cable that kept a common effect drops it only when its own held-out z is
@@ -70,6 +78,7 @@ from scipy import special
 from gateway.diagnose.selection import Model, Selector, Thresholds, overlaps
 from gateway.diagnose.significance import Tested, retire, score
 from gateway.diagnose.stats import bh_qvalues
+from gateway.model import effects as fx
 
 
 @dataclass
@@ -128,7 +137,16 @@ def pooled_tests(units: list[Tested], th: Thresholds) -> dict[str, Pooled]:
         r.common = (
             r.q <= th.fdr and r.statistic >= th.z_holdout and r.loo >= th.z_screen and bool(owners)
         )
+    for r in out.values():
+        if r.common and any(out[s].common for s in nested_in(r.effect) if s in out):
+            r.common = False  # the simpler one is the machine's default (module docstring)
     return out
+
+
+def nested_in(effect: str) -> list[str]:
+    """The simpler effects ``effect`` nests (``Effect.nests``: a ``spring`` nests the
+    ``offset``)."""
+    return [s.name for s in fx.REGISTRY[effect].nests]
 
 
 def common_value(units: list[Tested], effect: str) -> np.ndarray:
@@ -201,11 +219,12 @@ def on_cable(
     (module docstring): the cable's kept effects that nest or are nested by one of them
     (a ``spring`` for an ``offset``) give way; the effects its data refuse at the common
     ``values`` (worse by ``z_screen`` on its held-out blocks) are left out; the rest are
-    fitted jointly with the kept effects. The cable's own model stays only if it beats
-    that one on its held-out blocks by ``Thresholds.z_holdout`` (significant evidence of
-    its own, against the common effects on this cable, not against nothing). Returns the
-    model adopted (``model`` itself when the cable keeps its own), None when every
-    missing effect was refused."""
+    fitted jointly with the kept effects. The cable's own model, with the missing
+    effects that do not conflict with its own fitted in it (:func:`rival`), stays only if
+    it beats that one on its held-out blocks by ``Thresholds.z_holdout`` (significant
+    evidence of its own, against the common effects on this cable, not against nothing).
+    Returns the model adopted (``model`` itself when the cable keeps its own and no
+    common effect is added to it), None when every missing effect was refused."""
     kept = model.kept
     gone = [x for x in kept if x not in common and overlaps(x, missing)]
     if len(kept) - len(gone) + len(missing) > th.max_effects:
@@ -235,9 +254,26 @@ def on_cable(
         if e in missing:
             theta[e] = s.kept[e]
     fitted = sel.fit(theta, {**base.specs, **{e: specs[e] for e in missing}})
-    if gone and sel.z(fitted, model) >= th.z_holdout:
-        return model  # the cable's own effects beat the common ones on its data
+    if not gone:
+        return fitted
+    own = rival(sel, model, [e for e in missing if not overlaps(e, gone)])
+    if sel.z(fitted, own) >= th.z_holdout:
+        return own  # the cable's own effects beat the common ones on its data
     return fitted
+
+
+def rival(sel: Selector, model: Model, others: list[str]) -> Model:
+    """The cable's own model with the common effects that do not conflict with its own
+    (``others``) fitted jointly: what the common effects in place of its own are compared
+    against, so that both sides hold the effects they share (a spring that stood in for
+    part of a common gain is not judged against a model that lacks the gain)."""
+    if not others:
+        return model
+    theta, specs = dict(model.kept), dict(model.specs)
+    for e in others:
+        s = sel.unit.screen(model, e)
+        theta[e], specs[e] = s.kept[e], s.specs[e]
+    return sel.fit(theta, specs)
 
 
 def agrees(
