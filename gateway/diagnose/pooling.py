@@ -13,9 +13,28 @@ go through Benjamini-Hochberg over the effects. An effect is **common** when
 of a kept effect), the smallest Z with one cable left out is at least
 ``Thresholds.z_screen`` (the evidence does not rest on one cable: Stouffer alone lets one
 cable's strong fault carry seven clean ones) and at least one cable kept it on its own
-evidence (the per-cable tests
-of its parameters guard against a stand-in for a model-form error; pooling extends a
-finding, it does not invent one).
+evidence (the per-cable tests of its parameters guard against a stand-in for a model-form
+error), or, where none did, it passes the joint test below. Of two common effects one of
+which nests the other (a ``spring`` kept on two cables of eight, an ``offset`` on the other
+six), the simpler one is common and the other is not: the nesting one was tested, on the
+cables that kept it, against nothing (its nested part included), never its extra freedom
+across the cables; it stays a cable-specific rival, judged on each cable against the
+common effects.
+
+**The joint test** (:func:`jointly`): an effect no cable kept on its own can still be the
+machine's: a 3 N offset under 15 % noise that each cable's forward step finds by a z of
+1-3. Where the cables' quick screens of such an effect on top of their models pool to
+``Z >= Thresholds.z_screen`` (the forward step's screen, over the cables), it is fitted on
+every cable jointly with the cable's model and tested there as a kept effect is (the held-out
+blocks, and with several recordings the recordings left out in turn: the smaller z); the
+effect is common when those tests pool (Stouffer) to ``Z >= z_holdout`` with one cable left
+out ``>= z_screen``, its q (BH with the other pooled tests) ``<= fdr``, and the cables'
+departures of its parameters from the neutral value, pooled by :func:`shrink` (the
+random-effects mean and its standard error), lie ``Thresholds.z_min`` standard errors from
+none (the per-cable parameter test, over the cables). An effect that nests another (a
+``spring``, an ``offset``) is tested on the held-out blocks against the simpler one fitted
+in its place (its extra freedom), and is not common where the simpler one is. Its common
+value is the median of the cables' joint fits.
 
 **The common effects on every cable** (:func:`extend`, :func:`on_cable`). A common effect is
 the default hypothesis on every cable of the machine: a cable that did not keep it gets it,
@@ -39,7 +58,11 @@ together (of two that nest each other, the one of the larger pooled Z):
   beats the common one on the cable's held-out blocks by ``Thresholds.z_holdout`` (the
   strict test a kept effect passes): the rival is compared against the common effect on
   this cable, not against nothing, so a stand-in that won the cable's own forward
-  selection by a little no longer decides.
+  selection by a little no longer decides. Both sides hold the common effects that do
+  not conflict with the rival (:func:`rival`: the cable's own model with them fitted): a
+  spring that stood in for an offset and part of a common gain is judged against the
+  offset with the gain on both sides, not against a model that lacks the gain. Where the
+  cable's own model wins, it keeps it with those common effects.
 
 Cables whose data refused a common effect, or kept their own effects against it, are its
 ``differs``. A cable that kept a common effect drops it only when its own held-out z is
@@ -70,6 +93,7 @@ from scipy import special
 from gateway.diagnose.selection import Model, Selector, Thresholds, overlaps
 from gateway.diagnose.significance import Tested, retire, score
 from gateway.diagnose.stats import bh_qvalues
+from gateway.model import effects as fx
 
 
 @dataclass
@@ -128,7 +152,16 @@ def pooled_tests(units: list[Tested], th: Thresholds) -> dict[str, Pooled]:
         r.common = (
             r.q <= th.fdr and r.statistic >= th.z_holdout and r.loo >= th.z_screen and bool(owners)
         )
+    for r in out.values():
+        if r.common and any(out[s].common for s in nested_in(r.effect) if s in out):
+            r.common = False  # the simpler one is the machine's default (module docstring)
     return out
+
+
+def nested_in(effect: str) -> list[str]:
+    """The simpler effects ``effect`` nests (``Effect.nests``: a ``spring`` nests the
+    ``offset``)."""
+    return [s.name for s in fx.REGISTRY[effect].nests]
 
 
 def common_value(units: list[Tested], effect: str) -> np.ndarray:
@@ -148,11 +181,12 @@ def extend(
     place; the cables that changed are scored again. Returns the pooled tests (their
     ``differs`` filled)."""
     pooled = pooled_tests(units, th)
+    values = jointly(units, pooled, th, rebuild, say)
     order = sorted(pooled.items(), key=lambda kv: -kv[1].statistic)
     common = [e for e, r in order if r.common]
     if not common:
         return pooled
-    values = {e: common_value(units, e) for e in common}
+    values = {e: values[e] if e in values else common_value(units, e) for e in common}
     for k, u in enumerate(units):
         kept = u.model.kept
         missing: list[str] = []
@@ -189,6 +223,111 @@ def extend(
     return pooled
 
 
+@dataclass
+class Joint:
+    """One effect no cable kept, fitted on one cable jointly with its model and tested
+    there like a kept effect (:func:`jointly`)."""
+
+    p: float
+    z: float
+    theta: np.ndarray
+    stderr: np.ndarray
+    neutral: np.ndarray
+
+
+def jointly(
+    units: list[Tested],
+    pooled: dict[str, Pooled],
+    th: Thresholds,
+    rebuild: Callable[[Tested], tuple[Selector, Model]],
+    say=lambda _m: None,
+) -> dict[str, np.ndarray]:
+    """The joint test of the effects no cable kept on its own (module docstring, "The
+    joint test"), in place on ``pooled``: returns the common values of those it made
+    common."""
+    common = [e for e, r in pooled.items() if r.common]
+    todo = [
+        e
+        for e, r in sorted(pooled.items(), key=lambda kv: -kv[1].statistic)
+        if not r.common
+        and r.statistic >= th.z_screen
+        and not any(e in u.model.kept for u in units)
+        and not overlaps(e, common)
+    ]
+    if not todo:
+        return {}
+    # the simpler of two nesting candidates first: the nesting one is tested against it
+    todo = sorted(todo, key=lambda e: -sum(e in nested_in(o) for o in todo))
+    per: dict[str, list[Joint]] = {e: [] for e in todo}
+    for u in units:
+        sel, model = rebuild(u) if u.selector is None else (u.selector, u.model)
+        fits: dict[str, Model] = {}
+        for e in todo:
+            if e not in sel.candidates or overlaps(e, model.kept):
+                continue
+            s = sel.unit.screen(model, e)
+            fits[e] = fitted = sel.fit(s.kept, s.specs)
+            simpler = [n for n in nested_in(e) if n in fits]
+            against = fits[simpler[0]] if simpler else model
+            t = sel.test(against, fitted)
+            z, p = t["z"], t["p"]
+            left_out = getattr(sel.unit, "recordings_left_out", None)
+            if left_out is not None and not simpler:
+                lo = left_out(fitted).get(e)
+                if lo is not None:
+                    z, p = min(z, lo["z"]), max(p, lo["p"])
+            neutral = getattr(fitted.specs[e], "neutral", None)  # None: zero
+            neutral = np.zeros(fitted.kept[e].size) if neutral is None else np.asarray(neutral)
+            per[e].append(Joint(p, z, fitted.kept[e], fitted.stderr[e], neutral))
+        release = getattr(sel.unit, "release", None)
+        if release is not None:
+            release()
+    values = {}
+    for e in todo:
+        rows = per[e]
+        if len(rows) < 2:
+            continue
+        ps = [j.p for j in rows]
+        z, p = stouffer(ps)
+        loo = min(stouffer(ps[:j] + ps[j + 1 :])[0] for j in range(len(ps)))
+        q = float(bh_qvalues([p, *(r.p for f, r in pooled.items() if f != e)])[0])
+        value, present = pooled_value(e, rows)
+        if not (q <= th.fdr and z >= th.z_holdout and loo >= th.z_screen and present >= th.z_min):
+            continue
+        if any(n in values for n in nested_in(e)):
+            continue  # its extra freedom over a common simpler one: not common
+        r = pooled[e]
+        r.statistic, r.p, r.q, r.loo, r.common = z, p, q, loo, True
+        values[e] = value
+        say(
+            f"{e} tested on the cables jointly: pooled z {z:.1f} (one cable left out: "
+            f"{loo:.1f}), the common value {present:.1f} standard errors from none"
+        )
+    return values
+
+
+def pooled_value(effect: str, rows: list[Joint]) -> tuple[np.ndarray, float]:
+    """The common internal parameters of ``effect`` from the cables' joint fits (the
+    median, as :func:`common_value`), and how many pooled standard errors the
+    random-effects mean of the cables' departures from the neutral value (:func:`shrink`)
+    lies from none (the effect's own measure, ``Effect.significance``): the per-cable
+    parameter test, over the cables jointly."""
+    if len({j.theta.shape for j in rows}) != 1 or len({j.neutral.shape for j in rows}) != 1:
+        return np.median(np.stack([rows[0].theta]), 0), 0.0
+    y = np.stack([j.theta - j.neutral for j in rows])
+    s = np.stack([np.asarray(j.stderr, float) for j in rows])
+    mu, se = np.zeros(y.shape[1]), np.full(y.shape[1], np.nan)
+    for i in range(y.shape[1]):
+        ok = np.isfinite(y[:, i]) & np.isfinite(s[:, i]) & (s[:, i] > 0)
+        if ok.sum() < 2:
+            continue
+        mu[i], tau, _ = shrink(y[ok, i], s[ok, i])
+        tau = tau if math.isfinite(tau) else 0.0
+        se[i] = 1.0 / math.sqrt(float(np.sum(1.0 / (s[ok, i] ** 2 + tau**2))))
+    z = fx.REGISTRY[effect].significance(mu, se, np.zeros_like(mu))
+    return np.median(np.stack([j.theta for j in rows]), 0), z
+
+
 def on_cable(
     sel: Selector,
     model: Model,
@@ -201,11 +340,12 @@ def on_cable(
     (module docstring): the cable's kept effects that nest or are nested by one of them
     (a ``spring`` for an ``offset``) give way; the effects its data refuse at the common
     ``values`` (worse by ``z_screen`` on its held-out blocks) are left out; the rest are
-    fitted jointly with the kept effects. The cable's own model stays only if it beats
-    that one on its held-out blocks by ``Thresholds.z_holdout`` (significant evidence of
-    its own, against the common effects on this cable, not against nothing). Returns the
-    model adopted (``model`` itself when the cable keeps its own), None when every
-    missing effect was refused."""
+    fitted jointly with the kept effects. The cable's own model, with the missing
+    effects that do not conflict with its own fitted in it (:func:`rival`), stays only if
+    it beats that one on its held-out blocks by ``Thresholds.z_holdout`` (significant
+    evidence of its own, against the common effects on this cable, not against nothing).
+    Returns the model adopted (``model`` itself when the cable keeps its own and no
+    common effect is added to it), None when every missing effect was refused."""
     kept = model.kept
     gone = [x for x in kept if x not in common and overlaps(x, missing)]
     if len(kept) - len(gone) + len(missing) > th.max_effects:
@@ -235,9 +375,26 @@ def on_cable(
         if e in missing:
             theta[e] = s.kept[e]
     fitted = sel.fit(theta, {**base.specs, **{e: specs[e] for e in missing}})
-    if gone and sel.z(fitted, model) >= th.z_holdout:
-        return model  # the cable's own effects beat the common ones on its data
+    if not gone:
+        return fitted
+    own = rival(sel, model, [e for e in missing if not overlaps(e, gone)])
+    if sel.z(fitted, own) >= th.z_holdout:
+        return own  # the cable's own effects beat the common ones on its data
     return fitted
+
+
+def rival(sel: Selector, model: Model, others: list[str]) -> Model:
+    """The cable's own model with the common effects that do not conflict with its own
+    (``others``) fitted jointly: what the common effects in place of its own are compared
+    against, so that both sides hold the effects they share (a spring that stood in for
+    part of a common gain is not judged against a model that lacks the gain)."""
+    if not others:
+        return model
+    theta, specs = dict(model.kept), dict(model.specs)
+    for e in others:
+        s = sel.unit.screen(model, e)
+        theta[e], specs[e] = s.kept[e], s.specs[e]
+    return sel.fit(theta, specs)
 
 
 def agrees(

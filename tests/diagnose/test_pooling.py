@@ -15,8 +15,17 @@ from hypothesis import strategies as st
 
 from gateway.core.config import FrictionConfig, PulleyConfig
 from gateway.diagnose.engine import diagnose
-from gateway.diagnose.pooling import normal_score, on_cable, shrink, stouffer
-from gateway.diagnose.selection import Model, Selector, Thresholds
+from gateway.diagnose.pooling import (
+    jointly,
+    normal_score,
+    on_cable,
+    pooled_tests,
+    shrink,
+    stouffer,
+)
+from gateway.diagnose.selection import Model, Outcome, Selector, Thresholds
+from gateway.diagnose.significance import Tested as Scored
+from gateway.diagnose.significance import candidate_tests
 from tests.diagnose_helpers import Foreign, check_report, generate, recording_of
 
 estimates = st.lists(
@@ -249,3 +258,91 @@ def test_a_clean_cable_refuses_the_common_value(seed) -> None:
     own = sel.fit({"gain": np.zeros(1)}, {"gain": None})
     got = on_cable(sel, own, ["offset"], {"offset": np.array([5.0])}, ["offset"], Thresholds())
     assert got is None
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_common_effects_that_do_not_conflict_are_on_both_sides(seed) -> None:
+    """A true spring of 30 N/m beside the offset and gain; the cable kept the spring alone.
+    The common offset conflicts with the spring, the common gain does not: the cable's own
+    model is compared with the gain in it too, wins, and keeps the spring with the gain
+    (not the spring without the gain the machine shares)."""
+    unit = _cable(30.0, seed)
+    sel = Selector(unit, Thresholds())
+    own = sel.fit({"spring": np.zeros(2)}, {"spring": None})
+    values = {"offset": np.array([5.0]), "gain": np.array([0.04])}
+    got = on_cable(sel, own, ["offset", "gain"], values, ["offset", "gain"], Thresholds())
+    assert got is not None and set(got.kept) == {"spring", "gain"}
+    assert abs(got.kept["gain"][0] - 0.04) <= 4.0 * got.stderr["gain"][0]  # 0.2 N under 2 N
+
+
+def _tested(kept: dict[str, float], screened: dict[str, float]) -> Scored:
+    """A scored cable: its kept effects' and its screened candidates' one-sided p-values."""
+    theta = {e: np.zeros(1) for e in kept}
+    tests = {e: {"z": normal_score(p), "p": p} for e, p in {**kept, **screened}.items()}
+    out = Outcome(list(kept), theta, {}, {}, tests=tests)
+    return Scored(None, Model(theta, {}, {}, np.zeros(0)), out)
+
+
+@given(
+    springs=st.integers(2, 4),
+    offsets=st.integers(2, 6),
+    p=st.floats(1e-12, 1e-6),
+)
+def test_of_two_common_effects_that_nest_the_simpler_is_common(springs, offsets, p) -> None:
+    """A spring kept on some cables (tested there against nothing, its offset part
+    included) and the offset it nests on the others, both strongly: the offset is the
+    machine's common effect, the spring is not (its extra freedom was never tested across
+    the cables), so the spring cannot keep the common offset off the cables that kept it."""
+    units = [_tested({"spring": p}, {}) for _ in range(springs)]
+    units += [_tested({"offset": p}, {}) for _ in range(offsets)]
+    pooled = pooled_tests(units, Thresholds())
+    assert pooled["offset"].common
+    assert not pooled["spring"].common
+
+
+def _spread(seed: int, offset: float) -> _Linear:
+    """A cable of :func:`_cable`'s kind with its length and tension apart (a gain and an
+    offset told apart) and ``offset`` N on it, 2 N of noise."""
+    rng = np.random.default_rng(seed)
+    n = 4000
+    x = 2.0 + 0.5 * np.sin(np.linspace(0.0, 12.0, n) + seed)
+    tension = 100.0 + 60.0 * np.sin(np.linspace(0.0, 31.0, n) + 2.0 * seed)
+    return _Linear(offset + 0.04 * tension + rng.normal(0.0, 2.0, n), x, tension)
+
+
+def _machine(offset: float, seed: int, cables: int = 8) -> tuple[list[Scored], dict]:
+    """Each cable selected on its own and scored (its candidates' held-out tests), then
+    the pooled tests and the joint test over them."""
+    th = Thresholds()
+    units = []
+    for k in range(cables):
+        sel = Selector(_spread(seed * cables + k, offset), th)
+        out = sel.run()
+        m = sel.final
+        tests = candidate_tests(sel, m)
+        units.append(Scored(sel, m, Outcome(out.kept, m.kept, m.stderr, m.specs, tests=tests)))
+    pooled = pooled_tests(units, th)
+    values = jointly(units, pooled, th, lambda u: (u.selector, u.model))
+    return units, {e: (r, values.get(e)) for e, r in pooled.items()}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_an_effect_no_cable_kept_alone_is_common_by_the_joint_test(seed) -> None:
+    """0.5 N of offset on eight cables under 2 N of noise: no cable keeps it on its own
+    evidence (its share of the held-out error is below the forward step's), the cables'
+    joint fits pool to a common offset near the truth; the spring that nests it is not
+    common (its extra freedom over the offset is nothing)."""
+    units, pooled = _machine(0.5, seed)
+    assert not any("offset" in u.model.kept for u in units)
+    offset, value = pooled["offset"]
+    assert offset.common and offset.statistic >= Thresholds().z_holdout
+    assert value is not None and value[0] == pytest.approx(0.5, abs=0.25)
+    assert "spring" not in pooled or not pooled["spring"][0].common
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_joint_test_finds_nothing_on_clean_cables(seed) -> None:
+    """No offset: nothing the cables did not keep becomes common."""
+    _, pooled = _machine(0.0, seed)
+    assert {e for e, (r, _) in pooled.items() if r.common} == {"gain"}
+    assert all(v is None for _, v in pooled.values())
