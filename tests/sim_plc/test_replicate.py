@@ -68,3 +68,31 @@ def test_hysteresis_width_of_a_known_loop() -> None:
     fz = 3.0 * z + np.where(dz > 0, 2.5, -2.5)  # branches 5 N apart
     assert hysteresis_width(z, fz, dz) == pytest.approx(5.0, abs=1e-3)
     assert hysteresis_width(z, 3.0 * z, dz) == pytest.approx(0.0, abs=1e-3)
+
+
+def test_a_run_too_short_for_the_hysteresis_says_so_instead_of_nan(result) -> None:
+    """A cyclic run that never travels a stretch of z both ways has no hysteresis width
+    (NaN); the goal says it was not measured and why, is not met, and the table prints it
+    (``replicate --seconds 2`` printed "MISSED (nan)" and the markdown writer would fail
+    on it)."""
+    import math
+
+    from sim_plc.replicate import _goals, _hysteresis_goal, markdown
+
+    z = np.linspace(0.0, 1.0, 200)
+    assert math.isnan(hysteresis_width(z, z, np.ones_like(z)))  # up only: no width
+    goal = _hysteresis_goal(math.nan)
+    assert goal["met"] is False and goal["value"] is None and "--seconds" in goal["why"]
+    assert _hysteresis_goal(1.5)["met"] and not _hysteresis_goal(2.5)["met"]
+    res = {
+        "dahl": {"rmse_n": 0.5, "mae_n": 0.3, "std_n": 0.4},
+        "coulomb": {"rmse_n": 5.0, "mae_n": 4.0, "std_n": 5.0},
+        "noise_floor_n": 0.5,
+        "improvement_dahl_vs_uncompensated": 0.9,
+        "hysteresis_width_n": {"after": math.nan},
+    }
+    assert _goals(res)["hysteresis_after_at_most_2n"] == goal
+    full = json.loads(json.dumps(result[0]))  # the 15-s run's result, this goal unmeasured
+    full["goals"]["hysteresis_after_at_most_2n"] = goal
+    row = next(r for r in markdown(full).splitlines() if "hysteresis_after" in r)
+    assert goal["why"] in row and row.endswith("| NO |")
