@@ -30,7 +30,10 @@ from tests.canopen_helpers import canopen_config, virtual_bus_factory
 from tests.modbus_helpers import filled_image, plc_server
 
 CANOPEN_SYNC_PERIOD_S = 0.002  # the soft PLC's SYNC thread: easy on a shared machine
-CANOPEN_READ_TIMEOUT_S = 0.1
+# a read waits this long for a whole SYNC cycle of PDOs: 0.1 s (50 SYNC periods) was not
+# enough with both cores busy (make test beside another job: "missing PDOs 0x290, 0x181,
+# 0x281 within 120.0 ms" once); no contract test times a read, a good reply ends the wait
+CANOPEN_READ_TIMEOUT_S = 0.5
 CANOPEN_SETTLE_S = 0.02  # ~10 SYNC cycles: what the image holds is on the bus
 CONTRACT_MODBUS_TIMEOUT_S = 5.0
 
