@@ -5,6 +5,9 @@ and one broken file (the ``recordings`` fixture, tests/fleet/conftest.py), each 
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -103,6 +106,39 @@ def check_fleet_output(out: Path, recs: list[Path], singles: dict[str, bytes]) -
     text = (out / "fleet.md").read_text()
     assert "1 failed" in text and "broken.csv" in text
     plots = sorted(p.name for p in (out / "plots").iterdir())  # the broken file's robot too
-    assert plots == sorted([f"robot-r-{e}.png" for e in HIDDEN] + ["robot-fleet-recordings0.png"])
+    broken_robot = f"robot-{recs[-1].parent.name}.png"  # the folder of the broken file
+    assert plots == sorted([f"robot-r-{e}.png" for e in HIDDEN] + [broken_robot])
     csv_lines = (out / "fleet.csv").read_text().splitlines()
     assert len(csv_lines) == len(table) + 1
+
+
+def fleet_on_scheduler(
+    recordings: list[Path], out: Path, address: str, prefix: tuple[str, ...] = ()
+) -> subprocess.CompletedProcess[str]:
+    """``cdpr-gateway fleet RECORDINGS --scheduler ADDRESS`` in a process of its own (run
+    through ``prefix``, e.g. ``ip netns exec NS``), bounded at 600 s; asserts it succeeded
+    and named the scheduler with its two workers."""
+    run = subprocess.run(
+        [
+            *prefix,
+            sys.executable,
+            "-m",
+            "gateway.cli",
+            "fleet",
+            *map(str, recordings),
+            "--model",
+            str(MODEL),
+            "--out",
+            str(out),
+            "--scheduler",
+            address,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert run.returncode == 0, run.stderr
+    assert f"scheduler {address} with 2 workers" in run.stdout
+    return run

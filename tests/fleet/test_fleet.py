@@ -20,7 +20,13 @@ from gateway.fleet.cli import expand
 from gateway.fleet.table import RECORDING, columns_of, table_rows
 from gateway.fleet.task import TaskResult
 from tests.dask_helpers import dask_cluster
-from tests.fleet.fleet_helpers import MODEL, ROOT, check_fleet_output, single_reports
+from tests.fleet.fleet_helpers import (
+    MODEL,
+    ROOT,
+    check_fleet_output,
+    fleet_on_scheduler,
+    single_reports,
+)
 
 
 @pytest.mark.long
@@ -47,27 +53,7 @@ def test_fleet_against_a_dask_scheduler_and_two_workers_on_loopback(
     with dask_cluster(tmp_path, workers=2) as address:
         assert address.startswith("tcp://127.0.0.1:")
         out = tmp_path / "fleet"
-        run = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "gateway.cli",
-                "fleet",
-                *map(str, recordings),
-                "--model",
-                str(MODEL),
-                "--out",
-                str(out),
-                "--scheduler",
-                address,
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert run.returncode == 0, run.stderr
-        assert f"scheduler {address} with 2 workers" in run.stdout
+        run = fleet_on_scheduler(recordings, out, address)
         lines = run.stderr.splitlines()  # a line per recording; Dask's own in dask.log
         assert len(lines) == 4 and all(line.startswith("[") for line in lines), run.stderr
         assert (out / "dask.log").is_file()

@@ -10,15 +10,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
 
 from tests.dask_helpers import dask_hosts
-from tests.fleet.fleet_helpers import MODEL, ROOT, check_fleet_output, single_reports
+from tests.fleet.fleet_helpers import check_fleet_output, fleet_on_scheduler, single_reports
 
 
 @pytest.mark.long
@@ -30,29 +28,7 @@ def test_fleet_against_workers_on_two_other_hosts(recordings: list[Path], tmp_pa
     out = tmp_path / "fleet"
     with dask_hosts(tmp_path, hosts=2) as (in_scheduler_ns, address, hosts):
         assert address.startswith("tcp://10.213.1.1:")
-        run = subprocess.run(
-            [
-                *in_scheduler_ns,
-                sys.executable,
-                "-m",
-                "gateway.cli",
-                "fleet",
-                *map(str, recordings),
-                "--model",
-                str(MODEL),
-                "--out",
-                str(out),
-                "--scheduler",
-                address,
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=600,
-            env={**os.environ, "PYTHONPATH": str(ROOT)},
-        )
-        assert run.returncode == 0, run.stderr
-        assert f"scheduler {address} with 2 workers" in run.stdout
+        fleet_on_scheduler(recordings, out, address, tuple(in_scheduler_ns))
     workers = {r["worker"] for r in pq.read_table(out / "fleet.parquet").to_pylist()}
     ran_on = {w.removeprefix("tcp://").rsplit(":", 1)[0] for w in workers if w}
     assert ran_on == set(hosts), workers  # both hosts took recordings, no other did
