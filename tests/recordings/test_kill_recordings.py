@@ -65,7 +65,7 @@ def interrupt_record(out: Path, sig: int, after_pct: int | None) -> tuple[int, l
 
 def check_interrupted(out: Path, sig: int, status: int, lines: list[str]) -> int:
     """The statement of an interrupted ``record`` and its file; the rows it holds."""
-    assert status == 128 + sig, lines
+    assert status == 128 + sig, "\n".join(lines)  # whole, with any traceback
     assert not any("Traceback" in x for x in lines), lines
     said = [x for x in lines if not x.startswith(PROGRESS)]
     assert len(said) == 1, lines
