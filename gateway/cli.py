@@ -25,7 +25,13 @@ from collections.abc import Iterator, Sequence
 from typing import NoReturn
 
 from gateway import __version__
-from gateway.core.cliopts import add_common_options, resolve_log_level, setup_logging
+from gateway.core.cliopts import (
+    add_common_options,
+    forget_signals,
+    resolve_log_level,
+    setup_logging,
+    signal_raised,
+)
 from gateway.errors import GatewayError, TemporaryError
 
 EX_TEMPFAIL = 75  # sysexits.h: a temporary failure, a retry may succeed
@@ -182,6 +188,7 @@ class Interrupted(KeyboardInterrupt):
 
 
 def _interrupt(signum: int, _frame: object) -> None:
+    signal_raised(signum)  # if Python swallows the exception, the signal is not lost
     raise Interrupted(signum)
 
 
@@ -200,6 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job
                 previous[sig] = signal.signal(sig, _interrupt)
+    forget_signals()  # an earlier in-process command's signals are not this one's
     try:
         status = _main(argv)
         sys.stdout.flush()  # here, where a closed pipe is caught, not at the interpreter's exit
@@ -226,6 +234,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        forget_signals()
 
 
 def _main(argv: list[str]) -> int:

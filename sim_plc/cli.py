@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from gateway.cli import Interrupted
-from gateway.core.cliopts import add_config_option
+from gateway.core.cliopts import add_config_option, lost_signal
 from gateway.core.config import (
     DEFAULT_CONFIG_PATH,
     Config,
@@ -219,6 +219,9 @@ class _StopSignals:
         for sig in (signal.SIGINT, signal.SIGTERM):
             if signal.getsignal(sig) is not signal.SIG_IGN:
                 self._old[sig] = signal.signal(sig, self._note)
+        lost = lost_signal()  # raised before, and swallowed where Python ignores exceptions
+        if lost is not None and self.signum is None:
+            self.signum = lost
 
     def restore(self) -> None:
         for sig, handler in self._old.items():

@@ -19,6 +19,31 @@ from pathlib import Path
 
 from gateway.errors import ConfigError
 
+_RAISED: list[int] = []
+
+
+def signal_raised(signum: int) -> None:
+    """Note that the program's handler (:func:`gateway.cli._interrupt`) is raising
+    ``signum`` as ``Interrupted``. Python ignores an exception raised where it cannot
+    propagate (a weakref callback such as the import lock's, a ``__del__``), and a signal
+    handler's exception can land there: the signal would be lost, the command would run
+    on. A command that takes SIGINT/SIGTERM over asks :func:`lost_signal` first."""
+    _RAISED.append(signum)
+
+
+def forget_signals() -> None:
+    """A new command starts (:func:`gateway.cli.main`, also called in-process by tests and
+    tools) or the last one has ended: no signal of an earlier one counts as lost."""
+    _RAISED.clear()
+
+
+def lost_signal() -> int | None:
+    """The signal raised as ``Interrupted`` that never unwound the program, or None. Asked
+    where a command takes the signals over: had the exception propagated, the program
+    would not be there, so a signal noted by then was swallowed and the command stops."""
+    return _RAISED[-1] if _RAISED else None
+
+
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 FOREIGN_LOGGERS = ("canopen", "can", "pymodbus")

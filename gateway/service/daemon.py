@@ -36,6 +36,7 @@ from gateway import __version__
 from gateway.core.cliopts import (
     LOG_FORMAT,
     add_config_option,
+    lost_signal,
     setup_logging,
 )
 from gateway.core.config import (
@@ -232,6 +233,8 @@ def run_command(command: str, args: argparse.Namespace) -> int:
         if exposed:
             log.warning("%s", exposed)
     previous = service.install_signal_handlers()
+    if lost_signal() is not None:  # came before these handlers, its Interrupted swallowed
+        service.stop()  # (raised in the import lock's weakref callback: seen under load)
     timer = None
     rt: RealtimeReport | None = None
     try:

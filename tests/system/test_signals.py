@@ -139,3 +139,61 @@ def test_a_closed_pipe_ends_quietly(tmp_path):
         os.close(write_end)
     assert res.stderr == "", res.stderr
     assert res.returncode == 128 + signal.SIGPIPE, res.returncode
+
+
+def _swallowed(sig: int) -> None:
+    """The program's handler run where Python ignores exceptions: a weakref callback, as
+    the import lock's ``_get_module_lock.<locals>.cb`` (the daemon under load ran on for 60 s
+    after a SIGINT whose Interrupted was raised there: "Exception ignored in: ... cb")."""
+    import weakref
+
+    from gateway import cli
+
+    class Thing:
+        pass
+
+    thing = Thing()
+    ref = weakref.ref(thing, lambda _ref: cli._interrupt(sig, None))
+    del thing  # the callback raises Interrupted; Python prints it and goes on
+    assert ref() is None
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the swallowing
+def test_a_swallowed_signal_stops_the_daemon_when_it_takes_the_signals_over(
+    tmp_path, monkeypatch, capsys
+):
+    from gateway.runtime.loop import CyclicService
+
+    cfg = _unreachable_config(tmp_path)
+    install = CyclicService.install_signal_handlers
+
+    def install_after_a_lost_signal(self, *args, **kwargs):
+        _swallowed(signal.SIGINT)  # lands before the daemon's own handlers
+        return install(self, *args, **kwargs)
+
+    monkeypatch.setattr(CyclicService, "install_signal_handlers", install_after_a_lost_signal)
+    from gateway.cli import main
+
+    assert main(["run", "--config", str(cfg), "--seconds", "20"]) == 0
+    err = capsys.readouterr().err
+    assert "stopped: cycles 0," in err, err  # stopped at once, not after 20 s
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_swallowed_signal_ends_record_after_its_first_block() -> None:
+    from gateway.core.cliopts import forget_signals, lost_signal
+    from sim_plc.cli import _StopSignals
+
+    stop = _StopSignals()
+    forget_signals()
+    try:
+        stop.catch()
+        assert stop.signum is None  # nothing lost: record runs on
+        stop.restore()
+        _swallowed(signal.SIGTERM)
+        assert lost_signal() == signal.SIGTERM  # the handler ran, its exception went nowhere
+        stop.catch()  # where record takes the signals over, with its first block
+        assert stop.signum == signal.SIGTERM  # the block is written, then record ends
+    finally:
+        stop.restore()
+        forget_signals()
