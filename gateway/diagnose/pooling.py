@@ -91,7 +91,7 @@ import numpy as np
 from scipy import special
 
 from gateway.diagnose.selection import Model, Selector, Thresholds, overlaps
-from gateway.diagnose.significance import Tested, retire, score
+from gateway.diagnose.significance import Tested, left_out_tests, retire, score, stricter
 from gateway.diagnose.stats import bh_qvalues
 from gateway.model import effects as fx
 
@@ -271,11 +271,9 @@ def jointly(
             against = fits[simpler[0]] if simpler else model
             t = sel.test(against, fitted)
             z, p = t["z"], t["p"]
-            left_out = getattr(sel.unit, "recordings_left_out", None)
-            if left_out is not None and not simpler:
-                lo = left_out(fitted).get(e)
-                if lo is not None:
-                    z, p = min(z, lo["z"]), max(p, lo["p"])
+            lo = None if simpler else left_out_tests(sel, fitted).get(e)
+            if lo is not None:
+                z, p = stricter(t, lo)
             neutral = getattr(fitted.specs[e], "neutral", None)  # None: zero
             neutral = np.zeros(fitted.kept[e].size) if neutral is None else np.asarray(neutral)
             per[e].append(Joint(p, z, fitted.kept[e], fitted.stderr[e], neutral))

@@ -140,19 +140,29 @@ def param_z(sel: Selector, model: Model, effect: str, presence: float | None) ->
     return z if presence is None else min(z, presence)
 
 
+def left_out_tests(sel: Selector, model: Model) -> dict[str, dict[str, float]]:
+    """Each kept effect's test with the recordings left out in turn (several recordings
+    joined: :meth:`.reference.CableUnit.recordings_left_out`), or {} (one recording)."""
+    left_out = getattr(sel.unit, "recordings_left_out", None)
+    return {} if left_out is None else left_out(model)
+
+
+def stricter(test: dict[str, float], left_out: dict[str, float]) -> tuple[float, float]:
+    """(z, p) of an effect that must beat chance on the held-out blocks and on the
+    recordings left out in turn: the smaller z, the larger p."""
+    return min(test["z"], left_out["z"]), max(test["p"], left_out["p"])
+
+
 def score(u: Tested) -> None:
     """One unit's tests (every candidate), block refits and parameter tests, in place;
     the q-values come with :func:`decide`, over every unit."""
     sel, model = u.selector, u.model
     assert sel is not None
     tests = candidate_tests(sel, model)
-    left_out = getattr(sel.unit, "recordings_left_out", None)
-    for e, t in ({} if left_out is None else left_out(model)).items():
-        # several recordings: a kept effect must beat chance on the held-out blocks and
-        # on the recordings left out in turn (the larger p, the smaller z)
+    for e, t in left_out_tests(sel, model).items():  # several recordings
         b = tests[e]
         b["blocks_z"], b["recordings_z"] = b["z"], t["z"]
-        b["z"], b["p"] = min(b["z"], t["z"]), max(b["p"], t["p"])
+        b["z"], b["p"] = stricter(b, t)
     se_blocks, presence = block_refits(sel, model)
     for e in model.kept:
         tests[e]["param_z"] = param_z(sel, model, e, presence.get(e))
