@@ -197,3 +197,37 @@ def test_a_swallowed_signal_ends_record_after_its_first_block() -> None:
     finally:
         stop.restore()
         forget_signals()
+
+
+def _wrapped_by_a_library(how: str, sig: int):
+    """A command whose work turns the program's ``Interrupted`` into an error of its own."""
+    from gateway import cli
+    from gateway.errors import ConfigError
+
+    def run_command(_command, _args):
+        try:
+            cli._interrupt(sig, None)
+        except cli.Interrupted as exc:
+            if how == "extension init":  # pybind11's module init: scipy's HiGHS under SIGTERM
+                raise ImportError("initialization failed") from exc
+            if how == "our error":  # a reader that turns what went wrong into a one-liner
+                raise ConfigError("cannot read the file") from exc
+            raise RuntimeError("cleanup failed")  # noqa: B904 (on purpose: the context only)
+        raise AssertionError("the handler raised nothing")
+
+    return run_command
+
+
+@pytest.mark.parametrize("how", ["extension init", "our error", "while handling"])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_a_library_wrapped_is_still_the_signal(monkeypatch, capsys, how, sig):
+    # CI: SIGTERM while `record` imported scipy.optimize ended it with status 1 and
+    # "ImportError: initialization failed" chained to Interrupted
+    import gateway.service.examples as examples
+    from gateway.cli import main
+
+    monkeypatch.setattr(examples, "run_command", _wrapped_by_a_library(how, sig))
+    assert main(["examples"]) == 128 + sig
+    err = capsys.readouterr().err
+    name = signal.Signals(sig).name
+    assert err.strip().splitlines() == [f"cdpr-gateway examples: interrupted ({name})"], err
