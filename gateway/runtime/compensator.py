@@ -307,7 +307,9 @@ class Compensator:
 
     @heartbeat_modulus.setter
     def heartbeat_modulus(self, register_modulus: int) -> None:
+        resyncs = self.clock.resyncs  # a counter (errors_total{kind="clock"}): never back
         self.clock = self._make_clock(int(register_modulus))
+        self.clock.resyncs = resyncs
 
     @property
     def stuck_after_s(self) -> float:

@@ -265,6 +265,7 @@ class CyclicService:
             stats.errors["implausible"] += 1
         comp.step(inputs, t1, self.outputs)
         stats.errors["invalid_value"] = comp.flag_events
+        stats.errors["clock"] = comp.clock.resyncs
         self._watch_heartbeat(t1)
         self.outputs.stamp(inputs.read_time_s, self._hb_changed_at)  # the gate checks both
         for observer in self._observers:

@@ -19,7 +19,16 @@ from gateway.core.ring import Ring
 CYCLE_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3)
 JITTER_BUCKETS_S = (10e-6, 20e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3)
 ROUNDTRIP_BUCKETS_S = (50e-6, 100e-6, 200e-6, 300e-6, 500e-6, 750e-6, 1e-3, 2e-3, 5e-3, 0.05)
-ERROR_KINDS = ("timeout", "io", "connect", "write", "invalid_value", "heartbeat", "implausible")
+ERROR_KINDS = (
+    "timeout",
+    "io",
+    "connect",
+    "write",
+    "invalid_value",
+    "heartbeat",
+    "implausible",
+    "clock",  # reads the sample clock could not vouch for: the chain resynchronised
+)
 
 
 class Histogram:

@@ -406,3 +406,21 @@ def test_plausibility_bounds_come_from_the_geometry():
     assert bounds.check(inputs) == 0 and np.all(np.isfinite(inputs.pose))
     inputs.length_m[5] = 1e6  # no cable of this frame is a kilometre long
     assert bounds.check(inputs) == 1 and np.isnan(inputs.velocity_m_s[5])
+
+
+def test_a_step_the_sample_clock_refuses_is_counted_as_a_clock_error():
+    # a PLC restart: its heartbeat counter back at 0 after 100 reads. The step is not
+    # integrated (the chain resynchronises), and the operator sees it counted
+    # (errors_total{kind="clock"}), also across a heartbeat register re-declared later
+    holder = {}
+
+    def restart(n: int) -> None:
+        if n == 100:
+            holder["img"].plc_heartbeat = 0
+
+    svc, _, img, _ = make(on_read=restart)
+    holder["img"] = img
+    svc.run(cycles=300)
+    assert svc.stats.errors["clock"] == 1
+    svc.comp.heartbeat_modulus = 65536  # a new clock (the driver's register) keeps the count
+    assert svc.comp.clock.resyncs == 1
