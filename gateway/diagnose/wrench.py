@@ -55,8 +55,10 @@ from gateway.recordings.reader import Recording
 WRENCH_EFFECTS = tuple(n for n, e in fx.REGISTRY.items() if e.wrench)
 PER_CABLE = tuple(n for n in WRENCH_EFFECTS if fx.REGISTRY[n].per_cable)
 SUBPARAMS: dict[str, tuple[str, ...]] = {n: fx.REGISTRY[n].param_names for n in WRENCH_EFFECTS}
-STRUCTURE_ROWS = 32_768
-"""Rows of ``A`` made at a time for a residual over every sample (12 MiB for 8 cables)."""
+STRUCTURE_ROWS = 8_192
+"""Rows of ``A`` made at a time for a residual over every sample (3 MiB for 8 cables; its
+making holds ~3 times that in temporaries: at 32 768 rows they were the diagnosis' peak
+memory on a 10-min recording, +40 MiB)."""
 FIT_BUDGET = 25_000
 """Samples the selection and the fit use at most (memory: ~48 columns x 6 rows each)."""
 INSTRUMENT_S = 0.05
@@ -192,11 +194,13 @@ class WrenchData:
         (:func:`gateway.model.chain_runs.run`'s ``pieces``: no (N, m) array at all)."""
         pieces = _row_pieces(tp) if isinstance(tp, np.ndarray) else tp
         out = np.empty((self.t.size, 6))
-        for a, b, piece in pieces:
-            part = slice(a, b)
-            w0, dw = self.external(part)
-            r = np.einsum("nim,nm->ni", self.structure(part), piece) + w0
-            out[part] = r if delta is None else r + delta[part][:, None] * dw
+        for a, b, piece in pieces:  # a chain's piece may be longer: cut again
+            for lo in range(a, b, STRUCTURE_ROWS):
+                part = slice(lo, min(lo + STRUCTURE_ROWS, b))
+                w0, dw = self.external(part)
+                r = np.einsum("nim,nm->ni", self.structure(part), piece[lo - a : part.stop - a])
+                r += w0
+                out[part] = r if delta is None else r + delta[part][:, None] * dw
         return out
 
 
