@@ -597,7 +597,7 @@ class Prepared:
 
     def whiten(self, x: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
         """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` (or at
-        ``rows[among]``, ``among`` a bool mask of ``rows``) -> whitened."""
+        ``rows[among]``, ``among`` a bool mask of ``rows`` or indices into it) -> whitened."""
         scale = self._scale if among is None else self._scale[among]
         if x.ndim == 2:
             return np.einsum("nij,nj->ni", scale, x)
