@@ -136,7 +136,7 @@ def block(
     val = None  # the validation's data, nominal force residual, the final model's force RMS
     if validation is not None:
         vmodel, vfinal = validation
-        val = (vmodel.data, np.ascontiguousarray(vmodel.residual({})[:, :3]), vfinal)
+        val = (vmodel.data, vmodel.force_residual({})[0], vfinal)
     params = fit(prep, r0, train)
     score = {k: lsq.Score(1) for k in ("coulomb_viscous", "catalogue")}
     ((sse, n),) = _sums(data, force_nominal, test, [params])

@@ -510,6 +510,7 @@ class WrenchUnit:
 
 
 def force_rms(resid: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """RMS (N) of the force part of a wrench residual (N, 6) over components and samples."""
+    """RMS (N) of the force part of a wrench residual (N, 6), or of the force residual
+    (N, 3), over components and samples."""
     f = resid[:, :3] if mask is None else resid[mask, :3]
     return float(math.sqrt(np.mean(f**2))) if f.size else 0.0
