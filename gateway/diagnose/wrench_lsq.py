@@ -76,23 +76,23 @@ def fit(
     # gives D's minimum-norm solution, with D's own cutoff of small singular values
     # (numpy's default for D's shape); the whole design and its copies were the report's
     # peak memory on a 10-min recording (~60 MiB)
-    k = len(terms) * m
+    width = len(terms) * m
     at = np.nonzero(train)[0]
     a_rows = prep.model.structure_at(prep.rows)
     y_rows = np.asarray(r0).reshape(-1, 6)
-    tri = np.zeros((0, k + 1))
+    tri = np.zeros((0, width + 1))
     for lo in range(0, at.size, FIT_ROWS):
         part = at[lo : lo + FIT_ROWS]
         a = a_rows[part]  # (n, 6, m)
         x = _regressors(data.v[prep.rows[part]], terms)
         cols = np.concatenate([a * c[:, None, :] for c in x], axis=2)
-        design = prep.whiten(cols, among=part).reshape(-1, k)
+        design = prep.whiten(cols, among=part).reshape(-1, width)
         stacked = np.vstack([tri, np.column_stack([design, -y_rows[part].reshape(-1)])])
-        tri = np.linalg.qr(stacked, mode="r")
-    cutoff = np.finfo(float).eps * max(6 * at.size, k)
-    coef, *_ = np.linalg.lstsq(tri[:k, :k], tri[:k, k], rcond=cutoff)
+        tri = np.asarray(np.linalg.qr(stacked, mode="r"))
+    cutoff = np.finfo(float).eps * max(6 * at.size, width)
+    coef, *_ = np.linalg.lstsq(tri[:width, :width], tri[:width, width], rcond=cutoff)
     for k, t in enumerate(terms):
-        out[t] = coef[k * m : (k + 1) * m].copy()
+        out[t] = np.array(coef[k * m : (k + 1) * m], dtype=float)
     return out
 
 

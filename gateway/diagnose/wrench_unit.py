@@ -216,7 +216,7 @@ class WrenchUnit:
         """A mask of the elements (n * 6,) as a mask of the samples (n,): every mask the
         unit is given holds a sample's six wrench components together (blocks, warm-up)."""
         per = np.asarray(elements, bool).reshape(-1, 6)
-        whole = per.all(axis=1)
+        whole = np.asarray(per.all(axis=1), dtype=bool)
         if not np.array_equal(whole, per.any(axis=1)):
             raise ValueError("a mask of the wrench unit splits a sample's components")
         return whole
