@@ -55,8 +55,10 @@ from gateway.recordings.reader import Recording
 WRENCH_EFFECTS = tuple(n for n, e in fx.REGISTRY.items() if e.wrench)
 PER_CABLE = tuple(n for n in WRENCH_EFFECTS if fx.REGISTRY[n].per_cable)
 SUBPARAMS: dict[str, tuple[str, ...]] = {n: fx.REGISTRY[n].param_names for n in WRENCH_EFFECTS}
-STRUCTURE_ROWS = 32_768
-"""Rows of ``A`` made at a time for a residual over every sample (12 MiB for 8 cables)."""
+STRUCTURE_ROWS = 8_192
+"""Rows of ``A`` made at a time for a residual over every sample (3 MiB for 8 cables; its
+making holds ~3 times that in temporaries: at 32 768 rows they were the diagnosis' peak
+memory on a 10-min recording, +40 MiB)."""
 FIT_BUDGET = 25_000
 """Samples the selection and the fit use at most (memory: ~48 columns x 6 rows each)."""
 INSTRUMENT_S = 0.05
@@ -190,14 +192,35 @@ class WrenchData:
         values as from whole arrays); ``delta`` (N,) a change of the mass (kg). ``tp``
         (N, m), or its pieces ``(a, b, T_p[a:b])`` in order
         (:func:`gateway.model.chain_runs.run`'s ``pieces``: no (N, m) array at all)."""
+        return self._balance(tp, delta, 6)[0]
+
+    def force_balance(
+        self,
+        tp: np.ndarray | Iterable[tuple[int, int, np.ndarray]],
+        delta: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, float]:
+        """The force part (N, 3) of :meth:`balance` and the mean square of its moment
+        part (N m^2): the same values, without the (N, 6) array (27 MiB for 10 min)."""
+        force, moment_ss = self._balance(tp, delta, 3)
+        return force, moment_ss / max(3 * self.t.size, 1)
+
+    def _balance(self, tp, delta, keep: int) -> tuple[np.ndarray, float]:
+        """:meth:`balance`'s first ``keep`` components and the moment part's sum of
+        squares."""
         pieces = _row_pieces(tp) if isinstance(tp, np.ndarray) else tp
-        out = np.empty((self.t.size, 6))
-        for a, b, piece in pieces:
-            part = slice(a, b)
-            w0, dw = self.external(part)
-            r = np.einsum("nim,nm->ni", self.structure(part), piece) + w0
-            out[part] = r if delta is None else r + delta[part][:, None] * dw
-        return out
+        out = np.empty((self.t.size, keep))
+        moment_ss = 0.0
+        for a, b, piece in pieces:  # a chain's piece may be longer: cut again
+            for lo in range(a, b, STRUCTURE_ROWS):
+                part = slice(lo, min(lo + STRUCTURE_ROWS, b))
+                w0, dw = self.external(part)
+                r = np.einsum("nim,nm->ni", self.structure(part), piece[lo - a : part.stop - a])
+                r += w0
+                if delta is not None:
+                    r += delta[part][:, None] * dw
+                out[part] = r[:, :keep]
+                moment_ss += float(np.sum(r[:, 3:] ** 2))
+        return out, moment_ss
 
 
 def _row_pieces(x: np.ndarray) -> Iterable[tuple[int, int, np.ndarray]]:
@@ -460,6 +483,15 @@ class WrenchModel:
             r = r + delta[rows][:, None] * dw
         return r
 
+    def force_residual(self, theta: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
+        """The force part (N, 3) of :meth:`residual` over every sample and the mean
+        square of its moment part (:meth:`WrenchData.force_balance`)."""
+        d = self.data
+        delta = fx.mass_delta(values_of(theta, "statics"), d.t, self.t0)
+        y = self._chain_input(theta, None)
+        pieces = chain_runs.run(self.chain_params(theta), "compensate", y, d.v, d.t, pieces=True)
+        return d.force_balance(pieces, delta)
+
     def jacobian(
         self, theta: dict[str, np.ndarray], effect: str, rows: np.ndarray | None = None
     ) -> list[np.ndarray]:
@@ -536,13 +568,19 @@ def identifiability(jac: np.ndarray, rows: np.ndarray) -> dict:
     singular values; inf when a combination of cables has no effect on the wrench, i.e.
     lies in the null space of ``A`` at every recorded pose).
     """
+    # one copy of the block at ``rows``, normalised in place (the squares, the live
+    # columns and their quotient were three more, 10 MiB each at the fit budget's rows)
     j = jac[rows].reshape(-1, jac.shape[2])
-    norm = np.sqrt(np.sum(j**2, axis=0))
+    if np.may_share_memory(j, jac):  # ``rows`` a slice: a view, normalised below
+        j = j.copy()
+    norm = np.sqrt(np.einsum("ij,ij->j", j, j))
     live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
     vif = np.full(jac.shape[2], np.inf)
     cond = math.inf
     if live.any():
-        jn = j[:, live] / norm[live]
+        jn = j if live.all() else j[:, live]
+        jn /= norm[live]
+        del j
         gram = jn.T @ jn
         sv = np.linalg.svd(jn, compute_uv=False)
         cond = float(sv[0] / sv[-1]) if sv[-1] > 1e-12 * sv[0] else math.inf
@@ -593,7 +631,7 @@ class Prepared:
 
     def whiten(self, x: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
         """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` (or at
-        ``rows[among]``, ``among`` a bool mask of ``rows``) -> whitened."""
+        ``rows[among]``, ``among`` a bool mask of ``rows`` or indices into it) -> whitened."""
         scale = self._scale if among is None else self._scale[among]
         if x.ndim == 2:
             return np.einsum("nij,nj->ni", scale, x)

@@ -116,9 +116,10 @@ def _identifiability(sel: WrenchUnit) -> dict:
 
 def _order(model: WrenchModel, theta: dict, mask: np.ndarray) -> list[str]:
     """Kept effects by the force residual energy each explains in the final model."""
-    full = force_rms(model.residual(theta), mask) ** 2
+    full = force_rms(model.force_residual(theta)[0], mask) ** 2
     worth = {
-        e: force_rms(model.residual({k: v for k, v in theta.items() if k != e}), mask) ** 2 - full
+        e: force_rms(model.force_residual({k: v for k, v in theta.items() if k != e})[0], mask) ** 2
+        - full
         for e in theta
     }
     return sorted(theta, key=lambda e: worth[e], reverse=True)
@@ -175,10 +176,9 @@ def build(
         """RMS of the force residual (all, held out, validation), the force residual
         (N, 3) and the moment's RMS: the residual (N, 6) itself is not kept."""
         th = {e: theta[e] for e in effects}
-        r = model.residual(th)
-        v = None if vmodel is None else force_rms(vmodel.residual(th))
-        moment = float(math.sqrt(np.mean(r[:, 3:] ** 2)))
-        return force_rms(r), force_rms(r, test), v, np.ascontiguousarray(r[:, :3]), moment
+        force, moment_ms = model.force_residual(th)
+        v = None if vmodel is None else force_rms(vmodel.force_residual(th)[0])
+        return force_rms(force), force_rms(force, test), v, force, math.sqrt(moment_ms)
 
     before = scores([])
     nominal = before  # the nominal model's scores (before moves on with each finding)
@@ -214,7 +214,7 @@ def build(
         if len(order) == 1:  # without it, the nominal model: its scores' force residual
             without = nominal[3]
         else:
-            without = model.residual({k: v for k, v in theta.items() if k != e})[:, :3]
+            without = model.force_residual({k: v for k, v in theta.items() if k != e})[0]
         contrib = (without - before[3]).reshape(-1)[::step].copy()
         signatures[e] = (contrib, without.reshape(-1)[::step].copy())
         del without, contrib
@@ -256,7 +256,7 @@ def _build(rec, prep, sel, findings, order, nominal, final, vmodel) -> WrenchDia
         "moment_rmse_nm": final[4],
     }
     if vmodel is not None:
-        fin["validation_rmse_before_n"] = force_rms(vmodel.residual({}))
+        fin["validation_rmse_before_n"] = force_rms(vmodel.force_residual({})[0])
         fin["validation_rmse_after_n"] = float(final[2] or 0.0)
     norm0 = np.linalg.norm(r_nominal, axis=1)[:, None]
     norm1 = np.linalg.norm(r_final, axis=1)[:, None]

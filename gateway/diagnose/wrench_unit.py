@@ -21,7 +21,6 @@ The stages that use it: :class:`gateway.diagnose.wrench_reference.WrenchReferenc
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 
 import numpy as np
 
@@ -43,8 +42,6 @@ ANCHOR_GAIN = 1e-3
 error from it (a finding must lower the held-out error by ``Thresholds.rel_min``, 0.3 %)."""
 
 Col = tuple[int, int]  # (sub-parameter index, cable)
-MATRICES_KEPT = 3
-"""Designs :meth:`WrenchUnit.matrix` keeps made (each ~9 MiB per 8 columns)."""
 
 
 class WrenchUnit:
@@ -63,13 +60,19 @@ class WrenchUnit:
     ``r0 + shift + design phi``: ``shift`` the residual the anchor changes (zero at the
     nominal), ``phi`` the increments from the anchor.
 
-    A candidate's design (elements x its columns, the whitened Jacobian) is not kept:
-    what it is made of is, its :meth:`WrenchModel.sensitivities` at the rows (n, m) per
-    sub-parameter, 1/6 of its size for 8 cables, and :meth:`matrix` makes it again by the
-    same arithmetic (the same values) when it is used, the last :data:`MATRICES_KEPT`
-    kept (the selector screens each candidate on top of the same few kept ones). Kept,
-    the designs of the 13 candidates were ~170 MiB at :data:`wrench.FIT_BUDGET` rows,
-    the largest part of the diagnosis' peak memory on any recording."""
+    A candidate's design (elements x its columns, the whitened Jacobian) is never made
+    for the linear model: column ``(j, i)`` is the whitened structure's column ``i`` at
+    each sample times the sensitivity ``s_j[:, i]`` (a statics effect: the whitened
+    wrench per kg times ``s_j``), so with ``X[n]`` the whitened structure and wrench per
+    kg at sample ``n`` (6, m + 1) and ``G[n] = X[n]^T X[n]`` its per-sample Gram
+    matrix, the normal equations are ``sum_n s_c[n] s_d[n] G[n, i_c, i_d]`` and
+    ``sum_n s_c[n] (X[n]^T r[n])_{i_c}``, and a fit's residual is ``r + X[n] u[n]``
+    with ``u[n, i] = sum_c phi_c s_c[n]`` over the columns of slot ``i``
+    (:meth:`_gram`, :meth:`_applied`). What is kept is the sensitivities
+    (:meth:`WrenchModel.sensitivities` at the rows, (n, m) per sub-parameter, 1/6 of a
+    design for 8 cables). Made and kept, the designs were the diagnosis' peak memory
+    (three kept, and two more made per block of the normal equations: ~150 MiB at
+    :data:`wrench.FIT_BUDGET` rows of 8 cables) and a third of its CPU."""
 
     def __init__(
         self,
@@ -93,13 +96,17 @@ class WrenchUnit:
         # (:meth:`_whitened`), where each design made again was a product with ``A``, a
         # whitening and a copy column by column (half the selection's CPU on a 2-min
         # recording)
-        self._wa = prep.whiten(self.model.structure_at(self.rows))
-        self._wdw = prep.whiten(self.model.data.external(self.rows)[1])
+        # (n, 6, m + 1): the whitened structure matrix, and in the last column the
+        # whitened wrench per kg (a statics effect's column)
+        wa = prep.whiten(self.model.structure_at(self.rows))
+        wdw = prep.whiten(self.model.data.external(self.rows)[1])
+        self._m = wa.shape[2]
+        self._wx = np.concatenate([wa, wdw[:, :, None]], axis=2)
+        del wa, wdw
         self._last: tuple[list, np.ndarray] | None = None
         self.r0 = self._whitened_residual({})
         self.cols: dict[str, list[Col]] = {}
         self.sens: dict[str, dict[int, np.ndarray]] = {}
-        self._matrices: OrderedDict[str, np.ndarray] = OrderedDict()
         self.ident: dict[str, list[dict]] = {}
         self.anchor: dict[str, np.ndarray] = {}
         self.shift: dict[str, np.ndarray] = {}
@@ -179,40 +186,40 @@ class WrenchUnit:
         shift = self._shift(effect, anchor) if shift is False else shift
         return ident, cols, design, shift, sens
 
-    def _whitened(self, effect: str, sens: np.ndarray, cables: list[int] | None = None):
-        """One sub-parameter's whitened Jacobian (n, 6, m) at the rows, or its columns of
-        ``cables`` only (n, 6, len(cables)): the whitening of :meth:`WrenchModel.expand`
-        (linear, so the whitened ``A`` times the sensitivities, the same values to
-        rounding)."""
+    def _whitened(self, effect: str, sens: np.ndarray) -> np.ndarray:
+        """One sub-parameter's whitened Jacobian (n, 6, m) at the rows ((n, 6, 1) for a
+        statics effect): the whitening of :meth:`WrenchModel.expand` (linear, so the
+        whitened ``A`` times the sensitivities, the same values to rounding)."""
         if fx.REGISTRY[effect].stage == "statics":
-            jw = (sens[:, None] * self._wdw)[:, :, None]
-            return jw if cables is None else jw[:, :, cables]
-        if cables is None:
-            return self._wa * sens[:, None, :]
-        return self._wa[:, :, cables] * sens[:, None, cables]
+            return (sens[:, None] * self._wx[:, :, self._m])[:, :, None]
+        return self._wx[:, :, : self._m] * sens[:, None, :]
 
-    def matrix(self, effect: str) -> np.ndarray:
-        """The design of ``effect`` (elements x its columns), made from its sensitivities
-        as :meth:`_linearise` made it; the last :data:`MATRICES_KEPT` asked for are kept."""
-        if effect in self._matrices:
-            self._matrices.move_to_end(effect)
-            return self._matrices[effect]
-        design = self._make(effect)
-        self._matrices[effect] = design
-        while len(self._matrices) > MATRICES_KEPT:
-            self._matrices.popitem(last=False)
-        return design
+    def _slot(self, effect: str, i: int) -> int:
+        """The column of :attr:`_wx` a column ``(j, i)`` of ``effect`` scales: its cable,
+        or the wrench per kg (``m``) for a statics effect."""
+        return self._m if fx.REGISTRY[effect].stage == "statics" else i
 
-    def _make(self, effect: str) -> np.ndarray:
-        """The design, each column copied into it where made (no list of columns and
-        then their stacked copy: that was two designs at once, 29 MiB for 24 columns)."""
-        cols = self.cols[effect]
-        design = np.empty((self.rows.size * 6, len(cols)))
-        for j, sens in self.sens[effect].items():
-            at = [c for c, (jj, _) in enumerate(cols) if jj == j]
-            cables = [cols[c][1] for c in at]
-            design[:, at] = self._whitened(effect, sens, cables).reshape(-1, len(at))
-        return design
+    def _sens(self, effect: str, j: int, i: int) -> np.ndarray:
+        """The sensitivity (n,) of column ``(j, i)`` of ``effect`` at the rows."""
+        s = self.sens[effect][j]
+        return s if s.ndim == 1 else s[:, i]
+
+    def _applied(self, increments: dict[str, np.ndarray]) -> np.ndarray:
+        """``sum_e design_e @ phi_e`` (elements,) without a design (class docstring)."""
+        u = np.zeros((self.rows.size, self._m + 1))
+        for e, phi in increments.items():
+            for (j, i), p in zip(self.cols[e], phi, strict=True):
+                u[:, self._slot(e, i)] += p * self._sens(e, j, i)
+        return np.einsum("nik,nk->ni", self._wx, u).reshape(-1)
+
+    def _samples(self, elements: np.ndarray) -> np.ndarray:
+        """A mask of the elements (n * 6,) as a mask of the samples (n,): every mask the
+        unit is given holds a sample's six wrench components together (blocks, warm-up)."""
+        per = np.asarray(elements, bool).reshape(-1, 6)
+        whole = np.asarray(per.all(axis=1), dtype=bool)
+        if not np.array_equal(whole, per.any(axis=1)):
+            raise ValueError("a mask of the wrench unit splits a sample's components")
+        return whole
 
     def _columns(self, effect: str) -> int:
         return len(self.cols[effect])
@@ -297,31 +304,43 @@ class WrenchUnit:
     # ---- the linear model ----
     def _gram(self, train: np.ndarray, only: list[str] | None = None) -> None:
         """Normal equations of every candidate column (of the candidates ``only``) on the
-        samples ``train``, block by block of two candidates: the candidates' designs are
-        never stacked (stacked, and then cut to the training rows, they were 2.5x the
-        designs: on a 10-min recording the wrench diagnosis peaked there, 150 MiB of
-        designs taking 375). Each block's values do not depend on which others are
-        formed."""
+        elements ``train`` (whole samples), from the sensitivities and the per-sample Gram
+        matrices of the whitened structure (class docstring): no design is made. Each
+        block's values do not depend on which others are formed."""
         names = [e for e in self.cols if only is None or e in only]
         edges = np.cumsum([0] + [self._columns(e) for e in names])
         k = int(edges[-1])
-        spans = [slice(int(edges[a]), int(edges[a + 1])) for a in range(len(names))]
-        gram, rhs = np.zeros((k, k)), np.zeros(k)
-        shift_rhs = {e: np.zeros(k) for e in self.shift} if names else {}
-        r0, shifts = self.r0[train], {e: s[train] for e, s in self.shift.items()}
-        # every candidate's: each design made again for each block, none kept (n^2 / 2
-        # makes, ~5 s a unit); the kept effects' (a held-out refit): the kept few
-        make = self._make if only is None else self.matrix
-        for a, ea in enumerate(names):
-            da = make(ea)[train]
-            rhs[spans[a]] = da.T @ r0
-            for e, s in shifts.items():
-                shift_rhs[e][spans[a]] = da.T @ s
-            gram[spans[a], spans[a]] = da.T @ da
-            for b in range(a + 1, len(names)):
-                block = da.T @ make(names[b])[train]
-                gram[spans[a], spans[b]] = block
-                gram[spans[b], spans[a]] = block.T
+        samples = self._samples(train)
+        wx = self._wx[samples]
+        per_sample = np.einsum("nik,nil->nkl", wx, wx)  # (s, m + 1, m + 1)
+        slots: dict[int, list[int]] = {}
+        sens: dict[int, list[np.ndarray]] = {}
+        for a, e in enumerate(names):
+            for c, (j, i) in enumerate(self.cols[e]):
+                slot = self._slot(e, i)
+                slots.setdefault(slot, []).append(int(edges[a]) + c)
+                sens.setdefault(slot, []).append(self._sens(e, j, i)[samples])
+        at = {q: np.asarray(c) for q, c in slots.items()}
+        smat = {q: np.column_stack(v) for q, v in sens.items()}
+        del sens
+        gram = np.zeros((k, k))
+        order = sorted(at)
+        for x, p in enumerate(order):
+            for q in order[x:]:
+                block = smat[p].T @ (per_sample[:, p, q, None] * smat[q])
+                gram[np.ix_(at[p], at[q])] = block
+                gram[np.ix_(at[q], at[p])] = block.T
+        del per_sample
+
+        def rhs_of(r: np.ndarray) -> np.ndarray:
+            proj = np.einsum("nik,ni->nk", wx, r.reshape(-1, 6)[samples])  # X^T r
+            out = np.zeros(k)
+            for q in order:
+                out[at[q]] = smat[q].T @ proj[:, q]
+            return out
+
+        rhs = rhs_of(self.r0)
+        shift_rhs = {e: rhs_of(s) for e, s in self.shift.items()} if names else {}
         self._gram_m, self._rhs, self._shift_rhs = gram, rhs, shift_rhs
         self._mask = train
         self._dof = int(train.sum())
@@ -349,9 +368,7 @@ class WrenchUnit:
         phi = -ginv @ b
         sizes = np.cumsum([self._columns(e) for e in effects])[:-1]
         parts = np.split(phi, sizes)
-        resid = self._base(effects)
-        for e, part in zip(effects, parts, strict=True):  # no stacked copy of the designs
-            resid = resid + self.matrix(e) @ part
+        resid = self._base(effects) + self._applied(dict(zip(effects, parts, strict=True)))
         dof = max(self._dof - phi.size, 1)
         left = resid[self._mask]
         s2 = float(left @ left) / dof
@@ -370,9 +387,7 @@ class WrenchUnit:
         return Model({}, {}, {}, self.r0)
 
     def evaluate(self, theta: dict[str, np.ndarray], specs: dict) -> Model:
-        resid = self._base(theta)
-        for e, phi in theta.items():
-            resid = resid + self.matrix(e) @ phi
+        resid = self._base(theta) + self._applied(theta) if theta else self._base(theta)
         nan = {e: np.full(v.size, np.nan) for e, v in theta.items()}
         return Model(dict(theta), dict(specs), nan, resid)
 
@@ -393,7 +408,7 @@ class WrenchUnit:
     def contribution(self, theta: dict[str, np.ndarray], effect: str) -> np.ndarray:
         """What ``effect`` adds to the (whitened, linearised) residual on the training
         elements (its anchor's shift included)."""
-        c = self.matrix(effect) @ theta[effect]
+        c = self._applied({effect: theta[effect]})
         if effect in self.shift:
             c = c + self.shift[effect]
         return c[self.train]
@@ -414,16 +429,13 @@ class WrenchUnit:
         z = [v for v in z if math.isfinite(v)] or [0.0]
         return float(max(z))
 
-    def release(self) -> None:
-        """The designs :meth:`matrix` keeps made go (made again if asked for)."""
-        self._matrices.clear()
-
     def drop_designs(self) -> None:
-        """After the selection and the refit: the designs and what they are made of go
-        (the report reads :attr:`cols`, :attr:`ident` and the anchors only; ~37 MiB of
-        sensitivities at :data:`wrench.FIT_BUDGET` rows of 8 cables)."""
-        self._matrices.clear()
+        """After the selection and the refit: what the designs are made of goes (the
+        report reads :attr:`cols`, :attr:`ident` and the anchors only; ~37 MiB of
+        sensitivities at :data:`wrench.FIT_BUDGET` rows of 8 cables, 11 MiB of whitened
+        structure)."""
         self.sens.clear()
+        self._wx = np.zeros((0, 6, self._m + 1))
 
     # ---- nonlinear refit ----
     def theta_of(self, increments: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -498,6 +510,7 @@ class WrenchUnit:
 
 
 def force_rms(resid: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """RMS (N) of the force part of a wrench residual (N, 6) over components and samples."""
+    """RMS (N) of the force part of a wrench residual (N, 6), or of the force residual
+    (N, 3), over components and samples."""
     f = resid[:, :3] if mask is None else resid[mask, :3]
     return float(math.sqrt(np.mean(f**2))) if f.size else 0.0
