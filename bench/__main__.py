@@ -3,7 +3,8 @@
 The 600-s soak, the calibrate table (~30 min) and the real recordings (~6 min, data read
 from outside the checkout) run only when named (``python -m bench soak``, ``make soak``,
 ``python -m bench calibrate``, ``python -m bench real``), and so do the wrench reference's
-(``python -m bench wrench``: two 10-min diagnoses, minutes each) and ``wrench_lsq``.
+(``python -m bench wrench``: two 10-min diagnoses, minutes each), ``wrench_lsq`` and
+``joint`` (five 10-min diagnoses and one of three).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 from pathlib import Path
 
 # minutes each: only when named, not in `make bench`
-ONLY_BY_NAME = {"soak", "calibrate", "real", "wrench_lsq", "wrench"}
+ONLY_BY_NAME = {"soak", "calibrate", "real", "wrench_lsq", "wrench", "joint"}
 
 
 def main(argv: list[str]) -> int:
