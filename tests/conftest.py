@@ -12,6 +12,7 @@ shows up on a developer's machine first, with its failing example printed.
 from __future__ import annotations
 
 import os
+import signal
 
 from hypothesis import HealthCheck, settings
 
@@ -23,3 +24,13 @@ settings.register_profile(
 )
 settings.register_profile("ci", parent=settings.get_profile("cdpr"), derandomize=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "cdpr"))
+
+
+# pytest started as a background job of a non-interactive shell (`cmd &` in a script)
+# inherits SIGINT ignored, and so does every child a test starts: the gateway
+# keeps an ignored SIGINT ignored (gateway/cli.py, as a background job should), so each test
+# that interrupts a child with SIGINT failed with the child running on (exit 0 after its
+# work, or 'still running 60 s after SIGINT'; 4 tests in one such run). The tests mean a
+# SIGINT as a terminal's Ctrl-C sends it: the default handler back, once, for the children.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
