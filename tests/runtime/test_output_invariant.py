@@ -34,7 +34,7 @@ from gateway.model import effects as fx
 from gateway.model.chain_runs import ChainStepper
 from gateway.runtime.clock import MAX_GAP_PERIODS
 from gateway.runtime.loop import CyclicService
-from tests.loop_helpers import FakeClock, config
+from tests.loop_helpers import FakeClock, config, run_frozen
 
 CABLES = 8
 BAND = (-50.0, 650.0)  # the fake registers' tension band: the range check has work to do
@@ -283,7 +283,7 @@ def _run(
             clock.advance(ev.stall_s)
 
     svc.add_observer(stall_between_cycles)
-    svc.run(cycles=len(script) + 5)
+    run_frozen(svc, len(script) + 5)
     return drv, cfg
 
 
@@ -565,7 +565,7 @@ def _correctness(kind: str, ratio: int, sigma: float, effects: dict, events, see
         drv.stall_after = 0.0
 
     svc.add_observer(observe)
-    svc.run(cycles=len(warm) + len(events) + 5)
+    run_frozen(svc, len(warm) + len(events) + 5)
     want = _reference(cfg, drv)
     assert len(got) == len(want)
     assert got[-1][2] <= MAX_EPS, f"the averaged spacing is {got[-1][2]:.1%} off"

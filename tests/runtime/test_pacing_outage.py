@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from drivers.virtual import VirtualDriver, VirtualFaults
 from gateway.runtime.loop import CyclicService
 from gateway.service.metrics import make_registry
-from tests.loop_helpers import FakeClock, config, live_image
+from tests.loop_helpers import FakeClock, config, live_image, run_frozen
 
 
 class SlowAttempts(VirtualDriver):
@@ -35,7 +35,7 @@ def run(fail_opens: int, attempt_s: float, cycles: int) -> tuple[CyclicService, 
     faults = VirtualFaults(fail_opens=fail_opens)
     drv = SlowAttempts(cfg, image=live_image(cfg), faults=faults, clock=clock, attempt_s=attempt_s)
     svc = CyclicService(cfg, drv, clock=clock, sleep=clock.sleep, history=1024)
-    svc.run(cycles=cycles)
+    run_frozen(svc, cycles)
     return svc, make_registry(svc)
 
 

@@ -1,7 +1,10 @@
 """The README's commands run as written from a wheel install in an empty directory: the
-wheel is built and installed into a fresh venv by .ci/wheel-check (the same
-machinery CI uses), then every ``cdpr-gateway ...`` line of the README's ``sh`` blocks runs,
-in order, in an empty directory with that venv first on PATH and no PYTHONPATH."""
+wheel is built and installed into a fresh venv by .ci/wheel-check, whole (the demo on both
+buses outside the tree, `fleet` without its extra: CI's wheel check, run here once and not
+again by .ci/run), then every ``cdpr-gateway ...`` line of the README's ``sh`` blocks runs,
+in order, in an empty directory with that venv first on PATH and no PYTHONPATH. The
+README's ``calibrate`` is CI's end-to-end calibration: its result is checked as
+tests/sim_plc/test_calibrate.py states it (:func:`check_calibration`)."""
 
 from __future__ import annotations
 
@@ -14,6 +17,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from tests.sim_plc.test_calibrate import check_calibration
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.long]
@@ -48,21 +53,23 @@ def test_the_readme_lists_the_commands_a_wheel_user_needs() -> None:
     assert {"examples", "record", "diagnose", "calibrate"} <= used, commands
 
 
-@pytest.mark.timeout(1800)  # a wheel installed into a fresh venv, then calibrate's 4 x 30 s
+@pytest.mark.timeout(1800)  # a wheel installed into a fresh venv, two demos, calibrate's 4 x 30 s
 def test_readme_commands_run_from_a_wheel_in_an_empty_directory(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NOTIFY_SOCKET")}
     install = tmp_path / "install"
     res = subprocess.run(
         [str(ROOT / ".ci" / "wheel-check"), sys.executable],
-        env={**env, "WHEEL_CHECK_VENV": str(install), "WHEEL_CHECK_DEMO": "0"},
+        env={**env, "WHEEL_CHECK_VENV": str(install)},
         capture_output=True,
         text=True,
         timeout=900,
     )
     assert res.returncode == 0, res.stdout + res.stderr
+    assert "wheel-check: OK" in res.stdout and "demo runs skipped" not in res.stdout, res.stdout
     empty = tmp_path / "empty"
     empty.mkdir()
     env["PATH"] = f"{install / 'venv' / 'bin'}{os.pathsep}{env.get('PATH', '')}"
+    calibrated = False
     for command in readme_commands((ROOT / "README.md").read_text()):
         print(f"README: {command}", flush=True)  # with -s: where a slow run is
         argv = shlex.split(command)
@@ -82,7 +89,11 @@ def test_readme_commands_run_from_a_wheel_in_an_empty_directory(tmp_path: Path) 
         assert "Traceback" not in run.stderr, command
         if command.startswith("cdpr-gateway diagnose"):
             assert run.stdout.startswith("verdict: viscous"), run.stdout
-    assert (empty / "cal" / "calibration.json").is_file()
+        if command.startswith("cdpr-gateway calibrate --config config/calibrate/viscous.yaml"):
+            out = empty / argv[argv.index("--out") + 1]
+            check_calibration(out, run.stdout, run.stderr)
+            calibrated = True
+    assert calibrated, "the README no longer calibrates viscous.yaml: CI's one calibration"
     # the README's service command wrote the unit for the wheel's venv, as docs/service.md
     # installs it: systemd accepts it as written (the binary it runs exists)
     unit = empty / "service" / "cdpr-gateway.service"
