@@ -344,6 +344,16 @@ class Against:
     """The fit's departure from the simpler effect (``Effect.beyond``) ..."""
     d_se: float
     """... and its standard error (the parameters' errors combined as if independent)."""
+    blocks: dict[str, float]
+    """The test on the cable's held-out blocks alone."""
+    models: tuple = ()
+    """The simpler and the richer fit's ``(kept, specs)``."""
+
+
+def _release(sel: Selector) -> None:
+    release = getattr(sel.unit, "release", None)
+    if release is not None:
+        release()
 
 
 def richer(
@@ -383,18 +393,34 @@ def richer(
             fitted = sel.fit(sc.kept, sc.specs)
             simple, rich = (model, fitted) if own == s else (fitted, model)
             t = sel.test(simple, rich)
-            z, p = t["z"], t["p"]
-            lo = left_out_tests(sel, rich, {r: simple}).get(r)
-            if lo is not None:
-                z, p = stricter(t, lo)
             w = np.asarray(fx.REGISTRY[r].beyond, float)
             se = np.asarray(rich.stderr.get(r, np.full(w.size, np.nan)), float)
             d = float(w @ rich.kept[r])
             d_se = float(np.sqrt(np.sum((w * se)[w != 0] ** 2)))
-            per[(r, s)].append(Against(k, p, z, rich.kept[r], d, d_se))
-        release = getattr(sel.unit, "release", None)
-        if release is not None:
-            release()
+            row = Against(k, t["p"], t["z"], rich.kept[r], d, d_se, t)
+            row.models = ((simple.kept, simple.specs), (rich.kept, rich.specs))
+            per[(r, s)].append(row)
+        _release(sel)
+    # the recordings left out in turn (several recordings) only where the held-out blocks
+    # pool to z_holdout: each cable's z is the smaller of the two, so Stouffer's Z can only
+    # fall (the decision is the same, the refits are saved)
+    again = {
+        pair: rows
+        for pair, rows in per.items()
+        if len(rows) >= 2 and stouffer([j.p for j in rows])[0] >= th.z_holdout
+    }
+    for k, u in enumerate(units):
+        mine = [(r, j) for (r, _), rows in again.items() for j in rows if j.cable == k]
+        if not mine:
+            continue
+        sel, _ = rebuild(u) if u.selector is None else (u.selector, u.model)
+        for r, j in mine:
+            (s_kept, s_specs), (r_kept, r_specs) = j.models
+            simple, rich = sel.unit.evaluate(s_kept, s_specs), sel.unit.evaluate(r_kept, r_specs)
+            lo = left_out_tests(sel, rich, {r: simple}).get(r)
+            if lo is not None:
+                j.z, j.p = stricter(j.blocks, lo)
+        _release(sel)
     values: dict[str, np.ndarray] = {}
     for (r, s), rows in per.items():
         if len(rows) < 2 or not pooled[s].common or r in values:
