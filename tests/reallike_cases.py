@@ -113,6 +113,56 @@ CASES = (
         note="8 winches, 100 Hz, four effects",
     ),
     Case("clean_8_30hz", M(cables=8, mass_kg=60.0), rate_hz=30.0, seed=6, note="nominal, 30 Hz"),
+    Case(
+        "winch7_directional_offset_15hz",
+        M(
+            cables=7,
+            mass_kg=35.0,
+            noise_frac=0.17,
+            mu_out=0.022,
+            mu_in=0.046,
+            f0_n=6.0,
+            offset_n=-7.0,
+        ),
+        rate_hz=15.0,
+        seed=8,
+        note="directional drive-train loss beside an offset, heavy noise (issue 29: coulomb "
+        "vs coulomb_directional)",
+    ),
+    Case(
+        "robot5_directional_gain_viscous_20hz",
+        M(
+            cables=5,
+            mass_kg=30.0,
+            noise_frac=0.15,
+            mu_out=0.015,
+            mu_in=0.04,
+            f0_n=4.0,
+            c_ns_m=180.0,
+            gain=0.05,
+        ),
+        rate_hz=20.0,
+        seed=9,
+        note="directional loss beside a gain and viscous friction",
+    ),
+    Case(
+        "robot8_directional_100hz",
+        M(
+            cables=8,
+            mass_kg=45.0,
+            noise_frac=0.16,
+            mu_out=0.018,
+            mu_in=0.042,
+            f0_n=5.0,
+            c_ns_m=140.0,
+            gain=-0.05,
+            offset_n=6.0,
+        ),
+        rate_hz=100.0,
+        seconds=300.0,
+        seed=7,
+        note="8 winches, 100 Hz: directional loss beside gain, offset and viscous",
+    ),
 )
 
 

@@ -8,7 +8,7 @@ wrench_reference.WrenchReference`, with one unit: every cable at once.)
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -108,9 +108,13 @@ class CableUnit:
         f = joint_fit(self.fw, model.kept, model.specs, mask, max_nfev=nfev, stride=stride)
         return f.theta
 
-    def recordings_left_out(self, model: Model) -> dict[str, dict[str, float]]:
+    def recordings_left_out(
+        self, model: Model, reduced: Mapping[str, Model] | None = None
+    ) -> dict[str, dict[str, float]]:
         """Several recordings joined (:mod:`.sessions`): per kept effect, the test of the
-        model with it against the model without it on recordings left out in turn. Each
+        model with it against the model without it on recordings left out in turn (with
+        ``reduced``: only its effects, each against the model given there, e.g. a simpler
+        nested effect in its place: :func:`.pooling.richer`). Each
         fold refits both (from the model's values) on the training samples of the other
         recordings, gives a per-recording effect (an offset) on the left-out recording the
         mean of the others' values (that session's zero is not known to the fold), and
@@ -123,7 +127,12 @@ class CableUnit:
             return {}
         ts = fw.data.ts
         usable = self.train | self.test
-        parts: dict[str, list[list[np.ndarray]]] = {e: [[], [], []] for e in model.kept}
+        against = (
+            {e: model.without(e) for e in model.kept}
+            if reduced is None
+            else {e: (m.kept, m.specs) for e, m in reduced.items()}
+        )
+        parts: dict[str, list[list[np.ndarray]]] = {e: [[], [], []] for e in against}
         for r in range(int(session.max()) + 1):
             fit, scored = self.train & (session != r), usable & (session == r)
             if not fit.any() or not scored.any():
@@ -143,8 +152,8 @@ class CableUnit:
 
             r_full = (ts - fw.predict(refit(model.kept, model.specs)))[scored]
             sse_full = per_block(r_full**2)
-            for e in model.kept:
-                r_red = (ts - fw.predict(refit(*model.without(e))))[scored]
+            for e, (theta, specs) in against.items():
+                r_red = (ts - fw.predict(refit(theta, specs)))[scored]
                 row = parts[e]
                 row[0].append(per_block(r_red**2))
                 row[1].append(sse_full)

@@ -140,11 +140,17 @@ def param_z(sel: Selector, model: Model, effect: str, presence: float | None) ->
     return z if presence is None else min(z, presence)
 
 
-def left_out_tests(sel: Selector, model: Model) -> dict[str, dict[str, float]]:
+def left_out_tests(
+    sel: Selector, model: Model, reduced: dict[str, Model] | None = None
+) -> dict[str, dict[str, float]]:
     """Each kept effect's test with the recordings left out in turn (several recordings
-    joined: :meth:`.reference.CableUnit.recordings_left_out`), or {} (one recording)."""
+    joined: :meth:`.reference.CableUnit.recordings_left_out`), or {} (one recording). With
+    ``reduced``, only its effects, each against the model given there in place of the model
+    without it (a richer effect against the simpler one it nests)."""
     left_out = getattr(sel.unit, "recordings_left_out", None)
-    return {} if left_out is None else left_out(model)
+    if left_out is None:
+        return {}
+    return left_out(model) if reduced is None else left_out(model, reduced)
 
 
 def stricter(test: dict[str, float], left_out: dict[str, float]) -> tuple[float, float]:

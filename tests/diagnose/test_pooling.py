@@ -16,10 +16,12 @@ from hypothesis import strategies as st
 from gateway.core.config import FrictionConfig, PulleyConfig
 from gateway.diagnose.engine import diagnose
 from gateway.diagnose.pooling import (
+    departure,
     jointly,
     normal_score,
     on_cable,
     pooled_tests,
+    richer,
     shrink,
     stouffer,
 )
@@ -346,3 +348,79 @@ def test_the_joint_test_finds_nothing_on_clean_cables(seed) -> None:
     _, pooled = _machine(0.0, seed)
     assert {e for e, (r, _) in pooled.items() if r.common} == {"gain"}
     assert all(v is None for _, v in pooled.values())
+
+
+def _stiff(seed: int, k: float, cables: int = 8) -> list[Scored]:
+    """Cables of :func:`_spread`'s kind with a 3 N offset and a spring of ``k`` N/m on
+    top, each selected on its own and scored."""
+    th = Thresholds()
+    units = []
+    for j in range(cables):
+        cab = _spread(seed * cables + j, 3.0)
+        x = cab.cols["spring"][:, 0]
+        cab.y = cab.y + k * (x - 2.0)
+        sel = Selector(cab, th)
+        out = sel.run()
+        m = sel.final
+        tests = candidate_tests(sel, m)
+        units.append(Scored(sel, m, Outcome(out.kept, m.kept, m.stderr, m.specs, tests=tests)))
+    return units
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_richer_effect_every_cable_shares_is_common_by_its_joint_test(seed) -> None:
+    """A stiffness of 0.7 N/m (0.35 N over the cable's length swing) on top of a 3 N
+    offset, eight cables under 2 N of noise: too small for most cables to keep the spring
+    over the offset on their own (it must beat the offset by z_holdout there), the offset
+    is common at first; tested on the cables jointly against the offset, the spring is
+    common in its place, its common stiffness near the truth, and every cable then
+    carries it."""
+    th = Thresholds()
+    units = _stiff(seed, 0.7)
+    alone = sum("spring" in u.model.kept for u in units)
+    assert alone < len(units) / 2
+    first = pooled_tests(units, th)
+    assert first["offset"].common and not ("spring" in first and first["spring"].common)
+    values = richer(units, first, th, lambda u: (u.selector, u.model))
+    assert first["spring"].common and not first["offset"].common
+    assert first["spring"].statistic >= th.z_holdout and first["spring"].loo >= th.z_screen
+    assert values["spring"][0] == pytest.approx(0.7, abs=0.2)
+    common = [e for e, r in first.items() if r.common]
+    for u in units:  # what extend does on each cable that lacks the common spring
+        if "spring" in u.model.kept:
+            continue
+        got = on_cable(u.selector, u.model, ["spring"], values, common, th)
+        assert got is not None and "spring" in got.kept and "offset" not in got.kept
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_richer_effect_is_not_common_where_the_cables_show_none(seed) -> None:
+    """The same cables without a spring: the offset stays common and the spring is not,
+    on every cable."""
+    th = Thresholds()
+    units = _stiff(seed, 0.0)
+    pooled = pooled_tests(units, th)
+    assert richer(units, pooled, th, lambda u: (u.selector, u.model)) == {}
+    assert pooled["offset"].common
+    assert "spring" not in pooled or not pooled["spring"].common
+
+
+@given(
+    d=st.floats(-1e3, 1e3, allow_nan=False),
+    s=st.floats(1e-3, 1e2, allow_nan=False),
+    k=st.integers(2, 8),
+)
+def test_equal_departures_lie_their_pooled_standard_errors_from_none(d, s, k) -> None:
+    """k cables that agree on a departure d, each with standard error s: no spread
+    between them, so the pooled error is s / sqrt(k) and the departure |d| sqrt(k) / s
+    of them from none, whatever its sign."""
+    got = departure([d] * k, [s] * k)
+    assert got == pytest.approx(abs(d) * math.sqrt(k) / s, rel=1e-9, abs=1e-9)
+    assert departure([-d] * k, [s] * k) == pytest.approx(got, rel=1e-12, abs=1e-12)
+
+
+@given(rows=estimates)
+def test_a_departure_without_two_usable_errors_is_none(rows) -> None:
+    d = [y for y, _ in rows]
+    assert departure(d[:1], [1.0]) == 0.0
+    assert departure(d, [float("nan")] * len(d)) == 0.0

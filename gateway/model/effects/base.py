@@ -314,6 +314,11 @@ class Effect:
     nests: ClassVar[tuple[Effect, ...]] = ()
     """Simpler effects this one reduces to (``coulomb_directional`` with ``mu_out = mu_in``
     is ``coulomb``): it is kept only where it fits held-out data clearly better."""
+    beyond: ClassVar[tuple[float, ...]] = ()
+    """Weights on the internal parameters whose combination is zero where this effect
+    reduces to the simpler one it nests (``coulomb_directional``: ``mu_out - mu_in``): what
+    the cables' pooled test of it against the simpler one measures
+    (:func:`gateway.diagnose.pooling.richer`); empty: not tested that way."""
     separate: ClassVar[str] = ""
     """The motion that tells it from its group (said when the data cannot)."""
     example: ClassVar[Mapping[str, float]] = {}

@@ -69,6 +69,7 @@ class CoulombDirectional(Effect):
     wrench = True
     group = "scale"
     nests = (coulomb.EFFECT,)
+    beyond = (1.0, -1.0, 0.0)  # mu_out - mu_in
     look = (
         "the residual scales with the load and differs in size between paying out and "
         "hauling in (plot residual against sgn(v) T: two slopes)"

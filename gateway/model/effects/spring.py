@@ -72,6 +72,7 @@ class Spring(Effect):
     wrench = True
     group = "level"
     nests = (offset.EFFECT,)
+    beyond = (1.0, 0.0)  # the stiffness k
     look = (
         "the residual grows in proportion to the cable length, the same going out and "
         "coming back (plot residual against x)"
