@@ -116,7 +116,7 @@ def test_baseline_spans_coulomb_viscous_offset(tmp_path: Path) -> None:
 def test_sealed_file_is_the_recorded_draw(tmp_path: Path) -> None:
     sealing.check(Path("docs/diagnose-suite.md"), rc.SEALED_FILE)
     again = tmp_path / "sealed.yaml"
-    rc.write_sealed(again, 20261129)
+    rc.write_sealed(again, 20261130)
     assert again.read_bytes() == rc.SEALED_FILE.read_bytes()
     for case in rc.sealed_cases():
         assert 4 <= case.machine.cables <= 8 and case.rate_hz in (10, 15, 20, 30, 100)
