@@ -34,7 +34,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import InitVar, dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
@@ -615,7 +615,9 @@ class Prepared:
 
     model: WrenchModel
     rows: np.ndarray
-    chol: np.ndarray
+    chol: InitVar[np.ndarray]
+    """``L`` (n, 6, 6) at ``rows``: made into the whitening (``L^-1 / s``), not kept (7 MiB
+    at :data:`FIT_BUDGET` rows, held to the end of the diagnosis when it was)."""
     sigma: float
     blocks: np.ndarray
     n_blocks: int
@@ -623,11 +625,11 @@ class Prepared:
     nominal: np.ndarray | None = None
     """The nominal model's residual (n, 6) at ``rows`` (unwhitened), made once."""
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, chol: np.ndarray) -> None:
         # ``L^-1 / s`` once: a whitening is then one batched product, where a batched
         # ``solve`` factored every 6 x 6 ``L`` again on each call (a fifth of the
         # diagnosis' CPU on a 2-min recording); the same values to rounding
-        self._scale = np.linalg.inv(self.chol) / self.sigma
+        self._scale = np.linalg.inv(chol) / self.sigma
 
     def whiten(self, x: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
         """(n, 6) or (n, 6, k) residual or Jacobian at the samples ``rows`` (or at

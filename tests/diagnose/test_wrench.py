@@ -400,7 +400,8 @@ def test_long_recordings_are_fitted_on_thinned_samples(monkeypatch):
     monkeypatch.setattr(wrench, "FIT_BUDGET", 1200)
     rec, _, cfg = recording("viscous")
     prep = wrench.prepare(rec, cfg, cfg.friction)
-    assert 1200 >= prep.rows.size >= 1000 and prep.chol.shape[0] == prep.rows.size
+    assert 1200 >= prep.rows.size >= 1000
+    assert prep.whiten(np.zeros((prep.rows.size, 6))).shape == (prep.rows.size, 6)
     rep = diagnose(rec, cfg.friction, WrenchReference(cfg)).report
     assert rep["samples"] == rec.samples
     assert [f["effect"] for f in rep["findings"]] == ["viscous"]
@@ -495,3 +496,27 @@ def test_selecting_on_a_thinned_copy_finds_what_every_sample_finds(monkeypatch):
             se = np.hypot(a["stderr"][name], b["stderr"][name])
             assert np.all(np.abs(np.subtract(values, b["parameters"][name])) <= 2 * se), name
     assert thinned["final"]["rmse_n"] == pytest.approx(full["final"]["rmse_n"], rel=0.01)
+
+
+def test_normal_equations_are_the_whitened_designs():
+    """The unit's normal equations, formed from the sensitivities and the per-sample Gram
+    matrices of the whitened structure without a design (:meth:`WrenchUnit._gram`), are
+    ``D^T D`` and ``D^T r0`` of the explicit whitened designs (:meth:`WrenchModel.jacobian`
+    at each candidate's anchor, whitened) on the training samples: a cable effect, a
+    sensor effect and the statics one together."""
+    from gateway.diagnose import wrench
+    from gateway.diagnose.wrench_unit import WrenchUnit
+
+    rec, _, cfg = recording("viscous")
+    prep = wrench.prepare(rec, cfg, cfg.friction)
+    effects = ("viscous", "offset", "mass_change")
+    unit = WrenchUnit(prep, effects)
+    cols = []
+    for e in unit.candidates:
+        blocks = [prep.whiten(b) for b in prep.model.jacobian({e: unit.anchor[e]}, e, unit.rows)]
+        cols += [blocks[j][:, :, i].reshape(-1) for j, i in unit.cols[e]]
+    assert len(unit.candidates) == 3 and len(cols) == unit._gram_m.shape[0]
+    d = np.column_stack(cols)[unit.train]
+    assert_allclose(unit._gram_m, d.T @ d, rtol=1e-9, atol=1e-9 * np.abs(d.T @ d).max())
+    rhs = d.T @ unit.r0[unit.train]
+    assert_allclose(unit._rhs, rhs, rtol=1e-9, atol=1e-9 * np.abs(rhs).max())
