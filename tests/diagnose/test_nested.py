@@ -19,67 +19,34 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.diagnose.selection import Model, Selector, Thresholds
+from gateway.diagnose.selection import Selector, Thresholds
+from tests.diagnose.linear_unit import LinearUnit
 
 BLOCKS, PER_BLOCK = 40, 100
 
 
-class _Linear:
-    """A unit whose effects are columns (:class:`gateway.diagnose.selection.Unit`)."""
-
-    def __init__(self, seed: int, k: float, b: float, c: float = 0.0) -> None:
-        rng = np.random.default_rng(seed)
-        n = BLOCKS * PER_BLOCK
-        phase = 2.0 * np.pi * (np.arange(n) % PER_BLOCK) / PER_BLOCK
-        x = np.sin(phase)  # one stroke per block
-        sign = rng.choice([-1.0, 1.0], BLOCKS)
-        w = sign[np.arange(n) // PER_BLOCK] * x
-        u, p, q = rng.normal(0.0, 1.0, (3, n))
-        self.y = 2.0 + 3.0 * u + k * x + b * w + c * q + rng.normal(0.0, 1.0, n)
-        one = np.ones((n, 1))
-        self.cols = {
-            "offset": one,
-            "spring": np.column_stack([x, -one[:, 0]]),
-            "presliding": u[:, None],
-            "maxwell_slip": np.column_stack([u, w]),
-            "lowpass": p[:, None],
-            "sensor_creep": np.column_stack([p, q]),
-        }
-        self.candidates = list(self.cols)
-        self.n_blocks = BLOCKS
-        self.blocks = np.arange(n) // PER_BLOCK
-        self.train = self.blocks % 2 == 0
-        self.test = self.blocks % 2 == 1
-
-    def _model(self, theta, stderr=None) -> Model:
-        pred = sum((self.cols[e] @ v for e, v in theta.items()), np.zeros(self.y.size))
-        se = stderr or {e: np.full(v.size, np.nan) for e, v in theta.items()}
-        return Model(dict(theta), {e: None for e in theta}, se, self.y - pred)
-
-    def empty(self) -> Model:
-        return self._model({})
-
-    def evaluate(self, theta, specs) -> Model:
-        return self._model(theta)
-
-    def fit(self, theta, specs, nfev: int = 60) -> Model:
-        names = list(theta)
-        a = np.column_stack([self.cols[e] for e in names])
-        coef, *_ = np.linalg.lstsq(a[self.train], self.y[self.train], rcond=None)
-        out, j = {}, 0
-        for e in names:
-            width = self.cols[e].shape[1]
-            out[e], j = coef[j : j + width], j + width
-        return self._model(out)
-
-    def screen(self, model: Model, effect: str) -> Model:
-        return self.fit({**model.kept, effect: np.zeros(self.cols[effect].shape[1])}, None)
-
-    def significance(self, model: Model, effect: str) -> float:
-        return 10.0
+def _linear(seed: int, k: float, b: float, c: float = 0.0) -> LinearUnit:
+    rng = np.random.default_rng(seed)
+    n = BLOCKS * PER_BLOCK
+    phase = 2.0 * np.pi * (np.arange(n) % PER_BLOCK) / PER_BLOCK
+    x = np.sin(phase)  # one stroke per block
+    sign = rng.choice([-1.0, 1.0], BLOCKS)
+    w = sign[np.arange(n) // PER_BLOCK] * x
+    u, p, q = rng.normal(0.0, 1.0, (3, n))
+    y = 2.0 + 3.0 * u + k * x + b * w + c * q + rng.normal(0.0, 1.0, n)
+    one = np.ones((n, 1))
+    cols = {
+        "offset": one,
+        "spring": np.column_stack([x, -one[:, 0]]),
+        "presliding": u[:, None],
+        "maxwell_slip": np.column_stack([u, w]),
+        "lowpass": p[:, None],
+        "sensor_creep": np.column_stack([p, q]),
+    }
+    return LinearUnit(y, cols, BLOCKS)
 
 
-def _nested(unit: _Linear, order: tuple[str, ...]) -> set[str]:
+def _nested(unit: LinearUnit, order: tuple[str, ...]) -> set[str]:
     sel = Selector(unit, Thresholds())
     model = sel.fit({e: np.zeros(unit.cols[e].shape[1]) for e in order}, {})
     got, names = sel._prefer_nested(model, list(order))
@@ -94,7 +61,7 @@ def _nested(unit: _Linear, order: tuple[str, ...]) -> set[str]:
     b=st.floats(0.0, 0.4),
 )
 def test_the_nested_check_does_not_depend_on_the_order_kept(seed, k, b) -> None:
-    unit = _Linear(seed, k, b)
+    unit = _linear(seed, k, b)
     kept = ("maxwell_slip", "spring")
     outcomes = {frozenset(_nested(unit, order)) for order in itertools.permutations(kept)}
     assert len(outcomes) == 1, outcomes
@@ -106,7 +73,7 @@ def test_a_replacement_does_not_weaken_the_next_test(seed) -> None:
     beats the offset on the selected model: the spring stays whichever was kept first
     (decided one after the other, Maxwell-slip first, the offset took the spring's place
     on the model with presliding)."""
-    unit = _Linear(seed, k=0.4, b=0.2)
+    unit = _linear(seed, k=0.4, b=0.2)
     for order in (("maxwell_slip", "spring"), ("spring", "maxwell_slip")):
         assert _nested(unit, order) == {"presliding", "spring"}, order
 
@@ -116,7 +83,7 @@ def test_replacements_that_lose_together_stop_at_the_weakest() -> None:
     test against the simpler effect in their place (held-out z 2.8 and 1.9 on this draw),
     together they are not (z 4.4): the weaker one (sensor creep) gives way to lowpass,
     Maxwell-slip stays."""
-    unit = _Linear(0, k=0.0, b=0.2, c=0.05)
+    unit = _linear(0, k=0.0, b=0.2, c=0.05)
     sel = Selector(unit, Thresholds())
     kept = ("maxwell_slip", "sensor_creep")
     model = sel.fit({e: np.zeros(unit.cols[e].shape[1]) for e in kept}, {})

@@ -28,6 +28,7 @@ from gateway.diagnose.pooling import (
 from gateway.diagnose.selection import Model, Outcome, Selector, Thresholds
 from gateway.diagnose.significance import Tested as Scored
 from gateway.diagnose.significance import candidate_tests
+from tests.diagnose.linear_unit import LinearUnit
 from tests.diagnose_helpers import Foreign, check_report, generate, recording_of
 
 estimates = st.lists(
@@ -146,56 +147,15 @@ def test_clean_four_cables_give_no_finding() -> None:
     assert rep["findings"] == []
 
 
-class _Linear:
-    """A cable whose effects are linear columns (the selector's :class:`Unit`): ``offset``
-    a constant, ``spring`` the length and a constant (it nests the offset), ``gain`` the
-    tension; fitted by least squares on the training blocks."""
-
-    def __init__(self, y: np.ndarray, x: np.ndarray, tension: np.ndarray) -> None:
-        n = y.size
-        self.y = y
-        self.cols = {
-            "offset": np.ones((n, 1)),
-            "spring": np.column_stack([x, -np.ones(n)]),
-            "gain": tension[:, None],
-        }
-        self.candidates = list(self.cols)
-        self.n_blocks = 40
-        self.blocks = np.arange(n) * self.n_blocks // n
-        self.train = self.blocks % 2 == 0
-        self.test = self.blocks % 2 == 1
-
-    def _model(self, theta: dict[str, np.ndarray], stderr=None) -> Model:
-        pred = sum((self.cols[e] @ v for e, v in theta.items()), np.zeros(self.y.size))
-        se = stderr or {e: np.full(v.size, np.nan) for e, v in theta.items()}
-        return Model(dict(theta), {e: None for e in theta}, se, self.y - pred)
-
-    def empty(self) -> Model:
-        return self._model({})
-
-    def evaluate(self, theta, specs) -> Model:
-        return self._model(theta)
-
-    def fit(self, theta, specs, nfev: int = 60) -> Model:
-        names = list(theta)
-        a = np.column_stack([self.cols[e] for e in names])
-        at, yt = a[self.train], self.y[self.train]
-        coef, *_ = np.linalg.lstsq(at, yt, rcond=None)
-        var = float(np.mean((yt - at @ coef) ** 2)) * np.diag(np.linalg.pinv(at.T @ at))
-        out, se, j = {}, {}, 0
-        for e in names:
-            w = self.cols[e].shape[1]
-            out[e], se[e], j = coef[j : j + w], np.sqrt(var[j : j + w]), j + w
-        return self._model(out, se)
-
-    def screen(self, model: Model, effect: str) -> Model:
-        return self.fit({**model.kept, effect: np.zeros(self.cols[effect].shape[1])}, None)
-
-    def significance(self, model: Model, effect: str) -> float:
-        return 10.0
+def _linear(y: np.ndarray, x: np.ndarray, tension: np.ndarray) -> LinearUnit:
+    """A cable whose effects are linear columns: ``offset`` a constant, ``spring`` the
+    length and a constant (it nests the offset), ``gain`` the tension."""
+    one = np.ones(y.size)
+    cols = {"offset": one[:, None], "spring": np.column_stack([x, -one]), "gain": tension[:, None]}
+    return LinearUnit(y, cols)
 
 
-def _cable(spring_k: float, seed: int, offset: float = 5.0) -> _Linear:
+def _cable(spring_k: float, seed: int, offset: float = 5.0) -> LinearUnit:
     """A cable with an ``offset`` and a 4 % gain (and a spring of ``spring_k`` N/m), its
     length and tension varying together (so a spring stands in for part of the offset and
     gain), 2 N of noise."""
@@ -204,7 +164,7 @@ def _cable(spring_k: float, seed: int, offset: float = 5.0) -> _Linear:
     x = 2.0 + 0.5 * np.sin(np.linspace(0.0, 12.0, n))
     tension = 100.0 + 40.0 * (x - 2.0) + 5.0 * np.sin(np.linspace(0.0, 31.0, n))
     y = offset + 0.04 * tension + spring_k * (x - 2.0) + rng.normal(0.0, 2.0, n)
-    return _Linear(y, x, tension)
+    return _linear(y, x, tension)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -302,14 +262,14 @@ def test_of_two_common_effects_that_nest_the_simpler_is_common(springs, offsets,
     assert not pooled["spring"].common
 
 
-def _spread(seed: int, offset: float) -> _Linear:
+def _spread(seed: int, offset: float) -> LinearUnit:
     """A cable of :func:`_cable`'s kind with its length and tension apart (a gain and an
     offset told apart) and ``offset`` N on it, 2 N of noise."""
     rng = np.random.default_rng(seed)
     n = 4000
     x = 2.0 + 0.5 * np.sin(np.linspace(0.0, 12.0, n) + seed)
     tension = 100.0 + 60.0 * np.sin(np.linspace(0.0, 31.0, n) + 2.0 * seed)
-    return _Linear(offset + 0.04 * tension + rng.normal(0.0, 2.0, n), x, tension)
+    return _linear(offset + 0.04 * tension + rng.normal(0.0, 2.0, n), x, tension)
 
 
 def _machine(offset: float, seed: int, cables: int = 8) -> tuple[list[Scored], dict]:
