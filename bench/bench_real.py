@@ -2,10 +2,13 @@
 (:mod:`evaluation.realsuite`): EMPS against the published identification, the da Vinci
 transmission against the baseline on two validation sets.
 
-``python -m bench real`` (~6 min) reads the datasets from ``$REAL_DATA`` (default: the
-shared data directory next to the checkout, ``../shared/data/real``) and prints the
-section; with ``REAL_TABLE=docs/diagnose-suite.md`` it also writes it there (the file's
-other sections are kept). ``REAL_REFITS=0`` skips the two refits on the validation sets.
+``python -m bench real`` (~6 min) reads the datasets from ``$REAL_DATA``: a folder
+holding ``emps/`` and ``davinci/`` as their publishers ship them (the datasets and the
+files read: ``evaluation/realdata.py``, which converts them; never copied into the
+project; without ``$REAL_DATA``, a ``data/real`` folder beside the checkout's parent is
+tried), and prints the section; with ``REAL_TABLE=docs/diagnose-suite.md`` it also writes
+it there (the file's other sections are kept). ``REAL_REFITS=0`` skips the two refits on
+the validation sets.
 """
 
 from __future__ import annotations
