@@ -263,21 +263,6 @@ def _worker() -> None:
     print(json.dumps(res))
 
 
-def _tree_of(rev: str, tmp: str) -> Path | None:
-    """``git archive`` of ``rev`` unpacked under ``tmp``; None when not a git checkout."""
-    try:
-        archive = subprocess.run(
-            ["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True
-        ).stdout
-    except (OSError, subprocess.CalledProcessError) as exc:
-        print(f"  base {rev}: not available ({exc}); this tree only")
-        return None
-    dest = Path(tmp) / "base"
-    dest.mkdir()
-    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
-    return dest
-
-
 def _run_in(tree: Path, cycles: int) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"}
     env.pop("NUMBA_CACHE_DIR", None)
@@ -310,7 +295,10 @@ def run() -> None:
         f"{cycles} cycles x {rounds} rounds, p50 / p99 / p99.9 us"
     )
     with tempfile.TemporaryDirectory(prefix="bench-cycle-") as tmp:
-        base = _tree_of(base_rev, tmp) if base_rev != "none" else None
+        # imported here: the worker runs this file against an older tree on its path
+        from bench.trees import tree_of
+
+        base = tree_of(base_rev, tmp) if base_rev != "none" else None
         trees = (
             {"this tree": ROOT} if base is None else {f"base {base_rev}": base, "this tree": ROOT}
         )

@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench.trees import tree_of
+
 ROOT = Path(__file__).resolve().parent.parent
 MODEL = ROOT / "config" / "default.yaml"
 CONFIG = ROOT / "config" / "calibrate" / "viscous.yaml"
@@ -61,22 +63,6 @@ def _findings(report: Path) -> str:
     return ", ".join(sorted({f["effect"] for f in found})) or "none"
 
 
-def _base_tree(rev: str, tmp: Path) -> Path | None:
-    if rev == "none":
-        return None
-    try:
-        archive = subprocess.run(
-            ["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True
-        ).stdout
-    except (OSError, subprocess.CalledProcessError) as exc:
-        print(f"  base {rev}: not available ({exc})")
-        return None
-    dest = tmp / "base"
-    dest.mkdir()
-    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
-    return dest
-
-
 def _diagnose(recs: list[Path], out: Path, tree: Path) -> tuple[float, float, float, str]:
     model = tree / MODEL.relative_to(ROOT)  # each tree reads its own config's keys
     argv = ["diagnose", *map(str, recs), "--model", str(model), "--json", str(out), "--quiet"]
@@ -102,7 +88,7 @@ def run() -> None:
         def line(what: str, cpu: float, rss: float, wall: float, found: str) -> None:
             print(f"  {what:<29} {cpu:7.1f}  {rss:12.0f}  {wall:6.1f}  {found}", flush=True)
 
-        base = _base_tree(base_rev, tmp)
+        base = None if base_rev == "none" else tree_of(base_rev, tmp)
         if base is not None:
             _diagnose(recs[:1], tmp / "base.json", base)  # compiles its kernels: not timed
             b = _diagnose(recs[:1], tmp / "base.json", base)

@@ -433,9 +433,7 @@ class Selector:
                 name = simpler.name
                 if name in model.kept or name not in self.candidates:
                     continue
-                rest, rest_specs = model.without(effect)
-                s = self.unit.screen(self.unit.evaluate(rest, rest_specs), name)
-                trial = self.fit(s.kept, s.specs)
+                trial = self._in_place(model, effect, name)
                 if not self.accept(trial, model, self.th.z_holdout):
                     failing.append((self.z(trial, model), effect, name))
                     break
@@ -443,27 +441,29 @@ class Selector:
         for _, effect, name in sorted(failing):
             if name in replaced.values():
                 continue  # two effects nesting one: the weaker one's place
-            rest = {k: v for k, v in model.kept.items() if k != effect}
-            current = self.unit.evaluate(rest, {k: model.specs[k] for k in rest})
-            s = self.unit.screen(current, name)
-            trial = self.fit(s.kept, s.specs)
+            trial = self._in_place(model, effect, name)
             if self.accept(trial, selected, self.th.z_holdout):
                 break  # together the replacements lose beyond chance: stop here
             model, replaced[effect] = trial, name
         return model, [replaced.get(e, e) for e in order]
+
+    def _in_place(self, model: Model, effect: str, other: str, **fit: Any) -> Model:
+        """``model`` with ``other`` fitted jointly in ``effect``'s place (screened on the
+        model without ``effect``, then refitted with the rest)."""
+        rest, rest_specs = model.without(effect)
+        s = self.unit.screen(self.unit.evaluate(rest, rest_specs), other)
+        return self.fit(s.kept, s.specs, **fit)
 
     def _rivals(self, model: Model) -> dict[str, list[Rival]]:
         """Swap each kept effect of a group for each rival; compare on held-out blocks."""
         result: dict[str, list[Rival]] = {}
         for effect in model.kept:
             rows = []
-            rest, rest_specs = model.without(effect)
+            rest, _ = model.without(effect)
             for rival in rivals(effect):
                 if rival in model.kept or rival not in self.candidates or overlaps(rival, rest):
                     continue
-                base = self.unit.evaluate(rest, rest_specs)
-                s = self.unit.screen(base, rival)
-                fit = self.fit(s.kept, s.specs, nfev=30)
+                fit = self._in_place(model, effect, rival, nfev=30)
                 z = self.z(fit, model)
                 rows.append(
                     Rival(
